@@ -1,0 +1,24 @@
+"""Shared test set-up: a per-session cache folder, and the Mitsuba backend on demand."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+# Keep generated caches (prepared meshes, panoramas) inside the repo's ignored .cache
+# folder so tests never depend on a user's home directory state.
+os.environ.setdefault("CAMO_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "camo"))
+
+
+@pytest.fixture(scope="session")
+def mi_backend():
+    """Initialise the Mitsuba backend once; returns ``(mi, dr)``."""
+    from optimizer import backend
+
+    backend.init()
+    import drjit as dr
+    import mitsuba as mi
+
+    return mi, dr
