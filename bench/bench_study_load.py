@@ -1,0 +1,396 @@
+"""Load and crash benchmark of the study site (loopback only, bounded, stops by itself).
+
+1. Builds a small fake stimulus set, starts ``camo study serve`` (waitress when installed,
+   else werkzeug threaded) in a subprocess on 127.0.0.1 with a SQLite database.
+2. Load phase: N concurrent simulated participants (threads + http.client) run full sessions
+   (landing, consent, about, instructions, state, image preload, every trial, completion).
+   Prints p50/p90/p99 latency of trial writes and lost / duplicated trial counts; each client
+   also re-sends one acknowledged trial (same and new client id) to exercise idempotency.
+3. Crash phase: another N participants; when ~35% of their trials are acknowledged the server
+   is killed with SIGKILL and restarted on the same database and port; clients retry until
+   acknowledged. Verifies that every acknowledged trial is in the database exactly once.
+
+Usage: python bench/bench_study_load.py [--participants 200] [--scenes 6] [--time-limit 240]
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import random
+import re
+import signal
+import socket
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.parse
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+HOST = "127.0.0.1"  # loopback only
+CSRF_RE = re.compile(r'name="csrf_token" value="([^"]+)"')
+COOKIE = "camo_study"
+
+
+class Deadline(Exception):
+    pass
+
+
+class Client:
+    """One simulated participant: its own cookie and keep-alive connection; retries until answered."""
+
+    def __init__(self, port: int, pid: str, deadline: float, stats: "Stats", think=(0.0, 0.03)):
+        self.port, self.pid, self.deadline, self.stats, self.think = port, pid, deadline, stats, think
+        self.conn: http.client.HTTPConnection | None = None
+        self.cookie = ""
+        self.csrf = ""
+        self.acked: dict[int, str] = {}  # trial index -> client_trial_id acknowledged
+
+    def _conn(self):
+        if self.conn is None:
+            self.conn = http.client.HTTPConnection(HOST, self.port, timeout=30)
+        return self.conn
+
+    def request(self, method, path, body=None, headers=None, retry=True):
+        """(status, headers, body, seconds) of the first answer that is not a transport error/5xx/429."""
+        delay = 0.05
+        while True:
+            if time.monotonic() > self.deadline:
+                raise Deadline()
+            h = {"Cookie": f"{COOKIE}={self.cookie}"} if self.cookie else {}
+            h.update(headers or {})
+            t0 = time.perf_counter()
+            try:
+                c = self._conn()
+                c.request(method, path, body=body, headers=h)
+                r = c.getresponse()
+                data = r.read()
+                dt = time.perf_counter() - t0
+                for k, v in r.getheaders():
+                    if k.lower() == "set-cookie" and v.startswith(COOKIE + "="):
+                        self.cookie = v.split(";", 1)[0].split("=", 1)[1]
+                if r.status in (429, 500, 502, 503, 504) and retry:
+                    self.stats.count(f"http_{r.status}")
+                else:
+                    return r.status, r, data, dt
+            except (OSError, http.client.HTTPException):
+                self.stats.count("transport_errors")
+                if self.conn is not None:
+                    self.conn.close()
+                self.conn = None
+                if not retry:
+                    raise
+            time.sleep(delay * (1 + random.random()))
+            delay = min(delay * 2, 1.0)
+
+    def form(self, path, fields):
+        body = urllib.parse.urlencode(dict(fields, csrf_token=self.csrf))
+        st, _, _, _ = self.request("POST", path, body, {"Content-Type": "application/x-www-form-urlencoded"})
+        if st != 302:
+            raise RuntimeError(f"{self.pid}: POST {path} -> {st}")
+
+    def api(self, path, obj):
+        body = json.dumps(obj)
+        st, _, data, dt = self.request(
+            "POST", path, body, {"Content-Type": "application/json", "X-CSRF-Token": self.csrf}
+        )
+        return st, (json.loads(data) if data[:1] == b"{" else {}), dt
+
+    def session(self, images: bool, rng: random.Random):
+        st, r, _, _ = self.request("GET", f"/?PROLIFIC_PID={self.pid}&STUDY_ID=bench&SESSION_ID=s{self.pid}")
+        if st != 302:
+            raise RuntimeError(f"{self.pid}: landing -> {st}")
+        st, _, html, _ = self.request("GET", "/consent")
+        self.csrf = CSRF_RE.search(html.decode()).group(1)
+        self.form("/consent", {"consent": "yes"})
+        self.form("/about-you", {"age": rng.choice(["20-30", "30-40", "prefer_not", ""])})
+        self.form("/instructions", {})
+        st, _, data, _ = self.request("GET", "/api/state")
+        state = json.loads(data)
+        if images:
+            for t in state["trials"]:
+                self.request("GET", t["src"])
+        first = None
+        for t in state["trials"]:
+            time.sleep(rng.uniform(*self.think))  # search + looking at the reveal
+            timed_out = rng.random() < 0.1
+            body = {"trial_index": t["index"], "client_trial_id": f"{self.pid}-{t['index']}-{rng.getrandbits(40):x}",
+                    "timed_out": timed_out, "rt_ms": rng.uniform(300, 9000)}
+            if not timed_out:
+                body.update(x=rng.randrange(t["w"]), y=rng.randrange(t["h"]))
+            st, j, dt = self.api("/api/trial", body)
+            if st != 200 or j.get("stored_client_trial_id") != body["client_trial_id"]:
+                self.stats.count("unexpected_trial_answers")
+                raise RuntimeError(f"{self.pid}: trial {t['index']} -> {st} {j}")
+            self.stats.trial_latency(dt)
+            self.acked[t["index"]] = body["client_trial_id"]
+            self.stats.ack()
+            if first is None:
+                first = body
+                # idempotency: the same answer again (lost ack) and a new client id for the same trial
+                st2, j2, _ = self.api("/api/trial", body)
+                st3, j3, _ = self.api("/api/trial", dict(body, client_trial_id=body["client_trial_id"] + "b"))
+                if not (st2 == st3 == 200 and j2["duplicate"] and j3["duplicate"]
+                        and j3["stored_client_trial_id"] == body["client_trial_id"]):
+                    self.stats.count("idempotency_failures")
+        st, j, _ = self.api("/api/complete", {})
+        if st != 200:
+            raise RuntimeError(f"{self.pid}: complete -> {st} {j}")
+        self.stats.count("completed")
+
+
+class Stats:
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.latencies: list[float] = []
+        self.counts: dict[str, int] = {}
+        self.acks = 0
+
+    def count(self, key, n=1):
+        with self.lock:
+            self.counts[key] = self.counts.get(key, 0) + n
+
+    def trial_latency(self, dt):
+        with self.lock:
+            self.latencies.append(dt)
+
+    def ack(self):
+        with self.lock:
+            self.acks += 1
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind((HOST, 0))
+        return s.getsockname()[1]
+
+
+def start_server(stim: Path, db: Path, port: int, threads: int, log) -> subprocess.Popen:
+    env = dict(os.environ)
+    env.update(
+        CAMO_STUDY_RATE_LIMIT_PER_S="200",
+        CAMO_STUDY_RATE_LIMIT_BURST="400",
+        CAMO_STUDY_NEW_PARTICIPANTS_PER_MIN="100000",
+        PYTHONPATH=str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""),
+    )
+    cmd = [sys.executable, "-m", "study_site.cli", "study", "serve", "--stimuli", str(stim), "--db", str(db),
+           "--host", HOST, "--port", str(port), "--threads", str(threads)]
+    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, cwd=str(ROOT))
+    t_end = time.monotonic() + 60
+    while time.monotonic() < t_end:
+        if proc.poll() is not None:
+            raise RuntimeError(f"server exited with {proc.returncode}")
+        try:
+            c = http.client.HTTPConnection(HOST, port, timeout=2)
+            c.request("GET", "/healthz")
+            if c.getresponse().status == 200:
+                return proc
+        except OSError:
+            time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("server did not start within 60 s")
+
+
+def run_phase(name, port, n, images, deadline, stats, seed, think, on_progress=None):
+    clients = [Client(port, f"{name}{i:04d}", deadline, stats, think) for i in range(n)]
+    errors: list[str] = []
+
+    def work(c, k):
+        try:
+            c.session(images, random.Random(seed * 100003 + k))
+        except Deadline:
+            stats.count("deadline_hit")
+        except Exception as exc:  # noqa: BLE001 - recorded and reported
+            errors.append(f"{c.pid}: {exc}")
+
+    threads = [threading.Thread(target=work, args=(c, k), daemon=True) for k, c in enumerate(clients)]
+    for t in threads:
+        t.start()
+    while any(t.is_alive() for t in threads):
+        if on_progress:
+            on_progress()
+        time.sleep(0.05)
+    return clients, errors
+
+
+def verify(db: Path, clients) -> dict:
+    """Every acknowledged trial is in the database with the acknowledged client id, exactly once."""
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30)
+    rows = con.execute("SELECT client_trial_id, participant_id, trial_index FROM trials").fetchall()
+    dup_keys = con.execute(
+        "SELECT COUNT(*) FROM (SELECT participant_id, trial_index FROM trials GROUP BY 1, 2 HAVING COUNT(*) > 1)"
+    ).fetchone()[0]
+    integrity = con.execute("PRAGMA integrity_check").fetchone()[0]
+    con.close()
+    stored = {cid for cid, _, _ in rows}
+    acked = {cid for c in clients for cid in c.acked.values()}
+    by_pid_prefix = {}
+    for cid in stored:
+        by_pid_prefix.setdefault(cid.rsplit("-", 2)[0], []).append(cid)
+    return {
+        "acked": len(acked),
+        "lost": len(acked - stored),
+        "duplicate_rows": dup_keys,
+        "stored_but_not_acked": len(
+            [cid for cid in stored if cid.rsplit("-", 2)[0] in {c.pid for c in clients} and cid not in acked]
+        ),
+        "integrity": integrity,
+    }
+
+
+def pct(xs, q):
+    if not xs:
+        return float("nan")
+    xs = sorted(xs)
+    return xs[min(len(xs) - 1, int(round(q / 100 * (len(xs) - 1))))]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--participants", type=int, default=200)
+    ap.add_argument("--scenes", type=int, default=6)
+    ap.add_argument("--practice", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=16, help="server worker threads")
+    ap.add_argument("--no-images", action="store_true", help="skip the image preload requests")
+    ap.add_argument(
+        "--think",
+        default="2,6",
+        metavar="MIN,MAX",
+        help="seconds between a participant's trials, uniform (default 2,6: search time plus looking at the "
+        "reveal; 0,0.03 makes it a saturation test)",
+    )
+    ap.add_argument("--time-limit", type=float, default=240.0, help="seconds for the whole benchmark")
+    ap.add_argument("--json", help="also write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    if not 1 <= args.participants <= 1000 or not 1 <= args.scenes <= 50:
+        ap.error("--participants must be 1-1000 and --scenes 1-50")
+    try:
+        think = tuple(float(x) for x in args.think.split(","))
+        assert len(think) == 2 and 0 <= think[0] <= think[1] <= 60
+    except (ValueError, AssertionError):
+        ap.error("--think must be MIN,MAX seconds, 0 <= MIN <= MAX <= 60")
+    t_all = time.monotonic()
+    deadline = t_all + args.time_limit
+
+    from study_site.stimuli import build_stimuli
+    from study_site.testing import make_fake_eval_dir
+
+    results: dict = {"participants": args.participants, "scenes": args.scenes, "practice": args.practice,
+                     "think_s": think}
+    with tempfile.TemporaryDirectory(prefix="bench_study_") as tmp:
+        tmp = Path(tmp)
+        scenes = tuple(f"scene{i:02d}" for i in range(args.scenes))
+        make_fake_eval_dir(tmp / "eval", scenes=scenes, methods=("ours", "random", "gan"), views=2, size=(256, 192))
+        build_stimuli([tmp / "eval"], tmp / "stim", log=lambda m: None)
+        db = tmp / "study.sqlite"
+        port = free_port()
+        log = open(tmp / "server.log", "wb")
+        env_cfg = {"practice": args.practice}
+        os.environ["CAMO_STUDY_PRACTICE_TRIALS"] = str(env_cfg["practice"])
+        proc = start_server(tmp / "stim", db, port, args.threads, log)
+        server_kind = "waitress" if b"waitress" in (tmp / "server.log").read_bytes() else "werkzeug"
+        results["server"] = server_kind
+        try:
+            # ---- load phase ---------------------------------------------------------------
+            stats = Stats()
+            t0 = time.monotonic()
+            phase_deadline = min(deadline, t0 + args.time_limit * 0.5)
+            clients, errors = run_phase(
+                "load", port, args.participants, not args.no_images, phase_deadline, stats, 1, think
+            )
+            wall = time.monotonic() - t0
+            v = verify(db, clients)
+            lat = [x * 1000 for x in stats.latencies]
+            results["load"] = {
+                "wall_s": round(wall, 2),
+                "completed": stats.counts.get("completed", 0),
+                "trial_writes": len(lat),
+                "writes_per_s": round(len(lat) / wall, 1),
+                "p50_ms": round(pct(lat, 50), 2),
+                "p90_ms": round(pct(lat, 90), 2),
+                "p99_ms": round(pct(lat, 99), 2),
+                "max_ms": round(max(lat), 2) if lat else None,
+                "mean_ms": round(statistics.fmean(lat), 2) if lat else None,
+                "counts": stats.counts,
+                "errors": errors[:5],
+                **v,
+            }
+            print(f"[load] {args.participants} concurrent participants x {args.practice + args.scenes} trials, "
+                  f"think {think[0]:g}-{think[1]:g} s, server={server_kind}, wall {wall:.1f} s, "
+                  f"completed {results['load']['completed']}")
+            print(f"[load] trial writes: n={len(lat)} ({results['load']['writes_per_s']}/s), "
+                  f"p50 {results['load']['p50_ms']} ms, p90 {results['load']['p90_ms']} ms, "
+                  f"p99 {results['load']['p99_ms']} ms, max {results['load']['max_ms']} ms")
+            print(f"[load] acknowledged {v['acked']}, lost {v['lost']}, duplicated rows {v['duplicate_rows']}, "
+                  f"idempotency failures {stats.counts.get('idempotency_failures', 0)}, "
+                  f"errors {len(errors)}, integrity {v['integrity']}")
+
+            # ---- crash phase --------------------------------------------------------------
+            stats2 = Stats()
+            expected = args.participants * (args.practice + args.scenes)
+            state = {"proc": proc, "killed_at_acks": None, "restart_s": None}
+
+            def maybe_crash():
+                if state["killed_at_acks"] is None and stats2.acks >= 0.35 * expected:
+                    state["killed_at_acks"] = stats2.acks
+                    state["proc"].send_signal(signal.SIGKILL)
+                    state["proc"].wait()
+                    t_r = time.monotonic()
+                    time.sleep(0.5)
+                    state["proc"] = start_server(tmp / "stim", db, port, args.threads, log)
+                    state["restart_s"] = round(time.monotonic() - t_r, 2)
+
+            t0 = time.monotonic()
+            clients2, errors2 = run_phase(
+                "crash", port, args.participants, False, deadline, stats2, 2, think, maybe_crash
+            )
+            wall2 = time.monotonic() - t0
+            proc = state["proc"]
+            v2 = verify(db, clients2)
+            results["crash"] = {
+                "wall_s": round(wall2, 2),
+                "killed_after_acks": state["killed_at_acks"],
+                "down_and_restart_s": state["restart_s"],
+                "completed": stats2.counts.get("completed", 0),
+                "counts": stats2.counts,
+                "errors": errors2[:5],
+                **v2,
+            }
+            print(f"[crash] SIGKILL after {state['killed_at_acks']} of {expected} acknowledged trials, "
+                  f"back up after {state['restart_s']} s; completed {results['crash']['completed']}/{args.participants}, "
+                  f"transport errors {stats2.counts.get('transport_errors', 0)}")
+            print(f"[crash] acknowledged {v2['acked']}, lost {v2['lost']}, duplicated rows {v2['duplicate_rows']}, "
+                  f"committed-but-unacknowledged {v2['stored_but_not_acked']}, errors {len(errors2)}, "
+                  f"integrity {v2['integrity']}")
+        finally:
+            if proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+            log.close()
+    results["total_s"] = round(time.monotonic() - t_all, 1)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+    ok = (
+        results["load"]["lost"] == 0
+        and results["load"]["duplicate_rows"] == 0
+        and results.get("crash", {}).get("lost", 1) == 0
+        and results["crash"]["duplicate_rows"] == 0
+    )
+    print(f"total {results['total_s']} s: {'OK' if ok else 'FAILED'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""camo evaluation: rendered views, image metrics (``evaluation.metrics``), benchmark tables and reports."""

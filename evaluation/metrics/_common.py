@@ -1,0 +1,130 @@
+"""Input checks shared by the image metrics.
+
+Every metric takes a batch ``(N, 3, H, W)`` of **sRGB-encoded** values in ``[0, 1]`` (``float32``; ``float64``
+is kept as it is). :func:`to_batch` also accepts NumPy images ``(H, W, 3)`` / ``(N, H, W, 3)`` and ``uint8``
+(divided by 255).
+
+Range policy (HDR input): values in ``[-RANGE_TOL, data_range + RANGE_TOL]`` are clamped to
+``[0, data_range]`` (float round-off of :func:`optimizer.imaging.linear_to_srgb`); anything further outside,
+NaN or infinity raises :class:`~optimizer.errors.CamoError`. Linear HDR radiance is never clipped silently:
+encode it first with ``optimizer.imaging.linear_to_srgb`` (which tone-clips to ``[0, 1]``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Iterator, Union
+
+import numpy as np
+import torch
+
+from optimizer.errors import CamoError
+
+ImageLike = Union[torch.Tensor, np.ndarray]
+
+#: Out-of-range values up to this far outside ``[0, data_range]`` are clamped; further ones are rejected.
+RANGE_TOL = 1e-4
+
+#: Smallest image side (pixels) each metric accepts; smaller images raise CamoError.
+#: psnr: any size. ssim: the 11x11 window must fit once. haarpsi / lpips_proxy: the coarsest Haar filter
+#: (8x8 after the 2x subsampling). lpips: AlexNet needs 31 px to reach relu5 (32 for both nets).
+#: sifid: the Inception stem (stride 2, two valid 3x3 convs) must leave at least 2x2 positions; the proxy
+#: uses the same floor so both SIFIDs accept the same crops. dreamsim resizes to 224 px.
+MIN_SIZE = {
+    "psnr": 1,
+    "ssim": 11,
+    "haarpsi": 16,
+    "lpips_proxy": 16,
+    "lpips": 32,
+    "sifid": 32,
+    "sifid_proxy": 32,
+    "dreamsim": 32,
+}
+
+
+def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torch.Tensor:
+    """Return ``x`` as a ``(N, 3, H, W)`` float tensor in ``[0, data_range]`` (see the module's range policy).
+
+    Accepted: torch ``(N, 3, H, W)`` or ``(3, H, W)``; NumPy ``(H, W, 3)`` or ``(N, H, W, 3)`` (float, or
+    ``uint8`` which is divided by 255 and then scaled to ``data_range``). Float tensors keep their dtype if it is
+    ``float64``, anything else becomes ``float32``. Gradients flow through (the clamp is the only op).
+    """
+    if isinstance(x, np.ndarray):
+        arr = x
+        if arr.dtype == np.uint8:
+            arr = arr.astype(np.float32) * np.float32(data_range / 255.0)
+        elif arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
+            raise CamoError(f"{name}: expected a numeric image array, got dtype {arr.dtype}")
+        if arr.ndim == 3:
+            arr = arr[None]
+        if arr.ndim != 4 or arr.shape[-1] != 3:
+            raise CamoError(f"{name}: expected a NumPy image (H, W, 3) or (N, H, W, 3), got shape {tuple(x.shape)}")
+        t = torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2)
+    elif isinstance(x, torch.Tensor):
+        t = x
+        if t.ndim == 3:
+            t = t[None]
+        if t.ndim != 4 or t.shape[1] != 3:
+            raise CamoError(f"{name}: expected a tensor (N, 3, H, W) or (3, H, W), got shape {tuple(x.shape)}")
+        if t.dtype == torch.uint8:
+            t = t.float() * (data_range / 255.0)
+    else:
+        raise CamoError(f"{name}: expected a torch.Tensor or numpy.ndarray, got {type(x).__name__}")
+    if t.dtype != torch.float64:
+        t = t.float()
+    if t.numel() == 0:
+        raise CamoError(f"{name}: empty image, shape {tuple(t.shape)}")
+    with torch.no_grad():
+        lo, hi = float(t.amin()), float(t.amax())  # NaN propagates into both; 10x faster than aminmax
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise CamoError(f"{name}: contains NaN or infinite values")
+    if lo < -RANGE_TOL or hi > data_range + RANGE_TOL:
+        raise CamoError(
+            f"{name}: values in [{lo:.4g}, {hi:.4g}] are outside [0, {data_range:g}]; metrics take sRGB-encoded "
+            "images (encode HDR/linear radiance with optimizer.imaging.linear_to_srgb, which tone-clips)"
+        )
+    if lo < 0.0 or hi > data_range:
+        t = t.clamp(0.0, data_range)
+    return t
+
+
+def check_size(t: torch.Tensor, metric: str, name: str = "image") -> None:
+    """Raise CamoError when ``t``'s smaller side is below ``MIN_SIZE[metric]``."""
+    need = MIN_SIZE[metric]
+    h, w = int(t.shape[-2]), int(t.shape[-1])
+    if min(h, w) < need:
+        raise CamoError(f"{metric}: {name} is {h}x{w} px; this metric needs at least {need}x{need} px")
+
+
+def prepare_pair(
+    x: ImageLike, y: ImageLike, metric: str, data_range: float = 1.0, same_size: bool = True
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Convert and check an image pair for ``metric``: same batch size (and size unless ``same_size=False``),
+    at least ``MIN_SIZE[metric]`` px, values in ``[0, data_range]``. Both get the wider of the two dtypes."""
+    if data_range <= 0:
+        raise CamoError(f"{metric}: data_range must be > 0, got {data_range}")
+    tx = to_batch(x, "x", data_range)
+    ty = to_batch(y, "y", data_range)
+    if same_size and tx.shape != ty.shape:
+        raise CamoError(f"{metric}: image shapes differ: {tuple(tx.shape)} vs {tuple(ty.shape)}")
+    if tx.shape[0] != ty.shape[0]:
+        raise CamoError(f"{metric}: batch sizes differ: {tx.shape[0]} vs {ty.shape[0]}")
+    check_size(tx, metric, "x")
+    check_size(ty, metric, "y")
+    if tx.dtype != ty.dtype:
+        tx, ty = tx.double(), ty.double()
+    if tx.device != ty.device:
+        raise CamoError(f"{metric}: images are on different devices ({tx.device} vs {ty.device})")
+    return tx, ty
+
+
+#: Images are processed in chunks of about this many pixels: a 256x256 image's filtered maps then stay in the
+#: CPU cache, which makes the depthwise convolutions 5-8x faster than one pass over a large batch.
+CHUNK_PIXELS = 1 << 16
+
+
+def chunks(t: torch.Tensor, pixels: int = CHUNK_PIXELS) -> Iterator[slice]:
+    """Slices of the batch dimension of ``t`` ``(N, C, H, W)`` holding about ``pixels`` pixels each (>= 1 image)."""
+    n, per = int(t.shape[0]), max(1, pixels // max(1, int(t.shape[-2]) * int(t.shape[-1])))
+    for i in range(0, n, per):
+        yield slice(i, min(n, i + per))

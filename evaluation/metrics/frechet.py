@@ -1,0 +1,102 @@
+"""Frechet distance between Gaussians, and the per-image feature statistics that SIFID compares."""
+
+from __future__ import annotations
+
+from typing import Union
+
+import numpy as np
+import torch
+
+from optimizer.errors import CamoError
+
+ArrayLike = Union[np.ndarray, torch.Tensor]
+
+
+def _f64(a: ArrayLike) -> np.ndarray:
+    if isinstance(a, torch.Tensor):
+        a = a.detach().cpu().double().numpy()
+    return np.asarray(a, dtype=np.float64)
+
+
+def trace_sqrt_product(sigma1: ArrayLike, sigma2: ArrayLike) -> float:
+    r""":math:`\operatorname{tr}\sqrt{\Sigma_1 \Sigma_2}` from the eigenvalues of :math:`\Sigma_1 \Sigma_2`.
+
+    For symmetric positive semi-definite matrices the product is similar to the PSD matrix
+    :math:`\Sigma_1^{1/2} \Sigma_2 \Sigma_1^{1/2}`, so its eigenvalues are real and >= 0; round-off can give tiny
+    imaginary parts or negative values, so the real parts are clipped at 0 before the square root.
+    """
+    ev = np.linalg.eigvals(_f64(sigma1) @ _f64(sigma2))
+    return float(np.sqrt(np.clip(ev.real, 0.0, None)).sum())
+
+
+def frechet_distance(
+    mu1: ArrayLike, sigma1: ArrayLike, mu2: ArrayLike, sigma2: ArrayLike, eps: float = 1e-6
+) -> float:
+    r"""Squared Frechet (2-Wasserstein) distance between :math:`N(\mu_1, \Sigma_1)` and :math:`N(\mu_2, \Sigma_2)`.
+
+    .. math:: d^2 = \lVert \mu_1 - \mu_2 \rVert^2 + \operatorname{tr}\Sigma_1 + \operatorname{tr}\Sigma_2
+              - 2 \operatorname{tr}\sqrt{\Sigma_1 \Sigma_2}
+
+    as in FID/SIFID (Heusel et al. 2017; Shaham et al. 2019). The trace of the matrix square root is the sum of
+    the square roots of the (real, clipped >= 0) eigenvalues of :math:`\Sigma_1 \Sigma_2`, in float64, so no
+    ``scipy.linalg.sqrtm`` is needed. Rank-deficient covariances (fewer samples than dimensions, dead ReLU
+    channels, flat images) need no special case here: their zero eigenvalues are simply clipped to 0 and the
+    result stays finite and exact (e.g. ``diag(1, 0)`` vs ``diag(0, 1)`` gives 2). Only if the eigen-solver
+    fails or returns non-finite values is a ridge ``eps * I`` added to both covariances inside the square-root
+    term (pytorch-fid's and SinGAN's fallback). It is not added by default because it moves the result by about
+    ``2 sqrt(eps * var)`` per direction that is flat in one image only (~2e-3 for unit variance), the size of the
+    SIFID values in the paper's Table II. Round-off can make the sum slightly negative; the result is clamped
+    at 0.
+
+    Args:
+        mu1, mu2: means ``(D,)``.
+        sigma1, sigma2: covariances ``(D, D)``, symmetric PSD.
+        eps: ridge used only when the eigen-solver fails (see above).
+
+    Returns:
+        Python float >= 0, in squared feature units; 0 for identical Gaussians.
+    """
+    m1, m2 = np.atleast_1d(_f64(mu1)), np.atleast_1d(_f64(mu2))
+    s1, s2 = np.atleast_2d(_f64(sigma1)), np.atleast_2d(_f64(sigma2))
+    d = m1.shape[0]
+    if m1.shape != m2.shape or s1.shape != (d, d) or s2.shape != (d, d):
+        raise CamoError(
+            f"frechet_distance: shapes do not match: mu {m1.shape} / {m2.shape}, sigma {s1.shape} / {s2.shape}"
+        )
+    if not all(np.isfinite(a).all() for a in (m1, m2, s1, s2)):
+        raise CamoError("frechet_distance: statistics contain NaN or infinite values")
+    if np.array_equal(m1, m2) and np.array_equal(s1, s2):
+        return 0.0  # identical statistics: exactly 0 rather than round-off
+    diff = m1 - m2
+    try:
+        tr_covmean = trace_sqrt_product(s1, s2)
+        ok = np.isfinite(tr_covmean)
+    except np.linalg.LinAlgError:
+        ok = False
+    if not ok:
+        ridge = eps * np.eye(d)
+        tr_covmean = trace_sqrt_product(s1 + ridge, s2 + ridge)
+    value = float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * tr_covmean)
+    return max(value, 0.0)
+
+
+def feature_statistics(features: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``(C,)`` and unbiased covariance ``(C, C)`` (``np.cov(rowvar=False)``) over the positions of one
+    feature map ``(C, H, W)``: every spatial location is one sample, as in SinGAN's SIFID. Float64."""
+    if features.ndim != 3:
+        raise CamoError(f"feature_statistics: expected (C, H, W), got {tuple(features.shape)}")
+    c = features.shape[0]
+    f = features.detach().to("cpu", torch.float64).permute(1, 2, 0).reshape(-1, c)  # (HW, C)
+    if f.shape[0] < 2:
+        raise CamoError("feature_statistics: the feature map has fewer than 2 positions; use a larger image")
+    mu = f.mean(dim=0)
+    fc = f - mu
+    cov = fc.T @ fc / (f.shape[0] - 1)
+    return mu.numpy(), cov.numpy()
+
+
+def frechet_of_feature_maps(fx: torch.Tensor, fy: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Per-image Frechet distance of two batches of feature maps ``(N, C, H, W)`` (sizes may differ);
+    returns ``(N,)`` float64."""
+    out = [frechet_distance(*feature_statistics(a), *feature_statistics(b), eps=eps) for a, b in zip(fx, fy)]
+    return torch.tensor(out, dtype=torch.float64)

@@ -1,0 +1,159 @@
+"""Registry of the image metrics and :func:`compute_metrics`, which fills one score row.
+
+``weights`` (all keys optional; unset ones are looked up as :mod:`evaluation.metrics.weights` describes)::
+
+    {
+        "lpips_net": "alex",          # or "vgg"
+        "lpips_trunk": PATH,          # torchvision AlexNet / VGG16 state dict
+        "lpips_lin": PATH,            # LPIPS v0.1 alex.pth / vgg.pth
+        "sifid": PATH,                # Inception v3 state dict (torchvision key layout)
+        "sifid_variant": "singan",    # or "pytorch-fid"
+        "dreamsim": FOLDER,           # DreamSim cache_dir (required for dreamsim)
+        "dreamsim_type": "ensemble",
+    }
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Optional, Sequence
+
+import torch
+
+from optimizer.errors import CamoError
+
+from ._common import ImageLike, prepare_pair
+from .dreamsim import DREAMSIM_TYPE, dreamsim_distance, load_dreamsim
+from .haarpsi import lpips_proxy
+from .lpips import LPIPS_VERSION, load_lpips, lpips
+from .psnr import psnr
+from .sifid import SIFID_VARIANT, load_sifid_inception, sifid
+from .sifid_proxy import SIFID_PROXY_VARIANT, sifid_proxy
+from .ssim import ssim
+from .weights import find_lpips_lin_weights, find_trunk_weights
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    """One metric: how to compute it on ``(x, y, weights)`` and how to read its value."""
+
+    name: str
+    compute: Callable[[torch.Tensor, torch.Tensor, Mapping[str, Any]], tuple[torch.Tensor, dict[str, Any]]]
+    higher_is_better: bool
+    needs_weights: bool
+    units: str
+    value_range: str
+    description: str
+
+
+def _plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Callable:
+    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+        extra = {"variant": variant} if variant else {}
+        return fn(x, y), extra
+
+    return run
+
+
+def _lpips(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+    net = weights.get("lpips_net", "alex")
+    model = load_lpips(net, weights.get("lpips_trunk"), weights.get("lpips_lin"))
+    sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
+    return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
+
+
+def _sifid(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+    variant = weights.get("sifid_variant", SIFID_VARIANT)
+    model = load_sifid_inception(weights.get("sifid"), variant)
+    return sifid(x, y, model), {"variant": variant, "weights_sha256": model.weights_sha256}
+
+
+_DREAMSIM_MODELS: dict[tuple, Any] = {}
+
+
+def _dreamsim(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+    kind = weights.get("dreamsim_type", DREAMSIM_TYPE)
+    key = (str(weights.get("dreamsim")), kind)
+    if key not in _DREAMSIM_MODELS:
+        _DREAMSIM_MODELS[key] = load_dreamsim(weights.get("dreamsim"), kind)
+    model = _DREAMSIM_MODELS[key]
+    return dreamsim_distance(x, y, model), {"variant": kind, "weights_sha256": model.camo_weights_sha256}
+
+
+METRICS: dict[str, MetricSpec] = {
+    "psnr": MetricSpec("psnr", _plain(psnr), True, False, "dB", "[0, inf], inf if identical",
+                       "peak signal-to-noise ratio, data range 1"),
+    "ssim": MetricSpec("ssim", _plain(ssim), True, False, "1", "[-1, 1]",
+                       "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True"),
+    "lpips": MetricSpec("lpips", _lpips, False, True, "1", "[0, ~1]",
+                        "LPIPS v0.1 (AlexNet by default), local weights"),
+    "lpips_proxy": MetricSpec("lpips_proxy", _plain(lpips_proxy, "1-haarpsi"), False, False, "1", "[0, 1]",
+                              "1 - HaarPSI; weight-free, NOT LPIPS, different scale"),
+    "sifid": MetricSpec("sifid", _sifid, False, True, "feature units^2", "[0, inf)",
+                        "SinGAN SIFID, 64-dim Inception block-0 features, local weights"),
+    "sifid_proxy": MetricSpec("sifid_proxy", _plain(sifid_proxy, SIFID_PROXY_VARIANT), False, False,
+                              "feature units^2", "[0, inf)",
+                              "SIFID statistics over weight-free DoG texture energy + opponent colour"),
+    "dreamsim": MetricSpec("dreamsim", _dreamsim, False, True, "1", "[0, 2]",
+                           "DreamSim (optional package, local weights folder)"),
+}
+
+#: Metrics that need no weights and always run.
+WEIGHT_FREE = tuple(n for n, s in METRICS.items() if not s.needs_weights)
+
+
+def metric_unavailable(name: str, weights: Optional[Mapping[str, Any]] = None) -> Optional[str]:
+    """``None`` if ``name`` can run with ``weights`` (files found), else the one-line reason. Loads nothing."""
+    weights = weights or {}
+    if name not in METRICS:
+        return f"unknown metric {name!r}"
+    try:
+        if name == "lpips":
+            net = weights.get("lpips_net", "alex")
+            find_trunk_weights(net, weights.get("lpips_trunk"))
+            find_lpips_lin_weights(net, weights.get("lpips_lin"))
+        elif name == "sifid":
+            find_trunk_weights("inception", weights.get("sifid"))
+        elif name == "dreamsim":
+            if not weights.get("dreamsim"):
+                return "DreamSim needs a local weights folder"
+    except CamoError as exc:
+        return str(exc)
+    return None
+
+
+def compute_metrics(
+    obj_srgb: ImageLike,
+    bg_srgb: ImageLike,
+    names: Optional[Sequence[str]] = None,
+    weights: Optional[Mapping[str, Any]] = None,
+) -> dict[str, Any]:
+    """Compute the named metrics between the object view and the background (one score row).
+
+    Args:
+        obj_srgb: rendered view with the object, sRGB ``[0, 1]``: NumPy ``(H, W, 3)`` or a batch.
+        bg_srgb: the same view without the object (same shape).
+        names: metric names (keys of :data:`METRICS`); default: the weight-free ones (:data:`WEIGHT_FREE`).
+        weights: where the learned metrics' weights are (see the module docstring).
+
+    Returns:
+        ``{name: value}`` (a float for a single image, a list of floats for a batch) plus, where it applies,
+        ``{name}_variant`` and ``{name}_weights_sha256`` (the SHA-256 of the weight files used).
+
+    Raises:
+        CamoError: unknown name, bad images, or weights missing for a requested learned metric.
+    """
+    names = list(WEIGHT_FREE if names is None else names)
+    unknown = [n for n in names if n not in METRICS]
+    if unknown:
+        raise CamoError(f"unknown metric(s) {', '.join(unknown)}; known: {', '.join(METRICS)}")
+    weights = dict(weights or {})
+    x, y = prepare_pair(obj_srgb, bg_srgb, "psnr")
+    single = x.shape[0] == 1
+    row: dict[str, Any] = {}
+    for name in names:
+        values, extra = METRICS[name].compute(x, y, weights)
+        vals = [float(v) for v in values.detach().cpu().reshape(-1)]
+        row[name] = vals[0] if single else vals
+        for key, val in extra.items():
+            row[f"{name}_{key}"] = val
+    return row

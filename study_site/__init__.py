@@ -1,0 +1,159 @@
+"""Perceptual click-to-find study (GANmouflage protocol, paper Sec. IV-D).
+
+``create_app(config)`` is the Flask application factory (as in Flask's
+``flaskr`` tutorial). ``config`` keys are listed in :mod:`study_site.config`;
+``STIMULI_DIR`` is required, ``DATABASE_URL`` defaults to a SQLite file in the
+instance folder. Pieces: :mod:`.stimuli` (stimulus sets), :mod:`.db` (storage),
+:mod:`.assign` (trial plans), :mod:`.views` (participant pages and API),
+:mod:`.admin` (progress, export), :mod:`.analysis` (Table I), :mod:`.cli`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+from datetime import timedelta
+from pathlib import Path
+from typing import Any, Mapping
+
+from optimizer.errors import CamoError
+
+log = logging.getLogger("study_site")
+
+
+@dataclass
+class StudyState:
+    """Per-app objects, kept in ``app.extensions['camo_study']``."""
+
+    db: Any
+    stimuli: Any
+    id_key: str
+    limiter: Any
+    new_participant_limiter: Any
+    consent_paragraphs: list[str]
+    assign_lock: Any = field(default_factory=threading.Lock)
+
+
+def _consent_paragraphs(path: str | None) -> list[str]:
+    if not path:
+        return []
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CamoError(f"CONSENT_FILE {p}: {exc.strerror}") from None
+    return [" ".join(par.split()) for par in text.split("\n\n") if par.strip()]
+
+
+def create_app(config: Mapping[str, Any] | None = None):
+    """Build the study app. ``config`` overrides :data:`study_site.config.DEFAULTS`."""
+    from flask import Flask, jsonify, render_template, request
+    from sqlalchemy.exc import OperationalError
+    from werkzeug.exceptions import HTTPException
+
+    from . import admin, views
+    from .config import resolve
+    from .db import Database
+    from .security import RateLimiter, csrf_token
+    from .stimuli import StimulusSet
+
+    cfg = resolve(config)
+    app = Flask(__name__, instance_relative_config=True)
+    stimuli = StimulusSet(cfg["STIMULI_DIR"])
+    url = cfg["DATABASE_URL"]
+    if not url:
+        Path(app.instance_path).mkdir(parents=True, exist_ok=True)
+        url = f"sqlite:///{Path(app.instance_path) / 'study.sqlite'}"
+    db = Database(
+        url,
+        busy_timeout_ms=cfg["SQLITE_BUSY_TIMEOUT_MS"],
+        synchronous=cfg["SQLITE_SYNCHRONOUS"],
+        pool_size=cfg["DB_POOL_SIZE"],
+    )
+    cfg["DATABASE_URL"] = url
+    cfg["SECRET_KEY"] = cfg["SECRET_KEY"] or db.setting("secret_key")
+    id_key = cfg["ID_HMAC_KEY"] or db.setting("id_hmac_key")
+    if not cfg["ID_HMAC_KEY"]:
+        log.info("ID_HMAC_KEY not configured: using a key generated once and stored in the database")
+    db.setting("assign_lock", lambda: "1")
+    app.config.from_mapping(cfg)
+    app.config["PERMANENT_SESSION_LIFETIME"] = timedelta(days=2)
+    app.config["TEMPLATES_AUTO_RELOAD"] = False
+    app.extensions["camo_study"] = StudyState(
+        db=db,
+        stimuli=stimuli,
+        id_key=id_key,
+        limiter=RateLimiter(cfg["RATE_LIMIT_PER_S"], cfg["RATE_LIMIT_BURST"]),
+        new_participant_limiter=RateLimiter(
+            cfg["NEW_PARTICIPANTS_PER_MIN"] / 60.0, max(1.0, cfg["NEW_PARTICIPANTS_PER_MIN"])
+        ),
+        consent_paragraphs=_consent_paragraphs(cfg["CONSENT_FILE"]),
+    )
+    app.register_blueprint(views.bp)
+    app.register_blueprint(admin.bp)
+    app.jinja_env.globals["csrf_token"] = csrf_token
+
+    @app.before_request
+    def _limits():
+        from flask import abort, session
+
+        if request.content_length is not None and request.content_length > app.config["MAX_CONTENT_LENGTH"]:
+            abort(413)
+        if request.method == "POST" or request.path.startswith("/api/"):
+            key = session.get("p") or session.get("csrf") or "no-session"
+            if not app.extensions["camo_study"].limiter.allow(str(key)):
+                abort(429, description="too many requests; slow down")
+
+    @app.after_request
+    def _headers(resp):
+        h = resp.headers
+        h.setdefault(
+            "Content-Security-Policy",
+            "default-src 'self'; img-src 'self' blob: data:; script-src 'self'; style-src 'self'; "
+            "object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'",
+        )
+        h.setdefault("X-Content-Type-Options", "nosniff")
+        h.setdefault("Referrer-Policy", "no-referrer")
+        h.setdefault("X-Frame-Options", "DENY")
+        if resp.mimetype != "image/png" and not request.path.startswith("/static/"):
+            h["Cache-Control"] = "no-store"
+        if resp.status_code == 429:
+            h.setdefault("Retry-After", "1")
+        return resp
+
+    @app.errorhandler(HTTPException)
+    def _http_error(e: HTTPException):
+        if request.path.startswith(("/api/", "/admin/export")):
+            resp = jsonify(error=e.description, status=e.code)
+            resp.status_code = e.code or 400
+            return resp
+        return render_template("error.html", code=e.code, name=e.name, message=e.description), e.code
+
+    @app.errorhandler(OperationalError)
+    def _db_unavailable(e: OperationalError):
+        # locked/unreachable database: tell the client to retry (the task page does, until acknowledged)
+        log.warning("database unavailable on %s %s: %s", request.method, request.path, e.orig)
+        if request.path.startswith("/api/"):
+            resp = jsonify(error="database busy, retry", status=503)
+        else:
+            resp = app.make_response(
+                (render_template("error.html", code=503, name="Busy", message="Please try again in a moment."), 503)
+            )
+        resp.status_code = 503
+        resp.headers["Retry-After"] = "1"
+        return resp
+
+    @app.errorhandler(Exception)
+    def _server_error(e: Exception):
+        log.exception("unhandled error on %s %s", request.method, request.path)
+        if request.path.startswith("/api/"):
+            resp = jsonify(error="internal error", status=500)
+            resp.status_code = 500
+            return resp
+        return (
+            render_template("error.html", code=500, name="Server error", message="Something went wrong."),
+            500,
+        )
+
+    return app

@@ -1,0 +1,166 @@
+"""``camo study ...`` commands: build-stimuli, serve, report.
+
+``register(subparsers)`` adds the ``study`` group to an argparse parser; each
+subcommand stores its handler as ``func`` (``args.func(args) -> int``). Handlers
+raise :class:`optimizer.errors.CamoError` for bad input. Standalone use:
+``python -m study_site.cli study serve ...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from optimizer.errors import CamoError
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add ``study`` with ``build-stimuli``, ``serve`` and ``report`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "study",
+        help="perceptual click-to-find study: stimuli, web server, analysis",
+        description="Perceptual click-to-find study (GANmouflage protocol): build stimuli, serve, report.",
+    )
+    sub = p.add_subparsers(dest="study_command", metavar="COMMAND")
+    sub.required = True
+
+    b = sub.add_parser("build-stimuli", help="export a stimulus set from evaluation directories")
+    b.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate` (has renders.json)")
+    b.add_argument("--out", required=True, metavar="STIMULI_DIR", help="new stimulus-set directory")
+    b.add_argument(
+        "--practice",
+        nargs="+",
+        default=[],
+        metavar="EVAL_DIR",
+        help="evaluation directories used only for practice trials (default: practice images come from the pool)",
+    )
+    b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
+    b.set_defaults(func=cmd_build_stimuli)
+
+    s = sub.add_parser("serve", help="run the study web site")
+    s.add_argument("--stimuli", required=True, metavar="STIMULI_DIR")
+    s.add_argument("--db", required=True, metavar="URL", help="SQLAlchemy URL or a SQLite file path")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int, default=5000)
+    s.add_argument("--threads", type=int, default=8, help="worker threads (waitress)")
+    s.add_argument(
+        "--connections", type=int, default=1000, help="open client connections accepted at once (waitress)"
+    )
+    s.add_argument("--dev", action="store_true", help="use werkzeug's server even if waitress is installed")
+    s.set_defaults(func=cmd_serve)
+
+    r = sub.add_parser("report", help="Table I, Kaplan-Meier curves, pairwise tests, CSV/Parquet tables")
+    r.add_argument("--db", required=True, metavar="URL", help="SQLAlchemy URL or a SQLite file path")
+    r.add_argument("--out", required=True, metavar="DIR")
+    r.add_argument("--bootstrap", type=int, default=2000, metavar="N", help="bootstrap replicates (default 2000)")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--include-incomplete", action="store_true", help="also analyse unfinished sessions")
+    r.add_argument(
+        "--miss-censor", choices=("limit", "click"), default="limit", help="censor misses at the limit or at the click"
+    )
+    r.set_defaults(func=cmd_report)
+    return p
+
+
+def cmd_build_stimuli(args) -> int:
+    from .stimuli import build_stimuli, summarize
+
+    manifest = build_stimuli(args.eval_dirs, args.out, practice_dirs=args.practice, force=args.force)
+    print(f"{args.out}: {summarize(manifest)}")
+    return 0
+
+
+def cmd_serve(args) -> int:
+    from . import create_app
+    from .analysis import resolve_db_url
+    from .config import from_env
+
+    if not 0 < args.port < 65536:
+        raise CamoError(f"--port must be 1-65535, not {args.port}")
+    if not 1 <= args.threads <= 256:
+        raise CamoError("--threads must be 1-256")
+    if not os.path.isdir(args.stimuli):
+        raise CamoError(f"{args.stimuli}: no such stimulus directory")
+    cfg = from_env()
+    cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
+    app = create_app(cfg)
+    if not 10 <= args.connections <= 100_000:
+        raise CamoError("--connections must be 10-100000")
+    serve_app(app, args.host, args.port, threads=args.threads, connections=args.connections, dev=args.dev)
+    return 0
+
+
+def serve_app(app, host: str, port: int, threads: int = 8, connections: int = 1000, dev: bool = False) -> None:
+    """Serve with waitress when installed (production WSGI server), else werkzeug (threaded, no access log)."""
+    try:
+        if dev:
+            raise ImportError
+        import waitress
+    except ImportError:
+        waitress = None
+    print(f"study site on http://{host}:{port}/ ({'waitress' if waitress else 'werkzeug'})", file=sys.stderr, flush=True)
+    try:
+        if waitress is not None:
+            # waitress accepts only 100 connections by default; idle keep-alive connections of
+            # participants would then block newcomers until channel_timeout.
+            waitress.serve(
+                app,
+                host=host,
+                port=port,
+                threads=threads,
+                connection_limit=connections,
+                channel_timeout=60,
+                ident="study",
+                clear_untrusted_proxy_headers=True,
+            )
+        else:
+            from werkzeug.serving import WSGIRequestHandler, make_server
+
+            class QuietHandler(WSGIRequestHandler):
+                def log_request(self, *a, **k):  # no access log: it would record IP addresses
+                    pass
+
+            make_server(host, port, app, threaded=True, request_handler=QuietHandler).serve_forever()
+    except OSError as exc:
+        raise CamoError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+    except KeyboardInterrupt:
+        pass
+
+
+def cmd_report(args) -> int:
+    from .analysis import write_report
+
+    if args.bootstrap < 0:
+        raise CamoError("--bootstrap must be >= 0")
+    res = write_report(
+        args.db,
+        args.out,
+        n_boot=args.bootstrap,
+        seed=args.seed,
+        include_incomplete=args.include_incomplete,
+        miss_censor=args.miss_censor,
+    )
+    t = res["table"]
+    for r in t.itertuples():
+        print(
+            f"{r.method}: confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
+            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s"
+        )
+    print(f"wrote {args.out}/table_i.md, table_i.csv, km.png, pairwise.csv, trials/participants .csv/.parquet")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="camo")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except CamoError as exc:
+        print(f"camo: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

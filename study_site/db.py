@@ -1,0 +1,236 @@
+"""Storage of the study: SQLAlchemy 2 models and engine set-up.
+
+Tables
+------
+``settings``      key/value: generated secrets (cookie key, id-HMAC key) when none is configured.
+``participants``  one row per participant id (stored as an HMAC, never the raw id; no IP).
+``plan``          the trials assigned to a participant, in presentation order (practice first).
+``trials``        one row per answered trial; unique ``(participant_id, trial_index)`` and unique
+                  ``client_trial_id``, written insert-or-ignore, so retries never duplicate.
+
+Default database: a SQLite file in WAL mode with ``busy_timeout``; write transactions
+use ``BEGIN IMMEDIATE`` so concurrent writers queue instead of failing. Any other
+SQLAlchemy URL (e.g. ``postgresql+psycopg://...``) works for hosting.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import secrets
+import threading
+from collections.abc import Iterator
+from datetime import datetime, timezone
+
+from sqlalchemy import (
+    BigInteger,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+    create_engine,
+    event,
+    insert,
+    select,
+)
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import ArgumentError, IntegrityError, OperationalError
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+
+from optimizer.errors import CamoError
+
+
+def utcnow() -> datetime:
+    """Naive UTC timestamp (SQLite keeps no time zone; every stored time is UTC)."""
+    return datetime.now(timezone.utc).replace(tzinfo=None)
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class Setting(Base):
+    __tablename__ = "settings"
+    key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    value: Mapped[str] = mapped_column(Text)
+
+
+class Participant(Base):
+    __tablename__ = "participants"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    token: Mapped[str] = mapped_column(String(64), unique=True, index=True)  # session handle (cookie)
+    pid_hmac: Mapped[str] = mapped_column(String(64), unique=True)  # HMAC-SHA256 of the participant id
+    id_source: Mapped[str] = mapped_column(String(16))  # prolific | generic | anonymous
+    study_id: Mapped[str | None] = mapped_column(String(128), nullable=True)  # Prolific STUDY_ID
+    session_hmac: Mapped[str | None] = mapped_column(String(64), nullable=True)  # HMAC of Prolific SESSION_ID
+    seed: Mapped[int] = mapped_column(BigInteger)
+    time_limit_s: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[datetime] = mapped_column(DateTime)
+    last_seen_at: Mapped[datetime] = mapped_column(DateTime)
+    consent_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    declined_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    demographics_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    age_bracket: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    instructions_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    completed_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    completion_code: Mapped[str | None] = mapped_column(String(64), nullable=True)
+
+
+class PlanItem(Base):
+    __tablename__ = "plan"
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), primary_key=True)
+    idx: Mapped[int] = mapped_column(Integer, primary_key=True)
+    practice: Mapped[bool] = mapped_column(Boolean)
+    stimulus_id: Mapped[str] = mapped_column(String(64))
+    reveal_id: Mapped[str] = mapped_column(String(64))
+    run: Mapped[str] = mapped_column(String(256))
+    scene: Mapped[str] = mapped_column(String(256), index=True)
+    object: Mapped[str] = mapped_column(String(256))
+    method: Mapped[str] = mapped_column(String(256))  # condition label (method or method+ablation)
+    ablation: Mapped[str] = mapped_column(String(256))
+    view: Mapped[str] = mapped_column(String(64))
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+
+
+class Trial(Base):
+    __tablename__ = "trials"
+    __table_args__ = (UniqueConstraint("participant_id", "trial_index", name="uq_trial_participant_index"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    trial_index: Mapped[int] = mapped_column(Integer)
+    client_trial_id: Mapped[str] = mapped_column(String(64), unique=True)
+    practice: Mapped[bool] = mapped_column(Boolean)
+    stimulus_id: Mapped[str] = mapped_column(String(64))
+    run: Mapped[str] = mapped_column(String(256))
+    scene: Mapped[str] = mapped_column(String(256))
+    object: Mapped[str] = mapped_column(String(256))
+    method: Mapped[str] = mapped_column(String(256))
+    ablation: Mapped[str] = mapped_column(String(256))
+    view: Mapped[str] = mapped_column(String(64))
+    hit: Mapped[bool] = mapped_column(Boolean)
+    timed_out: Mapped[bool] = mapped_column(Boolean)
+    click_x: Mapped[int | None] = mapped_column(Integer, nullable=True)  # image pixels (column)
+    click_y: Mapped[int | None] = mapped_column(Integer, nullable=True)  # image pixels (row)
+    rt_ms: Mapped[float] = mapped_column(Float)  # client: performance.now() image shown -> click/timeout
+    time_limit_s: Mapped[float] = mapped_column(Float)
+    display_w: Mapped[float | None] = mapped_column(Float, nullable=True)  # CSS px the image was shown at
+    display_h: Mapped[float | None] = mapped_column(Float, nullable=True)
+    server_received_at: Mapped[datetime] = mapped_column(DateTime)
+
+
+# ---------------------------------------------------------------------------
+# engine
+# ---------------------------------------------------------------------------
+
+
+def make_engine(url: str, busy_timeout_ms: int = 30000, synchronous: str = "FULL", pool_size: int = 16) -> Engine:
+    """Engine for ``url``; SQLite files get WAL, ``busy_timeout`` and ``BEGIN IMMEDIATE`` for writers.
+
+    ``synchronous=FULL`` (default) makes every acknowledged commit durable against power
+    loss, not just against a crash of the server process.
+    """
+    if synchronous.upper() not in ("OFF", "NORMAL", "FULL", "EXTRA"):
+        raise CamoError(f"SQLITE_SYNCHRONOUS must be OFF, NORMAL, FULL or EXTRA, not {synchronous!r}")
+    try:
+        is_sqlite = url.startswith("sqlite")
+        kwargs: dict = {"pool_pre_ping": not is_sqlite}
+        if is_sqlite:
+            if url in ("sqlite://", "sqlite:///:memory:"):
+                raise CamoError("use a SQLite file (sqlite:///path/study.sqlite), not an in-memory database")
+            kwargs["connect_args"] = {"check_same_thread": False, "timeout": busy_timeout_ms / 1000}
+            kwargs["pool_size"] = pool_size
+            kwargs["max_overflow"] = pool_size
+        engine = create_engine(url, **kwargs)
+    except ArgumentError as exc:
+        raise CamoError(f"bad database URL {url!r}: {exc}") from None
+    except ModuleNotFoundError as exc:
+        raise CamoError(f"database driver for {url.split(':')[0]!r} is not installed ({exc.name})") from None
+    if engine.dialect.name == "sqlite":
+
+        @event.listens_for(engine, "connect")
+        def _on_connect(dbapi_conn, _record):
+            dbapi_conn.isolation_level = None  # we emit BEGIN ourselves (see _on_begin)
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
+            cur.execute(f"PRAGMA synchronous={synchronous.upper()}")
+            cur.execute("PRAGMA foreign_keys=ON")
+            cur.close()
+
+        @event.listens_for(engine, "begin")
+        def _on_begin(conn):
+            mode = conn.get_execution_options().get("sqlite_begin", "DEFERRED")
+            conn.exec_driver_sql(f"BEGIN {mode}")
+
+    return engine
+
+
+class Database:
+    """Engine plus two session factories: ``read()`` and ``write()`` (serialised writers on SQLite)."""
+
+    def __init__(self, url: str, **engine_kwargs):
+        self.url = url
+        self.engine = make_engine(url, **engine_kwargs)
+        self._read = sessionmaker(self.engine, expire_on_commit=False)
+        self._write = sessionmaker(self.engine.execution_options(sqlite_begin="IMMEDIATE"), expire_on_commit=False)
+        self._write_lock = threading.Lock() if self.engine.dialect.name == "sqlite" else contextlib.nullcontext()
+        try:
+            Base.metadata.create_all(self.engine)
+        except OperationalError as exc:
+            raise CamoError(f"cannot open database {url!r}: {exc.orig}") from None
+
+    def read(self) -> Session:
+        return self._read()
+
+    @contextlib.contextmanager
+    def write(self) -> Iterator[Session]:
+        """Session for a write transaction. On SQLite, writers of this process queue on a lock first:
+        SQLite's own busy handler sleeps in growing steps, which would show up as latency spikes."""
+        with self._write_lock:
+            with self._write() as s:
+                yield s
+
+    @property
+    def dialect(self) -> str:
+        return self.engine.dialect.name
+
+    def setting(self, key: str, factory=lambda: secrets.token_hex(32)) -> str:
+        """Value of a setting, created once with ``factory()`` (race-safe across processes)."""
+        with self.read() as s:
+            row = s.get(Setting, key)
+            if row is not None:
+                return row.value
+        with self.write() as s, s.begin():
+            if s.get(Setting, key) is None:
+                s.add(Setting(key=key, value=factory()))
+        with self.read() as s:
+            return s.get(Setting, key).value
+
+    def insert_ignore(self, session: Session, model, values: dict) -> bool:
+        """INSERT that silently does nothing on a unique-key conflict; True if a row was inserted."""
+        if self.dialect in ("sqlite", "postgresql"):
+            if self.dialect == "sqlite":
+                from sqlalchemy.dialects.sqlite import insert as dialect_insert
+            else:
+                from sqlalchemy.dialects.postgresql import insert as dialect_insert
+            res = session.execute(dialect_insert(model).values(**values).on_conflict_do_nothing())
+            return bool(res.rowcount)
+        try:
+            with session.begin_nested():
+                session.execute(insert(model).values(**values))
+            return True
+        except IntegrityError:
+            return False
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+
+def lock_for_assignment(session: Session) -> None:
+    """Serialise cell assignment across processes (no-op on SQLite, whose writers are already serial)."""
+    if session.bind.dialect.name != "sqlite":
+        session.execute(select(Setting).where(Setting.key == "assign_lock").with_for_update()).first()

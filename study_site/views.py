@@ -1,0 +1,569 @@
+"""Participant pages and the trial API.
+
+Flow: landing (Prolific PROLIFIC_PID/STUDY_ID/SESSION_ID or ?id=, or a form) ->
+consent -> about you (optional age bracket) -> instructions -> task (practice,
+then formal trials; JS) -> done (completion code / redirect).
+
+Nothing sent before a click names the scene, method, mask or outline: the task
+page gets opaque image URLs (``/i/<id>``); ``POST /api/trial`` hit-tests the
+click against the mask on the server and only its response carries the reveal
+URL (``/r/<rid>``), which is served only once that trial is stored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import secrets
+from flask import (
+    Blueprint,
+    abort,
+    current_app,
+    jsonify,
+    redirect,
+    render_template,
+    request,
+    send_file,
+    session,
+    url_for,
+)
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+
+from .assign import create_plan
+from .db import Participant, PlanItem, Trial, lock_for_assignment, utcnow
+from .security import TOKEN_RE, check_csrf, hmac_id, valid_id
+
+bp = Blueprint("study", __name__)
+
+AGE_BRACKETS = [
+    ("10-20", "10–20"),
+    ("20-30", "20–30"),
+    ("30-40", "30–40"),
+    ("40-50", "40–50"),
+    ("50-60", "50–60"),
+    ("60-70", "60–70"),
+    ("prefer_not", "Prefer not to say"),
+]
+STAGE_ENDPOINT = {
+    "consent": "study.consent",
+    "declined": "study.declined",
+    "about": "study.about",
+    "instructions": "study.instructions",
+    "task": "study.task",
+    "done": "study.done",
+}
+STEPS = [("consent", "Consent"), ("about", "About you"), ("instructions", "Instructions"), ("task", "Task")]
+
+
+def st():
+    return current_app.extensions["camo_study"]
+
+
+def _cfg(key):
+    return current_app.config[key]
+
+
+# ---------------------------------------------------------------------------
+# participant helpers
+# ---------------------------------------------------------------------------
+
+
+def stage_of(p: Participant) -> str:
+    if p.completed_at is not None:
+        return "done"
+    if p.consent_at is None:
+        return "declined" if p.declined_at is not None else "consent"
+    if p.demographics_at is None:
+        return "about"
+    if p.instructions_at is None:
+        return "instructions"
+    return "task"
+
+
+def session_token() -> str | None:
+    tok = session.get("p")
+    return tok if isinstance(tok, str) and TOKEN_RE.match(tok) else None
+
+
+def current_participant(s) -> Participant | None:
+    tok = session_token()
+    if tok is None:
+        return None
+    return s.scalar(select(Participant).where(Participant.token == tok))
+
+
+def load_participant() -> Participant | None:
+    with st().db.read() as s:
+        return current_participant(s)
+
+
+def require_stage(expected: str):
+    """(participant, None) when the participant is at ``expected``, else (p, redirect response)."""
+    p = load_participant()
+    if p is None:
+        return None, redirect(url_for("study.landing"))
+    stage = stage_of(p)
+    if stage != expected:
+        return p, redirect(url_for(STAGE_ENDPOINT[stage]))
+    return p, None
+
+
+def _step_context(current: str) -> dict:
+    return {"steps": STEPS, "current_step": current}
+
+
+# ---------------------------------------------------------------------------
+# landing
+# ---------------------------------------------------------------------------
+
+
+@bp.get("/")
+def landing():
+    args = request.args
+    raw, source = args.get("PROLIFIC_PID"), "prolific"
+    if raw is None:
+        raw, source = (args.get("id") or args.get("participant_id")), "generic"
+    if raw is not None:
+        if not valid_id(raw):
+            abort(400, description="The participant id in this link is not valid. Please check the link.")
+        study_id = args.get("STUDY_ID")
+        sess_id = args.get("SESSION_ID")
+        for v in (study_id, sess_id):
+            if v is not None and not valid_id(v):
+                abort(400, description="The study link is not valid. Please check the link.")
+        return _enter(raw.strip(), source, study_id, sess_id)
+    p = load_participant()
+    if p is not None:
+        return redirect(url_for(STAGE_ENDPOINT[stage_of(p)]))
+    return render_template("landing.html", error=None)
+
+
+@bp.post("/")
+def landing_post():
+    check_csrf()
+    raw = (request.form.get("participant_id") or "").strip()
+    if not raw:
+        if not _cfg("ALLOW_ANONYMOUS"):
+            return render_template("landing.html", error="Please enter your participant ID."), 400
+        return _enter(secrets.token_urlsafe(16), "anonymous", None, None)
+    if not valid_id(raw):
+        return (
+            render_template(
+                "landing.html",
+                error="That ID is not valid: use up to 128 letters, digits or . _ - @ : + characters.",
+            ),
+            400,
+        )
+    return _enter(raw, "generic", None, None)
+
+
+def _enter(raw_id: str, source: str, study_id: str | None, sess_id: str | None):
+    state = st()
+    key = state.id_key
+    h = hmac_id(key, raw_id)
+    now = utcnow()
+    for _attempt in range(3):
+        try:
+            with state.db.write() as s, s.begin():
+                p = s.scalar(select(Participant).where(Participant.pid_hmac == h))
+                if p is None:
+                    if not state.new_participant_limiter.allow("all"):
+                        abort(429, description="Too many new participants right now; please try again in a minute.")
+                    p = Participant(
+                        token=secrets.token_urlsafe(24),
+                        pid_hmac=h,
+                        id_source=source,
+                        study_id=study_id,
+                        session_hmac=hmac_id(key, sess_id) if sess_id else None,
+                        seed=secrets.randbits(48),
+                        time_limit_s=float(_cfg("TRIAL_TIME_LIMIT_S")),
+                        created_at=now,
+                        last_seen_at=now,
+                    )
+                    s.add(p)
+                else:
+                    if p.consent_at is None and p.declined_at is not None:
+                        p.declined_at = None  # came back: ask for consent again
+                    p.last_seen_at = now
+                token, completed = p.token, p.completed_at is not None
+            break
+        except IntegrityError:  # the same id arrived twice at once (other process); read it again
+            continue
+    else:
+        abort(409, description="Please reload the page.")
+    csrf = session.get("csrf")
+    session.clear()
+    if csrf:
+        session["csrf"] = csrf
+    session.permanent = True
+    session["p"] = token
+    if completed:
+        session["returning"] = True
+        return redirect(url_for("study.done"))
+    return redirect(url_for("study.consent"))  # require_stage sends them on to where they were
+
+
+# ---------------------------------------------------------------------------
+# consent, demographics, instructions
+# ---------------------------------------------------------------------------
+
+
+@bp.route("/consent", methods=["GET", "POST"])
+def consent():
+    p, r = require_stage("consent")
+    if r is not None:
+        return r
+    if request.method == "POST":
+        check_csrf()
+        answer = request.form.get("consent")
+        if answer not in ("yes", "no"):
+            abort(400, description="Please choose whether you agree to take part.")
+        with st().db.write() as s, s.begin():
+            q = s.get(Participant, p.id)
+            if answer == "yes":
+                q.consent_at = utcnow()
+            else:
+                q.declined_at = utcnow()
+        return redirect(url_for("study.about" if answer == "yes" else "study.declined"))
+    return render_template("consent.html", paragraphs=st().consent_paragraphs, **_step_context("consent"))
+
+
+@bp.get("/declined")
+def declined():
+    p, r = require_stage("declined")
+    if r is not None:
+        return r
+    return render_template("declined.html")
+
+
+@bp.route("/about-you", methods=["GET", "POST"])
+def about():
+    p, r = require_stage("about")
+    if r is not None:
+        return r
+    if request.method == "POST":
+        check_csrf()
+        age = request.form.get("age") or None
+        if age is not None and age not in dict(AGE_BRACKETS):
+            abort(400, description="Unknown age bracket.")
+        with st().db.write() as s, s.begin():
+            q = s.get(Participant, p.id)
+            q.age_bracket = age
+            q.demographics_at = utcnow()
+        return redirect(url_for("study.instructions"))
+    return render_template("about.html", brackets=AGE_BRACKETS, **_step_context("about"))
+
+
+@bp.route("/instructions", methods=["GET", "POST"])
+def instructions():
+    p, r = require_stage("instructions")
+    if r is not None:
+        return r
+    state = st()
+    n_formal = len(state.stimuli.formal_pool())
+    if request.method == "POST":
+        check_csrf()
+        now = utcnow()
+        with state.assign_lock, state.db.write() as s, s.begin():
+            lock_for_assignment(s)
+            q = s.get(Participant, p.id)
+            if q.instructions_at is None:
+                has_plan = s.scalar(select(func.count()).where(PlanItem.participant_id == q.id))
+                if not has_plan:
+                    create_plan(s, q, state.stimuli, int(_cfg("PRACTICE_TRIALS")), float(_cfg("ASSIGNMENT_HOLD_S")), now)
+                q.instructions_at = now
+                q.last_seen_at = now
+        return redirect(url_for("study.task"))
+    return render_template(
+        "instructions.html",
+        n_practice=int(_cfg("PRACTICE_TRIALS")),
+        n_formal=n_formal,
+        limit_s=_fmt_seconds(p.time_limit_s),
+        **_step_context("instructions"),
+    )
+
+
+def _fmt_seconds(x: float) -> str:
+    return f"{x:g}"
+
+
+# ---------------------------------------------------------------------------
+# task page and API
+# ---------------------------------------------------------------------------
+
+
+@bp.get("/task")
+def task():
+    p, r = require_stage("task")
+    if r is not None:
+        return r
+    return render_template("task.html", **_step_context("task"))
+
+
+def _api_participant(s) -> Participant:
+    p = current_participant(s)
+    if p is None:
+        abort(401, description="no study session; open the study link again")
+    stage = stage_of(p)
+    if stage != "task":
+        resp = jsonify(error=f"not in the task ({stage})", redirect=url_for(STAGE_ENDPOINT[stage]))
+        resp.status_code = 409
+        abort(resp)
+    return p
+
+
+@bp.get("/api/state")
+def api_state():
+    with st().db.read() as s:
+        p = _api_participant(s)
+        plan = s.scalars(select(PlanItem).where(PlanItem.participant_id == p.id).order_by(PlanItem.idx)).all()
+        answered = set(s.scalars(select(Trial.trial_index).where(Trial.participant_id == p.id)))
+    n_practice = sum(1 for it in plan if it.practice)
+    nxt = next((it.idx for it in plan if it.idx not in answered), len(plan))
+    return jsonify(
+        key=hashlib.sha256(p.token.encode()).hexdigest()[:16],
+        total=len(plan),
+        practice=n_practice,
+        time_limit_ms=int(round(p.time_limit_s * 1000)),
+        next=nxt,
+        trials=[
+            {
+                "index": it.idx,
+                "practice": it.practice,
+                "src": url_for("study.image", sid=it.stimulus_id),
+                "w": it.width,
+                "h": it.height,
+            }
+            for it in plan
+            if it.idx not in answered
+        ],
+    )
+
+
+def _num(body: dict, key: str, required: bool = True, lo: float = -math.inf, hi: float = math.inf):
+    v = body.get(key)
+    if v is None:
+        if required:
+            abort(400, description=f"{key} is required")
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        abort(400, description=f"{key} must be a finite number")
+    if not lo <= v <= hi:
+        abort(400, description=f"{key} is out of range")
+    return v
+
+
+def _json_body():
+    """The request's JSON body, or abort 400 (bad JSON, deep nesting) / 413 (over MAX_CONTENT_LENGTH)."""
+    raw = request.get_data(cache=False)
+    try:
+        return json.loads(raw)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        abort(400, description="body is not valid JSON")
+
+
+def _parse_trial(body) -> dict:
+    if not isinstance(body, dict):
+        abort(400, description="expected a JSON object")
+    unknown = set(body) - {"trial_index", "client_trial_id", "timed_out", "x", "y", "rt_ms", "display_w", "display_h"}
+    if unknown:
+        abort(400, description=f"unknown fields: {', '.join(sorted(map(str, unknown)))[:200]}")
+    idx = body.get("trial_index")
+    if isinstance(idx, bool) or not isinstance(idx, int) or not 0 <= idx < 10_000:
+        abort(400, description="trial_index must be a small non-negative integer")
+    cid = body.get("client_trial_id")
+    if not isinstance(cid, str) or not TOKEN_RE.match(cid):
+        abort(400, description="client_trial_id must be 8-64 characters [A-Za-z0-9_-]")
+    timed_out = body.get("timed_out")
+    if not isinstance(timed_out, bool):
+        abort(400, description="timed_out must be true or false")
+    out = {
+        "trial_index": idx,
+        "client_trial_id": cid,
+        "timed_out": timed_out,
+        "rt_ms": float(_num(body, "rt_ms", True, 0.0, 3_600_000.0)),
+        "display_w": _num(body, "display_w", False, 0.0, 100_000.0),
+        "display_h": _num(body, "display_h", False, 0.0, 100_000.0),
+        "x": None,
+        "y": None,
+    }
+    if not timed_out:
+        out["x"] = _num(body, "x", True, 0.0, 1e6)
+        out["y"] = _num(body, "y", True, 0.0, 1e6)
+    elif body.get("x") is not None or body.get("y") is not None:
+        abort(400, description="a timed-out trial has no click position")
+    return out
+
+
+@bp.post("/api/trial")
+def api_trial():
+    check_csrf()
+    data = _parse_trial(_json_body())
+    state = st()
+    idx = data["trial_index"]
+    with state.db.read() as s:
+        p = _api_participant(s)
+        item = s.get(PlanItem, (p.id, idx))
+        total = s.scalar(select(func.count()).where(PlanItem.participant_id == p.id))
+    if item is None:
+        abort(400, description="no such trial")
+    limit_ms = p.time_limit_s * 1000.0
+    if data["rt_ms"] > limit_ms + 2000.0:
+        abort(400, description="rt_ms exceeds the trial time limit")
+    x = y = None
+    hit = False
+    if not data["timed_out"]:
+        x, y = int(data["x"]), int(data["y"])
+        if x >= item.width or y >= item.height:
+            abort(400, description="click position outside the image")
+        stim = state.stimuli.by_id.get(item.stimulus_id)
+        if stim is None:
+            abort(409, description="stimulus set changed since this session started")
+        hit = state.stimuli.hit(stim, x, y, int(_cfg("HIT_TOLERANCE_PX")))
+    now = utcnow()
+    with state.db.write() as s, s.begin():
+        existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
+        duplicate = existing is not None
+        if existing is None:
+            n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
+            if idx != n_done:
+                abort(409, description=f"trial {idx} answered out of order (next is {n_done})")
+            values = dict(
+                participant_id=p.id,
+                trial_index=idx,
+                client_trial_id=data["client_trial_id"],
+                practice=item.practice,
+                stimulus_id=item.stimulus_id,
+                run=item.run,
+                scene=item.scene,
+                object=item.object,
+                method=item.method,
+                ablation=item.ablation,
+                view=item.view,
+                hit=hit,
+                timed_out=data["timed_out"],
+                click_x=x,
+                click_y=y,
+                rt_ms=data["rt_ms"],
+                time_limit_s=p.time_limit_s,
+                display_w=data["display_w"],
+                display_h=data["display_h"],
+                server_received_at=now,
+            )
+            if not state.db.insert_ignore(s, Trial, values):
+                duplicate = True
+            existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
+            if existing is None:  # client_trial_id reused for another trial
+                abort(409, description="client_trial_id already used for another trial")
+            q = s.get(Participant, p.id)
+            q.last_seen_at = now
+        stored_hit, stored_timeout = existing.hit, existing.timed_out
+        stored_cid = existing.client_trial_id
+    return jsonify(
+        ok=True,
+        ack=data["client_trial_id"],
+        stored_client_trial_id=stored_cid,
+        duplicate=duplicate,
+        trial_index=idx,
+        hit=stored_hit,
+        timed_out=stored_timeout,
+        reveal=url_for("study.reveal", rid=item.reveal_id),
+        next=idx + 1,
+        done=idx + 1 >= total,
+    )
+
+
+@bp.post("/api/complete")
+def api_complete():
+    check_csrf()
+    state = st()
+    with state.db.write() as s, s.begin():
+        p = current_participant(s)
+        if p is None:
+            abort(401, description="no study session; open the study link again")
+        if p.completed_at is None:
+            if stage_of(p) != "task":
+                abort(409, description="not in the task")
+            n_plan = s.scalar(select(func.count()).where(PlanItem.participant_id == p.id))
+            n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
+            if n_plan == 0 or n_done < n_plan:
+                resp = jsonify(error="some trials are not stored yet", stored=n_done, total=n_plan)
+                resp.status_code = 409
+                abort(resp)
+            p.completed_at = utcnow()
+            p.completion_code = _cfg("COMPLETION_CODE") or secrets.token_hex(4).upper()
+    return jsonify(ok=True, redirect=url_for("study.done"))
+
+
+@bp.get("/i/<sid>")
+def image(sid: str):
+    if not TOKEN_RE.match(sid):
+        abort(404)
+    with st().db.read() as s:
+        p = current_participant(s)
+        if p is None:
+            abort(404)
+        ok = s.scalar(
+            select(func.count()).where(PlanItem.participant_id == p.id, PlanItem.stimulus_id == sid)
+        )
+    stim = st().stimuli.by_id.get(sid)
+    if not ok or stim is None:
+        abort(404)
+    resp = send_file(st().stimuli.image_path(stim), mimetype="image/png", max_age=3600, conditional=True)
+    resp.cache_control.private = True
+    resp.cache_control.public = False
+    return resp
+
+
+@bp.get("/r/<rid>")
+def reveal(rid: str):
+    if not TOKEN_RE.match(rid):
+        abort(404)
+    with st().db.read() as s:
+        p = current_participant(s)
+        if p is None:
+            abort(404)
+        answered = s.scalar(
+            select(func.count())
+            .select_from(PlanItem)
+            .join(Trial, (Trial.participant_id == PlanItem.participant_id) & (Trial.trial_index == PlanItem.idx))
+            .where(PlanItem.participant_id == p.id, PlanItem.reveal_id == rid)
+        )
+    stim = st().stimuli.by_reveal.get(rid)
+    if not answered or stim is None:
+        abort(404)
+    resp = send_file(st().stimuli.reveal_path(stim), mimetype="image/png", max_age=3600, conditional=True)
+    resp.cache_control.private = True
+    resp.cache_control.public = False
+    return resp
+
+
+# ---------------------------------------------------------------------------
+# completion
+# ---------------------------------------------------------------------------
+
+
+@bp.get("/done")
+def done():
+    p = load_participant()
+    if p is None:
+        return redirect(url_for("study.landing"))
+    if p.completed_at is None:
+        return redirect(url_for(STAGE_ENDPOINT[stage_of(p)]))
+    returning = bool(session.pop("returning", False))
+    url = _cfg("COMPLETION_URL")
+    link = url.replace("{code}", p.completion_code or "") if url else None
+    return render_template(
+        "done.html",
+        code=p.completion_code,
+        link=link,
+        redirect_s=_cfg("COMPLETION_REDIRECT_S") if link else None,
+        returning=returning,
+    )
+
+
+@bp.get("/healthz")
+def healthz():
+    return jsonify(ok=True, time=utcnow().isoformat(timespec="seconds"))

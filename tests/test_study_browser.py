@@ -1,0 +1,313 @@
+"""Whole participant sessions in a real headless Chromium against the study app on 127.0.0.1.
+
+Set STUDY_SHOTS_DIR=/tmp/study_shots to also save screenshots of every page.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+CHROMIUM = "/usr/bin/chromium"
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"{CHROMIUM} is not installed (Debian package chromium)"),
+]
+
+LIMIT_S = 2.0
+N_PRACTICE = 5
+SCENES = ("scn_harbour_h1", "scn_meadow_m2", "scn_atrium_a3")
+METHODS = ("mth_ours_o1", "mth_noise_n2")
+SIZE = (480, 320)
+SHOTS = os.environ.get("STUDY_SHOTS_DIR")
+
+
+class Recorder:
+    """WSGI middleware that keeps every request line and response body the browser gets."""
+
+    def __init__(self, app):
+        self.app = app
+        self.log: list[tuple[float, str, str, int, bytes]] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, environ, start_response):
+        status = {}
+
+        def sr(s, headers, exc_info=None):
+            status["code"] = int(s.split()[0])
+            return start_response(s, headers, exc_info)
+
+        chunks = list(self.app(environ, sr))
+        url = environ.get("PATH_INFO", "") + ("?" + environ["QUERY_STRING"] if environ.get("QUERY_STRING") else "")
+        with self.lock:
+            self.log.append((time.monotonic(), environ["REQUEST_METHOD"], url, status.get("code", 0), b"".join(chunks)))
+        return chunks
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    from werkzeug.serving import WSGIRequestHandler, make_server
+
+    from study_site import create_app
+    from study_site.stimuli import build_stimuli
+    from study_site.testing import make_fake_eval_dir, mask_rects
+
+    root = tmp_path_factory.mktemp("browser_study")
+    make_fake_eval_dir(root / "eval", scenes=SCENES, methods=METHODS, views=2, size=SIZE, seed=3)
+    build_stimuli([root / "eval"], root / "stim", log=lambda m: None)
+    app = create_app(
+        {
+            "STIMULI_DIR": str(root / "stim"),
+            "DATABASE_URL": f"sqlite:///{root / 'study.sqlite'}",
+            "TRIAL_TIME_LIMIT_S": LIMIT_S,
+            "PRACTICE_TRIALS": N_PRACTICE,
+            "COMPLETION_CODE": "C0DE1234",
+        }
+    )
+    rec = Recorder(app)
+
+    class QuietHandler(WSGIRequestHandler):
+        def log_request(self, *a, **k):
+            pass
+
+    srv = make_server("127.0.0.1", 0, rec, threaded=True, request_handler=QuietHandler)
+    th = threading.Thread(target=srv.serve_forever, daemon=True)
+    th.start()
+    manifest = json.loads((root / "stim" / "manifest.json").read_text())
+    yield {
+        "base": f"http://127.0.0.1:{srv.server_port}",
+        "app": app,
+        "rec": rec,
+        "rects": mask_rects(root / "stim"),
+        "manifest": manifest,
+        "stim_dir": root / "stim",
+    }
+    srv.shutdown()
+    th.join(5)
+    app.extensions["camo_study"].db.dispose()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright  # dev dependency: a missing one is an error, not a skip
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(
+            executable_path=CHROMIUM,
+            args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                  "--disable-sync", "--no-first-run"],
+        )
+        yield b
+        b.close()
+
+
+def shot(page, name):
+    if SHOTS:
+        Path(SHOTS).mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(Path(SHOTS) / f"{name}.png"))
+
+
+class Participant:
+    """Drives one browser page through the study; remembers what it clicked."""
+
+    def __init__(self, site, context, pid):
+        self.site, self.page, self.pid = site, context.new_page(), pid
+        self.page.set_default_timeout(15_000)
+        self.clicks: dict[int, dict] = {}  # plan index -> what was done
+        self.seen: list[str] = []  # stimulus ids in the order shown
+
+    def start(self, shots=False):
+        p = self.page
+        p.goto(f"{self.site['base']}/?PROLIFIC_PID={self.pid}&STUDY_ID=STUDY9&SESSION_ID=S{self.pid}")
+        p.wait_for_url("**/consent")
+        if shots:
+            shot(p, "02_consent")
+        p.click("#agree")
+        p.wait_for_url("**/about-you")
+        p.check("input[value='20-30']")
+        if shots:
+            shot(p, "03_about_you")
+        p.click("#continue")
+        p.wait_for_url("**/instructions")
+        if shots:
+            shot(p, "04_instructions")
+        p.click("#start")
+        p.wait_for_url("**/task")
+
+    def press_panel(self, expect_text=None, shot_name=None):
+        p = self.page
+        p.wait_for_selector("#task[data-phase='panel'] #panel-button:visible")
+        if expect_text:
+            assert expect_text in p.inner_text("#panel-text")
+        if shot_name:
+            shot(p, shot_name)
+        p.click("#panel-button")
+
+    def trial(self, index, action, shot_name=None):
+        """Answer the trial on screen: 'hit', 'miss' or 'timeout'; wait for the reveal."""
+        p = self.page
+        p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
+        src = p.get_attribute("#stage img.stim", "src")
+        sid = src.rsplit("/", 1)[1]
+        self.seen.append(sid)
+        if shot_name:
+            shot(p, shot_name + "_trial")
+        x0, y0, x1, y1 = self.site["rects"][sid]
+        if action == "hit":
+            x, y = (x0 + x1) // 2, (y0 + y1) // 2
+        else:
+            x, y = (x1 + 15) % SIZE[0], (y1 + 15) % SIZE[1]
+            if x0 <= x < x1 and y0 <= y < y1:
+                x, y = 2, 2
+        if action != "timeout":
+            box = p.locator("#stage img.stim").bounding_box()
+            p.mouse.click(box["x"] + (x + 0.5) * box["width"] / SIZE[0], box["y"] + (y + 0.5) * box["height"] / SIZE[1])
+        self.clicks[index] = {"sid": sid, "action": action, "x": x, "y": y}
+        p.wait_for_selector("#task[data-phase='reveal'] #next:visible", timeout=LIMIT_S * 1000 + 10_000)
+        status = p.inner_text("#status")
+        assert {"hit": "Found it", "miss": "Not quite", "timeout": "Time is up"}[action] in status, status
+        if shot_name:
+            shot(p, shot_name + "_reveal")
+        p.click("#next")
+
+    def done(self, shots=False):
+        self.page.wait_for_url("**/done")
+        assert self.page.inner_text("#completion-code") == "C0DE1234"
+        if shots:
+            shot(self.page, "10_done")
+
+
+def _db_trials(site, pid):
+    from study_site.analysis import load_tables
+    from study_site.security import hmac_id
+
+    trials, parts = load_tables(site["app"].extensions["camo_study"].db.engine)
+    h = hmac_id(site["app"].extensions["camo_study"].id_key, pid)
+    part = parts[parts["pid_hmac"] == h]
+    assert len(part) == 1
+    return trials[trials["participant"] == part.iloc[0]["participant"]].sort_values("trial_index"), part.iloc[0]
+
+
+def _check_rows(site, who: Participant):
+    rows, part = _db_trials(site, who.pid)
+    n = N_PRACTICE + len(SCENES)
+    assert rows["trial_index"].tolist() == list(range(n)) and bool(part["completed"])
+    assert rows["practice"].tolist() == [True] * N_PRACTICE + [False] * len(SCENES)
+    assert rows["client_trial_id"].is_unique and sorted(rows.loc[~rows.practice, "scene"]) == sorted(SCENES)
+    assert rows["stimulus_id"].tolist() == who.seen  # shown in plan order, nothing re-shown
+    for r in rows.itertuples():
+        c = who.clicks[r.trial_index]
+        assert r.stimulus_id == c["sid"]
+        if c["action"] == "timeout":
+            assert r.timed_out and not r.hit and r.click_x != r.click_x  # NaN
+            assert LIMIT_S * 1000 - 50 <= r.rt_ms <= LIMIT_S * 1000 + 1500
+        else:
+            assert not r.timed_out and r.hit == (c["action"] == "hit")
+            assert abs(r.click_x - c["x"]) <= 1 and abs(r.click_y - c["y"]) <= 1
+            assert 0 < r.rt_ms < LIMIT_S * 1000
+    return rows
+
+
+def test_full_session_with_reload_and_leak_scan(site, browser):
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+    rec = site["rec"]
+    t_start = time.monotonic()
+    if SHOTS:
+        pg = ctx.new_page()
+        pg.goto(site["base"] + "/")
+        shot(pg, "01_landing")
+        pg.close()
+    who = Participant(site, ctx, "BROWSER_PID_1")
+    who.start(shots=True)
+    who.press_panel("Practice first", shot_name="05_task_ready")
+    # practice: hit, miss, timeout, hit, hit
+    plan = ["hit", "miss", "timeout", "hit", "hit"]
+    for i, action in enumerate(plan):
+        who.trial(i, action, shot_name={0: "06_practice_hit", 1: "07_practice_miss"}.get(i))
+    who.press_panel("Practice complete", shot_name="08_practice_complete")
+    who.trial(N_PRACTICE, "hit", shot_name="09_formal")
+    # reload in the middle: resumes at the next unanswered trial
+    who.page.reload()
+    who.press_panel("Welcome back")
+    who.trial(N_PRACTICE + 1, "miss")
+    who.trial(N_PRACTICE + 2, "hit")
+    who.done(shots=True)
+    _check_rows(site, who)
+
+    # malformed, forged and oversized requests from the participant's browser get 4xx
+    codes = who.page.evaluate(
+        """async () => {
+          const tok = 'x';
+          const post = (body, headers) => fetch('/api/trial', {method: 'POST', body,
+              headers: Object.assign({'Content-Type': 'application/json'}, headers || {})}).then(r => r.status);
+          return [
+            await post('{"trial_index": 0', {'X-CSRF-Token': tok}),
+            await post(JSON.stringify({trial_index: 0}), {}),
+            await post('{"pad": "' + 'x'.repeat(100000) + '"}', {'X-CSRF-Token': tok}),
+            await fetch('/api/complete', {method: 'POST'}).then(r => r.status),
+            await fetch('/i/../../manifest.json').then(r => r.status),
+          ];
+        }"""
+    )
+    assert all(400 <= c < 500 for c in codes), codes
+    assert codes[2] == 413
+
+    # a second attempt with the same Prolific id is refused
+    again = ctx.browser.new_context().new_page()
+    again.goto(f"{site['base']}/?PROLIFIC_PID=BROWSER_PID_1")
+    assert "already taken part" in again.inner_text("h1")
+    again.context.close()
+
+    # leak scan: nothing the browser received before a click names scene/method/run/object, nor reveals
+    # (reveal ids appear first in the /api/trial answer to a click; masks are never served)
+    man = site["manifest"]["stimuli"]
+    names = {s[k] for s in man for k in ("scene", "method", "run", "object")}
+    reveal_ids = {s["reveal_id"] for s in man}
+    mask_bytes = {p.read_bytes() for p in (site["stim_dir"] / "masks").glob("*.png")}
+    reveal_bytes = {p.read_bytes() for p in (site["stim_dir"] / "reveal").glob("*.png")}
+    first_seen: dict[str, str] = {}
+    entries = [e for e in rec.log if e[0] >= t_start]
+    assert len(entries) > 30
+    for _, method, url, status, body in entries:
+        text = body.decode("latin-1")
+        for name in names:
+            assert name not in url and name not in text, (name, url)
+        assert b"manifest" not in body and "mask" not in url and "outline" not in url
+        assert body not in mask_bytes
+        if url.startswith("/i/"):
+            assert body not in reveal_bytes
+        for rid in reveal_ids:
+            if rid in url or rid in text:
+                first_seen.setdefault(rid, f"{method} {url}")
+    assert first_seen and all(v == "POST /api/trial" for v in first_seen.values()), first_seen
+    ctx.close()
+
+
+def test_two_participants_at_once(site, browser):
+    a_ctx = browser.new_context(viewport={"width": 1024, "height": 700})
+    b_ctx = browser.new_context(viewport={"width": 1024, "height": 700})
+    a = Participant(site, a_ctx, "PAIR_A")
+    b = Participant(site, b_ctx, "PAIR_B")
+    a.start()
+    b.start()
+    a.press_panel()
+    b.press_panel()
+    n = N_PRACTICE + len(SCENES)
+    for i in range(n):  # interleaved: both sessions are open and answering at the same time
+        if i == N_PRACTICE:
+            a.press_panel("Practice complete")
+            b.press_panel("Practice complete")
+        a.trial(i, "hit" if i % 2 else "miss")
+        b.trial(i, "miss" if i % 3 else "hit")
+    a.done()
+    b.done()
+    rows_a = _check_rows(site, a)
+    rows_b = _check_rows(site, b)
+    assert not set(rows_a.client_trial_id) & set(rows_b.client_trial_id)
+    a_ctx.close()
+    b_ctx.close()
