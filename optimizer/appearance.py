@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from .pose import euler_xyz_deg, model_matrix
+from . import scene as scn
 from .scene import ROUGHNESS_MIN
 from .scenepack import MaterialSpec, ObjectSpec
 
@@ -73,6 +74,14 @@ class AppearanceConfig:
         if self.pose:
             names += ["translation", "rotation"]
         return names
+
+    def planner_params(self) -> set[str]:
+        """The optimised parameter groups in the effect planner's vocabulary."""
+        groups = {"albedo"}
+        groups |= {g for g, on in (("pose", self.pose), ("displacement", self.displacement), ("bsdf", self.bsdf)) if on}
+        if self.bsdf and self.transmittance:
+            groups.add("transmittance")
+        return groups
 
     def learning_rates(self) -> dict[str, float]:
         lr = {k: self.lr_maps for k in MAPS}
@@ -148,8 +157,8 @@ class Geometry:
     def build(cls, prepared, obj: ObjectSpec, cfg: AppearanceConfig) -> "Geometry":
         R = euler_xyz_deg(obj.rotation)[:3, :3]
         w2u = prepared.uv_to_welded
-        base = (prepared.welded_vertices[w2u] * obj.size) @ R.T
-        normal = prepared.welded_normals[w2u] @ R.T
+        base = (prepared.vertices[w2u] * obj.size) @ R.T
+        normal = prepared.normals[w2u] @ R.T
         taps = seam_averaged_taps(prepared.uvs, w2u, cfg.displacement_resolution, cfg.displacement_resolution)
         return cls(base.astype(np.float32), normal.astype(np.float32), prepared.uv_faces, prepared.uvs.astype(np.float32),
                    taps, np.asarray(w2u), np.asarray(obj.translation, np.float64), obj.size,
@@ -181,11 +190,13 @@ class Geometry:
             py = py + d * mi.Float(self.normal[:, 1])
             pz = pz + d * mi.Float(self.normal[:, 2])
         if theta is not None:
-            c, s = dr.cos(theta[0]), dr.sin(theta[0])
+            th = dr.gather(mi.Float, theta, 0)  # indexing would detach it
+            c, s = dr.cos(th), dr.sin(th)
             px, py = c * px - s * py, s * px + c * py
         t = [float(x) for x in self.translation]
         if dt is not None:
-            px, py, pz = px + (t[0] + dt[0]), py + (t[1] + dt[1]), pz + (t[2] + dt[2])
+            d3 = [dr.gather(mi.Float, dt, k) for k in range(3)]
+            px, py, pz = px + (t[0] + d3[0]), py + (t[1] + d3[1]), pz + (t[2] + d3[2])
         else:
             px, py, pz = px + t[0], py + t[1], pz + t[2]
         idx = dr.arange(mi.UInt32, n)
@@ -227,3 +238,24 @@ def rendered_maps(values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     out = {k: values[k] for k in MAPS}
     out["roughness"] = ROUGHNESS_MIN + (1.0 - ROUGHNESS_MIN) * values["roughness"]
     return out
+
+
+def object_bsdf(values: dict[str, np.ndarray], app: AppearanceConfig) -> dict:
+    """The object's BSDF dict for parameter ``values`` (albedo only -> Lambertian)."""
+    if not app.bsdf:
+        return {"type": "diffuse", "reflectance": scn.texture(values["albedo"])}
+    return scn.principled(values["albedo"], values["metallic"], values["roughness"], values["transmittance"], app.eta)
+
+
+def world_positions(geometry: Geometry, values: dict[str, np.ndarray], app: AppearanceConfig) -> np.ndarray:
+    """World positions ``(Nu, 3)`` of the UV-split mesh for parameter ``values``."""
+    d = values["displacement"][..., 0] if app.displacement else None
+    return geometry.positions_np(d, values["translation"], float(values["rotation"][0]))
+
+
+def pose_record(obj: ObjectSpec, values: dict[str, np.ndarray]) -> dict[str, Any]:
+    """``pose.json``: the learned offset and angle, and the final model matrix (Eq. 3)."""
+    dt = [float(x) for x in values["translation"]]
+    th = float(values["rotation"][0])
+    return {"dx": dt[0], "dy": dt[1], "dz": dt[2], "theta_z": th, "theta_z_deg": math.degrees(th),
+            "model_matrix": model_matrix(obj.size, obj.rotation, obj.translation, dt, th).tolist()}

@@ -41,7 +41,7 @@ def get(name: str) -> ScenePack:
         name=name,
         object=ObjectSpec(primitive=obj, size=1.0, rotation=(0.0, 0.0, rot), translation=(tx, ty, 0.0), target_vertices=30000),
         environment=EnvironmentSpec(builtin=env),
-        cameras=CameraSpec(mode="orbit", views=16, radius=4.0, elevation=20.0, fov=40.0),
+        cameras=CameraSpec(mode="orbit", views=16, radius=4.0, elevation=20.0, fov=30.0),
         render=RenderSpec(resolution=(128, 128), spp=16),
         material=MaterialSpec(),
         source=f"builtin:{name}",

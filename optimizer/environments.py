@@ -176,8 +176,9 @@ def _room() -> dict:
 def _occluded() -> dict:
     out = _gravel()
     out["sky"] = sunsky(45.0, 120.0, turbidity=3.0)
-    out["wall"] = box([1.35, 0.0, 0.45], [0.12, 1.1, 0.45], textured_diffuse(textures.texture("brick"), 1.0))
-    out["crate"] = box([-0.9, -1.3, 0.3], [0.3, 0.3, 0.3], plain_diffuse([0.45, 0.33, 0.2]))
+    # A low wall hides the lower part of the object from the +x views; a crate blocks some -y views.
+    out["wall"] = box([1.0, 0.0, 0.2], [0.06, 0.9, 0.2], textured_diffuse(textures.texture("brick"), 1.0))
+    out["crate"] = box([-0.75, -1.2, 0.25], [0.25, 0.25, 0.25], plain_diffuse([0.45, 0.33, 0.2]))
     return out
 
 
@@ -292,7 +293,11 @@ def get_environment(spec) -> Environment:
     if spec.builtin:
         desc, build, emitters, nearby, occl = ENVIRONMENTS[spec.builtin]
         if spec.builtin == "panorama":
-            env = panorama_environment(builtin_panorama(), spec.capture_height, True, spec.ground_extent, spec.rotation, "panorama")
+            # The plaza's nearest walls and pillars stand ~7.5 units from the capture point: a projected
+            # ground reaching them would smear them over the floor, so it stops short (beyond it the
+            # panorama itself is seen).
+            env = panorama_environment(builtin_panorama(), spec.capture_height, True, min(spec.ground_extent, 5.0),
+                                       spec.rotation, "panorama")
             env.description = desc
             return env
         return Environment(spec.builtin, desc, build, emitters, nearby, occl)

@@ -79,7 +79,8 @@ def coverage_and_depth(sc, cam: Camera, target_shape=None, ss: int = 4) -> tuple
     """Fraction of each pixel covered by ``target_shape`` (visible, i.e. first hit) and mean hit distance.
 
     Returns ``coverage (H, W)`` (zeros when ``target_shape`` is None) and
-    ``depth (H, W)``: the mean distance of the rays that hit anything (0 when none do).
+    ``depth (H, W)``: the mean distance from the camera centre of the rays that hit
+    anything (0 when none do).
     """
     import drjit as dr
     import mitsuba as mi
@@ -87,7 +88,8 @@ def coverage_and_depth(sc, cam: Camera, target_shape=None, ss: int = 4) -> tuple
     rays = camera_rays(cam, ss)
     si = sc.ray_intersect(rays)
     hit = si.is_valid()
-    t = dr.select(hit, si.t, 0.0)
+    # Distance from the camera centre (rays start on the near-clip plane, so si.t is short by it).
+    t = dr.select(hit, dr.norm(si.p - mi.Point3f(*cam.origin)), 0.0)
     shape = (cam.height, cam.width, ss * ss)
     t_np = np.asarray(t, dtype=np.float32).reshape(shape)
     hit_np = np.asarray(hit, dtype=bool).reshape(shape)

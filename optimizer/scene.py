@@ -92,7 +92,7 @@ def object_mesh(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray | None,
     return mesh
 
 
-def perspective(cam: Camera, spp: int = 16, film: bool = True) -> dict:
+def perspective(cam: Camera, spp: int = 16, film: bool = True, sample_border: bool = False) -> dict:
     import mitsuba as mi
 
     d: dict[str, Any] = {
@@ -104,14 +104,15 @@ def perspective(cam: Camera, spp: int = 16, film: bool = True) -> dict:
         "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.origin), target=list(cam.target), up=list(cam.up)),
     }
     if film:
-        d["film"] = hdrfilm(cam.width, cam.height)
+        d["film"] = hdrfilm(cam.width, cam.height, sample_border)
         d["sampler"] = {"type": "independent", "sample_count": int(spp)}
     return d
 
 
-def hdrfilm(width: int, height: int) -> dict:
+def hdrfilm(width: int, height: int, sample_border: bool = False) -> dict:
+    """Box-filtered RGB film. ``sample_border`` lets geometry gradients see shapes entering the frame."""
     return {"type": "hdrfilm", "width": int(width), "height": int(height), "rfilter": {"type": "box"},
-            "pixel_format": "rgb", "sample_border": False}
+            "pixel_format": "rgb", "sample_border": bool(sample_border)}
 
 
 def batch(cams: Sequence[Camera], spp: int = 16) -> dict:

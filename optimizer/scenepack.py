@@ -22,7 +22,7 @@ convention); the ground is the plane z = 0. Example::
     views = 16
     radius = 4.0
     elevation = 20.0            # degrees above the horizon
-    fov = 40.0                  # horizontal field of view, degrees
+    fov = 30.0                  # horizontal field of view, degrees
 
     [render]
     resolution = 128            # or [width, height]
@@ -76,7 +76,7 @@ class CameraSpec:
     views: int = 16
     radius: float = 4.0
     elevation: float = 20.0
-    fov: float = 40.0
+    fov: float = 30.0
     azimuth_offset: float = 0.0
     positions: list[tuple[float, float, float]] | None = None
     targets: list[tuple[float, float, float]] | None = None

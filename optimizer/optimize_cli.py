@@ -1,0 +1,88 @@
+"""``camo optimize``: argument parsing for an optimisation run (the work is in :mod:`optimizer.run`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .errors import CamoError
+
+METHODS = ("ours",)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("optimize", help="optimise an object's appearance to hide it in a scene")
+    p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
+    p.add_argument("--out", required=True, help="run directory (must be new or empty unless --resume/--overwrite)")
+    p.add_argument("--method", default="ours", help=f"method: {', '.join(METHODS)}")
+    p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50)")
+    p.add_argument("--resolution", type=int, help="render width = height in pixels (default: the pack's)")
+    p.add_argument("--spp", type=int, help="samples per pixel per training render (default 4)")
+    p.add_argument("--target-spp", type=int, help="samples per pixel of background targets and final renders (default 64)")
+    p.add_argument("--views", type=int, help="number of orbit views (default: the pack's, 16)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ablate", default="", help="comma list: pose,displacement,bsdf,transmittance,inpainting")
+    p.add_argument("--loss", choices=("gated", "mse"), default="gated", help="luminance-gated (Eq. 9) or plain MSE")
+    p.add_argument("--map-resolution", type=int, help="BSDF map resolution (paper: 800)")
+    p.add_argument("--displacement-resolution", type=int, help="displacement map resolution (default 256)")
+    p.add_argument("--displacement-bound", type=float, help="displacement amplitude bound, fraction of object size (default 0.02)")
+    p.add_argument("--target-vertices", type=int, help="remeshing target (paper: ~30,000)")
+    p.add_argument("--domain", choices=("object+shadow", "frame"), help="loss pixel domain (default object+shadow)")
+    p.add_argument("--checkpoint-every", type=int, default=10)
+    p.add_argument("--no-planner", action="store_true", help="always full path tracing (max_depth 12, projective on)")
+    p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
+    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing run directory's files")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_optimize)
+
+
+def _positive(name: str, value, minimum=1):
+    if value is not None and value < minimum:
+        raise CamoError(f"--{name} must be >= {minimum}, got {value}")
+    return value
+
+
+def config_from_args(args):
+    from .cli import load_scene_arg, parse_ablate
+    from .run import RunConfig, appearance_for
+    from .stage1 import Stage1Config
+
+    if args.method not in METHODS:
+        raise CamoError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
+    for name in ("iterations", "spp", "target_spp", "map_resolution", "displacement_resolution", "checkpoint_every"):
+        _positive(name.replace("_", "-"), getattr(args, name))
+    _positive("target-vertices", args.target_vertices, 100)
+    if args.displacement_bound is not None and not (0.0 <= args.displacement_bound <= 0.5):
+        raise CamoError(f"--displacement-bound must be in [0, 0.5], got {args.displacement_bound}")
+    pack = load_scene_arg(args.scene, args)
+    if args.target_vertices:
+        pack.object = dataclasses.replace(pack.object, target_vertices=args.target_vertices)
+    ablate = parse_ablate(args.ablate)
+    app = appearance_for(ablate)
+    if args.map_resolution:
+        app = dataclasses.replace(app, map_resolution=args.map_resolution)
+    if args.displacement_resolution:
+        app = dataclasses.replace(app, displacement_resolution=args.displacement_resolution)
+    if args.displacement_bound is not None:
+        app = dataclasses.replace(app, displacement_bound=args.displacement_bound)
+    if "transmittance" in ablate or "bsdf" in ablate:
+        pack.material = dataclasses.replace(pack.material, transmittance=0.0)
+    s1 = Stage1Config(seed=args.seed, loss=args.loss)
+    for name in ("iterations", "spp", "target_spp", "domain"):
+        if getattr(args, name) is not None:
+            s1 = dataclasses.replace(s1, **{name: getattr(args, name)})
+    stages = (1,) if "inpainting" in ablate else (1,)
+    cfg = RunConfig(scene=args.scene, method=args.method, stages=stages, ablate=tuple(sorted(ablate)),
+                    checkpoint_every=args.checkpoint_every, planner=not args.no_planner,
+                    shadow_gradients=args.shadow_gradients, threads=args.threads, stage1=s1, appearance=app)
+    return pack, cfg
+
+
+def run_optimize(args) -> int:
+    from .run import optimize
+
+    pack, cfg = config_from_args(args)
+    out = optimize(pack, cfg, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
+    print(f"wrote {out}")
+    return 0

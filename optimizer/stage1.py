@@ -1,0 +1,276 @@
+"""Stage 1, background matching (paper Sec. III-C, Eq. 8-11).
+
+For every iteration and view: map the parameters to the scene (vertex
+positions through pose + displacement, BSDF maps), render with gradients,
+compare to the background render of that view with the luminance-gated loss
+(Eq. 9) inside the loss domain, back-propagate; then add L_disp (Eq. 5),
+sanitise the gradients and take one Adam step.
+
+The loss domain defaults to the object's visible mask united with its shadow
+(the pixels where the object changes the image in an initial high-spp render),
+dilated by ``domain_dilate`` of the image size: the shadow on the ground gives
+the object away, so it must count. ``domain = "frame"`` uses the whole image.
+
+Determinism: the primal and adjoint seeds differ and change per iteration and
+view; one machine and one seed give the same numbers (resume included).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from . import scene as scn
+from .adam import Adam, dr_numpy
+from .appearance import (MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf,
+                         pose_record, world_positions)
+from .cameras import Camera
+from .environments import Environment
+from .loss import gated_loss_terms, mse_loss
+from .planner import Plan
+from .render import coverage_and_depth, render_shaded, uses_batch
+from .scenepack import ScenePack
+
+
+@dataclasses.dataclass
+class Stage1Config:
+    iterations: int = 50  # paper
+    spp: int = 4
+    target_spp: int = 64  # background targets and the domain estimate
+    seed: int = 0
+    loss: str = "gated"  # or "mse" (paper Fig. 7)
+    alpha: float = 1.0
+    eps: float = 1e-2
+    domain: str = "object+shadow"  # or "frame"
+    domain_dilate: float = 0.04  # fraction of the image's larger side
+    shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
+
+
+@dataclasses.dataclass
+class Targets:
+    background: np.ndarray  # (V, H, W, 3) linear
+    coverage: np.ndarray  # (V, H, W)
+    domain: np.ndarray  # (V, H, W) float32 weights in {0, 1}
+    depth: np.ndarray  # (V, H, W)
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation of ``(H, W)`` by a disc of ``radius`` pixels."""
+    if radius <= 0:
+        return mask.copy()
+    from scipy.ndimage import binary_dilation
+
+    yy, xx = np.mgrid[-radius: radius + 1, -radius: radius + 1]
+    return binary_dilation(mask, structure=(xx**2 + yy**2) <= radius**2)
+
+
+def influence_domain(bg: np.ndarray, obj: np.ndarray, coverage: np.ndarray, threshold: float, dilate_px: int) -> np.ndarray:
+    """Object mask united with the pixels the object visibly changes (its shadow), dilated; ``(H, W)`` float32."""
+    yb = bg @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    yo = obj @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    changed = np.abs(yo - yb) > threshold * np.maximum(yb, 1e-3)
+    # Isolated noisy pixels are not a shadow: keep changed pixels with changed neighbours.
+    from scipy.ndimage import uniform_filter
+
+    changed &= uniform_filter(changed.astype(np.float32), 3) > 0.5
+    return dilate((coverage > 0) | changed, dilate_px).astype(np.float32)
+
+
+def shading_integrator(plan: Plan) -> dict:
+    """The plain path tracer matching a training plan's depth (targets, final renders)."""
+    return {"type": "path", "max_depth": plan.max_depth, "rr_depth": plan.max_depth}
+
+
+class Stage1:
+    """One Stage 1 optimisation; :meth:`step` runs one iteration."""
+
+    def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
+                 cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.pack, self.env, self.cams, self.plan, self.cfg, self.app = pack, env, cams, plan, cfg, app
+        self.geometry = Geometry.build(prepared, pack.object, app)
+        self.values = initial_values(app, pack.material)
+        self.opt = Adam(app.learning_rates())
+        for name in app.trainable():
+            v = self.values[name]
+            self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
+        self.project = clamp_projections(app, pack.object.size)
+        self.iteration = 0
+        self.history: list[dict[str, Any]] = []
+        log("rendering background targets and the loss domain")
+        self.targets = self._targets()
+        self.scene = self._training_scene()
+        self.params = mi.traverse(self.scene)
+        self._keys = self._param_keys()
+        self._bg = [mi.TensorXf(self.targets.background[v]) for v in range(len(cams))]
+        self._w = [self.targets.domain[v] for v in range(len(cams))] if cfg.domain != "frame" else [None] * len(cams)
+        dr.eval()
+
+    # --- set-up -------------------------------------------------------------
+    def _object(self):
+        g = self.geometry
+        return scn.object_mesh(g.positions_np(), g.faces, g.uvs, object_bsdf(self.values, self.app))
+
+    def shading_integrator(self) -> dict:
+        """A path tracer consistent with the training integrator (same depth) for targets and final renders."""
+        return shading_integrator(self.plan)
+
+    def _targets(self) -> Targets:
+        cfg = self.cfg
+        integ = self.shading_integrator()
+        seed = cfg.seed * 7919 + 1
+        bg = render_shaded(self.env.build(), None, self.cams, integ, cfg.target_spp, seed)
+        obj_mesh = self._object()
+        init = render_shaded(self.env.build(), obj_mesh, self.cams, integ, cfg.target_spp, seed)
+        sc_obj = scn.build_scene(self.env.build(), obj_mesh)
+        sc_bg = scn.build_scene(self.env.build())
+        cov, depth, dom = [], [], []
+        px = max(1, round(cfg.domain_dilate * max(self.cams[0].width, self.cams[0].height)))
+        for i, c in enumerate(self.cams):
+            cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
+            _, d = coverage_and_depth(sc_bg, c)
+            cov.append(cv)
+            depth.append(d)
+            dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
+        self.initial_render = init
+        return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth))
+
+    def _training_scene(self):
+        if uses_batch(self.plan.integrator):
+            sensors = [scn.batch(self.cams, self.cfg.spp)]
+        else:
+            sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
+        return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.plan.integrator))
+
+    def _param_keys(self) -> dict[str, str]:
+        keys = {}
+        names = list(self.params.keys())
+
+        def find(suffix: str) -> str | None:
+            hits = [k for k in names if k.startswith(scn.OBJECT_ID + ".") and k.endswith(suffix)]
+            return hits[0] if hits else None
+
+        keys["positions"] = find("vertex_positions")
+        if self.app.bsdf:
+            keys["albedo"] = find("base_color.data")
+            keys["metallic"] = find("metallic.data")
+            keys["roughness"] = find("roughness.data")
+            keys["transmittance"] = find("spec_trans.data")
+        else:
+            keys["albedo"] = find("reflectance.data")
+        missing = [k for k, v in keys.items() if v is None]
+        if missing:
+            raise RuntimeError(f"scene parameters not found for {missing}; have {names}")
+        return keys
+
+    # --- one iteration ------------------------------------------------------
+    def _apply(self) -> None:
+        """Push the current parameters (with their AD graph) into the scene."""
+        opt, keys, g = self.opt, self._keys, self.geometry
+        d = opt["displacement"] if "displacement" in opt else None
+        dt = opt["translation"] if "translation" in opt else None
+        th = opt["rotation"] if "rotation" in opt else None
+        if d is not None or dt is not None or th is not None:
+            self.params[keys["positions"]] = g.positions_dr(d, dt, th)
+        for name in MAPS:
+            if name in opt and name in keys:
+                value = opt[name]
+                if name == "roughness":
+                    value = scn.effective_roughness(value)
+                self.params[keys[name]] = value
+        self.params.update()
+
+    def _seeds(self, view: int) -> tuple[int, int]:
+        base = (self.cfg.seed * 1_000_003 + self.iteration * 4099 + view * 131) & 0x7FFFFFFF
+        return base, (base ^ 0x5BD1E995) & 0x7FFFFFFF
+
+    def _view_loss(self, img, view: int):
+        cfg = self.cfg
+        if cfg.loss == "mse":
+            return mse_loss(img, self._bg[view], self._w[view]), None
+        t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps)
+        return t.total, t
+
+    def step(self) -> dict[str, Any]:
+        import drjit as dr
+        import mitsuba as mi
+
+        t0 = time.perf_counter()
+        V = len(self.cams)
+        photo = lum = chroma = 0.0
+        if uses_batch(self.plan.integrator):
+            self._apply()
+            s, sg = self._seeds(0)
+            img = mi.render(self.scene, self.params, spp=self.cfg.spp, seed=s, seed_grad=sg)
+            W = self.cams[0].width
+            total = mi.Float(0.0)
+            for v in range(V):
+                view_img = img[:, v * W:(v + 1) * W, :]
+                lv, terms = self._view_loss(view_img, v)
+                total += lv / V
+                if terms is not None:
+                    lum += float(terms.luminance[0]) / V
+                    chroma += float(terms.chroma[0]) / V
+            dr.backward(total)
+            photo = float(total[0])
+        else:
+            for v in range(V):
+                self._apply()  # backward clears the graph: re-apply before every view
+                s, sg = self._seeds(v)
+                img = mi.render(self.scene, self.params, sensor=v, spp=self.cfg.spp, seed=s, seed_grad=sg)
+                lv, terms = self._view_loss(img, v)
+                dr.backward(lv / V)
+                photo += float(lv[0]) / V
+                if terms is not None:
+                    lum += float(terms.luminance[0]) / V
+                    chroma += float(terms.chroma[0]) / V
+        disp = 0.0
+        if "displacement" in self.opt:
+            l_disp = self.app.displacement_weight * dr.mean(dr.abs(self.opt["displacement"].array))
+            dr.backward(l_disp)
+            disp = float(l_disp[0])
+        nonfinite = self.opt.sanitise_grads()
+        self.opt.step(self.project)
+        self.iteration += 1
+        rec = {
+            "iteration": self.iteration,
+            "stage": 1,
+            "loss": photo + disp,
+            "loss_photo": photo,
+            "loss_disp": disp,
+            "seconds": time.perf_counter() - t0,
+            "nonfinite_grads": nonfinite,
+        }
+        if self.cfg.loss == "gated":
+            rec.update(loss_luminance=lum, loss_chroma=chroma)
+        self.history.append(rec)
+        return rec
+
+    # --- results --------------------------------------------------------------
+    def current_values(self) -> dict[str, np.ndarray]:
+        out = dict(self.values)
+        for name in self.opt.values:
+            arr = dr_numpy(self.opt[name])
+            out[name] = arr.reshape(self.values[name].shape)
+        return out
+
+    def pose(self) -> dict[str, Any]:
+        return pose_record(self.pack.object, self.current_values())
+
+    def world_positions(self) -> np.ndarray:
+        return world_positions(self.geometry, self.current_values(), self.app)
+
+    def checkpoint_state(self) -> dict[str, np.ndarray]:
+        st = self.opt.state()
+        st["iteration"] = np.array(self.iteration)
+        return st
+
+    def load_checkpoint_state(self, st: dict[str, np.ndarray]) -> None:
+        self.opt.load_state(st)
+        self.iteration = int(st["iteration"])
