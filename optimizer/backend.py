@@ -230,3 +230,23 @@ def info() -> BackendInfo | None:
     """The backend chosen so far in this process, or None before :func:`init`."""
     return _STATE
 
+
+
+def load_file(path: str, **kwargs):
+    """``mi.load_file`` that also works at one thread.
+
+    Mitsuba 3.9's EXR reader waits on the Dr.Jit thread pool and deadlocks when
+    that pool has a single thread (``--threads 1``, the bit-exact mode), so
+    loading runs with at least two threads and the count is restored after.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    n = dr.thread_count()
+    if n < 2:
+        dr.set_thread_count(2)
+    try:
+        return mi.load_file(str(path), **kwargs)
+    finally:
+        if n < 2:
+            dr.set_thread_count(n)

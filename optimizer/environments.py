@@ -253,10 +253,10 @@ def panorama_environment(path: str | Path, capture_height: float = 1.6, ground: 
 
 def xml_environment(path: str | Path) -> Environment:
     """Shapes and emitters of a Mitsuba XML scene (its sensors and integrator are ignored)."""
-    import mitsuba as mi
+    from .backend import load_file
 
     try:
-        loaded = mi.load_file(str(path))
+        loaded = load_file(path)
     except Exception as exc:
         msg = str(exc).strip().splitlines()
         raise CamoError(f"cannot load Mitsuba scene {path}: {msg[-1] if msg else type(exc).__name__}") from None

@@ -71,7 +71,9 @@ def test_exports_load_back(run_dir, mi_backend):
     assert len(obj.faces) == len(mesh.faces)
 
     mi, dr = mi_backend
-    sc = mi.load_file(str(run_dir / "scene.xml"))
+    from optimizer.backend import load_file
+
+    sc = load_file(run_dir / "scene.xml")
     renders = np.load(run_dir / "renders.npz")
     final = renders["final"]
     for v in (0, 2):
