@@ -6,7 +6,7 @@ import dataclasses
 
 from .errors import CamoError
 
-METHODS = ("ours",)
+METHODS = ("ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage", "ganmouflage-paper")
 
 
 def register(sub) -> None:
@@ -27,6 +27,12 @@ def register(sub) -> None:
     p.add_argument("--displacement-bound", type=float, help="displacement amplitude bound, fraction of object size (default 0.02)")
     p.add_argument("--target-vertices", type=int, help="remeshing target (paper: ~30,000)")
     p.add_argument("--domain", choices=("object+shadow", "frame"), help="loss pixel domain (default object+shadow)")
+    p.add_argument("--stages", default="1,2", help="stages to run: 1 (background matching), 2 (synthesis); default 1,2")
+    p.add_argument("--stage2-iterations", type=int, help="Stage 2 iterations (paper: 20)")
+    p.add_argument("--stage2-backend", choices=("patch", "diffusers"), help="Stage 2 inpainter (default: patch, offline)")
+    p.add_argument("--stage2-strength", type=float, help="Stage 2 noise strength t_start in (0, 1] (default 0.5)")
+    p.add_argument("--sdxl-path", help="local SDXL inpainting pipeline folder (diffusers backend)")
+    p.add_argument("--controlnet-path", help="local depth ControlNet folder (diffusers backend)")
     p.add_argument("--checkpoint-every", type=int, default=10)
     p.add_argument("--no-planner", action="store_true", help="always full path tracing (max_depth 12, projective on)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
@@ -47,10 +53,12 @@ def config_from_args(args):
     from .cli import load_scene_arg, parse_ablate
     from .run import RunConfig, appearance_for
     from .stage1 import Stage1Config
+    from .stage2 import Stage2Config
 
     if args.method not in METHODS:
         raise CamoError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
-    for name in ("iterations", "spp", "target_spp", "map_resolution", "displacement_resolution", "checkpoint_every"):
+    for name in ("iterations", "spp", "target_spp", "map_resolution", "displacement_resolution", "checkpoint_every",
+                 "stage2_iterations"):
         _positive(name.replace("_", "-"), getattr(args, name))
     _positive("target-vertices", args.target_vertices, 100)
     if args.displacement_bound is not None and not (0.0 <= args.displacement_bound <= 0.5):
@@ -72,10 +80,29 @@ def config_from_args(args):
     for name in ("iterations", "spp", "target_spp", "domain"):
         if getattr(args, name) is not None:
             s1 = dataclasses.replace(s1, **{name: getattr(args, name)})
-    stages = (1,) if "inpainting" in ablate else (1,)
+    try:
+        stages = tuple(sorted({int(x) for x in args.stages.split(",") if x.strip()}))
+    except ValueError:
+        raise CamoError(f"--stages must be a comma list of 1 and 2, got {args.stages!r}") from None
+    if not stages or set(stages) - {1, 2} or 1 not in stages:
+        raise CamoError(f"--stages must include 1 and may include 2, got {args.stages!r}")
+    if "inpainting" in ablate:
+        stages = (1,)
+    s2 = Stage2Config()
+    if args.stage2_iterations:
+        s2 = dataclasses.replace(s2, iterations=args.stage2_iterations)
+    if args.stage2_backend:
+        s2 = dataclasses.replace(s2, backend=args.stage2_backend)
+    if args.stage2_strength is not None:
+        if not (0.0 < args.stage2_strength <= 1.0):
+            raise CamoError(f"--stage2-strength must be in (0, 1], got {args.stage2_strength}")
+        s2 = dataclasses.replace(s2, strength=args.stage2_strength)
+    s2 = dataclasses.replace(s2, sdxl_path=args.sdxl_path, controlnet_path=args.controlnet_path)
+    if 2 in stages and s2.backend == "diffusers" and not (args.sdxl_path and args.controlnet_path):
+        raise CamoError("--stage2-backend diffusers needs --sdxl-path and --controlnet-path (local folders; nothing is downloaded)")
     cfg = RunConfig(scene=args.scene, method=args.method, stages=stages, ablate=tuple(sorted(ablate)),
                     checkpoint_every=args.checkpoint_every, planner=not args.no_planner,
-                    shadow_gradients=args.shadow_gradients, threads=args.threads, stage1=s1, appearance=app)
+                    shadow_gradients=args.shadow_gradients, threads=args.threads, stage1=s1, stage2=s2, appearance=app)
     return pack, cfg
 
 
@@ -83,6 +110,11 @@ def run_optimize(args) -> int:
     from .run import optimize
 
     pack, cfg = config_from_args(args)
+    if args.method != "ours":
+        from .baselines import run_from_args
+
+        print(f"wrote {run_from_args(args, pack, cfg)}")
+        return 0
     out = optimize(pack, cfg, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
     print(f"wrote {out}")
     return 0

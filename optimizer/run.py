@@ -25,6 +25,7 @@ from .appearance import AppearanceConfig
 from .errors import CamoError
 from .scenepack import ScenePack
 from .stage1 import Stage1, Stage1Config
+from .stage2 import Stage2Config
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -33,13 +34,14 @@ CHECKPOINT = "checkpoint.npz"
 class RunConfig:
     scene: str
     method: str = "ours"
-    stages: tuple[int, ...] = (1,)
+    stages: tuple[int, ...] = (1, 2)
     ablate: tuple[str, ...] = ()
     checkpoint_every: int = 10
     planner: bool = True
     shadow_gradients: bool = False
     threads: int | None = None
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
+    stage2: Stage2Config = dataclasses.field(default_factory=Stage2Config)
     appearance: AppearanceConfig = dataclasses.field(default_factory=AppearanceConfig)
 
 
@@ -89,6 +91,7 @@ def config_fingerprint(cfg: RunConfig, pack: ScenePack) -> str:
     d.pop("checkpoint_every", None)
     d.pop("threads", None)
     d["stage1"].pop("iterations", None)
+    d["stage2"].pop("iterations", None)
     blob = json.dumps({"cfg": d, "pack": _plain(pack.to_dict())}, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:16]
 
@@ -99,15 +102,20 @@ def appearance_for(ablate: set[str], base: AppearanceConfig | None = None) -> Ap
                                bsdf="bsdf" not in ablate, transmittance="transmittance" not in ablate)
 
 
-def _read_log(path: Path, upto: int) -> list[dict[str, Any]]:
+def _read_log(path: Path, stage1_upto: int | None, stage2_upto: int | None) -> list[dict[str, Any]]:
+    """The log records a checkpoint covers: Stage 1 up to ``stage1_upto`` (all when None), Stage 2 up to
+    ``stage2_upto`` (none when None)."""
     if not path.is_file():
         return []
     out = []
     for line in path.read_text().splitlines():
-        if line.strip():
-            rec = json.loads(line)
-            if rec.get("iteration", 0) <= upto and rec.get("stage", 1) == 1:
-                out.append(rec)
+        if not line.strip():
+            continue
+        rec = json.loads(line)
+        it, stage = rec.get("iteration", 0), rec.get("stage", 1)
+        if (stage == 1 and (stage1_upto is None or it <= stage1_upto)) or \
+           (stage == 2 and stage2_upto is not None and it <= stage2_upto):
+            out.append(rec)
     return out
 
 
@@ -133,7 +141,7 @@ def prepare_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
 
 def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = False, overwrite: bool = False,
              progress: bool = True) -> Path:
-    """Run Stage 1 (and later stages) for ``pack`` into the run directory ``out``."""
+    """Run Stage 1 and, unless ablated, Stage 2 for ``pack`` into the run directory ``out``."""
     from . import backend
     from .cameras import cameras
     from .environments import get_environment
@@ -149,23 +157,38 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
         state = load_checkpoint(out / CHECKPOINT)
         if str(state.get("fingerprint", "")) != fingerprint:
             raise CamoError(f"--resume: {out} was made with a different configuration; start a new run instead")
+    resume_stage = int(state["stage"]) if state is not None and "stage" in state else 1
+
+    inpainter = None
+    if 2 in cfg.stages:  # load the inpainter first: a bad weights folder must fail before Stage 1 runs
+        from .inpaint import get_inpainter
+
+        s2c = cfg.stage2
+        opts = {"sdxl_path": s2c.sdxl_path, "controlnet_path": s2c.controlnet_path, "prompt": s2c.prompt} \
+            if s2c.backend == "diffusers" else {}
+        inpainter = get_inpainter(s2c.backend, **opts)
 
     t_setup = time.perf_counter()
     prepared = prepare_object(pack)
     env = get_environment(pack.environment)
     app = cfg.appearance
-    params = app.planner_params()
-    pl = plan(pack, env, params, "optimize", cfg.shadow_gradients) if cfg.planner else \
-        full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
+
+    def plan_for(a: AppearanceConfig):
+        params = a.planner_params()
+        return plan(pack, env, params, "optimize", cfg.shadow_gradients) if cfg.planner else \
+            full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
+
+    pl = plan_for(app)
     cams = cameras(pack)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
     s1 = Stage1(pack, env, prepared, cams, pl, cfg.stage1, app, say)
     setup_seconds = time.perf_counter() - t_setup
     history: list[dict[str, Any]] = []
     if state is not None:
-        s1.load_checkpoint_state(state)
-        history = _read_log(out / "log.jsonl", s1.iteration)
-        s1.history = list(history)
+        if resume_stage == 1:
+            s1.load_checkpoint_state(state)
+        history = _read_log(out / "log.jsonl", s1.iteration if resume_stage == 1 else None,
+                            int(state["iteration"]) if resume_stage == 2 else None)
     write_config(out / "config.toml", cfg, pack, {
         "versions": versions(),
         "plan": {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons]},
@@ -173,27 +196,55 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
     })
     atomic.write_text(out / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history))
 
-    from tqdm import tqdm
-
-    bar = tqdm(total=cfg.stage1.iterations, initial=s1.iteration, disable=not progress, desc="stage 1", unit="it")
+    final_stage: Stage1 = s1
     with open(out / "log.jsonl", "a", encoding="utf-8") as log:
-        while s1.iteration < cfg.stage1.iterations:
-            rec = s1.step()
-            history.append(rec)
-            log.write(json.dumps(rec) + "\n")
-            log.flush()
-            bar.set_postfix(loss=f"{rec['loss']:.4f}", nonfinite=rec["nonfinite_grads"])
-            bar.update(1)
-            if s1.iteration % cfg.checkpoint_every == 0 or s1.iteration == cfg.stage1.iterations:
-                save_checkpoint(out / CHECKPOINT, s1, fingerprint)
-    bar.close()
-    finish_run(out, s1, pack, env, history, setup_seconds)
+        if resume_stage == 1:
+            _loop(s1, cfg.stage1.iterations, "stage 1", progress, log, history,
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint), cfg.checkpoint_every)
+            values1 = s1.current_values()
+        else:
+            values1 = {k[len("stage1/"):]: v for k, v in state.items() if k.startswith("stage1/")}
+        if 2 in cfg.stages:
+            from .stage2 import Stage2, pseudo_gt_strip
+
+            app2 = dataclasses.replace(app, pose=False)
+            s2 = Stage2(pack, env, prepared, cams, plan_for(app2), cfg.stage1, app2, say, initial=values1,
+                        targets=s1.targets, stage2=cfg.stage2, inpainter=inpainter)
+            s2.initial_render = s1.initial_render
+            if resume_stage == 2:
+                s2.load_checkpoint_state(state)
+            extra = {f"stage1/{k}": v for k, v in values1.items()}
+            _loop(s2, cfg.stage2.iterations, "stage 2", progress, log, history,
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), cfg.checkpoint_every)
+            for v in sorted(s2.pseudo_np):
+                imaging.save_png(out / "stage2" / f"view_{v:02d}_pseudo_gt.png", s2.pseudo_np[v])
+                imaging.save_png(out / "stage2" / f"view_{v:02d}_strip.png", pseudo_gt_strip(s2, v))
+            final_stage = s2
+    finish_run(out, final_stage, pack, env, history, setup_seconds)
     return out
 
 
-def save_checkpoint(path: Path, s1: Stage1, fingerprint: str) -> None:
-    st = s1.checkpoint_state()
+def _loop(stage: Stage1, iterations: int, label: str, progress: bool, log, history: list, checkpoint, every: int) -> None:
+    from tqdm import tqdm
+
+    bar = tqdm(total=iterations, initial=stage.iteration, disable=not progress, desc=label, unit="it")
+    while stage.iteration < iterations:
+        rec = stage.step()
+        history.append(rec)
+        log.write(json.dumps(rec) + "\n")
+        log.flush()
+        bar.set_postfix(loss=f"{rec['loss']:.4f}", nonfinite=rec["nonfinite_grads"])
+        bar.update(1)
+        if stage.iteration % every == 0 or stage.iteration == iterations:
+            checkpoint(stage)
+    bar.close()
+
+
+def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str, np.ndarray] | None = None) -> None:
+    st = stage.checkpoint_state()
     st["fingerprint"] = np.array(fingerprint)
+    st["stage"] = np.array(stage.STAGE)
+    st.update(extra or {})
     with atomic.atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **st)

@@ -88,14 +88,19 @@ def shading_integrator(plan: Plan) -> dict:
 class Stage1:
     """One Stage 1 optimisation; :meth:`step` runs one iteration."""
 
+    STAGE = 1
+
     def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
-                 cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None):
+                 cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None,
+                 initial: dict[str, np.ndarray] | None = None, targets: Targets | None = None):
+        """``initial`` overrides the paper's initial values (e.g. a Stage 1 result for Stage 2);
+        ``targets`` reuses background renders and the loss domain of an earlier stage."""
         import drjit as dr
         import mitsuba as mi
 
         self.pack, self.env, self.cams, self.plan, self.cfg, self.app = pack, env, cams, plan, cfg, app
         self.geometry = Geometry.build(prepared, pack.object, app)
-        self.values = initial_values(app, pack.material)
+        self.values = {k: v.copy() for k, v in (initial or initial_values(app, pack.material)).items()}
         self.opt = Adam(app.learning_rates())
         for name in app.trainable():
             v = self.values[name]
@@ -103,8 +108,9 @@ class Stage1:
         self.project = clamp_projections(app, pack.object.size)
         self.iteration = 0
         self.history: list[dict[str, Any]] = []
-        log("rendering background targets and the loss domain")
-        self.targets = self._targets()
+        if targets is None:
+            log("rendering background targets and the loss domain")
+        self.targets = targets if targets is not None else self._targets()
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
@@ -115,7 +121,7 @@ class Stage1:
     # --- set-up -------------------------------------------------------------
     def _object(self):
         g = self.geometry
-        return scn.object_mesh(g.positions_np(), g.faces, g.uvs, object_bsdf(self.values, self.app))
+        return scn.object_mesh(world_positions(g, self.values, self.app), g.faces, g.uvs, object_bsdf(self.values, self.app))
 
     def shading_integrator(self) -> dict:
         """A path tracer consistent with the training integrator (same depth) for targets and final renders."""
@@ -172,11 +178,14 @@ class Stage1:
     # --- one iteration ------------------------------------------------------
     def _apply(self) -> None:
         """Push the current parameters (with their AD graph) into the scene."""
-        opt, keys, g = self.opt, self._keys, self.geometry
-        d = opt["displacement"] if "displacement" in opt else None
-        dt = opt["translation"] if "translation" in opt else None
-        th = opt["rotation"] if "rotation" in opt else None
-        if d is not None or dt is not None or th is not None:
+        import mitsuba as mi
+
+        opt, keys, g, v = self.opt, self._keys, self.geometry, self.values
+        if {"displacement", "translation", "rotation"} & set(opt.values):
+            # Trainable parts carry their AD graph; fixed parts (an earlier stage's pose) are constants.
+            d = opt["displacement"] if "displacement" in opt else (mi.TensorXf(v["displacement"]) if self.app.displacement else None)
+            dt = opt["translation"] if "translation" in opt else mi.Float(v["translation"])
+            th = opt["rotation"] if "rotation" in opt else mi.Float(v["rotation"])
             self.params[keys["positions"]] = g.positions_dr(d, dt, th)
         for name in MAPS:
             if name in opt and name in keys:
@@ -185,6 +194,10 @@ class Stage1:
                     value = scn.effective_roughness(value)
                 self.params[keys[name]] = value
         self.params.update()
+
+    def views_for_step(self) -> list[int]:
+        """The views whose loss this iteration averages (Stage 1: all of them, Eq. 10)."""
+        return list(range(len(self.cams)))
 
     def _seeds(self, view: int) -> tuple[int, int]:
         base = (self.cfg.seed * 1_000_003 + self.iteration * 4099 + view * 131) & 0x7FFFFFFF
@@ -202,7 +215,8 @@ class Stage1:
         import mitsuba as mi
 
         t0 = time.perf_counter()
-        V = len(self.cams)
+        views = self.views_for_step()
+        V = len(views)
         photo = lum = chroma = 0.0
         if uses_batch(self.plan.integrator):
             self._apply()
@@ -210,7 +224,7 @@ class Stage1:
             img = mi.render(self.scene, self.params, spp=self.cfg.spp, seed=s, seed_grad=sg)
             W = self.cams[0].width
             total = mi.Float(0.0)
-            for v in range(V):
+            for v in views:
                 view_img = img[:, v * W:(v + 1) * W, :]
                 lv, terms = self._view_loss(view_img, v)
                 total += lv / V
@@ -220,7 +234,7 @@ class Stage1:
             dr.backward(total)
             photo = float(total[0])
         else:
-            for v in range(V):
+            for v in views:
                 self._apply()  # backward clears the graph: re-apply before every view
                 s, sg = self._seeds(v)
                 img = mi.render(self.scene, self.params, sensor=v, spp=self.cfg.spp, seed=s, seed_grad=sg)
@@ -240,14 +254,14 @@ class Stage1:
         self.iteration += 1
         rec = {
             "iteration": self.iteration,
-            "stage": 1,
+            "stage": self.STAGE,
             "loss": photo + disp,
             "loss_photo": photo,
             "loss_disp": disp,
             "seconds": time.perf_counter() - t0,
             "nonfinite_grads": nonfinite,
         }
-        if self.cfg.loss == "gated":
+        if self.cfg.loss == "gated" and self.STAGE == 1:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         self.history.append(rec)
         return rec

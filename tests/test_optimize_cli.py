@@ -11,7 +11,7 @@ import pytest
 from optimizer.cli import main
 
 TINY = ["--views", "4", "--resolution", "32", "--map-resolution", "64", "--displacement-resolution", "32",
-        "--target-vertices", "1500", "--spp", "4", "--target-spp", "32", "--quiet",
+        "--target-vertices", "1500", "--spp", "4", "--target-spp", "32", "--quiet", "--stages", "1",
         "--threads", "1"]  # one thread: bit-exact (parallel float atomics reorder sums)
 
 
