@@ -33,7 +33,6 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     p = sub.add_parser("doctor", help="check the backend, libraries and optional local weights")
-    p.add_argument("--weights-dir", action="append", default=[], help="extra folder to look for weights in")
     p.set_defaults(func=_doctor)
 
     scenes = sub.add_parser("scenes", help="built-in scenes: list, render")
@@ -69,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _doctor(args) -> int:
     from .doctor import run_doctor
 
-    return run_doctor(args.weights_dir)
+    return run_doctor()
 
 
 def _scenes_list(args) -> int:

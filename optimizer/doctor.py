@@ -1,55 +1,28 @@
 """``camo doctor``: can the toolkit run here, and which optional local weights are found.
 
-Weights are never downloaded; they are looked up in ``$TORCH_HOME/hub/checkpoints``
-(default ``~/.cache/torch/hub/checkpoints``), in ``$CAMO_WEIGHTS`` and in folders given
-with ``--weights-dir``. Exit 0 when the renderer works (weights are optional).
+Weights are never downloaded; the lookup rules are those of the metrics
+(:mod:`evaluation.metrics.weights`: ``$TORCH_HOME/hub/checkpoints`` and the
+``lpips`` / ``torchmetrics`` wheels) and of the Stage 2 diffusers backend
+(``CAMO_SDXL_PATH`` / ``CAMO_CONTROLNET_PATH``). Exit 0 when the renderer works
+(weights are optional: every learned metric has a weight-free proxy and Stage 2
+has an offline inpainter).
 """
 
 from __future__ import annotations
 
-import glob
 import os
 import platform
-from pathlib import Path
-from typing import Sequence
 
 from .errors import CamoError
-
-#: Optional weights: name -> (file glob patterns, what uses them).
-WEIGHT_PATTERNS: dict[str, tuple[tuple[str, ...], str]] = {
-    "lpips-alex": (("alexnet-owt-*.pth", "alexnet*.pth"), "LPIPS (AlexNet trunk)"),
-    "lpips-vgg": (("vgg16-*.pth", "vgg16*.pth"), "LPIPS (VGG16 trunk)"),
-    "inception": (("pt_inception-2015-12-05-*.pth", "inception_v3_google-*.pth"), "SIFID (Inception v3)"),
-}
-
-
-def weight_dirs(extra: Sequence[str] = ()) -> list[Path]:
-    torch_home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch"))
-    dirs = [torch_home / "hub" / "checkpoints"]
-    if os.environ.get("CAMO_WEIGHTS"):
-        dirs.append(Path(os.environ["CAMO_WEIGHTS"]))
-    dirs += [Path(d) for d in extra]
-    return dirs
-
-
-def find_weight(name: str, extra: Sequence[str] = ()) -> Path | None:
-    patterns, _ = WEIGHT_PATTERNS[name]
-    for d in weight_dirs(extra):
-        for pat in patterns:
-            hits = sorted(glob.glob(str(d / pat)))
-            if hits:
-                return Path(hits[0])
-    return None
 
 
 def _line(label: str, value: str) -> None:
     print(f"{label:<22} {value}")
 
 
-def run_doctor(extra_dirs: Sequence[str] = ()) -> int:
+def _renderer() -> bool:
     from . import backend
 
-    ok = True
     try:
         info = backend.init()
         import drjit as dr
@@ -60,15 +33,51 @@ def run_doctor(extra_dirs: Sequence[str] = ()) -> int:
         _line("libLLVM", f"{info.llvm.path} (LLVM {info.llvm.version})" if info.llvm else "not used (CUDA)")
         _line("threads", str(info.threads))
         _line("gpu", info.gpu or "none (CPU rendering)")
-        sc = mi.load_dict({"type": "scene", "s": {"type": "sphere"}, "e": {"type": "constant"}})
-        img = mi.render(sc, sensor=mi.load_dict({"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}}), spp=1)
-        _line("test render", "ok" if dr.all(dr.isfinite(img.array)) else "NON-FINITE")
+        sc = mi.load_dict({"type": "scene", "integrator": {"type": "path"}, "s": {"type": "sphere"},
+                           "e": {"type": "constant"},
+                           "cam": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}}})
+        img = mi.render(sc, spp=1)
+        ok = bool(dr.all(dr.isfinite(img.array)))
+        _line("test render", "ok" if ok else "NON-FINITE pixels")
+        return ok
     except CamoError as exc:
-        ok = False
         _line("renderer", f"NOT AVAILABLE: {exc}")
-    except Exception as exc:  # report, do not crash the doctor
-        ok = False
-        _line("renderer", f"NOT AVAILABLE: {type(exc).__name__}: {exc}")
+    except Exception as exc:  # report, never crash the doctor
+        _line("renderer", f"NOT AVAILABLE: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+    return False
+
+
+def _weights() -> list[tuple[str, str]]:
+    from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights
+
+    rows = []
+    for kind, what in (("alex", "LPIPS AlexNet trunk"), ("vgg", "LPIPS VGG16 trunk"), ("inception", "SIFID Inception v3")):
+        try:
+            rows.append((kind, f"{find_trunk_weights(kind)}  [{what}]"))
+        except CamoError:
+            rows.append((kind, f"not found  [{what}; the metric is skipped, its weight-free proxy is reported]"))
+    for net in ("alex", "vgg"):
+        try:
+            rows.append((f"lpips-lin-{net}", str(find_lpips_lin_weights(net))))
+        except CamoError:
+            rows.append((f"lpips-lin-{net}", "not found  [install the 'lpips' extra: pip install '.[lpips]']"))
+    try:
+        import dreamsim  # noqa: F401
+
+        rows.append(("dreamsim", "package installed; give --dreamsim-weights to use it"))
+    except ImportError:
+        rows.append(("dreamsim", "not installed  [optional extra: pip install '.[dreamsim]']"))
+    try:
+        from .inpaint import diffusers_status
+
+        rows.append(("sdxl+controlnet", diffusers_status(os.environ.get("CAMO_SDXL_PATH"), os.environ.get("CAMO_CONTROLNET_PATH"))))
+    except ImportError as exc:
+        rows.append(("sdxl+controlnet", f"unavailable ({exc})"))
+    return rows
+
+
+def run_doctor() -> int:
+    ok = _renderer()
     try:
         import torch
 
@@ -78,28 +87,7 @@ def run_doctor(extra_dirs: Sequence[str] = ()) -> int:
         _line("torch", f"NOT AVAILABLE: {exc}")
     _line("python", f"{platform.python_version()} on {platform.machine()}")
     print("optional local weights (never downloaded):")
-    for name, (_, what) in WEIGHT_PATTERNS.items():
-        hit = find_weight(name, extra_dirs)
-        _line(f"  {name}", f"{hit}  [{what}]" if hit else f"not found  [{what}; metric falls back to its weight-free proxy]")
-    for label, status in _extra_statuses():
+    for label, status in _weights():
         _line(f"  {label}", status)
     print("status:", "ok" if ok else "the renderer cannot run; see above")
     return 0 if ok else 1
-
-
-def _extra_statuses() -> list[tuple[str, str]]:
-    """Status lines contributed by optional parts (LPIPS lin layers, DreamSim, SDXL)."""
-    out: list[tuple[str, str]] = []
-    try:
-        from evaluation.metrics import weights_status  # type: ignore[attr-defined]
-
-        out += list(weights_status())
-    except (ImportError, AttributeError):
-        pass
-    try:
-        from .inpaint import diffusers_status  # type: ignore[attr-defined]
-
-        out.append(("sdxl+controlnet", diffusers_status(os.environ.get("CAMO_SDXL_PATH"), os.environ.get("CAMO_CONTROLNET_PATH"))))
-    except (ImportError, AttributeError):
-        pass
-    return out

@@ -1,0 +1,49 @@
+"""`camo doctor`, `camo scenes list|render` and `camo plan` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from optimizer.cli import main
+
+
+def test_doctor_reports_backend(capsys):
+    assert main(["doctor"]) == 0
+    out = capsys.readouterr().out
+    assert "variant llvm_ad_rgb" in out or "variant cuda_ad_rgb" in out
+    assert "test render            ok" in out and "status: ok" in out
+
+
+def test_scenes_list_one_name_per_line(capsys):
+    assert main(["scenes", "list"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    names = [line.split("\t")[0] for line in lines]
+    assert names == ["meadow", "gravel", "split", "room", "occluded", "panorama"]
+
+
+@pytest.mark.parametrize("scene", ["room", "split:duck"])
+def test_scenes_render_writes_every_view(tmp_path, scene, mi_backend):
+    out = tmp_path / "r"
+    assert main(["scenes", "render", scene, "--out", str(out), "--views", "2", "--resolution", "24", "--spp", "4"]) == 0
+    for v in range(2):
+        for suffix in ("bg.png", "obj.png", "mask.png", "bg.exr", "obj.exr", "depth.exr"):
+            assert (out / f"view_{v:02d}_{suffix}").is_file()
+    from optimizer.imaging import load_exr, load_png
+
+    mask = load_png(out / "view_00_mask.png")
+    assert 0.02 < mask.mean() < 0.6  # the object is in the frame, not everywhere
+    bg, obj = load_exr(out / "view_00_bg.exr"), load_exr(out / "view_00_obj.exr")
+    assert bg.shape == (24, 24, 3) and np.isfinite(obj).all()
+    assert np.abs(obj - bg)[mask > 0.5].mean() > np.abs(obj - bg)[mask < 0.5].mean()
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["plan"]["integrator"]["type"] == "path" and len(meta["cameras"]) == 2
+
+
+def test_plan_prints_reasons(capsys):
+    assert main(["plan", "room", "--ablate", "pose,displacement"]) == 0
+    out = capsys.readouterr().out
+    assert "integrator: {'type': 'prb'" in out and "- max_depth:" in out and "- sensors:" in out
+    assert main(["plan", "room", "--ablate", "wings"]) == 2
