@@ -163,6 +163,7 @@ def load_mesh(path: str | os.PathLike):
     """Read a triangle mesh from OBJ/PLY/STL/GLB/GLTF/OFF.
 
     Scenes (several meshes, node transforms) are flattened into one mesh.
+    glTF/GLB files (+Y up by specification) are turned +Z up.
     Returns a plain ``trimesh.Trimesh`` (float64 vertices, int64 faces, no
     visuals; nothing merged or removed yet, see :func:`clean_mesh`).
 
@@ -205,6 +206,9 @@ def load_mesh(path: str | os.PathLike):
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
         raise CamoError(f"mesh {p} has {int(bad.sum())} vertices with NaN or infinite coordinates")
+    if ext in (".glb", ".gltf"):
+        # glTF is +Y up by specification; the toolkit is +Z up: rotate +90 degrees about x (y -> z).
+        vertices = np.stack([vertices[:, 0], -vertices[:, 2], vertices[:, 1]], axis=1)
     return trimesh.Trimesh(vertices, faces, process=False)
 
 

@@ -65,7 +65,8 @@ def test_load_mesh_formats(tmp_path, ext):
     m = M.load_mesh(path)
     assert isinstance(m, trimesh.Trimesh)
     assert len(m.faces) == 12
-    assert np.allclose(m.extents, (1.0, 2.0, 3.0), atol=1e-6)
+    expected = (1.0, 3.0, 2.0) if ext in ("glb", "gltf") else (1.0, 2.0, 3.0)  # glTF's +Y up becomes +Z up
+    assert np.allclose(m.extents, expected, atol=1e-6)
 
 
 def test_load_mesh_flattens_scenes(tmp_path):
@@ -577,3 +578,16 @@ def test_uv_unwrap_in_process_matches_isolated():
     assert np.array_equal(a.uv_to_welded[a.uv_faces], a.faces)
     assert a.n_welded == b.n_welded == 300
     assert np.array_equal(a.faces, b.faces) and np.allclose(a.uvs, b.uvs)
+
+
+def test_gltf_is_turned_z_up(tmp_path):
+    """glTF is +Y up by specification: a tall box exported to GLB comes back tall along z."""
+    import trimesh
+
+    from optimizer.mesh import load_mesh
+
+    box = trimesh.creation.box([0.2, 1.0, 0.3])  # tallest along y, as a glTF author would model "up"
+    box.export(tmp_path / "tall.glb")
+    ext = load_mesh(tmp_path / "tall.glb").extents
+    np.testing.assert_allclose(sorted(ext), [0.2, 0.3, 1.0], atol=1e-6)
+    assert ext[2] == pytest.approx(1.0)
