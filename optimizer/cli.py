@@ -1,8 +1,8 @@
 """The ``camo`` command line: one CLI, subcommands per package.
 
-``camo doctor | scenes list | scenes render | plan | optimize`` live here;
-``evaluate``, ``report`` and ``bench`` come from :mod:`evaluation.cli`,
-``study ...`` from :mod:`study_site.cli`. Every handler takes the parsed
+``camo doctor | scenes list | scenes render | plan`` live here; the other
+commands come from the modules in :data:`PLUGINS` (``optimize``, ``evaluate`` /
+``report``, ``study ...``, ``data ...``). Every handler takes the parsed
 arguments and returns an exit code; a :class:`CamoError` becomes one line on
 stderr and exit code 2.
 """

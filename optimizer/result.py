@@ -71,10 +71,14 @@ def render_result(res: Result, seed: int = 12345) -> np.ndarray:
     return render_shaded(res.env.build(), mesh, res.cams, res.integrator, res.spp, seed)
 
 
+def final_render_seed(seed: int) -> int:
+    return seed * 7919 + 12345
+
+
 def write_result(out: Path, res: Result, history: list[dict[str, Any]] | None = None, seed: int = 0) -> np.ndarray:
     """Write previews, maps, glb/obj/ply, scene.xml, pose.json and renders.npz; return the final renders."""
     out = Path(out)
-    final = render_result(res, seed=seed * 7919 + 12345)
+    final = render_result(res, seed=final_render_seed(seed))
     bg = res.targets.background
     for v in range(len(final)):
         imaging.save_png(out / "previews" / f"view_{v:02d}.png", preview_strip(bg[v], final[v]))

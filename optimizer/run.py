@@ -253,7 +253,7 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float) -> None:
     """Final render, previews, exported asset and summary of a Stage 1 run."""
     from .loss import make_loss
-    from .result import Result, write_result
+    from .result import Result, final_render_seed, write_result
 
     res = Result(pack, env, s1.cams, s1.geometry, s1.current_values(), s1.app, s1.shading_integrator(),
                  s1.cfg.target_spp, s1.targets)
@@ -273,4 +273,5 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
         "seconds_setup": setup_seconds,
         "seconds_iterations": float(sum(h["seconds"] for h in history)),
         "nonfinite_grads_total": int(sum(h["nonfinite_grads"] for h in history)),
+        "final_render": {"integrator": res.integrator, "spp": res.spp, "seed": final_render_seed(s1.cfg.seed)},
     })

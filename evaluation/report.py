@@ -1,0 +1,430 @@
+"""Benchmark reports: a Table II style summary, per-scene tables and image grids (``camo report``).
+
+Input: one or more evaluation directories (output of ``camo evaluate``). Their ``metrics.parquet`` tables are
+concatenated and de-duplicated (rows equal in every column but the timings are kept once, so giving an
+evaluation twice, or re-evaluating a run with the same settings, does not weight it twice).
+
+Aggregation (per region and evaluation protocol = spp, resolution, jitter): the mean over a run's views, then
+the mean over the runs of one scene with the same method/ablation, then the mean over scenes. The spread is the
+sample standard deviation over scenes (n - 1), shown where there are at least two scenes. Rows follow the
+paper's Table II (Transparent, Random, GANmouflage, 2D Diffusion, w/o Pose, ..., Ours), whichever exist; the
+other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines.
+
+Output (``--out DIR``)::
+
+    report.md      Markdown: settings, Table II (crop and full frame), per-scene tables, skipped metrics, grids
+    report.html    the same, self-contained (grids embedded as base64 PNG)
+    grids/<scene>__<camera set>.png   per view: background | each method
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+import re
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from optimizer.errors import CamoError
+
+#: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
+TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
+                 ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓"), ("sifid_proxy", "SIFID-proxy↓"))
+HIGHER_IS_BETTER = {"psnr", "ssim"}
+TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
+
+#: Baseline methods (``camo optimize --method``) in the paper's order, with their Table II labels.
+BASELINES = {"transparent": "Transparent", "random": "Random [6]", "mean": "Mean [6]", "greedy": "Greedy [6]",
+             "ganmouflage": "GANmouflage [7]", "ganmouflage-paper": "GANmouflage [7] (paper settings)",
+             "diffusion2d": "2D Diffusion"}
+_BASELINE_ORDER = list(BASELINES)
+#: Ablations of our method in the paper's order.
+ABLATIONS = {"pose": "w/o Pose", "displacement": "w/o Displacement", "bsdf": "w/o BSDF (Only Albedo)",
+             "transmittance": "w/o Transmittance", "inpainting": "w/o Inpainting"}
+_ABL_NAMES = {"pose": "Pose", "displacement": "Displacement", "bsdf": "BSDF", "transmittance": "Transmittance",
+              "inpainting": "Inpainting"}
+REGION_TITLES = {"crop": "object crop (GANmouflage protocol)", "full": "full frame"}
+
+
+def _ablations(ablation: str) -> list[str]:
+    items = [a for a in str(ablation or "").split(",") if a and a != "none"]
+    order = list(ABLATIONS)
+    return sorted(items, key=lambda a: (order.index(a) if a in order else len(order), a))
+
+
+def method_label(method: str, ablation: str) -> str:
+    """The Table II row label of a method and its ablation (comma list or "none")."""
+    abl = _ablations(ablation)
+    m = str(method)
+    if m == "ours":
+        if not abl:
+            return "Ours"
+        if len(abl) == 1 and abl[0] in ABLATIONS:
+            return ABLATIONS[abl[0]]
+        return "w/o " + " + ".join(_ABL_NAMES.get(a, a) for a in abl)
+    base = BASELINES.get(m.lower(), m)
+    return base if not abl else f"{base} (w/o {' + '.join(_ABL_NAMES.get(a, a) for a in abl)})"
+
+
+def label_order(method: str, ablation: str) -> tuple:
+    """Sort key: baselines (paper order), other methods, single ablations (paper order), combined ones, Ours."""
+    abl = _ablations(ablation)
+    m = str(method).lower()
+    if m == "ours":
+        if not abl:
+            return (5, 0, "")
+        if len(abl) == 1 and abl[0] in ABLATIONS:
+            return (3, list(ABLATIONS).index(abl[0]), "")
+        return (4, len(abl), ",".join(abl))
+    if m in BASELINES:
+        return (0, _BASELINE_ORDER.index(m), ",".join(abl))
+    return (1, 0, m + "," + ",".join(abl))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# loading and merging
+# --------------------------------------------------------------------------------------------------------------
+
+
+def load_metrics(eval_dirs: Sequence[str | Path]):
+    """Concatenate the metrics tables of evaluation directories and drop duplicated rows."""
+    import pandas as pd
+
+    from .evaluate import COLUMNS
+
+    if not eval_dirs:
+        raise CamoError("report needs at least one EVAL_DIR")
+    frames = []
+    for d in eval_dirs:
+        d = Path(d)
+        if not d.is_dir():
+            raise CamoError(f"evaluation directory not found: {d}")
+        p = d / "metrics.parquet"
+        if not p.is_file():
+            raise CamoError(f"{d}: no metrics.parquet (is this an evaluation directory from `camo evaluate`?)")
+        try:
+            df = pd.read_parquet(p)
+        except Exception as exc:  # pyarrow raises several types for a corrupt file
+            raise CamoError(f"{p}: cannot read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        missing = [c for c in ("run", "scene", "method", "ablation", "view", "region") if c not in df.columns]
+        if missing:
+            raise CamoError(f"{p}: not a camo metrics table (lacks {', '.join(missing)})")
+        df = df.copy()
+        df["_eval_dir"] = str(d.resolve())
+        frames.append(df)
+    df = pd.concat(frames, ignore_index=True, sort=False)
+    for c in COLUMNS:
+        if c not in df.columns:
+            df[c] = np.nan
+    ident = [c for c in df.columns if c not in ("seconds_render", "seconds_metrics", "_eval_dir")]
+    df = df.loc[~df[ident].astype(str).duplicated()].reset_index(drop=True)
+    df["label"] = [method_label(m, a) for m, a in zip(df["method"], df["ablation"])]
+    df["_order"] = [label_order(m, a) for m, a in zip(df["method"], df["ablation"])]
+    return df
+
+
+def protocols(df) -> list[tuple]:
+    keys = ["spp", "width", "height", "jitter"]
+    return sorted({tuple(r) for r in df[keys].itertuples(index=False, name=None)}, key=lambda t: tuple(map(float, t)))
+
+
+def _protocol_rows(df, proto: tuple):
+    m = (df["spp"] == proto[0]) & (df["width"] == proto[1]) & (df["height"] == proto[2]) & (df["jitter"] == proto[3])
+    return df.loc[m]
+
+
+def summary(df, region: str = "crop"):
+    """Table II numbers of one region: per label, mean and std over scenes of each metric, and #scenes.
+
+    Returns a DataFrame indexed by label (ordered like the paper) with columns ``<metric>`` (mean),
+    ``<metric>_std`` (sample std over scenes, NaN with one scene) and ``scenes``.
+    """
+    import pandas as pd
+
+    metrics = [m for m, _ in TABLE_METRICS]
+    d = df.loc[df["region"] == region]
+    if d.empty:
+        return pd.DataFrame(columns=metrics + [f"{m}_std" for m in metrics] + ["scenes"])
+    per_run = d.groupby(["label", "scene", "run"], sort=False)[metrics].mean()
+    per_scene = per_run.groupby(level=["label", "scene"], sort=False).mean()
+    g = per_scene.groupby(level="label", sort=False)
+    mean, std = g.mean(), g.std(ddof=1)
+    out = mean.copy()
+    for m in metrics:
+        out[f"{m}_std"] = std[m]
+    out["scenes"] = g.size()
+    order = d.drop_duplicates("label").set_index("label")["_order"]
+    return out.loc[sorted(out.index, key=lambda lab: order[lab])]
+
+
+def per_scene(df, scene: str, region: str):
+    metrics = [m for m, _ in TABLE_METRICS]
+    d = df.loc[(df["region"] == region) & (df["scene"] == scene)]
+    t = d.groupby(["label", "run"], sort=False)[metrics].mean().groupby(level="label", sort=False).mean()
+    t["views"] = d.groupby("label", sort=False)["view"].nunique()
+    order = d.drop_duplicates("label").set_index("label")["_order"]
+    return t.loc[sorted(t.index, key=lambda lab: order[lab])]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# formatting
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _fmt(metric: str, v: float) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    if math.isinf(v):
+        return "inf"
+    return f"{v:.2f}" if metric == "psnr" else f"{v:.4f}"
+
+
+def _best(values: dict[str, float], metric: str) -> set[str]:
+    finite = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
+    if len(finite) < 2:
+        return set()
+    target = max(finite.values()) if metric in HIGHER_IS_BETTER else min(finite.values())
+    return {k for k, v in finite.items() if v == target}
+
+
+def table_cells(t, with_std: bool, count_col: str) -> tuple[list[str], list[list[tuple[str, bool]]]]:
+    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table."""
+    header = ["Model"] + [h for _, h in TABLE_METRICS] + ["Scenes" if count_col == "scenes" else "Views"]
+    best = {m: _best({lab: float(t.loc[lab, m]) for lab in t.index}, m) for m, _ in TABLE_METRICS}
+    rows = []
+    for lab in t.index:
+        cells = [(str(lab), False)]
+        for m, _ in TABLE_METRICS:
+            v = float(t.loc[lab, m])
+            text = _fmt(m, v)
+            if with_std and f"{m}_std" in t.columns and not math.isnan(v):
+                s = float(t.loc[lab, f"{m}_std"])
+                if not math.isnan(s):
+                    text += f" ± {_fmt(m, s)}"
+            cells.append((text, lab in best[m]))
+        cells.append((str(int(t.loc[lab, count_col])), False))
+        rows.append(cells)
+    return header, rows
+
+
+def markdown_table(header: list[str], rows: list[list[tuple[str, bool]]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join(f"**{t}**" if b else t for t, b in r) + " |")
+    return "\n".join(lines)
+
+
+def html_table(header: list[str], rows: list[list[tuple[str, bool]]]) -> str:
+    out = ["<table>", "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
+    for r in rows:
+        out.append("<tr>" + "".join(f"<td>{'<b>' if b else ''}{html.escape(t)}{'</b>' if b else ''}</td>" for t, b in r)
+                   + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# image grids
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "scene"
+
+
+def render_index(eval_dirs: Sequence[str | Path]) -> dict[tuple[str, str], dict[int, dict[str, Path]]]:
+    """``{(eval dir, run): {view: {"image": path, "background": path}}}`` from the renders.json files."""
+    from .evaluate import renders_json
+
+    out: dict[tuple[str, str], dict[int, dict[str, Path]]] = {}
+    for d in eval_dirs:
+        d = Path(d).resolve()
+        for e in renders_json(d):
+            try:
+                v = int(e["view"])
+                paths = {k: d / str(e[k]) for k in ("image", "background") if e.get(k)}
+            except (KeyError, TypeError, ValueError):
+                continue
+            out.setdefault((str(d), str(e["run"])), {})[v] = paths
+    return out
+
+
+def _load_rgb(path: Path) -> np.ndarray | None:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except (OSError, UnidentifiedImageError):
+        return None
+
+
+def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int = 16) -> list[tuple[str, Path]]:
+    """One PNG per (scene, camera set): rows = views, columns = background | each method. Returns
+    ``[(caption, path)]``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from optimizer import atomic
+
+    index = render_index(eval_dirs)
+    made = []
+    d = df.loc[df["region"] == "full"]
+    for (scene, cam_set), g in d.groupby(["scene", "camera_set"], sort=True):
+        runs = sorted(g.drop_duplicates(["_eval_dir", "run"]).to_dict("records"), key=lambda r: r["_order"])
+        cols: list[tuple[str, str, str]] = []  # (column title, eval dir, run)
+        labels_seen: dict[str, int] = {}
+        done: set[str] = set()
+        for r in runs:
+            key = (r["_eval_dir"], r["run"])
+            if key not in index or r["run"] in done:
+                continue
+            done.add(r["run"])
+            lab = r["label"]
+            labels_seen[lab] = labels_seen.get(lab, 0) + 1
+            title = lab if labels_seen[lab] == 1 else f"{lab} ({r['run']})"
+            cols.append((title, key[0], r["run"]))
+        if not cols:
+            continue
+        views = sorted(set(g["view"].astype(int)))
+        if len(views) > max_views:
+            views = [views[int(round(i * (len(views) - 1) / (max_views - 1)))] for i in range(max_views)]
+        first = index[(cols[0][1], cols[0][2])]
+        nrow, ncol = len(views), len(cols) + 1
+        fig, axes = plt.subplots(nrow, ncol, figsize=(1.7 * ncol, 1.7 * nrow + 0.4), dpi=100, squeeze=False)
+        for i, v in enumerate(views):
+            panels = [("Background", first.get(v, {}).get("background"))]
+            panels += [(t, index[(e, run)].get(v, {}).get("image")) for t, e, run in cols]
+            for k, (title, p) in enumerate(panels):
+                ax = axes[i][k]
+                ax.set_xticks([])
+                ax.set_yticks([])
+                img = _load_rgb(p) if p is not None else None
+                if img is not None:
+                    ax.imshow(img, interpolation="nearest")
+                if i == 0:
+                    ax.set_title(title, fontsize=7)
+                if k == 0:
+                    ax.set_ylabel(f"view {v}", fontsize=7)
+        fig.suptitle(f"{scene} — camera set {cam_set}", fontsize=8)
+        fig.tight_layout()
+        path = out / "grids" / f"{_safe(scene)}__{_safe(str(cam_set))}.png"
+        with atomic.atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png")
+        plt.close(fig)
+        made.append((f"{scene} (camera set {cam_set}): background | " + " | ".join(t for t, _, _ in cols), path))
+    return made
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the report
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _settings_lines(eval_dirs: Sequence[str | Path]) -> tuple[list[str], dict[str, str]]:
+    from .evaluate import read_eval_config
+
+    lines, skipped = [], {}
+    for d in eval_dirs:
+        cfg = read_eval_config(d)
+        ev = cfg.get("evaluate", {})
+        if ev:
+            lines.append(f"- `{Path(d).resolve().name}`: views {ev.get('views')}, jitter ±{ev.get('jitter')} at "
+                         f"radius 4, {ev.get('spp')} spp, resolution {ev.get('resolution')}, seed {ev.get('seed')}, "
+                         f"metrics {', '.join(ev.get('metrics', []))}; images {ev.get('image_encoding')}")
+            integ = {json_key(s.get("integrator")) for s in cfg.get("scenes", [])}
+            if integ:
+                lines.append(f"  - integrator: {'; '.join(sorted(integ))}")
+        for name, why in cfg.get("skipped", {}).items():
+            skipped.setdefault(name, why)
+    return lines, skipped
+
+
+def json_key(d: Any) -> str:
+    import json
+
+    return json.dumps(d, sort_keys=True)
+
+
+def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
+    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
+    from optimizer import atomic
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise CamoError(f"--out {out} exists and is not a folder")
+    df = load_metrics(eval_dirs)
+    settings, skipped = _settings_lines(eval_dirs)
+    not_computed = [m for m, _ in TABLE_METRICS if df[m].isna().all()]
+    for m in not_computed:
+        skipped.setdefault(m, "not computed in any evaluation")
+    skipped = {m: why for m, why in skipped.items() if m in not_computed}
+    grids = write_grids(df, eval_dirs, out)
+
+    md: list[str] = ["# Camouflage benchmark", ""]
+    ht: list[str] = ["<h1>Camouflage benchmark</h1>"]
+    intro = (f"{df['run'].nunique()} run(s), {df['scene'].nunique()} scene(s), "
+             f"{df.loc[df['region'] == 'full'].shape[0]} evaluated views, from {len(eval_dirs)} evaluation(s).")
+    method = ("Value: mean over a run's views, then over the runs of a scene, then over scenes; "
+              "± = sample standard deviation over scenes (n − 1), shown with ≥ 2 scenes. "
+              "Bold: best in the column. Metrics compare the view with the object to the same view without it "
+              "(sRGB, 8 bit). `LPIPS-proxy` (1 − HaarPSI) and `SIFID-proxy` are weight-free stand-ins, "
+              "**not** on the scale of LPIPS / SIFID.")
+    hidden = df.loc[(df["region"] == "crop") & (df["mask_pixels"] == 0)]
+    if len(hidden):
+        method += (f" In {len(hidden)} view(s) the object is not visible at all (empty mask): their crop rows have "
+                   "no scores and are left out of the crop means.")
+    md += [intro, "", method, "", "## Settings", "", *settings, ""]
+    ht += [f"<p>{html.escape(intro)}</p>", f"<p>{html.escape(method)}</p>", "<h2>Settings</h2><ul>"]
+    ht += [f"<li>{html.escape(s.lstrip('- ').strip())}</li>" for s in settings] + ["</ul>"]
+    if skipped:
+        md += ["## Skipped metrics", ""] + [f"- `{m}`: {why}" for m, why in skipped.items()] + [""]
+        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {html.escape(why)}</li>"
+                                                   for m, why in skipped.items()] + ["</ul>"]
+
+    protos = protocols(df)
+    for proto in protos:
+        sub = _protocol_rows(df, proto)
+        ptitle = f"{int(proto[0])} spp, {int(proto[1])}x{int(proto[2])} px, jitter ±{float(proto[3]):g}"
+        suffix = f" — {ptitle}" if len(protos) > 1 else ""
+        for region in ("crop", "full"):
+            t = summary(sub, region)
+            if t.empty:
+                continue
+            header, rows = table_cells(t, True, "scenes")
+            title = f"Table II — {REGION_TITLES[region]}{suffix}"
+            md += [f"## {title}", "", markdown_table(header, rows), ""]
+            ht += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows)]
+        md += [f"## Per scene{suffix}", ""]
+        ht += [f"<h2>Per scene{html.escape(suffix)}</h2>"]
+        for scene in sorted(sub["scene"].unique()):
+            for region in ("crop", "full"):
+                t = per_scene(sub, scene, region)
+                if t.empty:
+                    continue
+                header, rows = table_cells(t, False, "views")
+                md += [f"### {scene} — {REGION_TITLES[region]}", "", markdown_table(header, rows), ""]
+                ht += [f"<h3>{html.escape(scene)} — {html.escape(REGION_TITLES[region])}</h3>", html_table(header, rows)]
+
+    if grids:
+        md += ["## Image grids", ""]
+        ht += ["<h2>Image grids</h2>"]
+        for caption, path in grids:
+            rel = path.relative_to(out).as_posix()
+            md += [f"**{caption}**", "", f"![{caption}]({rel})", ""]
+            data = base64.b64encode(path.read_bytes()).decode("ascii")
+            ht += [f"<figure><img src=\"data:image/png;base64,{data}\" alt=\"{html.escape(caption)}\">"
+                   f"<figcaption>{html.escape(caption)}</figcaption></figure>"]
+    style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
+             "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
+             "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")
+    page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>Camouflage benchmark</title>"
+            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + "\n</body></html>\n")
+    atomic.write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
+    atomic.write_text(out / "report.html", page)
+    return {"md": out / "report.md", "html": out / "report.html"}
