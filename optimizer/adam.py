@@ -82,9 +82,29 @@ class Adam:
             out[f"v/{name}"] = np.asarray(dr_numpy(self.v[name]))
         return out
 
+    def check_state(self, state: dict[str, np.ndarray]) -> None:
+        """Raise :class:`CamoError` unless ``state`` fits these parameters (keys, shapes, finite values)."""
+        from .errors import CamoError
+
+        t = state.get("adam_t")
+        if t is None or t.shape != () or not np.issubdtype(t.dtype, np.integer):
+            raise CamoError("checkpoint is corrupt: no integer optimiser step count")
+        for name, x in self.values.items():
+            want = tuple(dr_numpy(x).shape)
+            for key in ("value", "m", "v"):
+                arr = state.get(f"{key}/{name}")
+                if arr is None:
+                    raise CamoError(f"checkpoint is corrupt or from another configuration: no {key}/{name}")
+                if tuple(arr.shape) != want:
+                    raise CamoError(f"checkpoint does not match this configuration: {key}/{name} has shape "
+                                    f"{tuple(arr.shape)}, expected {want}")
+                if not np.isfinite(arr).all():
+                    raise CamoError(f"checkpoint is corrupt: {key}/{name} has NaN or infinite values")
+
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         import drjit as dr
 
+        self.check_state(state)
         self.t = int(state["adam_t"])
         for name, x in list(self.values.items()):
             kind = type(x)

@@ -226,8 +226,11 @@ def clamp_projections(cfg: AppearanceConfig, size: float) -> dict[str, Any]:
         return x
 
     def angle(x):
-        x = dr.select(dr.isfinite(x), x, 0.0)
-        return x - 2 * math.pi * dr.round(x / (2 * math.pi))
+        # Wrap to [-pi, pi]. Beyond ~1e7 rad a float32 angle has no fractional part left, so its direction
+        # is meaningless (and sin/cos return NaN): such angles and non-finite ones reset to 0.
+        ok = dr.isfinite(x) & (dr.abs(x) < 1e7)
+        x = dr.select(ok, x, 0.0)
+        return dr.clip(x - 2 * math.pi * dr.round(x / (2 * math.pi)), -math.pi, math.pi)
 
     return {"albedo": unit, "metallic": unit, "roughness": unit, "transmittance": unit,
             "displacement": signed, "translation": offset, "rotation": angle}

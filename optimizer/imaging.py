@@ -7,8 +7,11 @@ masks ``(H, W)`` bool.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import tempfile
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -83,6 +86,29 @@ def save_exr(path: str | os.PathLike, img: np.ndarray) -> None:
             f.write(str(tmp))
 
 
+@contextlib.contextmanager
+def quiet_stderr() -> Iterator[list[str]]:
+    """Silence C libraries (OpenEXR, OpenCV) that print to file descriptor 2 while reading a bad file.
+
+    Yields a list that receives what they printed, so the caller can fold it into one error line.
+    """
+    captured: list[str] = []
+    try:
+        saved = os.dup(2)
+    except OSError:  # no real stderr (embedded interpreter): nothing to silence
+        yield captured
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            captured.extend(tmp.read().decode("utf-8", "replace").splitlines())
+
+
 def load_exr(path: str | os.PathLike) -> np.ndarray:
     """Load an EXR as float32 ``(H, W, 3)`` (or ``(H, W)`` for one channel)."""
     import OpenEXR
@@ -90,16 +116,18 @@ def load_exr(path: str | os.PathLike) -> np.ndarray:
     if not Path(path).is_file():
         raise CamoError(f"EXR file not found: {path}")
     try:
-        with OpenEXR.File(str(path)) as f:
-            ch = f.channels()
-            if "RGB" in ch:
-                arr = ch["RGB"].pixels
-            elif "RGBA" in ch:
-                arr = ch["RGBA"].pixels[..., :3]
-            elif all(k in ch for k in "RGB"):
-                arr = np.stack([ch[k].pixels for k in "RGB"], axis=-1)
-            else:
-                arr = next(iter(ch.values())).pixels
+        with quiet_stderr():
+            with OpenEXR.File(str(path)) as f:
+                ch = f.channels()
+                if "RGB" in ch:
+                    arr = ch["RGB"].pixels
+                elif "RGBA" in ch:
+                    arr = ch["RGBA"].pixels[..., :3]
+                elif all(k in ch for k in "RGB"):
+                    arr = np.stack([ch[k].pixels for k in "RGB"], axis=-1)
+                else:
+                    arr = next(iter(ch.values())).pixels
+                arr = np.array(arr, dtype=np.float32)
     except Exception as exc:  # OpenEXR raises a bare RuntimeError on corrupt files
         raise CamoError(f"cannot read EXR {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
     arr = np.asarray(arr, dtype=np.float32)
@@ -114,11 +142,19 @@ def load_hdr_image(path: str | os.PathLike) -> np.ndarray:
     if path.suffix.lower() == ".exr":
         return load_exr(path)
     if path.suffix.lower() == ".hdr":
+        if not path.is_file():
+            raise CamoError(f"HDR image not found: {path}")
+        os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
         import imageio.v3 as iio
 
         try:
-            arr = np.asarray(iio.imread(path), dtype=np.float32)
-        except Exception as exc:
-            raise CamoError(f"cannot read HDR image {path}: {exc}") from None
+            with quiet_stderr():
+                arr = np.asarray(iio.imread(path, extension=".hdr"), dtype=np.float32)
+        except Exception:
+            raise CamoError(f"cannot read HDR image {path}: not a valid Radiance .hdr file") from None
+        if arr.ndim != 3 or arr.shape[2] < 3:
+            raise CamoError(f"cannot read HDR image {path}: not an RGB image")
+        if not np.isfinite(arr).all():
+            raise CamoError(f"HDR image {path} contains NaN or infinite pixels")
         return arr[..., :3]
     raise CamoError(f"unsupported panorama format {path.suffix!r} (use .exr or .hdr)")

@@ -556,8 +556,11 @@ def _split_to_count(v: np.ndarray, f: np.ndarray, target: int, band: float = 0.7
     while len(v) < target:
         edges, face_edges = _unique_edges(f, len(v))
         length = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+        # Relative lengths rounded to 1e-9: equal edges of a scaled copy tie exactly (stable sort by index),
+        # so preparation does not depend on the input's scale through the last float bits.
+        length = np.round(length / length.max(), 9)
         budget = target - len(v)
-        cand = np.flatnonzero(length >= band * length.max())
+        cand = np.flatnonzero(length >= band)
         if len(cand) > budget:
             order = np.argsort(-length[cand], kind="stable")
             cand = cand[order[:budget]]

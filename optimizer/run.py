@@ -111,7 +111,10 @@ def _read_log(path: Path, stage1_upto: int | None, stage2_upto: int | None) -> l
     for line in path.read_text().splitlines():
         if not line.strip():
             continue
-        rec = json.loads(line)
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:  # a line torn by a kill: the checkpoint never covers it
+            continue
         it, stage = rec.get("iteration", 0), rec.get("stage", 1)
         if (stage == 1 and (stage1_upto is None or it <= stage1_upto)) or \
            (stage == 2 and stage2_upto is not None and it <= stage2_upto):
@@ -158,6 +161,9 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
         if str(state.get("fingerprint", "")) != fingerprint:
             raise CamoError(f"--resume: {out} was made with a different configuration; start a new run instead")
     resume_stage = int(state["stage"]) if state is not None and "stage" in state else 1
+    if state is not None and resume_stage == 2 and int(state.get("stage1_iterations", -1)) != cfg.stage1.iterations:
+        raise CamoError(f"--resume: {out} finished Stage 1 with {int(state.get('stage1_iterations', -1))} iterations; "
+                        f"it cannot continue with --iterations {cfg.stage1.iterations} (start a new run)")
 
     inpainter = None
     if 2 in cfg.stages:  # load the inpainter first: a bad weights folder must fail before Stage 1 runs
@@ -186,7 +192,9 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
     history: list[dict[str, Any]] = []
     if state is not None:
         if resume_stage == 1:
-            s1.load_checkpoint_state(state)
+            s1.load_checkpoint_state(state)  # validates keys, shapes and values (CamoError)
+        else:
+            _check_stage2_checkpoint(state, s1)
         history = _read_log(out / "log.jsonl", s1.iteration if resume_stage == 1 else None,
                             int(state["iteration"]) if resume_stage == 2 else None)
     write_config(out / "config.toml", cfg, pack, {
@@ -214,6 +222,7 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
             if resume_stage == 2:
                 s2.load_checkpoint_state(state)
             extra = {f"stage1/{k}": v for k, v in values1.items()}
+            extra["stage1_iterations"] = np.array(cfg.stage1.iterations)
             _loop(s2, cfg.stage2.iterations, "stage 2", progress, log, history,
                   lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), cfg.checkpoint_every)
             for v in sorted(s2.pseudo_np):
@@ -222,6 +231,25 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
             final_stage = s2
     finish_run(out, final_stage, pack, env, history, setup_seconds)
     return out
+
+
+def _check_stage2_checkpoint(state: dict[str, np.ndarray], s1: Stage1) -> None:
+    """Validate a Stage 2 checkpoint's Stage 1 result before anything in the run directory changes."""
+    it = state.get("iteration")
+    if it is None or it.shape != () or not np.issubdtype(it.dtype, np.integer) or int(it) < 0:
+        raise CamoError("checkpoint is corrupt: no valid iteration count")
+    for name, ref in s1.values.items():
+        arr = state.get(f"stage1/{name}")
+        if arr is None or arr.shape != ref.shape or not np.isfinite(arr).all():
+            raise CamoError(f"checkpoint is corrupt or from another configuration: bad stage1/{name}")
+    t = state.get("adam_t")
+    if t is None or t.shape != () or not np.issubdtype(t.dtype, np.integer):
+        raise CamoError("checkpoint is corrupt: no integer optimiser step count")
+    for name in dataclasses.replace(s1.app, pose=False).trainable():
+        for key in ("value", "m", "v"):
+            arr = state.get(f"{key}/{name}")
+            if arr is None or arr.size != s1.values[name].size or not np.isfinite(arr).all():
+                raise CamoError(f"checkpoint is corrupt or from another configuration: bad {key}/{name}")
 
 
 def _loop(stage: Stage1, iterations: int, label: str, progress: bool, log, history: list, checkpoint, every: int) -> None:

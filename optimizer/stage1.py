@@ -286,5 +286,10 @@ class Stage1:
         return st
 
     def load_checkpoint_state(self, st: dict[str, np.ndarray]) -> None:
+        from .errors import CamoError
+
+        it = st.get("iteration")
+        if it is None or it.shape != () or not np.issubdtype(it.dtype, np.integer) or int(it) < 0:
+            raise CamoError("checkpoint is corrupt: no valid iteration count")
         self.opt.load_state(st)
-        self.iteration = int(st["iteration"])
+        self.iteration = int(it)

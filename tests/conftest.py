@@ -22,3 +22,13 @@ def mi_backend():
     import mitsuba as mi
 
     return mi, dr
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _restore_thread_count():
+    """Tests that run `--threads 1` in-process must not leave Dr.Jit single-threaded for later modules."""
+    yield
+    from optimizer import backend
+
+    if backend.info() is not None:
+        backend.set_threads(backend.default_threads())
