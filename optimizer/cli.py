@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 from .errors import CamoError
 
 #: Modules that contribute subcommands through a ``register(subparsers)`` function.
-PLUGINS = ("optimizer.optimize_cli", "evaluation.cli", "study_site.cli", "optimizer.data")
+PLUGINS = ("optimizer.optimize_cli", "evaluation.cli", "study_site.cli", "optimizer.data", "optimizer.grid")
 
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:
