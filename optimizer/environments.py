@@ -25,7 +25,6 @@ plane onto which the panorama is projected from its capture height.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import os
 from pathlib import Path
@@ -306,9 +305,3 @@ def get_environment(spec) -> Environment:
                                     Path(spec.panorama).stem)
     return xml_environment(spec.xml)
 
-
-def content_hash(*parts: bytes) -> str:
-    h = hashlib.sha256()
-    for p in parts:
-        h.update(p)
-    return h.hexdigest()[:16]

@@ -18,7 +18,6 @@ view; one machine and one seed give the same numbers (resume included).
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from typing import Any, Callable
 
