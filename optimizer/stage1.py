@@ -216,7 +216,10 @@ class Stage1:
         t0 = time.perf_counter()
         views = self.views_for_step()
         V = len(views)
-        photo = lum = chroma = 0.0
+        # Loss terms stay Dr.Jit values (detached) and are read back once, after all views: a
+        # read-back per view would stall the pipeline.
+        photo, lum, chroma = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
+        has_terms = False
         if uses_batch(self.plan.integrator):
             self._apply()
             s, sg = self._seeds(0)
@@ -224,25 +227,28 @@ class Stage1:
             W = self.cams[0].width
             total = mi.Float(0.0)
             for v in views:
-                view_img = img[:, v * W:(v + 1) * W, :]
-                lv, terms = self._view_loss(view_img, v)
+                lv, terms = self._view_loss(img[:, v * W:(v + 1) * W, :], v)
                 total += lv / V
                 if terms is not None:
-                    lum += float(terms.luminance[0]) / V
-                    chroma += float(terms.chroma[0]) / V
+                    has_terms = True
+                    lum += dr.detach(terms.luminance) / V
+                    chroma += dr.detach(terms.chroma) / V
+            photo = dr.detach(total)
             dr.backward(total)
-            photo = float(total[0])
         else:
             for v in views:
                 self._apply()  # backward clears the graph: re-apply before every view
                 s, sg = self._seeds(v)
                 img = mi.render(self.scene, self.params, sensor=v, spp=self.cfg.spp, seed=s, seed_grad=sg)
                 lv, terms = self._view_loss(img, v)
-                dr.backward(lv / V)
-                photo += float(lv[0]) / V
+                photo += dr.detach(lv) / V
                 if terms is not None:
-                    lum += float(terms.luminance[0]) / V
-                    chroma += float(terms.chroma[0]) / V
+                    has_terms = True
+                    lum += dr.detach(terms.luminance) / V
+                    chroma += dr.detach(terms.chroma) / V
+                dr.schedule(photo, lum, chroma)
+                dr.backward(lv / V)
+        photo, lum, chroma = float(photo[0]), float(lum[0]), float(chroma[0])
         disp = 0.0
         if "displacement" in self.opt:
             l_disp = self.app.displacement_weight * dr.mean(dr.abs(self.opt["displacement"].array))
@@ -260,7 +266,7 @@ class Stage1:
             "seconds": time.perf_counter() - t0,
             "nonfinite_grads": nonfinite,
         }
-        if self.cfg.loss == "gated" and self.STAGE == 1:
+        if has_terms:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         self.history.append(rec)
         return rec
