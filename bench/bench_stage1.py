@@ -74,6 +74,7 @@ def main() -> None:
             params.update()
             img = mi.render(s1.scene, params, spp=args.spp, seed=it, seed_grad=it + 1)
             dr.backward(dr.mean(img.array))
+            dr.eval([dr.grad(x) for x in leaves.values()])
         else:
             for v in range(len(cams)):
                 for k in keys:
@@ -81,7 +82,7 @@ def main() -> None:
                 params.update()
                 img = mi.render(s1.scene, params, sensor=v, spp=args.spp, seed=it * 97 + v, seed_grad=it * 97 + v + 1)
                 dr.backward(dr.mean(img.array))
-        dr.eval()
+        dr.eval([dr.grad(x) for x in leaves.values()])  # gradients are lazy: force them, as Adam does
 
     raw_iteration(0)  # JIT warm-up
     t = time.perf_counter()
