@@ -73,6 +73,7 @@ def main() -> None:
                 params[k] = leaves[k]
             params.update()
             img = mi.render(s1.scene, params, spp=args.spp, seed=it, seed_grad=it + 1)
+            dr.eval(img)  # a real loss reads the image; mean() alone would let the primal kernel be skipped
             dr.backward(dr.mean(img.array))
             dr.eval([dr.grad(x) for x in leaves.values()])
         else:
@@ -81,6 +82,7 @@ def main() -> None:
                     params[k] = leaves[k]
                 params.update()
                 img = mi.render(s1.scene, params, sensor=v, spp=args.spp, seed=it * 97 + v, seed_grad=it * 97 + v + 1)
+                dr.eval(img)
                 dr.backward(dr.mean(img.array))
         dr.eval([dr.grad(x) for x in leaves.values()])  # gradients are lazy: force them, as Adam does
 

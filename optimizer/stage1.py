@@ -202,6 +202,28 @@ class Stage1:
         base = (self.cfg.seed * 1_000_003 + self.iteration * 4099 + view * 131) & 0x7FFFFFFF
         return base, (base ^ 0x5BD1E995) & 0x7FFFFFFF
 
+    def _batch_loss(self, img, views: list[int]):
+        """Eq. 10 on a batch film ``(H, V*W, 3)`` in one expression: each view's domain weights are
+        normalised to sum 1/V, so the weighted mean over the whole film is the mean over views of the
+        per-view losses. (Slicing the film per view costs a gather per view in the backward pass.)"""
+        import mitsuba as mi
+
+        key = tuple(views)
+        if getattr(self, "_batch_key", None) != key:
+            H, W = self.cams[0].height, self.cams[0].width
+            weight = np.zeros((H, W * len(self.cams)), np.float64)
+            for v in views:
+                w = np.ones((H, W)) if self._w[v] is None else self._w[v].astype(np.float64)
+                weight[:, v * W:(v + 1) * W] = w / max(w.sum(), 1e-12) / len(views)
+            self._batch_bg = mi.TensorXf(np.concatenate(list(self.targets.background), axis=1))
+            self._batch_w = weight.astype(np.float32)
+            self._batch_key = key
+        cfg = self.cfg
+        if cfg.loss == "mse":
+            return mse_loss(img, self._batch_bg, self._batch_w), None
+        t = gated_loss_terms(img, self._batch_bg, self._batch_w, cfg.alpha, cfg.eps)
+        return t.total, t
+
     def _view_loss(self, img, view: int):
         cfg = self.cfg
         if cfg.loss == "mse":
@@ -224,15 +246,10 @@ class Stage1:
             self._apply()
             s, sg = self._seeds(0)
             img = mi.render(self.scene, self.params, spp=self.cfg.spp, seed=s, seed_grad=sg)
-            W = self.cams[0].width
-            total = mi.Float(0.0)
-            for v in views:
-                lv, terms = self._view_loss(img[:, v * W:(v + 1) * W, :], v)
-                total += lv / V
-                if terms is not None:
-                    has_terms = True
-                    lum += dr.detach(terms.luminance) / V
-                    chroma += dr.detach(terms.chroma) / V
+            total, terms = self._batch_loss(img, views)
+            if terms is not None:
+                has_terms = True
+                lum, chroma = dr.detach(terms.luminance), dr.detach(terms.chroma)
             photo = dr.detach(total)
             dr.backward(total)
         else:

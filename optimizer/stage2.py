@@ -92,6 +92,17 @@ class Stage2(Stage1):
         self.pseudo[view] = mi.TensorXf(out)
         return out
 
+    def _batch_loss(self, img, views: list[int]):
+        """Per-view MSE to each view's pseudo ground truth, averaged over ``views`` (batch film)."""
+        import mitsuba as mi
+
+        W = self.cams[0].width
+        total = mi.Float(0.0)
+        for v in views:
+            lv, _ = self._view_loss(img[:, v * W:(v + 1) * W, :], v)
+            total += lv / len(views)
+        return total, None
+
     def _view_loss(self, img, view: int):
         import drjit as dr
 
