@@ -85,6 +85,7 @@ def main() -> None:
                 dr.eval(img)
                 dr.backward(dr.mean(img.array))
         dr.eval([dr.grad(x) for x in leaves.values()])  # gradients are lazy: force them, as Adam does
+        dr.sync_thread()  # LLVM kernels run asynchronously: wait for them (Stage 1 reads its losses back)
 
     raw_iteration(0)  # JIT warm-up
     t = time.perf_counter()
