@@ -293,7 +293,7 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
     initial = [lossfn.numpy(s1.initial_render[v], bg[v], dom[v]) for v in range(len(final))]
     atomic.write_json(out / "summary.json", {
         "scene": pack.name,
-        "iterations": s1.iteration,
+        "iterations": {f"stage{st}": sum(1 for h in history if h.get("stage") == st) for st in (1, 2)},
         "loss": s1.cfg.loss,
         "initial_loss_high_spp": float(np.mean(initial)),
         "final_loss_high_spp": float(np.mean(per_view)),
