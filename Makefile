@@ -31,6 +31,7 @@ $(STAMP): pyproject.toml Makefile
 demo: install
 	$(BIN)/camo scenes render $(DEMO_SCENE) --out $(DEMO_OUT)/scene --views 8 --spp 32
 	$(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/ours $(DEMO_OPT)
+	$(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/no-inpainting --ablate inpainting $(DEMO_OPT)
 	for m in $(DEMO_BASELINES); do \
 	  $(BIN)/camo optimize $(DEMO_SCENE) --method $$m --out $(DEMO_OUT)/runs/$$m $(DEMO_OPT) || exit 1; done
 	$(BIN)/camo evaluate $(DEMO_OUT)/runs/* --out $(DEMO_OUT)/eval --views 8 --spp 64
