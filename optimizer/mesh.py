@@ -781,24 +781,11 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 _XATLAS_WORKER = r"""
 import json, sys
 import numpy as np
-import xatlas
+from optimizer.mesh import _xatlas_in_process
 src, dst, opts = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
 d = np.load(src)
-v = np.ascontiguousarray(d["vertices"], dtype=np.float32)
-f = np.ascontiguousarray(d["faces"], dtype=np.uint32)
-atlas = xatlas.Atlas()
-atlas.add_mesh(v, f)
-co = xatlas.ChartOptions()
-co.max_iterations = int(opts["max_iterations"])
-if opts.get("max_chart_area", 0) > 0:
-    co.max_chart_area = float(opts["max_chart_area"])
-po = xatlas.PackOptions()
-po.padding = int(opts["padding"])
-po.resolution = int(opts["resolution"])
-atlas.generate(co, po)
-vm, idx, uv = atlas[0]
-np.savez(dst, vmapping=vm, indices=idx, uvs=uv, width=atlas.width, height=atlas.height,
-         charts=atlas.chart_count, atlases=atlas.atlas_count)
+result, _ = _xatlas_in_process(d["vertices"], d["faces"], opts)
+np.savez(dst, **result)
 """
 
 
@@ -809,9 +796,11 @@ def _xatlas_in_subprocess(v: np.ndarray, f: np.ndarray, opts: Mapping[str, Any],
         src, dst = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
         np.savez(src, vertices=v, faces=f)
         try:
+            root = str(Path(__file__).resolve().parents[1])  # the child imports this module
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
             proc = subprocess.run(
                 [sys.executable, "-c", _XATLAS_WORKER, src, dst, json.dumps(dict(opts))],
-                capture_output=True, timeout=timeout, check=False,
+                capture_output=True, timeout=timeout, check=False, env=env,
             )
         except subprocess.TimeoutExpired:
             return None, f"timed out after {timeout:.0f} s"
