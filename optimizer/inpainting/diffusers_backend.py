@@ -71,9 +71,9 @@ def _looks_like_repo_id(s: str) -> bool:
 def _from_hf_cache(repo_id: str, what: str, flag: str) -> Path:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     try:
-        from huggingface_hub import snapshot_download
+        import huggingface_hub
 
-        return Path(snapshot_download(repo_id, local_files_only=True))
+        return Path(huggingface_hub.snapshot_download(repo_id, local_files_only=True))
     except Exception as exc:  # noqa: BLE001 - any failure means "not available offline"
         raise CamoError(
             f"{what} {repo_id!r} is not in the offline Hugging Face cache ({_one_line(exc, 120)}); pass {flag} DIR"
@@ -298,16 +298,22 @@ def _dtype(torch, name: str | None, device: str):
     return table[str(name).lower()]
 
 
-def load_pipeline(sdxl_path=None, controlnet_path=None, *, device=None, dtype=None, variant=None):
-    """Load ``(pipeline, sdxl_dir, controlnet_dir)`` from local folders only (CamoError on any failure)."""
-    if importlib.util.find_spec("diffusers") is None or importlib.util.find_spec("transformers") is None:
-        raise CamoError("the diffusers backend needs diffusers and transformers: pip install 'camo-toolkit[diffusion]'")
+def resolve_folders(sdxl_path=None, controlnet_path=None) -> tuple[Path, Path | None]:
+    """The checked local SDXL folder and, unless the pipeline already bundles one, the ControlNet folder."""
     sdxl_dir = resolve_folder(sdxl_path, DEFAULT_SDXL_REPO, "SDXL inpainting model", "--sdxl-path")
     meta = check_sdxl_folder(sdxl_dir)
     controlnet_dir = None
     if controlnet_path is not None or not _pipeline_has_controlnet(meta):
         controlnet_dir = resolve_folder(controlnet_path, DEFAULT_CONTROLNET_REPO, "depth ControlNet", "--controlnet-path")
         check_controlnet_folder(controlnet_dir)
+    return sdxl_dir, controlnet_dir
+
+
+def load_pipeline(sdxl_path=None, controlnet_path=None, *, device=None, dtype=None, variant=None):
+    """Load ``(pipeline, sdxl_dir, controlnet_dir)`` from local folders only (CamoError on any failure)."""
+    if importlib.util.find_spec("diffusers") is None or importlib.util.find_spec("transformers") is None:
+        raise CamoError("the diffusers backend needs diffusers and transformers: pip install 'camo-toolkit[diffusion]'")
+    sdxl_dir, controlnet_dir = resolve_folders(sdxl_path, controlnet_path)
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     import torch
@@ -321,15 +327,15 @@ def load_pipeline(sdxl_path=None, controlnet_path=None, *, device=None, dtype=No
         raise CamoError(f"diffusers {diffusers.__version__} has no {PIPELINE_CLASS}; upgrade diffusers (>= 0.27)")
     dev = device or ("cuda" if torch.cuda.is_available() else "cpu")
     tdtype = _dtype(torch, dtype, dev)
-    kw = {_dtype_kwarg(diffusers): tdtype, "local_files_only": True}
+    kw = {_dtype_kwarg(diffusers): tdtype}
     if variant:
         kw["variant"] = variant
     try:
         with _quiet():
             extra = {}
             if controlnet_dir is not None:
-                extra["controlnet"] = diffusers.ControlNetModel.from_pretrained(str(controlnet_dir), **kw)
-            pipe = pipe_cls.from_pretrained(str(sdxl_dir), **extra, **kw)
+                extra["controlnet"] = diffusers.ControlNetModel.from_pretrained(str(controlnet_dir), local_files_only=True, **kw)
+            pipe = pipe_cls.from_pretrained(str(sdxl_dir), local_files_only=True, **extra, **kw)
     except CamoError:
         raise
     except Exception as exc:  # noqa: BLE001 - corrupt/mismatched weights surface as many exception types
@@ -359,12 +365,7 @@ def diffusers_status(sdxl_path=None, controlnet_path=None, *, load: bool = False
         from importlib.metadata import version
 
         ver = version("diffusers")
-        sdxl_dir = resolve_folder(sdxl_path, DEFAULT_SDXL_REPO, "SDXL inpainting model", "--sdxl-path")
-        meta = check_sdxl_folder(sdxl_dir)
-        cn_dir = None
-        if controlnet_path is not None or not _pipeline_has_controlnet(meta):
-            cn_dir = resolve_folder(controlnet_path, DEFAULT_CONTROLNET_REPO, "depth ControlNet", "--controlnet-path")
-            check_controlnet_folder(cn_dir)
+        sdxl_dir, cn_dir = resolve_folders(sdxl_path, controlnet_path)
         device = ""
         if load:
             pipe, _, _ = load_pipeline(sdxl_dir, cn_dir)
