@@ -4,6 +4,9 @@ Sweeps spp (1, 4, 16), resolution (64, 128, 256), iterations (10, 25, 50, 100) a
 effect planner (on / off = always full path tracing). By default one factor at a time
 around a base setting (spp 4, resolution 64, 25 iterations, planner on); ``--grid full``
 runs the whole product. Iteration counts share one run (snapshots at 10, 25, 50, 100).
+Planner off costs ~100x per iteration (full path tracing with projective indirect
+sampling), so that arm runs ``--full-iterations`` (default 3) and the base setting also
+snapshots there: same iterations, planner on vs off, side by side.
 
 For each setting it prints the wall time of the iterations, the final loss on the training
 views and the loss on jittered held-out views (+-0.25 at radius 4), both rendered with the
@@ -66,6 +69,7 @@ def main() -> None:
     ap.add_argument("--map-resolution", type=int, default=256)
     ap.add_argument("--eval-spp", type=int, default=64)
     ap.add_argument("--grid", choices=("oat", "full"), default="oat")
+    ap.add_argument("--full-iterations", type=int, default=3, help="iterations of the planner-off (full) arm")
     ap.add_argument("--out", default="bench_out/tradeoff")
     args = ap.parse_args()
 
@@ -98,7 +102,12 @@ def main() -> None:
         cams = cameras(pack)
         held = jitter(cams, 0.25, pack.cameras.radius, seed=11)
         s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=spp, target_spp=args.eval_spp, seed=0), app)
-        wanted = its if (spp, res, planner) == base or args.grid == "full" else (25,)
+        if not planner:
+            wanted = (args.full_iterations,)
+        elif (spp, res, planner) == base or args.grid == "full":
+            wanted = tuple(sorted({*its, args.full_iterations}))
+        else:
+            wanted = (25,)
         elapsed = 0.0
         for n in sorted(wanted):
             while s1.iteration < n:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -47,3 +49,13 @@ def test_plan_prints_reasons(capsys):
     out = capsys.readouterr().out
     assert "integrator: {'type': 'prb'" in out and "- max_depth:" in out and "- sensors:" in out
     assert main(["plan", "room", "--ablate", "wings"]) == 2
+
+
+def test_closed_stdout_is_not_a_traceback():
+    """`camo scenes list | head -0`: the reader is gone before camo writes; exit 141 like a shell pipeline, no traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "optimizer.cli", "scenes", "list"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141
+    assert "Traceback" not in err, err
