@@ -57,6 +57,11 @@ class Targets:
     depth: np.ndarray  # (V, H, W)
 
 
+def _flat(x):
+    """The flat Dr.Jit array of a tensor (or the array itself)."""
+    return x.array if hasattr(x, "array") else x
+
+
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary dilation of ``(H, W)`` by a disc of ``radius`` pixels."""
     if radius <= 0:
@@ -175,23 +180,30 @@ class Stage1:
         return keys
 
     # --- one iteration ------------------------------------------------------
-    def _apply(self) -> None:
-        """Push the current parameters (with their AD graph) into the scene."""
+    def _mapped(self) -> dict[str, Any]:
+        """Scene parameter key -> its value computed from the optimised variables (with their AD graph)."""
         import mitsuba as mi
 
         opt, keys, g, v = self.opt, self._keys, self.geometry, self.values
+        out: dict[str, Any] = {}
         if {"displacement", "translation", "rotation"} & set(opt.values):
             # Trainable parts carry their AD graph; fixed parts (an earlier stage's pose) are constants.
             d = opt["displacement"] if "displacement" in opt else (mi.TensorXf(v["displacement"]) if self.app.displacement else None)
             dt = opt["translation"] if "translation" in opt else mi.Float(v["translation"])
             th = opt["rotation"] if "rotation" in opt else mi.Float(v["rotation"])
-            self.params[keys["positions"]] = g.positions_dr(d, dt, th)
+            out[keys["positions"]] = g.positions_dr(d, dt, th)
         for name in MAPS:
             if name in opt and name in keys:
                 value = opt[name]
                 if name == "roughness":
                     value = scn.effective_roughness(value)
-                self.params[keys[name]] = value
+                out[keys[name]] = value
+        return out
+
+    def _apply(self) -> None:
+        """Push the current parameters (with their AD graph) into the scene."""
+        for key, value in self._mapped().items():
+            self.params[key] = value
         self.params.update()
 
     def views_for_step(self) -> list[int]:
@@ -253,8 +265,20 @@ class Stage1:
             photo = dr.detach(total)
             dr.backward(total)
         else:
+            # Two-level backward: the parameter mapping (displacement sampling, pose, roughness remap) is
+            # built once per iteration; every view renders from fresh detached leaves of its outputs, whose
+            # gradients are summed and sent back through the mapping in one pass. Same gradient as
+            # re-applying the mapping before every view (backward clears the graph), without rebuilding it
+            # V times. The leaves must be new variables per view: a re-assigned identical variable makes
+            # the scene skip its update, so the vertex normals would keep the previous view's (cleared) graph.
+            mapped = self._mapped()
+            acc: dict[str, Any] = {}
             for v in views:
-                self._apply()  # backward clears the graph: re-apply before every view
+                inner = {k: dr.detach(x) for k, x in mapped.items()}
+                for k, x in inner.items():
+                    dr.enable_grad(x)
+                    self.params[k] = x
+                self.params.update()
                 s, sg = self._seeds(v)
                 img = mi.render(self.scene, self.params, sensor=v, spp=self.cfg.spp, seed=s, seed_grad=sg)
                 lv, terms = self._view_loss(img, v)
@@ -265,6 +289,15 @@ class Stage1:
                     chroma += dr.detach(terms.chroma) / V
                 dr.schedule(photo, lum, chroma)
                 dr.backward(lv / V)
+                for k, x in inner.items():
+                    acc[k] = _flat(dr.grad(x)) if k not in acc else acc[k] + _flat(dr.grad(x))
+                dr.schedule(*acc.values())
+            outer = mi.Float(0.0)
+            for k, x in mapped.items():
+                if dr.grad_enabled(x):
+                    outer += dr.sum(_flat(x) * acc[k])
+            if dr.grad_enabled(outer):
+                dr.backward(outer)
         photo, lum, chroma = float(photo[0]), float(lum[0]), float(chroma[0])
         disp = 0.0
         if "displacement" in self.opt:
