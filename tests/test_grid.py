@@ -440,3 +440,20 @@ def test_sigint_in_a_subprocess_then_resume(tmp_path):
     assert subprocess.run(cmd, timeout=600).returncode == 0
     assert first.stat().st_mtime_ns == mtime and len(starts(first.parent)) == 1
     assert len(list(out.glob("cells/*/DONE"))) == 3
+
+
+@pytest.mark.parametrize("name, cells, methods", [
+    ("smoke", 27, {"ours", "mean", "random"}),
+    ("all_scenes", 48, {"ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage"}),
+    ("table2", 216, {"ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage"}),
+])
+def test_shipped_grid_files_load(name, cells, methods):
+    """The grid files in grids/ (README examples) stay valid against the current `camo optimize` options."""
+    grid = load_grid(Path(__file__).resolve().parents[1] / "grids" / f"{name}.toml")
+    assert len(grid.cells) == cells and {c.method for c in grid.cells} == methods
+    assert len({c.key for c in grid.cells}) == cells
+    if name != "smoke":  # every built-in environment is in the two larger grids
+        assert {c.scene_label.split(":")[0] for c in grid.cells} == {"meadow", "gravel", "split", "room", "occluded",
+                                                                       "panorama"}
+    gm = [c for c in grid.cells if c.method == "ganmouflage"]
+    assert all(dict(c.optimize)["iterations"] in (300, 2000) for c in gm)
