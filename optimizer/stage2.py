@@ -12,6 +12,10 @@ new pseudo ground truth is inpainted from a render that already carries the
 edits made for earlier views, the views are made consistent one after another
 (the paper's multi-view argument). The pose stays as Stage 1 left it.
 
+The objective stays Eq. 11 with Eq. 14 as its photometric term: the displacement
+regulariser L_disp = E|D| (Eq. 5) remains on, because Eq. 14 redefines only
+L_photo (the paper leaves this open). ``log.jsonl`` reports both terms.
+
 The MSE is taken inside Stage 1's loss domain (the object and its shadow);
 outside the silhouette the pseudo ground truth equals the render it came from,
 so that part acts as a keep-as-is term.
