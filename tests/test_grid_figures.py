@@ -1,0 +1,79 @@
+"""bench/grid_figures.py on a hand-made grid output: crops, montages and the Stage 2 table's values."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_module():
+    spec = importlib.util.spec_from_file_location("grid_figures", ROOT / "bench" / "grid_figures.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_crop_box_is_square_inside_and_around_the_mask():
+    gf = load_module()
+    mask = np.zeros((96, 96), bool)
+    mask[80:90, 85:95] = True  # near the corner: the box is shifted inside
+    x0, y0, x1, y1 = gf.crop_box(mask, pad=0.35, min_side=40)
+    assert (x1 - x0, y1 - y0) == (40, 40) and x1 <= 96 and y1 <= 96
+    assert x0 <= 85 and y0 <= 80 and x1 >= 95 and y1 >= 90
+    assert gf.crop_box(np.zeros((8, 8), bool)) == (0, 0, 8, 8)
+
+
+def make_cell(grid: Path, key: str, ablation: str, object_value: int, psnr: float) -> None:
+    cell = grid / "cells" / key
+    name = f"gravel__ours{'' if ablation == 'none' else '-wo-' + ablation}__s0"
+    ev = cell / "eval" / name
+    (ev / "renders").mkdir(parents=True)
+    bg = np.full((32, 32, 3), 100, np.uint8)
+    bg[0, :8] = 200  # 8 of 1024 pixels: the 99.5th luminance percentile is exactly the 200 level
+    img = bg.copy()
+    img[10:20, 10:20] = object_value
+    mask = np.zeros((32, 32), np.uint8)
+    mask[10:20, 10:20] = 255
+    recs = []
+    for v in range(2):
+        for kind, arr in (("bg", bg), ("obj", img), ("mask", mask)):
+            Image.fromarray(arr).save(ev / "renders" / f"view_{v}_{kind}.png")
+        recs.append({"background": f"renders/view_{v}_bg.png", "image": f"renders/view_{v}_obj.png",
+                     "mask": f"renders/view_{v}_mask.png", "view": v})
+    (ev / "renders.json").write_text(json.dumps(recs))
+    (cell / "cell.json").write_text(json.dumps({"key": key, "name": name, "scene_label": "gravel", "method": "ours",
+                                                "ablation": ablation}))
+    (cell / "DONE").write_text("")
+    run = cell / "run" / name
+    run.mkdir(parents=True)
+    log = [{"iteration": 1, "stage": 1, "seconds": 1.0}]
+    if ablation == "none":
+        log += [{"iteration": i, "stage": 2, "seconds": 1.0, "seconds_total": 2.5} for i in (1, 2)]
+    (run / "log.jsonl").write_text("\n".join(json.dumps(r) for r in log) + "\n")
+    return pd.DataFrame({"run": [name] * 2, "region": ["crop"] * 2, "psnr": [psnr, psnr + 2], "ssim": [0.5, 0.5],
+                         "lpips_proxy": [0.3, 0.3], "sifid_proxy": [0.01, 0.01]})
+
+
+def test_stage2_table_and_figures(tmp_path):
+    gf = load_module()
+    grid = tmp_path / "grid"
+    m = pd.concat([make_cell(grid, "a" * 16, "none", 150, 30.0),        # no pixel above 200: sparkle 0 %
+                   make_cell(grid, "b" * 16, "inpainting", 255, 20.0)])  # every object pixel above: 100 %
+    m.to_parquet(grid / "metrics.parquet")
+    runs = gf.load_runs(grid)
+    assert set(runs) == {("gravel", "ours", "none"), ("gravel", "ours", "inpainting")}
+    table = gf.stage2_table(grid, runs)
+    assert "| gravel | Stage 1 only | 21.00 | 0.5000 | 0.3000 | 0.0100 | 100.00 | 0.0 |" in table
+    assert "| gravel | Stage 1 + 2 | 31.00 | 0.5000 | 0.3000 | 0.0100 | 0.00 | 5.0 |" in table
+    assert "PSNR 1, SSIM 0, LPIPS-proxy 0, SIFID-proxy 0, sparkle % 1" in table
+    gf.montage(runs, "gravel", [("Stage 1 only", ("ours", "inpainting")), ("Stage 1 + 2", ("ours", "none"))], [0, 1, 7],
+               tmp_path / "f.png", 40)
+    im = np.asarray(Image.open(tmp_path / "f.png"))
+    assert im.shape == (18 + 2 * 40, 3 * 40, 3)  # view 7 does not exist: two rows
