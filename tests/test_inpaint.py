@@ -309,3 +309,35 @@ def test_tiny_image_falls_back_to_smooth_fill(patch):
     mask = square_mask(3, 9, 3, 9, (12, 12))
     out = patch.inpaint(img, mask, img, np.ones((12, 12), np.float32), 1.0, 0)
     assert np.array_equal(out[~mask], img[~mask]) and np.isfinite(out).all()
+
+
+def test_renoise_mix_limits_and_scales():
+    from optimizer.inpainting.patch import renoise_mix
+
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 40, 3), dtype=np.float32)
+    syn = rng.random((40, 40, 3), dtype=np.float32)
+    assert np.array_equal(renoise_mix(img, syn, 1.0, 2.0), syn)
+    np.testing.assert_allclose(renoise_mix(img, syn, 1e-3, 2.0), 0.999 * img + 0.001 * syn, atol=1e-6)
+    # constant images: no detail, the result is the plain blend of the levels
+    a, b = np.full((20, 20, 3), 0.2, np.float32), np.full((20, 20, 3), 0.6, np.float32)
+    np.testing.assert_allclose(renoise_mix(a, b, 0.5, 2.0), 0.4, atol=1e-6)
+    # a 1-px defect in the image at strength 0.5: almost gone (the linear blend keeps half of it)
+    spot = a.copy()
+    spot[10, 10] = 1.0
+    out = renoise_mix(spot, b, 0.5, 2.0)
+    assert out[10, 10, 0] - 0.4 < 0.05 < 0.5 * (1.0 - 0.2)
+
+
+def test_sparkle_in_the_stage1_render_is_replaced_by_texture(patch):
+    """Stage 2's point (paper Fig. 14): isolated Stage-1 defects do not survive into the pseudo ground truth."""
+    bg = texture("grass", (0.6, 1.0, 0.5), size=96)
+    mask = square_mask(30, 66, 30, 66, (96, 96))
+    stage1 = bg.copy()
+    spots = [(40, 40), (50, 57), (60, 35)]
+    for y, x in spots:
+        stage1[y, x] = 1.0  # specular sparkles on an otherwise perfect Stage-1 result
+    out = patch.inpaint(stage1, mask, bg, np.full((96, 96), 5.0, np.float32), 0.5, 0)
+    hi = np.quantile(bg.mean(axis=-1), 0.99)
+    for y, x in spots:
+        assert out[y, x].mean() < hi, (y, x, out[y, x])  # no brighter than the brightest 1 % of the grass

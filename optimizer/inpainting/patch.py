@@ -46,9 +46,17 @@ inpainter of the paper, Eq. 13 and Fig. 8, that runs without weights):
    survives the noise. Then (a) the patch search is guided toward the Stage-1
    render inside the hole with the weight ``g = SNR(t_start) = (1 - s) / s``
    (capped at 100; 0 at s = 1: pure synthesis; large at small s: patches that resemble the
-   Stage-1 render), and (b) the result is ``s * synthesis + (1 - s) * image``
-   inside the mask. So ``strength = 1`` is fully synthesised and ignores
-   ``image_srgb`` inside the mask, and ``strength -> 0`` returns ``image_srgb``.
+   Stage-1 render), and (b) the result inside the mask keeps the *coarse* content
+   of the Stage-1 render and takes the *detail* from the synthesis, as partial
+   re-noising does (noise at t_start drowns the fine scales of the input first;
+   the denoiser regenerates them): with a Gaussian low-pass ``G`` of width
+   ``sigma = detail_sigma * s / (1 - s)`` px,
+   ``G * (s * synthesis + (1 - s) * image) + (synthesis - G * synthesis)``.
+   So ``strength = 1`` is fully synthesised and ignores ``image_srgb`` inside the
+   mask, ``strength -> 0`` returns ``image_srgb``, and at the default 0.5
+   isolated Stage-1 defects finer than ~``detail_sigma`` (specular sparkles,
+   texel noise) are replaced by background texture instead of being kept at
+   half strength, which a plain linear blend would do.
 """
 
 from __future__ import annotations
@@ -81,6 +89,7 @@ class PatchOptions:
     vote: str = "weighted"  # "weighted" (Wexler) or "best" (lowest-distance covering patch)
     final_vote: str = "weighted"  # voting of the last EM iteration at full resolution
     vote_sharpness: float = 0.05  # scales sigma^2 of the voting weights (small = sharp, less blur)
+    detail_sigma: float = 2.0  # px: scale below which the synthesis replaces the render at strength 0.5
 
     def check(self) -> "PatchOptions":
         if self.patch_size < 3 or self.patch_size % 2 == 0:
@@ -93,6 +102,8 @@ class PatchOptions:
             raise CamoError(f"patch inpainter: sky_ratio must be > 1, got {self.sky_ratio}")
         if self.levels is not None and self.levels < 1:
             raise CamoError(f"patch inpainter: levels must be >= 1, got {self.levels}")
+        if not self.detail_sigma > 0:
+            raise CamoError(f"patch inpainter: detail_sigma must be > 0, got {self.detail_sigma}")
         for k in ("em_iters_coarse", "em_iters_fine", "pm_iters"):
             if getattr(self, k) < 1:
                 raise CamoError(f"patch inpainter: {k} must be >= 1, got {getattr(self, k)}")
@@ -154,6 +165,27 @@ def _dilate(m: np.ndarray, r: int) -> np.ndarray:
 
     k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
     return cv2.dilate(m.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def renoise_mix(image: np.ndarray, synth: np.ndarray, strength: float, detail_sigma: float) -> np.ndarray:
+    """Coarse scales from a ``strength``-blend of ``image`` and ``synth``, fine scales from ``synth`` (module doc, 4b).
+
+    ``image``, ``synth``: ``(H, W, 3)`` float32 sRGB; the low-pass is a Gaussian of ``detail_sigma * s / (1 - s)``
+    px (capped at 64 px; none below 0.05 px, where the result is the plain blend)."""
+    import cv2
+
+    s = float(strength)
+    if s >= 1.0:
+        return synth
+    blend = s * synth + (1.0 - s) * image
+    sigma = min(detail_sigma * s / (1.0 - s), 64.0)
+    if sigma < 0.05:
+        return blend
+
+    def low(x):
+        return cv2.GaussianBlur(np.ascontiguousarray(x, np.float32), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+
+    return low(blend) + (synth - low(synth))
 
 
 def _local_std(x: np.ndarray, r: int) -> np.ndarray:
@@ -411,7 +443,7 @@ class PatchInpainter(Inpainter):
         if int(_valid_sources(mask, r).sum()) < opts.min_sources:
             # no room for whole patches outside the hole: smooth fill only
             fill = telea_fill(ctx, mask)
-            return strength * fill + (1.0 - strength) * image
+            return renoise_mix(image, fill, strength, opts.detail_sigma)
 
         valid_px = ~mask
         var_rgb = float(src[valid_px].var(axis=0).mean()) if valid_px.sum() > 1 else 0.0
@@ -460,4 +492,4 @@ class PatchInpainter(Inpainter):
             agree = np.exp(-((telea_full - local_mean) ** 2).sum(axis=-1) / (2 * 0.02**2))
             wt = (w_flat * agree)[..., None]
             synth = synth + wt * (telea_full - synth)
-        return strength * synth + (1.0 - strength) * image
+        return renoise_mix(image, synth, strength, opts.detail_sigma)
