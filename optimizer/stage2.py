@@ -51,11 +51,16 @@ def gamma_encode_np(x: np.ndarray) -> np.ndarray:
 
 
 def gamma_encode_dr(img):
-    """Eq. 12 in Dr.Jit, differentiable; clamped at 1e-4 where the power's slope blows up."""
+    """Eq. 12 in Dr.Jit, differentiable; clamped below at 1e-4 where the power's slope blows up.
+
+    Values are clipped at 1 like the 8-bit images, but over-exposed pixels (a specular glint of a light) keep
+    the slope of ``x^(1/2.2)`` as a straight-through gradient: a hard clip would give them zero gradient, and
+    the MSE to a pseudo ground truth in [0, 1] could never dim them."""
     import drjit as dr
 
     img = dr.select(dr.isfinite(img), img, 0.0)
-    return dr.power(dr.clip(img, 1e-4, 1.0), 1.0 / GAMMA)
+    enc = dr.power(dr.maximum(img, 1e-4), 1.0 / GAMMA)
+    return dr.select(img > 1.0, 1.0 + (enc - dr.detach(enc)), enc)
 
 
 class Stage2(Stage1):
