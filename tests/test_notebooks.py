@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -144,10 +145,13 @@ def test_table2_notebook(tmp_path, kernel_env, monkeypatch):
 
 
 def test_table2_notebook_reads_csv(tmp_path, kernel_env, monkeypatch):
+    """Also: the kernel runs in notebooks/ (as Jupyter starts it) and the path is relative to the repository root,
+    as a user types it there (`CAMO_METRICS=grid_out/metrics.csv jupyter lab notebooks/...`)."""
     df = tiny_metrics(tmp_path / "m.parquet")
     df.to_csv(tmp_path / "grid_metrics.csv", index=False)
-    nb = run_notebook("table2_metrics.ipynb", kernel_env, tmp_path, monkeypatch,
-                      CAMO_METRICS=tmp_path / "grid_metrics.csv")
+    rel = os.path.relpath(tmp_path / "grid_metrics.csv", NOTEBOOKS.parent)
+    assert not (NOTEBOOKS / rel).exists()  # relative to notebooks/ it would not resolve
+    nb = run_notebook("table2_metrics.ipynb", kernel_env, NOTEBOOKS, monkeypatch, CAMO_METRICS=rel)
     assert "| Ours |" in texts(nb) or "| **Ours** |" in texts(nb)
 
 
