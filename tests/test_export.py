@@ -113,16 +113,15 @@ def test_scene_xml_renders_like_the_dict_scene(mi_backend, asset, tmp_path, env_
     psnr = 10 * np.log10(1.0 / max(mse, 1e-20))
     assert rel < 0.02 and psnr > 30.0
     # Same plugins, values and order -> the same random numbers: equal up to float rounding
-    # (bit-identical for room and gravel; the rotated envmap's inverse transform is computed
-    # in double precision from XML, which moves a few radiance values by ~1e-7 relative).
+    # (often bit-identical here, but not on every CPU: one CI machine matched only 84 % of gravel's
+    # values bit for bit, all within 1e-4; the rotated envmap's inverse transform is computed in
+    # double precision from XML, which moves a few radiance values by ~1e-7 relative).
     # Allowance: with several threads the film's splats may sum in another order, and a 1-ulp
     # difference can flip one sample's Russian roulette (seen once in CI: 1 pixel 0.1 % off).
     # (One thread would make it exact, but Mitsuba 3.9 hangs loading EXR textures single-threaded; see
     # backend.load_file.)
     close = np.isclose(got, ref, rtol=1e-4, atol=1e-5)
     assert close.mean() > 0.999, (close.size - close.sum(), np.abs(got - ref).max())
-    if env_name != "panorama":
-        assert (got == ref).mean() > 0.999
 
 
 def test_scene_xml_keeps_to_uv_translation_and_tensor_data(mi_backend, tmp_path):
