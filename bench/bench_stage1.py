@@ -81,7 +81,7 @@ def main() -> None:
                 for k in keys:
                     params[k] = leaves[k]
                 params.update()
-                img = mi.render(s1.scene, params, sensor=v, spp=args.spp, seed=it * 97 + v, seed_grad=it * 97 + v + 1)
+                img = mi.render(s1.scene, params, sensor=v, spp=s1.render_spp, seed=it * 97 + v, seed_grad=it * 97 + v + 1)
                 dr.eval(img)
                 dr.backward(dr.mean(img.array))
         dr.eval([dr.grad(x) for x in leaves.values()])  # gradients are lazy: force them, as Adam does

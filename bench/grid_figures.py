@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +90,12 @@ def sparkle_share(evdir: Path, recs: list[dict]) -> float:
     return float(np.mean(out)) if out else float("nan")
 
 
+def file_stem(scene: str) -> str:
+    """A file-name-safe form of a scene name (built-in name, ``data:`` reference or pack path)."""
+    name = Path(scene).stem if scene.endswith(".toml") else scene
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "scene"
+
+
 def stage2_table(grid: Path, runs) -> str:
     metrics = pd.read_parquet(grid / "metrics.parquet")
     metrics = metrics[metrics["region"] == "crop"]
@@ -133,13 +140,13 @@ def main() -> None:
     for scene in scenes:
         if (scene, "ours", "inpainting") in runs and (scene, "ours", "none") in runs:
             montage(runs, scene, [("Stage 1 only", ("ours", "inpainting")), ("Stage 1 + 2", ("ours", "none"))], views,
-                    args.out / f"stage2_{scene.replace(':', '_')}.png", 160)
+                    args.out / f"stage2_{file_stem(scene)}.png", 160)
     scene = args.methods_scene or scenes[0]
     keys = sorted((k for k in runs if k[0] == scene),
                   key=lambda k: (METHOD_ORDER.index(k[1]) if k[1] in METHOD_ORDER else 99, k[2] == "none", k[2]))
     if keys:
         cols = [(m if a == "none" else f"{m} w/o {a}", (m, a)) for _, m, a in keys]
-        montage(runs, scene, cols, views[:2], args.out / f"methods_{scene.replace(':', '_')}.png", 128)
+        montage(runs, scene, cols, views[:2], args.out / f"methods_{file_stem(scene)}.png", 128)
     table = stage2_table(args.grid_out, runs)
     (args.out / "stage2.md").write_text(table)
     print(table)

@@ -21,6 +21,16 @@ SCENES: dict[str, tuple[str, float, tuple[float, float], str]] = {
     "panorama": ("utility_box", 40.0, (0.0, 0.0), "a utility box lit only by an HDR panorama of a plaza"),
 }
 
+#: Initial material per environment where the paper's (albedo 0.5, metallic 0, roughness 0, transmittance 0.5)
+#: starts in a local minimum. ``room``: a smooth dielectric mirrors the compact ceiling light as specular glints
+#: whose brightness does not depend on roughness while the lobe is narrower than the light, so the gradient
+#: never raises the roughness (measured: its per-texel and whole-map gradient signs are noise; the roughness
+#: median stays at 0). Starting at 0.5 the glints never form: Stage 1 + 2 sparkle 7.4 % -> 1.3 %, crop PSNR
+#: 26.3 -> 27.5 dB (docs/results). ``camo optimize --init roughness=0`` restores the paper's start.
+INITIAL_MATERIAL: dict[str, MaterialSpec] = {
+    "room": MaterialSpec(roughness=0.5),
+}
+
 
 def names() -> list[str]:
     return list(SCENES)
@@ -43,6 +53,6 @@ def get(name: str) -> ScenePack:
         environment=EnvironmentSpec(builtin=env),
         cameras=CameraSpec(mode="orbit", views=16, radius=4.0, elevation=20.0, fov=30.0),
         render=RenderSpec(resolution=(128, 128), spp=16),
-        material=MaterialSpec(),
+        material=INITIAL_MATERIAL.get(env, MaterialSpec()),
         source=f"builtin:{name}",
     )

@@ -21,6 +21,9 @@ def register(sub) -> None:
     p.add_argument("--views", type=int, help="number of orbit views (default: the pack's, 16)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ablate", default="", help="comma list: pose,displacement,bsdf,transmittance,inpainting")
+    p.add_argument("--init", default="", metavar="KEY=VALUE,...",
+                   help="initial material values, overriding the scene pack's [material]: albedo (grey, or R/G/B), "
+                        "metallic, roughness, transmittance in [0, 1] (paper: 0.5, 0, 0, 0.5)")
     p.add_argument("--loss", choices=("gated", "mse"), default="gated", help="luminance-gated (Eq. 9) or plain MSE")
     p.add_argument("--map-resolution", type=int, help="BSDF map resolution (paper: 800)")
     p.add_argument("--displacement-resolution", type=int, help="displacement map resolution (default 256)")
@@ -49,6 +52,28 @@ def _positive(name: str, value, minimum=1):
     return value
 
 
+def parse_init(text: str) -> dict:
+    """``--init``: ``"roughness=0.5,albedo=0.4/0.3/0.2"`` -> MaterialSpec field values; one-line errors."""
+    out: dict = {}
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        key, eq, val = item.partition("=")
+        key = key.strip()
+        if not eq or key not in ("albedo", "metallic", "roughness", "transmittance"):
+            raise CamoError(f"--init takes KEY=VALUE with KEY one of albedo, metallic, roughness, transmittance; got {item!r}")
+        if key in out:
+            raise CamoError(f"--init sets {key} twice")
+        try:
+            nums = [float(v) for v in val.split("/")]
+        except ValueError:
+            raise CamoError(f"--init {key} must be a number in [0, 1]{' or R/G/B' if key == 'albedo' else ''}, got {val!r}") from None
+        if len(nums) not in ((1, 3) if key == "albedo" else (1,)) or not all(0.0 <= v <= 1.0 for v in nums):
+            raise CamoError(f"--init {key} must be {'a grey or R/G/B values' if key == 'albedo' else 'a number'} in [0, 1], got {val!r}")
+        out[key] = tuple(nums * 3 if len(nums) == 1 else nums) if key == "albedo" else nums[0]
+    return out
+
+
 def config_from_args(args):
     from .cli import load_scene_arg, parse_ablate
     from .run import RunConfig, appearance_for
@@ -67,6 +92,12 @@ def config_from_args(args):
     if args.target_vertices:
         pack.object = dataclasses.replace(pack.object, target_vertices=args.target_vertices)
     ablate = parse_ablate(args.ablate)
+    init = parse_init(args.init)
+    for key, part in (("transmittance", "transmittance"), ("transmittance", "bsdf"), ("metallic", "bsdf"), ("roughness", "bsdf")):
+        if key in init and part in ablate:
+            raise CamoError(f"--init {key} conflicts with --ablate {part} (the ablation fixes it)")
+    if init:
+        pack.material = dataclasses.replace(pack.material, **init)
     app = appearance_for(ablate)
     if args.map_resolution:
         app = dataclasses.replace(app, map_resolution=args.map_resolution)

@@ -9,7 +9,10 @@ say why. Rules (Mitsuba 3.9):
   ``direct_projective`` for an opaque object in an open scene (direct light
   dominates), else ``prb_projective``. Indirect-visibility sampling (``sppi``)
   costs ~35x and is off unless ``shadow_gradients`` asks for the object's
-  shadow/reflection boundaries to drive the pose.
+  shadow/reflection boundaries to drive the pose. Primary-silhouette samples
+  (``sppp``) are a quarter of the continuous ones (:func:`training_integrator`):
+  Mitsuba draws ``sppp`` samples per *pixel* on a 1-D silhouette, and a quarter
+  gave the same vertex-gradient variance at ~40 % less time per view.
 * **Only material maps** optimised: ``prb`` (unbiased for BSDF parameters),
   and all views in one ``batch`` sensor.
 * **max_depth** just deep enough: 3 for an opaque object outdoors (direct light
@@ -35,6 +38,8 @@ from .scenepack import ScenePack
 PARAMETERS = ("pose", "displacement", "bsdf", "transmittance", "albedo")
 
 FULL_MAX_DEPTH = 12
+SILHOUETTE_SPP_DIVISOR = 4  # projective integrators: sppp = max(1, spp // 4)
+PROJECTIVE = ("direct_projective", "prb_projective")
 
 
 @dataclasses.dataclass
@@ -97,6 +102,8 @@ def plan(pack: ScenePack, env: Environment, params: set[str] | frozenset[str] = 
             integ["sppi"] = 0
         reasons.append(("sppi", "default (on): shadow/reflection boundaries drive the pose (~35x cost)" if shadow_gradients
                         else "0: indirect visibility (the shadow's outline) does not drive the pose; ~35x cheaper"))
+        reasons.append(("sppp", f"spp/{SILHOUETTE_SPP_DIVISOR} (at least 1): silhouette samples are drawn per pixel "
+                        "on a 1-D silhouette; same gradient variance, ~40 % less time than sppp = spp"))
         batch = False
         reasons.append(("sensors", "one perspective sensor per view (the batch sensor crashes projective integrators)"))
     elif optimise:
@@ -127,3 +134,20 @@ def full_plan(purpose: str = "optimize", geometry: bool = True) -> Plan:
         integ = {"type": "path", "max_depth": FULL_MAX_DEPTH}
         batch = True
     return Plan(integ, batch, FULL_MAX_DEPTH, "", [("integrator", "always full")])
+
+
+def training_integrator(integrator: dict[str, Any], spp: int) -> tuple[dict[str, Any], int]:
+    """The integrator dict with explicit sample counts for ``spp``, and the ``spp`` to pass to ``mi.render``.
+
+    Projective integrators take ``sppc`` (continuous part) = ``spp`` and ``sppp`` (primary silhouettes)
+    = ``max(1, spp // SILHOUETTE_SPP_DIVISOR)``; an ``sppi`` the plan set stays. Mitsuba lets a non-zero
+    ``spp`` argument override all three, so these are rendered with ``spp=0``: the primal pass then takes
+    the sensor sampler's ``sample_count``, which must equal ``spp``. Other integrators are returned as is
+    with ``spp``.
+    """
+    if integrator.get("type") not in PROJECTIVE:
+        return dict(integrator), spp
+    out = dict(integrator, sppc=int(spp), sppp=max(1, int(spp) // SILHOUETTE_SPP_DIVISOR))
+    if "sppi" not in integrator:
+        out["sppi"] = int(spp)
+    return out, 0

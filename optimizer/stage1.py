@@ -30,7 +30,7 @@ from .appearance import (MAPS, AppearanceConfig, Geometry, clamp_projections, in
 from .cameras import Camera
 from .environments import Environment
 from .loss import gated_loss_terms, mse_loss
-from .planner import Plan
+from .planner import Plan, training_integrator
 from .render import coverage_and_depth, render_shaded, uses_batch
 from .scenepack import ScenePack
 
@@ -156,7 +156,8 @@ class Stage1:
             sensors = [scn.batch(self.cams, self.cfg.spp)]
         else:
             sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
-        return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.plan.integrator))
+        integ, self.render_spp = training_integrator(self.plan.integrator, self.cfg.spp)
+        return scn.build_scene(self.env.build(), self._object(), sensors, integ)
 
     def _param_keys(self) -> dict[str, str]:
         keys = {}
@@ -257,7 +258,7 @@ class Stage1:
         if uses_batch(self.plan.integrator):
             self._apply()
             s, sg = self._seeds(0)
-            img = mi.render(self.scene, self.params, spp=self.cfg.spp, seed=s, seed_grad=sg)
+            img = mi.render(self.scene, self.params, spp=self.render_spp, seed=s, seed_grad=sg)
             total, terms = self._batch_loss(img, views)
             if terms is not None:
                 has_terms = True
@@ -280,7 +281,7 @@ class Stage1:
                     self.params[k] = x
                 self.params.update()
                 s, sg = self._seeds(v)
-                img = mi.render(self.scene, self.params, sensor=v, spp=self.cfg.spp, seed=s, seed_grad=sg)
+                img = mi.render(self.scene, self.params, sensor=v, spp=self.render_spp, seed=s, seed_grad=sg)
                 lv, terms = self._view_loss(img, v)
                 photo += dr.detach(lv) / V
                 if terms is not None:

@@ -111,3 +111,51 @@ def test_corrupt_checkpoint_is_one_line_error(tmp_path, capsys):
     assert optimize(out, 4, "--resume") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "corrupt" in err[0]
+
+
+def test_parse_init():
+    from optimizer.errors import CamoError
+    from optimizer.optimize_cli import parse_init
+
+    assert parse_init("") == {}
+    assert parse_init("roughness=0.5, albedo=0.25") == {"roughness": 0.5, "albedo": (0.25, 0.25, 0.25)}
+    assert parse_init("albedo=0.1/0.2/0.3,metallic=1,transmittance=0") == {
+        "albedo": (0.1, 0.2, 0.3), "metallic": 1.0, "transmittance": 0.0}
+    for bad in ("roughness", "shine=0.2", "roughness=1.5", "roughness=-0.1", "roughness=a", "metallic=0.1/0.2/0.3",
+                "albedo=0.1/0.2", "roughness=0.1,roughness=0.2"):
+        with pytest.raises(CamoError):
+            parse_init(bad)
+
+
+def test_room_starts_rough_everything_else_at_the_paper_values():
+    from optimizer import builtin_scenes
+    from optimizer.scenepack import MaterialSpec
+
+    assert builtin_scenes.get("room").material.roughness == 0.5
+    assert builtin_scenes.get("room:vase").material.roughness == 0.5
+    for name in builtin_scenes.names():
+        if name != "room":
+            assert builtin_scenes.get(name).material == MaterialSpec(albedo=(0.5, 0.5, 0.5), metallic=0.0, roughness=0.0,
+                                                                    transmittance=0.5, eta=1.5)
+
+
+def test_init_sets_the_starting_maps_and_is_recorded(tmp_path, capsys):
+    import tomllib
+
+    out = tmp_path / "init"
+    assert optimize(out, 1, "--init", "roughness=0.3,albedo=0.2/0.4/0.6,metallic=0.1") == 0
+    cfg = tomllib.loads((out / "config.toml").read_text())
+    mat = cfg["pack"]["material"]
+    assert mat["roughness"] == 0.3 and mat["metallic"] == 0.1 and mat["albedo"] == [0.2, 0.4, 0.6]
+    maps = {k: np.load(out / "maps" / f"{k}.npy") for k in ("albedo", "roughness", "metallic")}
+    # one Adam step (lr 1e-2) from the initial values; roughness is exported as rendered (0.035 + 0.965 r)
+    assert np.abs(maps["roughness"] - (0.035 + 0.965 * 0.3)).max() < 0.011
+    assert np.abs(maps["metallic"] - 0.1).max() < 0.011
+    assert np.abs(maps["albedo"] - [0.2, 0.4, 0.6]).max() < 0.011
+    capsys.readouterr()
+    assert optimize(tmp_path / "bad", 1, "--init", "roughness=2") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--init roughness" in err[0]
+    assert optimize(tmp_path / "bad2", 1, "--init", "metallic=0.2", "--ablate", "bsdf") == 2
+    assert "conflicts" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())

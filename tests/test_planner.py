@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from optimizer import builtin_scenes
@@ -68,3 +69,75 @@ def test_rendering_uses_path_tracing(purpose):
     assert p.integrator["type"] == "path" and p.batch
     assert p.integrator["max_depth"] == 6
     assert any(k == "emitters" and "sun" in v for k, v in p.reasons)
+
+
+def test_training_integrator_gives_silhouettes_a_quarter_of_the_samples():
+    from optimizer.planner import training_integrator
+
+    pack = builtin_scenes.get("meadow")
+    p = plan(pack, env_of("meadow"), ALL)
+    integ, spp = training_integrator(p.integrator, 8)
+    assert spp == 0 and integ == dict(p.integrator, sppc=8, sppp=2, sppi=0)
+    assert training_integrator(p.integrator, 2)[0]["sppp"] == 1  # never 0: that would drop silhouettes
+    on = plan(pack, env_of("meadow"), ALL, shadow_gradients=True).integrator
+    assert training_integrator(on, 4)[0]["sppi"] == 4
+    prb = {"type": "prb", "max_depth": 3, "rr_depth": 3}
+    assert training_integrator(prb, 4) == (prb, 4)
+    assert any(k == "sppp" for k, _ in p.reasons)
+
+
+def test_mitsuba_honours_the_silhouette_sample_count(mi_backend):
+    """Rendered with spp=0, the primal pass takes the sampler's 4 spp (same image as spp=4) and the
+    silhouette pass launches width*height*sppp samples, not width*height*spp."""
+    mi, dr = mi_backend
+    from optimizer.planner import training_integrator
+
+    def scene(integ):
+        return mi.load_dict({
+            "type": "scene", "integrator": integ,
+            "sensor": {"type": "perspective", "fov": 40, "to_world": mi.ScalarTransform4f().look_at([0, -4, 1], [0, 0, 0], [0, 0, 1]),
+                       "film": {"type": "hdrfilm", "width": 16, "height": 16, "sample_border": True,
+                                "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": 4}},
+            "light": {"type": "constant"},
+            "ball": {"type": "obj", "filename": str(_sphere_obj()), "bsdf": {"type": "diffuse"}},
+        })
+
+    base = {"type": "prb_projective", "max_depth": 3, "rr_depth": 3, "sppi": 0}
+    integ, spp = training_integrator(base, 4)
+    a, b = scene(integ), scene(dict(base))
+    # same samples; the splat order of the threads moves a few values by float rounding
+    np.testing.assert_allclose(np.asarray(mi.render(a, spp=spp, seed=3)), np.asarray(mi.render(b, spp=4, seed=3)), rtol=1e-4, atol=1e-6)
+
+    def launch_sizes(sc, spp):
+        params = mi.traverse(sc)
+        dr.enable_grad(params["ball.vertex_positions"])
+        params.update()
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            dr.kernel_history()  # clears it
+            img = mi.render(sc, params, spp=spp, seed=1, seed_grad=2)
+            dr.backward(dr.mean(img.array))
+            g = np.asarray(dr.grad(params["ball.vertex_positions"]))
+            dr.sync_thread()
+            sizes = {k.get("size") for k in dr.kernel_history()}
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        assert np.abs(g).sum() > 0
+        return sizes
+
+    px = 16 * 16  # box filter: no film border
+    ours, theirs = launch_sizes(a, spp), launch_sizes(b, 4)
+    assert px * 1 in ours and px * 4 in ours  # silhouettes at sppp = 1, primal/continuous at 4 spp
+    assert px * 1 not in theirs and px * 4 in theirs  # Mitsuba's spp=4 would override sppp to 4
+
+
+def _sphere_obj():
+    import tempfile
+    from pathlib import Path
+
+    import trimesh
+
+    path = Path(tempfile.mkdtemp()) / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=2, radius=0.8).export(path)
+    return path

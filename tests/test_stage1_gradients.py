@@ -47,7 +47,7 @@ def test_step_gradient_equals_per_view_reapplication(mi_backend):
     for v in range(V):  # the reference: the mapping rebuilt before every view
         s1._apply()
         s, sg = s1._seeds(v)
-        img = mi.render(s1.scene, s1.params, sensor=v, spp=2, seed=s, seed_grad=sg)
+        img = mi.render(s1.scene, s1.params, sensor=v, spp=s1.render_spp, seed=s, seed_grad=sg)
         lv, _ = s1._view_loss(img, v)
         dr.backward(lv / V)
     dr.backward(s1.app.displacement_weight * dr.mean(dr.abs(s1.opt["displacement"].array)))
