@@ -199,7 +199,9 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
                             int(state["iteration"]) if resume_stage == 2 else None)
     write_config(out / "config.toml", cfg, pack, {
         "versions": versions(),
-        "plan": {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons]},
+        "plan": {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons],
+                 # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
+                 "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp},
         "fingerprint": {"value": fingerprint},
     })
     atomic.write_text(out / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history))

@@ -156,8 +156,8 @@ class Stage1:
             sensors = [scn.batch(self.cams, self.cfg.spp)]
         else:
             sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
-        integ, self.render_spp = training_integrator(self.plan.integrator, self.cfg.spp)
-        return scn.build_scene(self.env.build(), self._object(), sensors, integ)
+        self.scene_integrator, self.render_spp = training_integrator(self.plan.integrator, self.cfg.spp)
+        return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.scene_integrator))
 
     def _param_keys(self) -> dict[str, str]:
         keys = {}

@@ -43,6 +43,9 @@ def test_run_directory_contents(run_dir):
     cfg = tomllib.loads((run_dir / "config.toml").read_text())
     assert cfg["run"]["stage1"]["seed"] == 0 and "mitsuba" in cfg["versions"]
     assert cfg["plan"]["integrator"]["type"] == "prb_projective"
+    # the training renders' integrator: 4 spp continuous, 1 spp silhouettes, rendered with spp=0
+    assert cfg["plan"]["training_integrator"] == dict(cfg["plan"]["integrator"], sppc=4, sppp=1, sppi=0)
+    assert cfg["plan"]["render_spp"] == 0
 
 
 def test_loss_decreases(run_dir):
