@@ -117,9 +117,26 @@ def plan(pack: ScenePack, env: Environment, params: set[str] | frozenset[str] = 
         batch = True
         reasons.append(("sensors", "one batch sensor renders every view in one pass"))
     reasons.append(("emitters", f"scene has {', '.join(env.emitters)}; only these are sampled"))
+    advice = glint_advice(pack, env, params) if optimise else None
+    if advice:
+        reasons.append(("initial roughness", advice))
     aov = "ray-cast AOV pass (no shading): visible-object coverage (4x4 rays/pixel, occlusion aware) and depth"
     reasons.append(("masks/depth", aov))
     return Plan(integ, batch, depth, aov, reasons)
+
+
+COMPACT_EMITTERS = ("sun", "area")
+GLINT_ROUGHNESS = 0.1
+
+
+def glint_advice(pack: ScenePack, env: Environment, params: set[str] | frozenset[str]) -> str | None:
+    """A warning when a nearly smooth start meets a compact light (see ``optimizer.builtin_scenes.INITIAL_MATERIAL``)."""
+    compact = [e for e in env.emitters if e in COMPACT_EMITTERS]
+    if "bsdf" not in params or pack.material.roughness >= GLINT_ROUGHNESS or not compact:
+        return None
+    return (f"{pack.material.roughness:g} with a compact light ({', '.join(compact)}): specular glints may stay, since "
+            "their brightness does not depend on roughness while the lobe is narrower than the light (no gradient "
+            "raises it); --init roughness=0.5 avoids them (README, 'Why room starts rough')")
 
 
 def full_plan(purpose: str = "optimize", geometry: bool = True) -> Plan:

@@ -141,3 +141,21 @@ def _sphere_obj():
     path = Path(tempfile.mkdtemp()) / "ball.obj"
     trimesh.creation.icosphere(subdivisions=2, radius=0.8).export(path)
     return path
+
+
+def test_smooth_start_under_a_compact_light_is_flagged():
+    def flagged(name, params=ALL, roughness=None):
+        pack = builtin_scenes.get(name)
+        if roughness is not None:
+            pack.material = dataclasses.replace(pack.material, roughness=roughness)
+        return [v for k, v in plan(pack, env_of(name), params).reasons if k == "initial roughness"]
+
+    (why,) = flagged("meadow")
+    assert "sun" in why and "--init roughness=0.5" in why
+    assert flagged("room") == []  # starts at 0.5
+    assert "area" in flagged("room", roughness=0.0)[0]
+    assert flagged("panorama") == []  # an environment map only
+    assert flagged("meadow", params={"albedo", "pose"}) == []  # roughness is not optimised
+    assert flagged("meadow", roughness=0.3) == []
+    pack = builtin_scenes.get("meadow")
+    assert not any(k == "initial roughness" for k, _ in plan(pack, env_of("meadow"), ALL, purpose="render").reasons)
