@@ -187,9 +187,9 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
     pl = plan_for(app)
     cams = cameras(pack)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
-    for key, why in pl.reasons:
-        if key == "initial roughness":
-            say(f"note: initial roughness {why}")
+    advice = dict(pl.reasons).get("initial roughness")
+    if advice:
+        say(f"note: initial roughness {advice}")
     s1 = Stage1(pack, env, prepared, cams, pl, cfg.stage1, app, say)
     setup_seconds = time.perf_counter() - t_setup
     history: list[dict[str, Any]] = []
