@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import uuid
 from collections import Counter
 from pathlib import Path
 
@@ -77,7 +78,7 @@ def _finish(client, tok, rects, hit_every=2):
             x, y = (x0 + x1) // 2, (y0 + y1) // 2
         else:
             x, y = (x1 + 1) % 64, (y1 + 1) % 48
-        r = _post_trial(client, tok, t["index"], cid=f"c{t['index']:03d}{id(client) % 100000:05d}", x=x, y=y)
+        r = _post_trial(client, tok, t["index"], cid=f"c{t['index']:03d}{uuid.uuid4().hex[:16]}", x=x, y=y)
         assert r.status_code == 200, r.text
     r = client.post("/api/complete", json={}, headers={"X-CSRF-Token": tok})
     assert r.status_code == 200, r.text
