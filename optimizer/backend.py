@@ -202,6 +202,10 @@ def init(variant: str | None = None, threads: int | None = None) -> BackendInfo:
         gpu = _cuda_device_name()
     _STATE = BackendInfo(variant=variant, llvm=llvm, threads=threads, gpu=gpu)
     set_threads(threads)
+    if "_ad_" in variant:
+        from . import projective
+
+        projective.register()  # camo_prb_projective / camo_direct_projective (training integrators)
     return _STATE
 
 

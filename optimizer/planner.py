@@ -10,9 +10,10 @@ say why. Rules (Mitsuba 3.9):
   dominates), else ``prb_projective``. Indirect-visibility sampling (``sppi``)
   costs ~35x and is off unless ``shadow_gradients`` asks for the object's
   shadow/reflection boundaries to drive the pose. Primary-silhouette samples
-  (``sppp``) are a quarter of the continuous ones (:func:`training_integrator`):
-  Mitsuba draws ``sppp`` samples per *pixel* on a 1-D silhouette, and a quarter
-  gave the same vertex-gradient variance at ~40 % less time per view.
+  are a budget per view, ``2 * (W + H) * spp`` (:func:`training_integrator`,
+  :mod:`optimizer.projective`), not Mitsuba's ``sppp`` per *pixel*: a
+  silhouette is a 1-D curve, and its term's variance stays ~1e-4 of the
+  continuous term's or less (gravel, 128^2, 256 to 16384 samples).
 * **Only material maps** optimised: ``prb`` (unbiased for BSDF parameters),
   and all views in one ``batch`` sensor.
 * **max_depth** just deep enough: 3 for an opaque object outdoors (direct light
@@ -38,7 +39,7 @@ from .scenepack import ScenePack
 PARAMETERS = ("pose", "displacement", "bsdf", "transmittance", "albedo")
 
 FULL_MAX_DEPTH = 12
-SILHOUETTE_SPP_DIVISOR = 4  # projective integrators: sppp = max(1, spp // 4)
+SILHOUETTE_SAMPLES_PER_EDGE = 2  # primary-silhouette samples per view = 2 * (W + H) * spp
 PROJECTIVE = ("direct_projective", "prb_projective")
 
 
@@ -49,6 +50,7 @@ class Plan:
     max_depth: int
     aov_pass: str
     reasons: list[tuple[str, str]]  # (setting, why)
+    silhouette_budget: bool = True  # projective: per-view silhouette sample budget (False: Mitsuba's sppp = spp)
 
     def describe(self) -> str:
         lines = [f"integrator: {self.integrator}", f"batch sensor: {'yes' if self.batch else 'no (one perspective sensor per view)'}"]
@@ -102,8 +104,10 @@ def plan(pack: ScenePack, env: Environment, params: set[str] | frozenset[str] = 
             integ["sppi"] = 0
         reasons.append(("sppi", "default (on): shadow/reflection boundaries drive the pose (~35x cost)" if shadow_gradients
                         else "0: indirect visibility (the shadow's outline) does not drive the pose; ~35x cheaper"))
-        reasons.append(("sppp", f"spp/{SILHOUETTE_SPP_DIVISOR} (at least 1): silhouette samples are drawn per pixel "
-                        "on a 1-D silhouette; same gradient variance, ~40 % less time than sppp = spp"))
+        reasons.append(("silhouette samples", f"{SILHOUETTE_SAMPLES_PER_EDGE} * (width + height) * spp per view "
+                        "(camo_" + integ["type"] + "), not Mitsuba's sppp per pixel: a silhouette is a 1-D curve; "
+                        "the silhouette term's variance is ~1e-4 of the continuous term's or less, and the "
+                        "silhouette pass costs ~1/8 at 128^2"))
         batch = False
         reasons.append(("sensors", "one perspective sensor per view (the batch sensor crashes projective integrators)"))
     elif optimise:
@@ -150,21 +154,39 @@ def full_plan(purpose: str = "optimize", geometry: bool = True) -> Plan:
     else:
         integ = {"type": "path", "max_depth": FULL_MAX_DEPTH}
         batch = True
-    return Plan(integ, batch, FULL_MAX_DEPTH, "", [("integrator", "always full")])
+    return Plan(integ, batch, FULL_MAX_DEPTH, "", [("integrator", "always full")], silhouette_budget=False)
 
 
-def training_integrator(integrator: dict[str, Any], spp: int) -> tuple[dict[str, Any], int]:
-    """The integrator dict with explicit sample counts for ``spp``, and the ``spp`` to pass to ``mi.render``.
+def silhouette_samples(width: int, height: int, spp: int) -> int:
+    """Primary-silhouette samples per view: ``SILHOUETTE_SAMPLES_PER_EDGE * (W + H) * spp``.
 
-    Projective integrators take ``sppc`` (continuous part) = ``spp`` and ``sppp`` (primary silhouettes)
-    = ``max(1, spp // SILHOUETTE_SPP_DIVISOR)``; an ``sppi`` the plan set stays. Mitsuba lets a non-zero
-    ``spp`` argument override all three, so these are rendered with ``spp=0``: the primal pass then takes
-    the sensor sampler's ``sample_count``, which must equal ``spp``. Other integrators are returned as is
-    with ``spp``.
+    A silhouette is a 1-D curve whose length in pixels grows like ``W + H``, so this keeps the samples per
+    silhouette pixel fixed at any resolution (Mitsuba's ``sppp`` grows them like ``W * H``)."""
+    return max(1, SILHOUETTE_SAMPLES_PER_EDGE * (int(width) + int(height)) * int(spp))
+
+
+def training_integrator(plan: Plan, spp: int, size: tuple[int, int]) -> tuple[dict[str, Any], int]:
+    """The integrator dict Stage 1 trains with at ``spp`` on ``size = (width, height)`` views, and the
+    ``spp`` to pass to ``mi.render``.
+
+    Projective integrators become :mod:`optimizer.projective`'s ``camo_*`` variants (when
+    ``plan.silhouette_budget``) with ``sppc = spp`` (continuous part), ``sppp = 1`` (switches the
+    primary-silhouette pass on) and ``silhouette_samples`` = :func:`silhouette_samples`; without the budget
+    (the bench's full plan) ``sppp = spp``. An ``sppi`` the plan set stays (unset: ``spp``). Mitsuba lets a
+    non-zero ``spp`` argument override all of these, so they are rendered with ``spp=0``: the primal pass
+    then takes the sensor sampler's ``sample_count``, which must equal ``spp``. Other integrators are
+    returned as is with ``spp``.
     """
+    integrator = plan.integrator
     if integrator.get("type") not in PROJECTIVE:
         return dict(integrator), spp
-    out = dict(integrator, sppc=int(spp), sppp=max(1, int(spp) // SILHOUETTE_SPP_DIVISOR))
+    if plan.silhouette_budget:
+        from .projective import NAMES
+
+        out = dict(integrator, type=NAMES[integrator["type"]], sppc=int(spp), sppp=1,
+                   silhouette_samples=silhouette_samples(size[0], size[1], spp))
+    else:
+        out = dict(integrator, sppc=int(spp), sppp=int(spp))
     if "sppi" not in integrator:
         out["sppi"] = int(spp)
     return out, 0

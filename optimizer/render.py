@@ -21,7 +21,7 @@ import numpy as np
 from . import scene as scn
 from .cameras import Camera
 
-PROJECTIVE = ("prb_projective", "direct_projective")
+PROJECTIVE = ("prb_projective", "direct_projective", "camo_prb_projective", "camo_direct_projective")
 
 
 @dataclasses.dataclass

@@ -59,6 +59,7 @@ POINT_NAMES = frozenset({"p0", "p1", "center", "origin", "target", "up", "positi
 PYTHON_PLUGINS = {
     "prb": "integrator", "prb_basic": "integrator", "prb_reparam": "integrator",
     "prb_projective": "integrator", "direct_projective": "integrator", "direct_reparam": "integrator",
+    "camo_prb_projective": "integrator", "camo_direct_projective": "integrator",
     "emission_reparam": "integrator", "prbvolpath": "integrator",
 }
 

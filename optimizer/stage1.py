@@ -57,11 +57,6 @@ class Targets:
     depth: np.ndarray  # (V, H, W)
 
 
-def _flat(x):
-    """The flat Dr.Jit array of a tensor (or the array itself)."""
-    return x.array if hasattr(x, "array") else x
-
-
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """Binary dilation of ``(H, W)`` by a disc of ``radius`` pixels."""
     if radius <= 0:
@@ -156,7 +151,8 @@ class Stage1:
             sensors = [scn.batch(self.cams, self.cfg.spp)]
         else:
             sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
-        self.scene_integrator, self.render_spp = training_integrator(self.plan.integrator, self.cfg.spp)
+        self.scene_integrator, self.render_spp = training_integrator(
+            self.plan, self.cfg.spp, (self.cams[0].width, self.cams[0].height))
         return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.scene_integrator))
 
     def _param_keys(self) -> dict[str, str]:
@@ -266,39 +262,28 @@ class Stage1:
             photo = dr.detach(total)
             dr.backward(total)
         else:
-            # Two-level backward: the parameter mapping (displacement sampling, pose, roughness remap) is
-            # built once per iteration; every view renders from fresh detached leaves of its outputs, whose
-            # gradients are summed and sent back through the mapping in one pass. Same gradient as
-            # re-applying the mapping before every view (backward clears the graph), without rebuilding it
-            # V times. The leaves must be new variables per view: a re-assigned identical variable makes
-            # the scene skip its update, so the vertex normals would keep the previous view's (cleared) graph.
-            mapped = self._mapped()
-            acc: dict[str, Any] = {}
+            # One backward per iteration: the parameter mapping (displacement sampling, pose, roughness
+            # remap) is applied once, every view is rendered from the same scene state and the mean of the
+            # view losses (Eq. 10) is differentiated in one pass. Dr.Jit calls each view's render op
+            # (``render_backward``) in that traversal and sums their gradients at the mapped parameters,
+            # which flow back through the mapping once. This is the gradient of re-applying the mapping
+            # before every view (tests/test_stage1_gradients.py) at one BVH build and one mapping per
+            # iteration instead of one per view, and it is bit-reproducible run to run.
+            self._apply()
+            total = mi.Float(0.0)
             for v in views:
-                inner = {k: dr.detach(x) for k, x in mapped.items()}
-                for k, x in inner.items():
-                    dr.enable_grad(x)
-                    self.params[k] = x
-                self.params.update()
                 s, sg = self._seeds(v)
                 img = mi.render(self.scene, self.params, sensor=v, spp=self.render_spp, seed=s, seed_grad=sg)
                 lv, terms = self._view_loss(img, v)
-                photo += dr.detach(lv) / V
+                total += lv / V
                 if terms is not None:
                     has_terms = True
                     lum += dr.detach(terms.luminance) / V
                     chroma += dr.detach(terms.chroma) / V
-                dr.schedule(photo, lum, chroma)
-                dr.backward(lv / V)
-                for k, x in inner.items():
-                    acc[k] = _flat(dr.grad(x)) if k not in acc else acc[k] + _flat(dr.grad(x))
-                dr.schedule(*acc.values())
-            outer = mi.Float(0.0)
-            for k, x in mapped.items():
-                if dr.grad_enabled(x):
-                    outer += dr.sum(_flat(x) * acc[k])
-            if dr.grad_enabled(outer):
-                dr.backward(outer)
+            photo = dr.detach(total)
+            dr.schedule(photo, lum, chroma)
+            if dr.grad_enabled(total):
+                dr.backward(total)
         photo, lum, chroma = float(photo[0]), float(lum[0]), float(chroma[0])
         disp = 0.0
         if "displacement" in self.opt:

@@ -43,8 +43,10 @@ def test_run_directory_contents(run_dir):
     cfg = tomllib.loads((run_dir / "config.toml").read_text())
     assert cfg["run"]["stage1"]["seed"] == 0 and "mitsuba" in cfg["versions"]
     assert cfg["plan"]["integrator"]["type"] == "prb_projective"
-    # the training renders' integrator: 4 spp continuous, 1 spp silhouettes, rendered with spp=0
-    assert cfg["plan"]["training_integrator"] == dict(cfg["plan"]["integrator"], sppc=4, sppp=1, sppi=0)
+    # the training renders' integrator: 4 spp continuous, 2 * (32 + 32) * 4 silhouette samples per view,
+    # rendered with spp=0
+    assert cfg["plan"]["training_integrator"] == dict(cfg["plan"]["integrator"], type="camo_prb_projective", sppc=4,
+                                                      sppp=1, sppi=0, silhouette_samples=512)
     assert cfg["plan"]["render_spp"] == 0
 
 

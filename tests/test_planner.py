@@ -71,24 +71,28 @@ def test_rendering_uses_path_tracing(purpose):
     assert any(k == "emitters" and "sun" in v for k, v in p.reasons)
 
 
-def test_training_integrator_gives_silhouettes_a_quarter_of_the_samples():
-    from optimizer.planner import training_integrator
+def test_training_integrator_gives_silhouettes_a_per_view_budget():
+    from optimizer.planner import full_plan, silhouette_samples, training_integrator
 
     pack = builtin_scenes.get("meadow")
     p = plan(pack, env_of("meadow"), ALL)
-    integ, spp = training_integrator(p.integrator, 8)
-    assert spp == 0 and integ == dict(p.integrator, sppc=8, sppp=2, sppi=0)
-    assert training_integrator(p.integrator, 2)[0]["sppp"] == 1  # never 0: that would drop silhouettes
-    on = plan(pack, env_of("meadow"), ALL, shadow_gradients=True).integrator
-    assert training_integrator(on, 4)[0]["sppi"] == 4
-    prb = {"type": "prb", "max_depth": 3, "rr_depth": 3}
-    assert training_integrator(prb, 4) == (prb, 4)
-    assert any(k == "sppp" for k, _ in p.reasons)
+    integ, spp = training_integrator(p, 8, (128, 96))
+    assert spp == 0 and integ == dict(p.integrator, type="camo_prb_projective", sppc=8, sppp=1, sppi=0,
+                                      silhouette_samples=2 * (128 + 96) * 8)
+    assert silhouette_samples(128, 128, 4) == 2048  # vs Mitsuba's 128 * 128 * sppp = 16384 at sppp = 1
+    assert silhouette_samples(256, 256, 4) == 2 * silhouette_samples(128, 128, 4)  # grows like the outline
+    on = plan(pack, env_of("meadow"), ALL, shadow_gradients=True)
+    assert training_integrator(on, 4, (32, 32))[0]["sppi"] == 4
+    prb = dataclasses.replace(p, integrator={"type": "prb", "max_depth": 3, "rr_depth": 3})
+    assert training_integrator(prb, 4, (32, 32)) == (prb.integrator, 4)
+    full = training_integrator(full_plan(), 4, (32, 32))[0]  # the bench's reference keeps Mitsuba's pass
+    assert full["type"] == "prb_projective" and full["sppp"] == 4 and "silhouette_samples" not in full
+    assert any(k == "silhouette samples" for k, _ in p.reasons)
 
 
 def test_mitsuba_honours_the_silhouette_sample_count(mi_backend):
     """Rendered with spp=0, the primal pass takes the sampler's 4 spp (same image as spp=4) and the
-    silhouette pass launches width*height*sppp samples, not width*height*spp."""
+    silhouette pass launches the budget (2 * (16 + 12) * 4 = 224 samples), not width*height*spp."""
     mi, dr = mi_backend
     from optimizer.planner import training_integrator
 
@@ -96,15 +100,18 @@ def test_mitsuba_honours_the_silhouette_sample_count(mi_backend):
         return mi.load_dict({
             "type": "scene", "integrator": integ,
             "sensor": {"type": "perspective", "fov": 40, "to_world": mi.ScalarTransform4f().look_at([0, -4, 1], [0, 0, 0], [0, 0, 1]),
-                       "film": {"type": "hdrfilm", "width": 16, "height": 16, "sample_border": True,
+                       "film": {"type": "hdrfilm", "width": 16, "height": 12, "sample_border": True,
                                 "rfilter": {"type": "box"}},
                        "sampler": {"type": "independent", "sample_count": 4}},
             "light": {"type": "constant"},
             "ball": {"type": "obj", "filename": str(_sphere_obj()), "bsdf": {"type": "diffuse"}},
         })
 
+    from optimizer.planner import Plan
+
     base = {"type": "prb_projective", "max_depth": 3, "rr_depth": 3, "sppi": 0}
-    integ, spp = training_integrator(base, 4)
+    integ, spp = training_integrator(Plan(base, False, 3, "", []), 4, (16, 12))
+    assert integ["silhouette_samples"] == 224
     a, b = scene(integ), scene(dict(base))
     # same samples; the splat order of the threads moves a few values by float rounding
     np.testing.assert_allclose(np.asarray(mi.render(a, spp=spp, seed=3)), np.asarray(mi.render(b, spp=4, seed=3)), rtol=1e-4, atol=1e-6)
@@ -126,9 +133,9 @@ def test_mitsuba_honours_the_silhouette_sample_count(mi_backend):
         assert np.abs(g).sum() > 0
         return sizes
 
-    px = 16 * 16  # box filter: no film border
+    px = 16 * 12  # box filter: no film border
     ours, theirs = launch_sizes(a, spp), launch_sizes(b, 4)
-    assert px * 1 in ours and px * 4 in ours  # silhouettes at sppp = 1, primal/continuous at 4 spp
+    assert 224 in ours and px not in ours and px * 4 in ours  # silhouettes: the budget; primal/continuous at 4 spp
     assert px * 1 not in theirs and px * 4 in theirs  # Mitsuba's spp=4 would override sppp to 4
 
 
