@@ -62,6 +62,7 @@ class AppearanceConfig:
     lr_translation: float = 2e-3
     lr_rotation: float = 1e-2
     displacement_weight: float = 1.0  # weight of L_disp (Eq. 11 uses 1)
+    freeze_displacement: bool = False  # displacement applied from the initial values, not optimised (Stage 2 option)
 
     def trainable(self) -> list[str]:
         names = ["albedo"]
@@ -69,7 +70,7 @@ class AppearanceConfig:
             names += ["metallic", "roughness"]
             if self.transmittance:
                 names.append("transmittance")
-        if self.displacement:
+        if self.displacement and not self.freeze_displacement:
             names.append("displacement")
         if self.pose:
             names += ["translation", "rotation"]
@@ -78,7 +79,8 @@ class AppearanceConfig:
     def planner_params(self) -> set[str]:
         """The optimised parameter groups in the effect planner's vocabulary."""
         groups = {"albedo"}
-        groups |= {g for g, on in (("pose", self.pose), ("displacement", self.displacement), ("bsdf", self.bsdf)) if on}
+        moving = self.displacement and not self.freeze_displacement
+        groups |= {g for g, on in (("pose", self.pose), ("displacement", moving), ("bsdf", self.bsdf)) if on}
         if self.bsdf and self.transmittance:
             groups.add("transmittance")
         return groups

@@ -34,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--stage2-iterations", type=int, help="Stage 2 iterations (paper: 20)")
     p.add_argument("--stage2-backend", choices=("patch", "diffusers"), help="Stage 2 inpainter (default: patch, offline)")
     p.add_argument("--stage2-strength", type=float, help="Stage 2 noise strength t_start in (0, 1] (default 0.5)")
+    p.add_argument("--stage2-fixed-displacement", action="store_true",
+                   help="Stage 2 refines the BSDF maps only and keeps Stage 1's displacement (default: refines both, "
+                        "as the paper; fixed gave fewer sun glints in novel views, docs/results)")
     p.add_argument("--sdxl-path", help="local SDXL inpainting pipeline folder (diffusers backend)")
     p.add_argument("--controlnet-path", help="local depth ControlNet folder (diffusers backend)")
     p.add_argument("--checkpoint-every", type=int, default=10)
@@ -128,7 +131,8 @@ def config_from_args(args):
         if not (0.0 < args.stage2_strength <= 1.0):
             raise CamoError(f"--stage2-strength must be in (0, 1], got {args.stage2_strength}")
         s2 = dataclasses.replace(s2, strength=args.stage2_strength)
-    s2 = dataclasses.replace(s2, sdxl_path=args.sdxl_path, controlnet_path=args.controlnet_path)
+    s2 = dataclasses.replace(s2, sdxl_path=args.sdxl_path, controlnet_path=args.controlnet_path,
+                             displacement=not args.stage2_fixed_displacement)
     if 2 in stages and s2.backend == "diffusers" and not (args.sdxl_path and args.controlnet_path):
         raise CamoError("--stage2-backend diffusers needs --sdxl-path and --controlnet-path (local folders; nothing is downloaded)")
     cfg = RunConfig(scene=args.scene, method=args.method, stages=stages, ablate=tuple(sorted(ablate)),

@@ -220,7 +220,9 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
         if 2 in cfg.stages:
             from .stage2 import Stage2, pseudo_gt_strip
 
-            app2 = dataclasses.replace(app, pose=False)
+            # Stage 2 keeps Stage 1's pose; its displacement is refined too unless --stage2-fixed-displacement
+            # (then no geometry moves and the planner drops the projective integrator)
+            app2 = dataclasses.replace(app, pose=False, freeze_displacement=not cfg.stage2.displacement)
             s2 = Stage2(pack, env, prepared, cams, plan_for(app2), cfg.stage1, app2, say, initial=values1,
                         targets=s1.targets, stage2=cfg.stage2, inpainter=inpainter)
             s2.initial_render = s1.initial_render

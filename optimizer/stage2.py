@@ -41,6 +41,7 @@ class Stage2Config:
     backend: str = "patch"  # "patch" (offline) or "diffusers"
     prompt: str = "background"
     preview_spp: int = 16  # spp of the render each pseudo ground truth is inpainted from
+    displacement: bool = True  # paper: "refine the BSDF maps (and displacement)"; False keeps Stage 1's map
     sdxl_path: str | None = None
     controlnet_path: str | None = None
 
