@@ -268,7 +268,9 @@ def _loop(stage: Stage1, iterations: int, label: str, progress: bool, log, histo
         history.append(rec)
         log.write(json.dumps(rec) + "\n")
         log.flush()
-        bar.set_postfix(loss=f"{rec['loss']:.4f}", nonfinite=rec["nonfinite_grads"])
+        # the photometric term too: L_disp (Eq. 5) starts at 0 and grows as the displacement is used, so the
+        # total can rise while the image match improves
+        bar.set_postfix(loss=f"{rec['loss']:.4f}", photo=f"{rec['loss_photo']:.4f}", nonfinite=rec["nonfinite_grads"])
         bar.update(1)
         if stage.iteration % every == 0 or stage.iteration == iterations:
             checkpoint(stage)
