@@ -39,6 +39,9 @@ def register(sub) -> None:
                         "as the paper; fixed gave fewer sun glints in novel views, docs/results)")
     p.add_argument("--sdxl-path", help="local SDXL inpainting pipeline folder (diffusers backend)")
     p.add_argument("--controlnet-path", help="local depth ControlNet folder (diffusers backend)")
+    p.add_argument("--silhouette-every", type=int,
+                   help="projective training: the silhouette gradient on a random 1/N of the views per step, "
+                        "weighted N (default 4; 1 = every view)")
     p.add_argument("--checkpoint-every", type=int, default=10)
     p.add_argument("--no-planner", action="store_true", help="always full path tracing (max_depth 12, projective on)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
@@ -86,7 +89,7 @@ def config_from_args(args):
     if args.method not in METHODS:
         raise CamoError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
     for name in ("iterations", "spp", "target_spp", "map_resolution", "displacement_resolution", "checkpoint_every",
-                 "stage2_iterations"):
+                 "stage2_iterations", "silhouette_every"):
         _positive(name.replace("_", "-"), getattr(args, name))
     _positive("target-vertices", args.target_vertices, 100)
     if args.displacement_bound is not None and not (0.0 <= args.displacement_bound <= 0.5):
@@ -111,7 +114,7 @@ def config_from_args(args):
     if "transmittance" in ablate or "bsdf" in ablate:
         pack.material = dataclasses.replace(pack.material, transmittance=0.0)
     s1 = Stage1Config(seed=args.seed, loss=args.loss)
-    for name in ("iterations", "spp", "target_spp", "domain"):
+    for name in ("iterations", "spp", "target_spp", "domain", "silhouette_every"):
         if getattr(args, name) is not None:
             s1 = dataclasses.replace(s1, **{name: getattr(args, name)})
     try:

@@ -39,6 +39,21 @@ def equivalent_spp(width: int, height: int, samples: int) -> float:
     return samples / float(width * height)
 
 
+def silhouette_view_weights(sensor_ids: list[str], every: int, iteration: int, seed: int) -> dict[str, float] | None:
+    """The views whose silhouette term is computed at ``iteration``: a random ``1/every`` share, each weighted
+    by ``V / k`` (``k`` views chosen out of ``V``), so the expected sum over views is unchanged. ``every <= 1``:
+    all views (None). Deterministic in ``(seed, iteration)``."""
+    if every <= 1 or len(sensor_ids) <= 1:
+        return None
+    import numpy as np
+
+    n = len(sensor_ids)
+    k = max(1, -(-n // every))
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(iteration), 0x51])
+    chosen = rng.choice(n, size=k, replace=False)
+    return {sensor_ids[i]: n / k for i in sorted(chosen)}
+
+
 def register() -> None:
     """Register ``camo_prb_projective`` and ``camo_direct_projective`` with Mitsuba (idempotent per variant;
     needs an AD variant set)."""
@@ -65,19 +80,39 @@ def _budgeted(base):
             super().__init__(props)
             self.silhouette_samples = int(props.get("silhouette_samples", 0))
             self._seed = 0
+            # Optional view subset for the silhouette term: sensor id -> weight (> 0). Views not listed skip
+            # the primary-silhouette pass; listed ones are weighted so the sum over views keeps its
+            # expectation (see :func:`silhouette_view_weights`). None: every view, weight 1.
+            self.silhouette_views: dict[str, float] | None = None
+            self._view_weight = 1.0
+
+        def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+            if isinstance(sensor, int):
+                sensor = scene.sensors()[sensor]
+            views = self.silhouette_views
+            self._view_weight = 1.0 if views is None else float(views.get(sensor.id(), 0.0))
+            if self._view_weight > 0.0:
+                return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+            saved = self.sppp
+            self.sppp = 0  # no silhouette pass (and no render_ad at all when sppi = 0) for this view
+            try:
+                return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+            finally:
+                self.sppp = saved
 
         def render_ad(self, scene, sensor, seed, spp, mode):
             self._seed = seed  # the gradient seed of this render: the budgeted stream is derived from it
             return super().render_ad(scene, sensor, seed, spp, mode)
 
         def render_primarily_visible_silhouette(self, scene, sensor, sampler, spp):
+            weight = self._view_weight  # Mitsuba divides each sample by spp: dividing spp multiplies the term
             if self.silhouette_samples <= 0:
-                return super().render_primarily_visible_silhouette(scene, sensor, sampler, spp)
+                return super().render_primarily_visible_silhouette(scene, sensor, sampler, spp / weight)
             w, h = sensor.film().crop_size()
             sampler.set_samples_per_wavefront(1)
             sampler.seed(mi.UInt32(self._seed) ^ _SEED_SALT, self.silhouette_samples)
             return super().render_primarily_visible_silhouette(
-                scene, sensor, sampler, equivalent_spp(int(w), int(h), self.silhouette_samples))
+                scene, sensor, sampler, equivalent_spp(int(w), int(h), self.silhouette_samples) / weight)
 
         def to_string(self):
             return f"Budgeted{base.__name__}[silhouette_samples={self.silhouette_samples}]"

@@ -48,6 +48,7 @@ def test_run_directory_contents(run_dir):
     assert cfg["plan"]["training_integrator"] == dict(cfg["plan"]["integrator"], type="camo_prb_projective", sppc=4,
                                                       sppp=1, sppi=0, silhouette_samples=512)
     assert cfg["plan"]["render_spp"] == 0
+    assert cfg["run"]["stage1"]["silhouette_every"] == 4  # silhouettes on a random quarter of the views per step
 
 
 def test_loss_decreases(run_dir):
@@ -106,6 +107,8 @@ def test_bad_input_keeps_earlier_results(run_dir, capsys):
     assert "not empty" in capsys.readouterr().err
     assert main(["optimize", "gravel", "--out", str(run_dir), "--iterations", "0", "--quiet"]) == 2
     assert main(["optimize", "gravel", "--out", str(run_dir), "--ablate", "colour", "--quiet"]) == 2
+    assert main(["optimize", "gravel", "--out", str(run_dir), "--silhouette-every", "0", "--quiet"]) == 2
+    assert "--silhouette-every must be >= 1" in capsys.readouterr().err
     assert (run_dir / "log.jsonl").read_bytes() == before
 
 

@@ -133,3 +133,62 @@ def test_equivalent_spp():
     assert equivalent_spp(132, 132, 1024) == pytest.approx(1024 / 132**2)
     with pytest.raises(ValueError):
         equivalent_spp(8, 8, 0)
+
+
+def test_silhouette_view_subset_is_the_weighted_sum_of_the_chosen_views(mi_backend, tmp_path):
+    """silhouette_views: the chosen views' silhouette terms times their weight, the others none. With a
+    constant emitter the whole gradient is the silhouette term, so the subset's gradient must equal the
+    weighted sum of the per-view gradients (same seeds: same samples)."""
+    mi, dr = mi_backend
+    from optimizer.projective import NAMES, silhouette_view_weights
+
+    obj = _square_obj(tmp_path)
+    ramp = _ramp(mi)
+    origins = ([0.2, -0.1, 2.5], [-0.6, 0.3, 2.4], [0.5, 0.5, 2.2], [-0.3, -0.6, 2.6])
+    sensors = {f"cam{i}": {"type": "perspective", "fov": 45,
+                           "to_world": mi.ScalarTransform4f().look_at(o, [0, 0, 0], [0, 1, 0]),
+                           "film": {"type": "hdrfilm", "width": RES, "height": RES, "sample_border": True,
+                                    "rfilter": {"type": "box"}},
+                           "sampler": {"type": "independent", "sample_count": 4}} for i, o in enumerate(origins)}
+    scene = mi.load_dict({"type": "scene", **sensors,
+                          "integrator": {"type": NAMES["prb_projective"], "max_depth": 2, "sppc": 4, "sppp": 1,
+                                         "sppi": 0, "silhouette_samples": 512},
+                          "square": {"type": "obj", "filename": str(obj), "face_normals": True,
+                                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 0.8, 0.6]}}}})
+    integ = scene.integrator()
+    params = mi.traverse(scene)
+    key = "square.vertex_positions"
+    base = dr.detach(params[key])
+    shift = np.zeros(dr.width(base), np.float32)
+    shift[0::3] = 1.0
+
+    def grad(views: list[int]) -> float:
+        tx = mi.Float(0.0)
+        dr.enable_grad(tx)
+        params[key] = base + mi.Float(shift) * tx
+        params.update()
+        loss = mi.Float(0.0)
+        for v in views:
+            img = mi.render(scene, params, sensor=v, spp=0, seed=10 + v, seed_grad=100 + v)
+            loss += dr.sum((img * ramp).array)
+        dr.backward(loss)
+        return float(dr.grad(tx)[0])
+
+    ids = [s.id() for s in scene.sensors()]
+    integ.silhouette_views = None
+    per_view = [grad([v]) for v in range(4)]
+    assert all(abs(g) > 1.0 for g in per_view)
+    weights = silhouette_view_weights(ids, 2, iteration=3, seed=0)
+    assert len(weights) == 2 and set(weights.values()) == {2.0}
+    integ.silhouette_views = weights
+    subset = grad([0, 1, 2, 3])
+    expected = sum(weights.get(ids[v], 0.0) * per_view[v] for v in range(4))
+    assert subset == pytest.approx(expected, rel=1e-4)
+    # over all iterations' subsets the weights average to one per view
+    counts = np.zeros(4)
+    for it in range(400):
+        for k, w in silhouette_view_weights(ids, 2, it, 0).items():
+            counts[ids.index(k)] += w
+    np.testing.assert_allclose(counts / 400, 1.0, atol=0.12)
+    assert silhouette_view_weights(ids, 1, 0, 0) is None
+    assert silhouette_view_weights(ids, 2, 5, 7) == silhouette_view_weights(ids, 2, 5, 7)
