@@ -120,7 +120,7 @@ def test_scene_xml_renders_like_the_dict_scene(mi_backend, asset, tmp_path, env_
     # difference can flip one sample's Russian roulette (seen once in CI: 1 pixel 0.1 % off).
     # (One thread would make it exact, but Mitsuba 3.9 hangs loading EXR textures single-threaded; see
     # backend.load_file.)
-    # A second CI machine had 38 of 24,576 values (0.15 %) beyond rtol 1e-4, the largest off by 1.0e-4 absolute.
+    # A clean-clone .ci/run here once had 38 of 24,576 values (0.15 %) beyond rtol 1e-4, at most 1.0e-4 off.
     # Different random numbers would move most values by the Monte Carlo noise (~1e-2) instead.
     close = np.isclose(got, ref, rtol=1e-4, atol=1e-5)
     assert close.mean() > 0.99, (close.size - close.sum(), np.abs(got - ref).max())
