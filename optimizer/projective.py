@@ -1,21 +1,24 @@
 """Projective integrators whose primary-silhouette samples are a budget per view, not per pixel.
 
-Mitsuba's ``prb_projective`` and ``direct_projective`` estimate the gradient of the primarily visible silhouettes (the object's
-outline and its folds, which carry the pose and displacement gradients) with ``sppp`` samples *per pixel*:
-``W * H * sppp`` silhouette samples per view, at least one per pixel. A silhouette is a 1-D curve of a
-few hundred pixels at 128^2, so one sample per pixel already puts ~50 samples on every outline pixel, and
-each sample traces a path on both sides of the edge. That pass was ~40 % of Stage 1's kernel time.
+Mitsuba's ``prb_projective`` and ``direct_projective`` estimate the gradient of the primarily visible
+silhouettes (the object's outline and its folds, which carry the pose and displacement gradients) with
+``sppp`` samples *per pixel*: ``W * H * sppp`` silhouette samples per view, at least one per pixel. A
+silhouette is a 1-D curve of a few hundred pixels at 128^2, so one sample per pixel already puts ~50 samples
+on every outline pixel, and each sample traces a path on both sides of the edge. That pass was ~40 % of
+Stage 1's kernel time.
 
-``camo_prb_projective`` / ``camo_direct_projective`` are Mitsuba's integrators with one extra property,
-``silhouette_samples`` (N): the
-primary-silhouette pass draws N samples per view instead of ``W * H * sppp`` and weights each by
-``W * H * sppp / N`` so the estimate keeps its expectation (it is the same Monte Carlo estimator with a
-different sample count; tests/test_projective.py checks it against finite differences and against the
-full pass). ``0`` leaves Mitsuba's pass unchanged. Everything else (continuous derivatives by path
-replay, indirect silhouettes when ``sppi > 0``) is Mitsuba's code, untouched.
+``camo_prb_projective`` / ``camo_direct_projective`` are Mitsuba's integrators with two additions:
 
-The sample stream is reseeded from the render's gradient seed, so iterations and views stay decorrelated
-and a run stays reproducible.
+* ``silhouette_samples`` (N, a plugin property): the primary-silhouette pass draws N samples per view and
+  weights each by ``W * H / N`` (:func:`equivalent_spp`), the same Monte Carlo estimator with another sample
+  count; tests/test_projective.py checks it against finite differences and against Mitsuba's pass. ``0``
+  leaves Mitsuba's pass unchanged.
+* ``silhouette_views`` (an attribute Stage 1 sets per step, :func:`silhouette_view_weights`): the silhouette
+  term only for a random subset of the views, weighted so its expectation over steps is the full sum.
+
+Everything else (continuous derivatives by path replay, indirect silhouettes when ``sppi > 0``) is
+Mitsuba's code, untouched. The budgeted sample stream is reseeded from the render's gradient seed, so
+iterations and views stay decorrelated and a run stays reproducible.
 """
 
 from __future__ import annotations
