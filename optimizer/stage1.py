@@ -283,7 +283,8 @@ class Stage1:
             # (``render_backward``) in that traversal and sums their gradients at the mapped parameters,
             # which flow back through the mapping once. This is the gradient of re-applying the mapping
             # before every view (tests/test_stage1_gradients.py) at one BVH build and one mapping per
-            # iteration instead of one per view, and it is bit-reproducible run to run.
+            # iteration instead of one per view, bit-reproducible on one thread. All V views' loss graphs are
+            # held until the backward (a few H x W x 3 tensors per view).
             self._apply()
             self._choose_silhouette_views(views)
             total = mi.Float(0.0)
