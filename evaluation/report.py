@@ -326,22 +326,37 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _settings_lines(eval_dirs: Sequence[str | Path]) -> tuple[list[str], dict[str, str]]:
+def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[list[str], dict[str, str]]:
+    """One line per distinct evaluation protocol (+ its integrators), naming the evaluations that used it.
+
+    A grid writes one evaluation per cell, usually all with the same settings: those share one line
+    (``named`` folder names shown, then "and N more")."""
     from .evaluate import read_eval_config
 
-    lines, skipped = [], {}
+    groups: dict[tuple[str, str], list[str]] = {}
+    skipped: dict[str, str] = {}
     for d in eval_dirs:
         cfg = read_eval_config(d)
         ev = cfg.get("evaluate", {})
         if ev:
-            lines.append(f"- `{Path(d).resolve().name}`: views {ev.get('views')}, jitter ±{ev.get('jitter')} at "
-                         f"radius 4, {ev.get('spp')} spp, resolution {ev.get('resolution')}, seed {ev.get('seed')}, "
-                         f"metrics {', '.join(ev.get('metrics', []))}; images {ev.get('image_encoding')}")
-            integ = {json_key(s.get("integrator")) for s in cfg.get("scenes", [])}
-            if integ:
-                lines.append(f"  - integrator: {'; '.join(sorted(integ))}")
+            text = (f"views {ev.get('views')}, jitter ±{ev.get('jitter')} at radius 4, {ev.get('spp')} spp, "
+                    f"resolution {ev.get('resolution')}, seed {ev.get('seed')}, "
+                    f"metrics {', '.join(ev.get('metrics', []))}; images {ev.get('image_encoding')}")
+            integ = "; ".join(sorted({json_key(s.get("integrator")) for s in cfg.get("scenes", [])}))
+            names = groups.setdefault((text, integ), [])
+            name = Path(d).resolve().name
+            if name not in names:
+                names.append(name)
         for name, why in cfg.get("skipped", {}).items():
             skipped.setdefault(name, why)
+    lines = []
+    for (text, integ), names in groups.items():
+        shown = ", ".join(f"`{n}`" for n in names[:named])
+        more = f" and {len(names) - named} more" if len(names) > named else ""
+        who = shown + more if len(names) == 1 else f"{len(names)} evaluations ({shown}{more})"
+        lines.append(f"- {who}: {text}")
+        if integ:
+            lines.append(f"  - integrator: {integ}")
     return lines, skipped
 
 

@@ -397,3 +397,22 @@ def test_read_ply_round_trips_export(tmp_path):
     r = rng.random((8, 8, 1)).astype(np.float32)
     back, clipped = map_values_from_rendered(effective_roughness(r))
     assert not clipped and np.abs(effective_roughness(back) - effective_roughness(r)).max() < 1e-6
+
+
+def test_report_settings_group_identical_protocols(eval_dir, eval_dir_big, tmp_path):
+    """A grid's many evaluations with one protocol share one settings line that counts them."""
+    import shutil
+
+    from evaluation.report import _settings_lines
+
+    copies = []
+    for i in range(5):
+        c = tmp_path / f"cell_{i}"
+        shutil.copytree(eval_dir, c)
+        copies.append(c)
+    lines, _ = _settings_lines([*copies, eval_dir_big], named=3)
+    heads = [ln for ln in lines if ln.startswith("- ")]
+    assert len(heads) == 2
+    assert heads[0].startswith("- 5 evaluations (`cell_0`, `cell_1`, `cell_2` and 2 more): views ")
+    assert heads[1].startswith(f"- `{eval_dir_big.resolve().name}`: ") and "2 spp" in heads[1]
+    assert sum(ln.startswith("  - integrator: ") for ln in lines) == 2
