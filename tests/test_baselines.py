@@ -232,13 +232,14 @@ def test_occluded_texels_are_never_coloured_from_the_blocked_view(occluded):
 # --- GANmouflage -----------------------------------------------------------------------------------------
 
 
-def test_ganmouflage_generator_loss_goes_down(st):
+@pytest.mark.parametrize("embedder", ["cips_learnable", "fixed_sincos"])
+def test_ganmouflage_generator_loss_goes_down(st, embedder):
     import torch
 
     from optimizer.baselines.ganmouflage import GanmouflageConfig, Trainer
 
     cfg = GanmouflageConfig(iterations=30, hidden_1=64, hidden_2=32, crop_size=64, encoder_channels=(8, 16, 16),
-                            disc_channels=16, lr_warmup=3, threads=1)
+                            disc_channels=16, lr_warmup=3, threads=1, embedder=embedder)
     threads = torch.get_num_threads()
     tr = Trainer(st, cfg, seed=0)
     mask = st.targets.coverage > 0.5
@@ -253,6 +254,28 @@ def test_ganmouflage_generator_loss_goes_down(st):
     colours = tr.bake_colours(st.texel_surface())
     torch.set_num_threads(threads)
     assert colours.shape[1] == 3 and np.isfinite(colours).all() and colours.min() >= 0 and colours.max() <= 1
+
+
+def test_ganmouflage_embedders_follow_the_authors_decoder():
+    """fixed_sincos: NeRF encoding with 10 octaves (63 inputs); cips_learnable: Linear(3, 128) drawn from
+    U(+-sqrt(9/3)) with zero bias, then sin. The fast preset uses the latter, the paper preset the former."""
+    import torch
+
+    from optimizer.baselines.ganmouflage import GanmouflageConfig, build_networks, positional_encoding
+
+    assert GanmouflageConfig.paper().embedder == "fixed_sincos" and GanmouflageConfig().embedder == "cips_learnable"
+    x = torch.tensor([[0.25, -0.5, 0.125]])
+    pe = positional_encoding(x, 10)
+    assert pe.shape == (1, 63) and torch.allclose(pe[0, 3 + 6 * 9 + 3:3 + 6 * 9 + 6], torch.cos(512 * x[0]))
+    torch.manual_seed(0)
+    _, field, _ = build_networks(GanmouflageConfig(embedder="cips_learnable", hidden_1=32, hidden_2=16), z_dim=7)
+    w = field.pe.weight.detach()
+    assert w.shape == (128, 3) and float(w.abs().max()) <= 3 ** 0.5 and float(w.abs().max()) > 1.5
+    assert float(field.pe.bias.abs().max()) == 0.0 and field.first.in_features == 128
+    _, field, _ = build_networks(GanmouflageConfig(embedder="fixed_sincos", hidden_1=32, hidden_2=16), z_dim=7)
+    assert field.pe is None and field.first.in_features == 63
+    with pytest.raises(ValueError, match="embedder"):
+        build_networks(GanmouflageConfig(embedder="learned"), z_dim=7)
 
 
 def test_filter_bank_perceptual_loss_is_zero_for_equal_images_and_grows_with_difference():

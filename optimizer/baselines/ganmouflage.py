@@ -9,9 +9,12 @@ Texture field
 -------------
 The colour of a surface point ``p`` (sRGB in [0, 1]) is an MLP of
 
-* the positional encoding of ``p`` in object coordinates (``(p - centre) /
-  bounding-box diagonal``; NeRF sin/cos encoding with 10 octaves plus the
-  input, 63 numbers), and
+* an embedding of ``p`` in object coordinates (``(p - centre) /
+  bounding-box diagonal``): the final configuration's ``fixed_sincos`` (NeRF
+  sin/cos encoding with 10 octaves plus the input, 63 numbers; the paper
+  preset) or the decoder's other option ``cips_learnable`` (``sin(W p)``,
+  ``W`` a trained 128 x 3 matrix drawn from U(+-sqrt(3)), zero bias; the
+  default, fast preset -- see "What to expect"), and
 * for each of ``n_ref = 4`` reference views (evenly spaced over the training
   views; the 4-view configuration): image features sampled bilinearly at
   ``p``'s projection from several scales of an image encoder run on the
@@ -81,10 +84,10 @@ Differences in the training loop, made for a per-scene, fixed-object setting
   instead of rendering the fake images a second time.
 
 Presets: ``GanmouflageConfig.paper()`` -- 8,000 iterations, widths 256/128,
-4 supervision + 4 reference renders per iteration (``--method
+``fixed_sincos`` embedding, 4 supervision + 4 reference renders per iteration (``--method
 ganmouflage-paper``; hours on a CPU). The default ``GanmouflageConfig()`` is
 sized for about one to three minutes on 2 CPU cores at the built-in scenes'
-128 px: 300 iterations, widths 128/64, 1 + 1 renders per iteration, warm-up
+128 px: 300 iterations, widths 128/64, ``cips_learnable`` embedding, 1 + 1 renders per iteration, warm-up
 30 steps, generator learning rate x5 (1e-3; the discriminator keeps 1e-4)
 to make up for the ~25x fewer iterations (about 0.35 s per iteration on 2
 idle cores; torch's two OpenMP threads slow down several-fold when the cores
@@ -92,10 +95,19 @@ are shared -- ``--threads`` also sets torch's thread count).
 ``--iterations N`` overrides the iteration count of either preset.
 
 What to expect: the reconstruction (perceptual) term alone drives the field to
-the local mean colour of the background; on a fine stochastic background
-(gravel) the adversarial term then makes the field synthesise texture through
-the positional encoding's high octaves, which appears as axis-aligned, plaid-like
-patterns in the baked atlas (with ``pe_octaves=4`` the result stays flat).
+the local mean colour of the background. With ``fixed_sincos`` and 300
+iterations (no pretrained encoder, so weak image features), the discriminator
+wins (its loss falls to ~0.03) and the generator answers with the encoding's
+high octaves: each octave varies along one object axis only, so the baked atlas
+shows axis-aligned plaid (gravel, in the all-scenes grid; also at the
+original generator learning rate 2e-4). The fast preset therefore uses
+``cips_learnable``: its frequencies start low (entries of ``W`` at most
+sqrt(3) rad per diagonal) and point in random directions, so the colour varies smoothly over
+the surface and the texture comes from the reference-view features. Measured
+on gravel (8 views, 96 px, 8 novel views, object crop): PSNR 25.63 -> 25.91,
+SSIM 0.821 -> 0.836, LPIPS-proxy 0.423 -> 0.417, SIFID-proxy 0.0068 both;
+the other built-in scenes are in ``docs/results/README.md``. The paper preset
+(8,000 iterations) keeps the final configuration's ``fixed_sincos``.
 
 Bake
 ----
@@ -134,6 +146,8 @@ class GanmouflageConfig:
     layers_1: int = 3
     layers_2: int = 3
     pe_octaves: int = 10
+    embedder: str = "cips_learnable"  # or "fixed_sincos" (the paper preset); both are in the authors' decoder.py
+    pe_dim: int = 128  # width of the "cips_learnable" embedding
     encoder_channels: tuple[int, int, int] = (16, 32, 64)
     disc_channels: int = 64
     crop_size: int = 128
@@ -160,7 +174,7 @@ class GanmouflageConfig:
     @classmethod
     def paper(cls, **kw) -> "GanmouflageConfig":
         base = dict(iterations=8000, n_sup=4, n_ref_sup=4, hidden_1=256, hidden_2=128, lr_g=2e-4, lr_d=1e-4,
-                    lr_warmup=200, preset="paper")
+                    lr_warmup=200, embedder="fixed_sincos", preset="paper")
         base.update(kw)
         return cls(**base)
 
@@ -210,10 +224,20 @@ def build_networks(cfg: GanmouflageConfig, z_dim: int):
             h = self.fc2(F.leaky_relu(self.fc1(F.leaky_relu(h, 0.2)), 0.2))
             return h + (x if self.skip is None else self.skip(x))
 
+    if cfg.embedder not in ("fixed_sincos", "cips_learnable"):
+        raise ValueError(f"GanmouflageConfig.embedder must be fixed_sincos or cips_learnable, got {cfg.embedder!r}")
+
     class Field(nn.Module):
         def __init__(self):
             super().__init__()
-            pe_dim = 3 + 6 * cfg.pe_octaves
+            if cfg.embedder == "cips_learnable":  # decoder.py: Linear(3, pe_dim), U(+-sqrt(9 / 3)), bias 0, then sin
+                self.pe = nn.Linear(3, cfg.pe_dim)
+                nn.init.uniform_(self.pe.weight, -math.sqrt(9 / 3), math.sqrt(9 / 3))
+                nn.init.zeros_(self.pe.bias)
+                pe_dim = cfg.pe_dim
+            else:
+                self.pe = None
+                pe_dim = 3 + 6 * cfg.pe_octaves
             self.first = nn.Linear(pe_dim, cfg.hidden_1)
             nn.init.kaiming_normal_(self.first.weight, a=0.2, mode="fan_in")
             nn.init.zeros_(self.first.bias)
@@ -225,7 +249,8 @@ def build_networks(cfg: GanmouflageConfig, z_dim: int):
 
         def forward(self, x, z):
             """``x (K, 3)`` object coordinates, ``z (n_ref, K, z_dim)`` -> sRGB colours ``(K, 3)``."""
-            h = self.first(positional_encoding(x, cfg.pe_octaves)).unsqueeze(0)  # (1, K, h1)
+            pe = torch.sin(self.pe(x)) if self.pe is not None else positional_encoding(x, cfg.pe_octaves)
+            h = self.first(pe).unsqueeze(0)  # (1, K, h1)
             h = h.expand(z.shape[0], -1, -1)
             for blk, proj in zip(self.blocks1, self.zproj):
                 h = blk(h, proj(z))
