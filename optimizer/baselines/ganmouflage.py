@@ -89,7 +89,7 @@ ganmouflage-paper``; hours on a CPU). The default ``GanmouflageConfig()`` is
 sized for about one to three minutes on 2 CPU cores at the built-in scenes'
 128 px: 300 iterations, widths 128/64, ``cips_learnable`` embedding, 1 + 1 renders per iteration, warm-up
 30 steps, generator learning rate x5 (1e-3; the discriminator keeps 1e-4)
-to make up for the ~25x fewer iterations (about 0.35 s per iteration on 2
+to make up for the ~25x fewer iterations (about 0.2-0.25 s per iteration at 96 px on 2
 idle cores; torch's two OpenMP threads slow down several-fold when the cores
 are shared -- ``--threads`` also sets torch's thread count).
 ``--iterations N`` overrides the iteration count of either preset.
