@@ -57,10 +57,6 @@ def start_modes(cell: Path) -> list[str]:
     return [e.get("mode", "?") for e in events if e.get("event") == "start"]
 
 
-def starts(cell: Path) -> int:
-    return len(start_modes(cell))
-
-
 def grid_cmd(grid: Path, out: Path, executor: str, workers: int) -> list[str]:
     return [sys.executable, "-m", "optimizer.cli", "grid", "run", str(grid), "--out", str(out), "--quiet",
             "--executor", executor, "--workers", str(workers)]
@@ -100,7 +96,7 @@ def interrupt_then_resume(grid: Path, out: Path, executor: str, workers: int, af
     final = {c.name for c in done_cells(out)}
     if final != {c["key"] for c in cells}:
         raise RuntimeError(f"{executor}: {len(cells) - len(final)} cell(s) not done after the resume")
-    redone = [k for k, m in before.items() if (out / "cells" / k / "DONE").stat().st_mtime_ns != m or starts(out / "cells" / k) != 1]
+    redone = [k for k, m in before.items() if (out / "cells" / k / "DONE").stat().st_mtime_ns != m or len(start_modes(out / "cells" / k)) != 1]
     if redone:
         raise RuntimeError(f"{executor}: cells finished before the interrupt were run again: {redone}")
     # an in-flight cell's second start says how it went on: "resume" (from its checkpoint) or "evaluate" (its
@@ -118,6 +114,8 @@ def execute_table2(out: Path) -> dict:
     import nbclient
     import nbformat
     import pandas as pd
+
+    from optimizer import atomic
 
     share = Path(tempfile.mkdtemp(prefix="camo_kernel_"))
     spec = share / "kernels" / "camo-bench"
@@ -142,17 +140,14 @@ def execute_table2(out: Path) -> dict:
                 os.environ[k] = v
         shutil.rmtree(share, ignore_errors=True)
     seconds = time.perf_counter() - t0
-    target = out / "table2_metrics.executed.ipynb"
-    tmp = target.with_suffix(".tmp")
-    nbformat.write(nb, tmp)
-    tmp.replace(target)
+    with atomic.atomic_path(out / "table2_metrics.executed.ipynb") as tmp:
+        nbformat.write(nb, str(tmp))
     shown = "\n".join(
         (o.get("text", "") if o.get("output_type") == "stream" else
          "".join(o.get("data", {}).get("text/markdown", "") or o.get("data", {}).get("text/html", "")))
         for c in nb.cells for o in c.get("outputs", []))
     m = pd.read_parquet(out / "metrics.parquet")
-    missing = sorted({s.split(":")[0] for s in m["scene"].unique()} - {s for s in m["scene"].str.split(":").str[0]
-                                                                           if s in shown})
+    missing = sorted(s for s in set(m["scene"].str.split(":").str[0]) if s not in shown)
     images = sum(1 for c in nb.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {}))
     if missing or images == 0 or "Table II" not in shown:
         raise RuntimeError(f"notebook on {out}: missing scenes {missing}, {images} plot(s)")
