@@ -4,7 +4,7 @@ Two reports (the numbers in ``docs/results/README.md``, "Where the sparkle comes
 
 * ``RUN_DIR ...``: renders each run's ``scene.xml`` from its training cameras with Mitsuba's ``path``
   integrator at every ``--depths`` value and counts the pixels brighter than ``--threshold`` (linear
-  radiance), split into the object and everything else (ray-cast shape index). Depth 2 is direct light
+  radiance), split into the object (first hit of the ray through the pixel centre) and everything else. Depth 2 is direct light
   only: bright object pixels there are reflections of the light source itself; what appears at larger
   depths went through or off the object first (refraction, caustics on the ground).
 * ``--eval EVAL_DIR``: per run of a ``camo evaluate`` folder, on its 8-bit renders, "sparkle %" (object
