@@ -1,10 +1,13 @@
-"""Shared test set-up: a per-session cache folder, and the Mitsuba backend on demand."""
+"""Shared test set-up: a per-session cache folder, the Mitsuba backend on demand, and helpers for bench/ scripts."""
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 # Keep generated caches (prepared meshes, panoramas) inside the repo's ignored .cache
@@ -32,3 +35,32 @@ def _restore_thread_count():
 
     if backend.info() is not None:
         backend.set_threads(backend.default_threads())
+
+
+@pytest.fixture(scope="session")
+def bench_module():
+    """``bench_module("grid_figures")`` imports ``bench/grid_figures.py`` (bench/ is not a package)."""
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "bench" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    return load
+
+
+@pytest.fixture(scope="session")
+def write_eval_renders():
+    """``write(ev, bg, img, mask, views=2, **fields)``: a ``camo evaluate`` folder's 8-bit renders and renders.json,
+    the same images in every view; ``fields`` are added to each record (e.g. ``run="box"``)."""
+    def write(ev: Path, bg: np.ndarray, img: np.ndarray, mask: np.ndarray, views: int = 2, **fields) -> None:
+        from PIL import Image
+
+        (ev / "renders").mkdir(parents=True)
+        recs = []
+        for v in range(views):
+            for kind, arr in (("bg", bg), ("obj", img), ("mask", mask)):
+                Image.fromarray(arr).save(ev / "renders" / f"view_{v}_{kind}.png")
+            recs.append({"background": f"renders/view_{v}_bg.png", "image": f"renders/view_{v}_obj.png",
+                         "mask": f"renders/view_{v}_mask.png", "view": v, **fields})
+        (ev / "renders.json").write_text(json.dumps(recs))
+    return write

@@ -2,26 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
-def load_module():
-    spec = importlib.util.spec_from_file_location("glint_sources", ROOT / "bench" / "glint_sources.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def make_eval(ev: Path) -> None:
-    (ev / "renders").mkdir(parents=True)
+def make_eval(write_eval_renders, ev: Path) -> None:
     bg = np.full((32, 32, 3), 100, np.uint8)
     bg[0, :8] = 150  # 8 of 1024 pixels: the 99.5th percentile is the 150 level (linear 0.311)
     img = bg.copy()
@@ -30,29 +18,25 @@ def make_eval(ev: Path) -> None:
     img[14, 12:14] = 200  # 2 pixels above the percentile but below twice it (linear 0.586 < 0.622)
     mask = np.zeros((32, 32), np.uint8)
     mask[10:20, 10:20] = 255
-    recs = []
-    for v in range(2):
-        for kind, arr in (("bg", bg), ("obj", img), ("mask", mask)):
-            Image.fromarray(arr).save(ev / "renders" / f"view_{v}_{kind}.png")
-        recs.append({"run": "box", "background": f"renders/view_{v}_bg.png", "image": f"renders/view_{v}_obj.png",
-                     "mask": f"renders/view_{v}_mask.png", "view": v})
-    (ev / "renders.json").write_text(json.dumps(recs))
+    write_eval_renders(ev, bg, img, mask, run="box")
 
 
-def test_glint_pixels_count_only_object_pixels_above_twice_the_percentile(tmp_path, capsys):
-    gs = load_module()
-    make_eval(tmp_path)
-    recs = json.loads((tmp_path / "renders.json").read_text())
-    assert gs.glint_pixels(tmp_path, recs) == (6, 200)  # 3 per view, of 100 object pixels per view
-    assert gs.main(["--eval", str(tmp_path)]) == 0
+def test_glint_pixels_count_only_object_pixels_above_twice_the_percentile(tmp_path, capsys, bench_module,
+                                                                         write_eval_renders):
+    gs = bench_module("glint_sources")
+    ev = tmp_path / "ev"
+    make_eval(write_eval_renders, ev)
+    recs = json.loads((ev / "renders.json").read_text())
+    assert gs.glint_pixels(ev, recs) == (6, 200)  # 3 per view, of 100 object pixels per view
+    assert gs.main(["--eval", str(ev)]) == 0
     row = capsys.readouterr().out.splitlines()[-1].split()
     # sparkle: the 3 glints and the 2 moderately bright pixels exceed the 150 level in each view
     assert row[0] == "box" and float(row[1]) == pytest.approx(5.0) and row[2:] == ["6", "/", "200"]
 
 
-def test_bright_pixels_are_split_into_object_and_other(tmp_path, capsys):
+def test_bright_pixels_are_split_into_object_and_other(tmp_path, capsys, bench_module):
     """Two emitting rectangles side by side: only the object's (radiance 5) exceeds the threshold."""
-    gs = load_module()
+    gs = bench_module("glint_sources")
     (tmp_path / "scene.xml").write_text("""<scene version="3.0.0">
   <shape type="rectangle" id="ground">
     <transform name="to_world"><scale x="1" y="2" z="1"/><translate x="1"/></transform>
@@ -75,9 +59,9 @@ def test_bright_pixels_are_split_into_object_and_other(tmp_path, capsys):
     assert rows == [["1", "128", "0"], ["2", "128", "0"]]
 
 
-def test_bad_input_exits_2(tmp_path):
-    gs = load_module()
-    make_eval(tmp_path / "ev")
+def test_bad_input_exits_2(tmp_path, bench_module, write_eval_renders):
+    gs = bench_module("glint_sources")
+    make_eval(write_eval_renders, tmp_path / "ev")
     for argv in ([], ["--eval", str(tmp_path)], [str(tmp_path)], ["--eval", str(tmp_path / "ev"), "--depths", "a"]):
         with pytest.raises(SystemExit) as e:
             gs.main(argv)

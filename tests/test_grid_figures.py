@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -10,18 +9,9 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def load_module():
-    spec = importlib.util.spec_from_file_location("grid_figures", ROOT / "bench" / "grid_figures.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_crop_box_is_square_inside_and_around_the_mask():
-    gf = load_module()
+def test_crop_box_is_square_inside_and_around_the_mask(bench_module):
+    gf = bench_module("grid_figures")
     mask = np.zeros((96, 96), bool)
     mask[80:90, 85:95] = True  # near the corner: the box is shifted inside
     x0, y0, x1, y1 = gf.crop_box(mask, pad=0.35, min_side=40)
@@ -30,24 +20,17 @@ def test_crop_box_is_square_inside_and_around_the_mask():
     assert gf.crop_box(np.zeros((8, 8), bool)) == (0, 0, 8, 8)
 
 
-def make_cell(grid: Path, key: str, ablation: str, object_value: int, psnr: float) -> None:
+def make_cell(write_eval_renders, grid: Path, key: str, ablation: str, object_value: int,
+              psnr: float) -> pd.DataFrame:
     cell = grid / "cells" / key
     name = f"gravel__ours{'' if ablation == 'none' else '-wo-' + ablation}__s0"
-    ev = cell / "eval" / name
-    (ev / "renders").mkdir(parents=True)
     bg = np.full((32, 32, 3), 100, np.uint8)
     bg[0, :8] = 200  # 8 of 1024 pixels: the 99.5th luminance percentile is exactly the 200 level
     img = bg.copy()
     img[10:20, 10:20] = object_value
     mask = np.zeros((32, 32), np.uint8)
     mask[10:20, 10:20] = 255
-    recs = []
-    for v in range(2):
-        for kind, arr in (("bg", bg), ("obj", img), ("mask", mask)):
-            Image.fromarray(arr).save(ev / "renders" / f"view_{v}_{kind}.png")
-        recs.append({"background": f"renders/view_{v}_bg.png", "image": f"renders/view_{v}_obj.png",
-                     "mask": f"renders/view_{v}_mask.png", "view": v})
-    (ev / "renders.json").write_text(json.dumps(recs))
+    write_eval_renders(cell / "eval" / name, bg, img, mask)
     (cell / "cell.json").write_text(json.dumps({"key": key, "name": name, "scene_label": "gravel", "method": "ours",
                                                 "ablation": ablation}))
     (cell / "DONE").write_text("")
@@ -61,11 +44,11 @@ def make_cell(grid: Path, key: str, ablation: str, object_value: int, psnr: floa
                          "lpips_proxy": [0.3, 0.3], "sifid_proxy": [0.01, 0.01]})
 
 
-def test_stage2_table_and_figures(tmp_path):
-    gf = load_module()
+def test_stage2_table_and_figures(tmp_path, bench_module, write_eval_renders):
+    gf = bench_module("grid_figures")
     grid = tmp_path / "grid"
-    m = pd.concat([make_cell(grid, "a" * 16, "none", 150, 30.0),        # no pixel above 200: sparkle 0 %
-                   make_cell(grid, "b" * 16, "inpainting", 255, 20.0)])  # every object pixel above: 100 %
+    m = pd.concat([make_cell(write_eval_renders, grid, "a" * 16, "none", 150, 30.0),  # no pixel above 200: sparkle 0 %
+                   make_cell(write_eval_renders, grid, "b" * 16, "inpainting", 255, 20.0)])  # all above: 100 %
     m.to_parquet(grid / "metrics.parquet")
     runs = gf.load_runs(grid)
     assert set(runs) == {("gravel", "ours", "none"), ("gravel", "ours", "inpainting")}
