@@ -44,6 +44,7 @@ class Environment:
     emitters: tuple[str, ...]  # kinds present: "sun", "sky", "envmap", "area"
     nearby_geometry: bool = False  # walls/occluders close to the object (interreflection, occlusion)
     occluders: bool = False  # geometry that can hide the object from some views
+    compact_envmap_light: bool = False  # the envmap holds a sun-like spot (see :func:`has_compact_spot`)
 
 
 def _T():
@@ -216,6 +217,17 @@ def builtin_panorama(width: int = 1024, spp: int = 16) -> Path:
     return path
 
 
+#: An envmap texel this many times brighter than the map's median luminance is a compact light (a sun baked into
+#: an outdoor HDR: ~3e4 in the built-in panorama); it mirrors as glints like the ``sunsky`` sun does.
+COMPACT_SPOT_RATIO = 1000.0
+
+
+def has_compact_spot(pano: np.ndarray) -> bool:
+    """Whether an ``(H, W, 3)`` linear panorama holds a sun-like spot: peak luminance > ``COMPACT_SPOT_RATIO`` x median."""
+    y = pano[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    return bool(y.max() > COMPACT_SPOT_RATIO * max(float(np.median(y)), 1e-12))
+
+
 def panorama_environment(path: str | Path, capture_height: float = 1.6, ground: bool = True,
                          ground_extent: float = 30.0, rotation_deg: float = 0.0, name: str = "panorama") -> Environment:
     """Lighting from an equirect HDR panorama; optional ground with the panorama projected on it."""
@@ -247,7 +259,8 @@ def panorama_environment(path: str | Path, capture_height: float = 1.6, ground: 
             }
         return out
 
-    return Environment(name, f"HDR panorama {Path(path).name}", build, ("envmap",))
+    return Environment(name, f"HDR panorama {Path(path).name}", build, ("envmap",),
+                       compact_envmap_light=has_compact_spot(pano))
 
 
 def xml_environment(path: str | Path) -> Environment:
@@ -267,13 +280,23 @@ def xml_environment(path: str | Path) -> Environment:
         kinds.add("envmap" if "env" in cls else "sun" if "sun" in cls else cls)
     if not kinds:
         raise CamoError(f"Mitsuba scene {path} has no emitter: nothing would be lit")
+    spot = any(has_compact_spot(m) for m in map(_envmap_data, env_emitters) if m is not None)
 
     def build() -> dict:
         out: dict[str, Any] = {f"shape_{i}": s for i, s in enumerate(shapes)}
         out.update({f"emitter_{i}": e for i, e in enumerate(env_emitters)})
         return out
 
-    return Environment(Path(path).stem, f"Mitsuba scene {Path(path).name}", build, tuple(sorted(kinds)), nearby_geometry=True, occluders=True)
+    return Environment(Path(path).stem, f"Mitsuba scene {Path(path).name}", build, tuple(sorted(kinds)),
+                       nearby_geometry=True, occluders=True, compact_envmap_light=spot)
+
+
+def _envmap_data(emitter) -> np.ndarray | None:
+    """An ``envmap`` emitter's texels ``(H, W, C)`` (linear radiance), or None for other emitters."""
+    import mitsuba as mi
+
+    params = mi.traverse(emitter)
+    return np.asarray(params["data"]) if "data" in params.keys() else None
 
 
 ENVIRONMENTS: dict[str, tuple[str, Callable[[], dict], tuple[str, ...], bool, bool]] = {
