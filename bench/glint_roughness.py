@@ -26,9 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-REC709 = np.array([0.2126, 0.7152, 0.0722])
+from grid_figures import REC709  # noqa: E402
+
 ROUGHNESS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)
 
 
@@ -82,6 +84,7 @@ def brightest_direction(elements: dict, n: int = 4_000_000) -> tuple[np.ndarray,
 
 
 def facet(centre, normal, half: float, bsdf: dict) -> dict:
+    """A square ``rectangle`` of half-size ``half`` centred at ``centre`` facing ``normal``."""
     import mitsuba as mi
 
     n = np.asarray(normal, float)
