@@ -34,6 +34,7 @@ import numpy as np
 
 from . import textures
 from .errors import CamoError
+from .imaging import REC709_LUMA
 
 
 @dataclasses.dataclass
@@ -224,7 +225,7 @@ COMPACT_SPOT_RATIO = 1000.0
 
 def has_compact_spot(pano: np.ndarray) -> bool:
     """Whether an ``(H, W, 3)`` linear panorama holds a sun-like spot: peak luminance > ``COMPACT_SPOT_RATIO`` x median."""
-    y = pano[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    y = pano[..., :3] @ REC709_LUMA
     return bool(y.max() > COMPACT_SPOT_RATIO * max(float(np.median(y)), 1e-12))
 
 

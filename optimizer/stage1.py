@@ -29,6 +29,7 @@ from .appearance import (MAPS, AppearanceConfig, Geometry, clamp_projections, in
                          pose_record, world_positions)
 from .cameras import Camera
 from .environments import Environment
+from .imaging import REC709_LUMA
 from .loss import gated_loss_terms, mse_loss
 from .planner import Plan, training_integrator
 from .render import coverage_and_depth, render_shaded, uses_batch
@@ -70,8 +71,7 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 def influence_domain(bg: np.ndarray, obj: np.ndarray, coverage: np.ndarray, threshold: float, dilate_px: int) -> np.ndarray:
     """Object mask united with the pixels the object visibly changes (its shadow), dilated; ``(H, W)`` float32."""
-    yb = bg @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-    yo = obj @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    yb, yo = bg @ REC709_LUMA, obj @ REC709_LUMA
     changed = np.abs(yo - yb) > threshold * np.maximum(yb, 1e-3)
     # Isolated noisy pixels are not a shadow: keep changed pixels with changed neighbours.
     from scipy.ndimage import uniform_filter

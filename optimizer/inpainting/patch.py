@@ -67,6 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import CamoError
+from ..imaging import REC709_LUMA
 from .base import Inpainter
 
 
@@ -485,7 +486,7 @@ class PatchInpainter(Inpainter):
         if opts.flat_std > 0:
             import cv2
 
-            luma = synth @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+            luma = synth @ REC709_LUMA
             std = _local_std(luma.astype(np.float32), 2)
             w_flat = np.clip(1.0 - std / opts.flat_std, 0.0, 1.0)
             local_mean = cv2.blur(synth, (5, 5), borderType=cv2.BORDER_REFLECT)
