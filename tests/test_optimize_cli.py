@@ -135,16 +135,26 @@ def test_parse_init():
             parse_init(bad)
 
 
-def test_room_starts_rough_everything_else_at_the_paper_values():
+def test_built_in_scenes_start_rough_user_packs_at_the_paper_values(tmp_path):
     from optimizer import builtin_scenes
-    from optimizer.scenepack import MaterialSpec
+    from optimizer.scenepack import MaterialSpec, parse_pack
 
-    assert builtin_scenes.get("room").material.roughness == 0.5
-    assert builtin_scenes.get("room:vase").material.roughness == 0.5
-    for name in builtin_scenes.names():
-        if name != "room":
-            assert builtin_scenes.get(name).material == MaterialSpec(albedo=(0.5, 0.5, 0.5), metallic=0.0, roughness=0.0,
-                                                                    transmittance=0.5, eta=1.5)
+    rough = MaterialSpec(albedo=(0.5, 0.5, 0.5), metallic=0.0, roughness=0.5, transmittance=0.5, eta=1.5)
+    for name in [*builtin_scenes.names(), "room:vase", "meadow:chair"]:
+        assert builtin_scenes.get(name).material == rough, name
+    a, b = builtin_scenes.get("gravel"), builtin_scenes.get("gravel")
+    a.material.roughness = 0.0  # one pack's edit leaves the next pack (and the module constant) alone
+    assert b.material.roughness == 0.5 == builtin_scenes.get("gravel").material.roughness
+    # a pack a user writes, even around a built-in environment, starts where the paper does (Sec. IV-A)
+    user = parse_pack({"object": {"primitive": "utility_box"}, "environment": {"builtin": "gravel"}})
+    assert user.material == MaterialSpec(albedo=(0.5, 0.5, 0.5), metallic=0.0, roughness=0.0, transmittance=0.5)
+    # --init restores the paper's start on a built-in scene and records it
+    import tomllib
+
+    assert optimize(tmp_path / "paper", 1, "--init", "roughness=0") == 0
+    cfg = tomllib.loads((tmp_path / "paper" / "config.toml").read_text())
+    assert cfg["pack"]["material"]["roughness"] == 0.0
+    assert np.load(tmp_path / "paper" / "maps" / "roughness.npy").max() < 0.035 + 0.011
 
 
 def test_init_sets_the_starting_maps_and_is_recorded(tmp_path, capsys):

@@ -157,16 +157,17 @@ def test_smooth_start_under_a_compact_light_is_flagged():
             pack.material = dataclasses.replace(pack.material, roughness=roughness)
         return [v for k, v in plan(pack, env_of(name), params).reasons if k == "initial roughness"]
 
-    (why,) = flagged("meadow")
+    for name in builtin_scenes.names():  # every built-in scene starts at 0.5
+        assert flagged(name) == [], name
+    (why,) = flagged("meadow", roughness=0.0)  # the paper's start
     assert "sun" in why and "--init roughness=0.5" in why
-    assert flagged("room") == []  # starts at 0.5
     assert "area" in flagged("room", roughness=0.0)[0]
-    assert flagged("panorama") == []  # an environment map only
-    assert flagged("meadow", params={"albedo", "pose"}) == []  # roughness is not optimised
+    assert flagged("meadow", params={"albedo", "pose"}, roughness=0.0) == []  # roughness is not optimised
     # bench/glint_roughness.py: a mirroring facet still outshines the background at 0.3 and 0.4, not from 0.5
     assert flagged("meadow", roughness=0.3) and flagged("meadow", roughness=0.4)
     assert flagged("meadow", roughness=0.5) == []
     pack = builtin_scenes.get("meadow")
+    pack.material = dataclasses.replace(pack.material, roughness=0.0)
     assert not any(k == "initial roughness" for k, _ in plan(pack, env_of("meadow"), ALL, purpose="render").reasons)
 
 
@@ -184,6 +185,7 @@ def test_a_sun_baked_into_a_panorama_is_flagged_like_the_sun(tmp_path, mi_backen
     from optimizer.environments import panorama_environment, xml_environment
 
     pack = builtin_scenes.get("panorama")
+    pack.material = dataclasses.replace(pack.material, roughness=0.0)  # the paper's start
     for spot, want in ((2.0e4, True), (50.0, False)):  # median ~1.25: 1.6e4 x vs 40 x
         env = panorama_environment(_pano(tmp_path, spot))
         assert env.compact_envmap_light is want
