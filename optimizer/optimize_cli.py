@@ -36,7 +36,7 @@ def register(sub) -> None:
     p.add_argument("--stage2-strength", type=float, help="Stage 2 noise strength t_start in (0, 1] (default 0.5)")
     p.add_argument("--stage2-fixed-displacement", action="store_true",
                    help="Stage 2 refines the BSDF maps only and keeps Stage 1's displacement (default: refines both, "
-                        "as the paper; fixed gave fewer sun glints in novel views, docs/results)")
+                        "as the paper; from roughness 0 under the sun, fixed gave fewer glints in novel views, docs/results)")
     p.add_argument("--sdxl-path", help="local SDXL inpainting pipeline folder (diffusers backend)")
     p.add_argument("--controlnet-path", help="local depth ControlNet folder (diffusers backend)")
     p.add_argument("--silhouette-every", type=int,
