@@ -46,6 +46,21 @@ def _consent_paragraphs(path: str | None) -> list[str]:
     return [" ".join(par.split()) for par in text.split("\n\n") if par.strip()]
 
 
+MISSING_ID_KEY = (
+    "ID_HMAC_KEY is not set: make a key file outside the database with `camo study make-key /path/id_hmac.key` "
+    "and pass --id-key-file /path/id_hmac.key (or set CAMO_STUDY_ID_HMAC_KEY_FILE); --dev keeps a key in the "
+    "database (development only)"
+)
+
+
+def id_key_of(cfg: Mapping[str, Any], db) -> str:
+    """The participant-id HMAC key: configured (env/file), or in DEV mode one kept in the database."""
+    if cfg.get("ID_HMAC_KEY"):
+        return str(cfg["ID_HMAC_KEY"])
+    log.warning("DEV mode: ID_HMAC_KEY not configured; using a key kept in the database (not for real studies)")
+    return db.setting("id_hmac_key")
+
+
 def create_app(config: Mapping[str, Any] | None = None):
     """Build the study app. ``config`` overrides :data:`study_site.config.DEFAULTS`."""
     from flask import Flask, jsonify, render_template, request
@@ -53,14 +68,27 @@ def create_app(config: Mapping[str, Any] | None = None):
     from werkzeug.exceptions import HTTPException
 
     from . import admin, views
-    from .config import resolve
+    from .config import age_brackets, read_secret_file, resolve
     from .db import Database
     from .security import RateLimiter, csrf_token
     from .stimuli import StimulusSet
 
     cfg = resolve(config)
     app = Flask(__name__, instance_relative_config=True)
+    if cfg["ADMIN_TOKEN_FILE"] and not cfg["ADMIN_TOKEN"]:
+        cfg["ADMIN_TOKEN"] = read_secret_file(cfg["ADMIN_TOKEN_FILE"], "ADMIN_TOKEN")
+    if cfg["ID_HMAC_KEY_FILE"] and not cfg["ID_HMAC_KEY"]:
+        cfg["ID_HMAC_KEY"] = read_secret_file(cfg["ID_HMAC_KEY_FILE"], "ID_HMAC_KEY", min_len=32)
+    if not cfg["ID_HMAC_KEY"] and not cfg["DEV"]:
+        raise CamoError(MISSING_ID_KEY)
+    if cfg["ID_HMAC_KEY"] and len(str(cfg["ID_HMAC_KEY"])) < 32:
+        raise CamoError("ID_HMAC_KEY must be at least 32 characters (`camo study make-key FILE` makes one)")
     stimuli = StimulusSet(cfg["STIMULI_DIR"])
+    if cfg["PRACTICE_TRIALS"] > 0 and not stimuli.practice_pool():
+        raise CamoError(
+            f"{cfg['STIMULI_DIR']}: the stimulus set has no practice stimuli; rebuild it (build-stimuli makes a "
+            "synthetic practice set by default) or set PRACTICE_TRIALS=0"
+        )
     url = cfg["DATABASE_URL"]
     if not url:
         Path(app.instance_path).mkdir(parents=True, exist_ok=True)
@@ -73,9 +101,7 @@ def create_app(config: Mapping[str, Any] | None = None):
     )
     cfg["DATABASE_URL"] = url
     cfg["SECRET_KEY"] = cfg["SECRET_KEY"] or db.setting("secret_key")
-    id_key = cfg["ID_HMAC_KEY"] or db.setting("id_hmac_key")
-    if not cfg["ID_HMAC_KEY"]:
-        log.info("ID_HMAC_KEY not configured: using a key generated once and stored in the database")
+    id_key = id_key_of(cfg, db)
     db.setting("assign_lock", lambda: "1")
     app.config.from_mapping(cfg)
     app.config["PERMANENT_SESSION_LIFETIME"] = timedelta(days=2)
@@ -90,6 +116,7 @@ def create_app(config: Mapping[str, Any] | None = None):
         ),
         consent_paragraphs=_consent_paragraphs(cfg["CONSENT_FILE"]),
     )
+    app.jinja_env.globals["age_brackets"] = age_brackets(cfg["MIN_AGE"])
     app.register_blueprint(views.bp)
     app.register_blueprint(admin.bp)
     app.jinja_env.globals["csrf_token"] = csrf_token

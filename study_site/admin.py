@@ -2,7 +2,8 @@
 
 Authenticate with ``Authorization: Bearer <ADMIN_TOKEN>`` (scripts) or the login
 form at ``/admin/login`` (browser; marks the session). Without ``ADMIN_TOKEN``
-configured every admin URL answers 404.
+configured every admin URL answers 404. Without credentials an admin URL answers 401 (the login form,
+``WWW-Authenticate: Bearer``), with a wrong token 403; never a redirect.
 """
 
 from __future__ import annotations
@@ -23,14 +24,28 @@ def _token() -> str | None:
     return current_app.config.get("ADMIN_TOKEN") or None
 
 
-def _authed() -> bool:
+def _auth_status() -> int:
+    """200 when authenticated; 401 when no credentials were sent; 403 when a wrong token was sent."""
     tok = _token()
     if tok is None:
         abort(404)
     auth = request.headers.get("Authorization", "")
-    if auth.startswith("Bearer ") and hmac.compare_digest(auth[7:].strip().encode(), tok.encode()):
-        return True
-    return session.get("admin") == hmac.new(tok.encode(), b"admin", "sha256").hexdigest()
+    if auth:
+        ok = auth.startswith("Bearer ") and hmac.compare_digest(auth[7:].strip().encode(), tok.encode())
+        return 200 if ok else 403
+    if session.get("admin") == hmac.new(tok.encode(), b"admin", "sha256").hexdigest():
+        return 200
+    return 401
+
+
+def _deny(code: int):
+    """401 (login form, ``WWW-Authenticate: Bearer``) or 403; never a redirect."""
+    resp = current_app.make_response(
+        (render_template("admin_login.html", error=None if code == 401 else "Wrong token."), code)
+    )
+    if code == 401:
+        resp.headers["WWW-Authenticate"] = 'Bearer realm="camo study admin"'
+    return resp
 
 
 @bp.route("/login", methods=["GET", "POST"])
@@ -51,8 +66,9 @@ def login():
 
 @bp.get("/")
 def progress():
-    if not _authed():
-        return redirect(url_for("admin.login"))
+    code = _auth_status()
+    if code != 200:
+        return _deny(code)
     state = current_app.extensions["camo_study"]
     hold = timedelta(seconds=float(current_app.config["ASSIGNMENT_HOLD_S"]))
     now = utcnow()
@@ -114,8 +130,9 @@ def progress():
 
 @bp.get("/export/<name>.csv")
 def export(name: str):
-    if not _authed():
-        abort(403)
+    code = _auth_status()
+    if code != 200:
+        abort(code, description="admin token required (Authorization: Bearer TOKEN)" if code == 401 else "wrong admin token")
     if name not in ("trials", "participants"):
         abort(404)
     from .analysis import load_tables

@@ -1,7 +1,8 @@
 """Trial plans: which stimulus each participant sees, in which order.
 
 Protocol (GANmouflage / paper Sec. IV-D): ``PRACTICE_TRIALS`` practice images
-first (flagged, excluded from the analysis), then one formal trial per scene.
+first (flagged, excluded from the analysis; drawn only from the set's dedicated
+practice stimuli, whose scenes are never formal scenes), then one formal trial per scene.
 For each scene the method (condition) is the one whose ``(scene, method)``
 cell has been assigned least often so far (ties broken at random), so cells
 fill evenly across participants; the view is drawn at random among that cell's
@@ -58,11 +59,11 @@ def choose_plan(
 
     practice: list[Stimulus] = []
     if n_practice > 0:
-        cands = stimuli.practice_pool()
-        if not any(st.practice for st in cands):  # no dedicated set: avoid this participant's formal images
-            used = {st.id for st in formal}
-            cands = [st for st in cands if st.id not in used] or cands
-        cands = sorted(cands, key=lambda st: st.id)
+        # dedicated practice stimuli only: their scenes never appear in the formal pool (checked when the
+        # set is built and when it is loaded), so practice cannot show where a formal object sits
+        cands = sorted(stimuli.practice_pool(), key=lambda st: st.id)
+        if not cands:
+            raise ValueError("the stimulus set has no practice stimuli")
         if len(cands) >= n_practice:
             practice = rng.sample(cands, n_practice)
         else:

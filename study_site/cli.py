@@ -1,4 +1,4 @@
-"""``camo study ...`` commands: build-stimuli, serve, report.
+"""``camo study ...`` commands: build-stimuli, make-key, serve, report.
 
 ``register(subparsers)`` adds the ``study`` group to an argparse parser; each
 subcommand stores its handler as ``func`` (``args.func(args) -> int``). Handlers
@@ -25,7 +25,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="study_command", metavar="COMMAND")
     sub.required = True
 
-    b = sub.add_parser("build-stimuli", help="export a stimulus set from evaluation directories")
+    b = sub.add_parser(
+        "build-stimuli",
+        help="render a stimulus set from evaluation directories",
+        description="Render every evaluated run again at study size with the object at a random, recorded "
+        "position and size in the frame (see study_site/render_stimuli.py for the distribution); practice "
+        "stimuli never share a scene with formal ones.",
+    )
     b.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate` (has renders.json)")
     b.add_argument("--out", required=True, metavar="STIMULI_DIR", help="new stimulus-set directory")
     b.add_argument(
@@ -33,10 +39,44 @@ def register(subparsers) -> argparse.ArgumentParser:
         nargs="+",
         default=[],
         metavar="EVAL_DIR",
-        help="evaluation directories used only for practice trials (default: practice images come from the pool)",
+        help="evaluation directories used only for practice trials (their scenes must not be formal scenes)",
+    )
+    b.add_argument(
+        "--practice-scenes",
+        default="",
+        metavar="SCENE,...",
+        help="scenes of the EVAL_DIRs used only for practice (taken out of the formal pool)",
+    )
+    b.add_argument(
+        "--synthetic-practice",
+        type=int,
+        default=8,
+        metavar="N",
+        help="without --practice/--practice-scenes: N synthetic practice images (default 8; 0 = none)",
+    )
+    b.add_argument("--size", type=int, default=512, metavar="PX", help="stimulus width = height (default 512)")
+    b.add_argument("--views", type=int, default=8, help="views per run (default 8)")
+    b.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    b.add_argument("--seed", type=int, default=0, help="placement and sampler seed (default 0)")
+    b.add_argument(
+        "--object-size",
+        default="0.10,0.30",
+        metavar="LO,HI",
+        help="object extent as a fraction of the frame width, drawn uniformly (default 0.10,0.30)",
+    )
+    b.add_argument("--margin", type=float, default=0.04, help="object kept this share of the frame inside (0.04)")
+    b.add_argument("--threads", type=int, default=None, help="render threads (default: CAMO_THREADS or all cores)")
+    b.add_argument(
+        "--copy",
+        action="store_true",
+        help="copy the evaluation renders as they are instead (object at the frame centre; for tests)",
     )
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)
+
+    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, admin token)")
+    k.add_argument("path", metavar="FILE", help="new file (mode 0600); refuses to overwrite")
+    k.set_defaults(func=cmd_make_key)
 
     s = sub.add_parser("serve", help="run the study web site")
     s.add_argument("--stimuli", required=True, metavar="STIMULI_DIR")
@@ -47,7 +87,19 @@ def register(subparsers) -> argparse.ArgumentParser:
     s.add_argument(
         "--connections", type=int, default=1000, help="open client connections accepted at once (waitress)"
     )
-    s.add_argument("--dev", action="store_true", help="use werkzeug's server even if waitress is installed")
+    s.add_argument(
+        "--dev",
+        action="store_true",
+        help="development: werkzeug's server, and an id key kept in the database when none is given",
+    )
+    s.add_argument("--id-key-file", metavar="FILE", help="participant-id HMAC key (`camo study make-key FILE`)")
+    s.add_argument("--admin-token-file", metavar="FILE", help="admin token (enables /admin/)")
+    s.add_argument("--time-limit", type=float, metavar="S", help="seconds per trial (default 40)")
+    s.add_argument("--practice-trials", type=int, metavar="N", help="practice trials (default 5)")
+    s.add_argument("--min-age", type=int, metavar="YEARS", help="youngest age bracket (default 18)")
+    s.add_argument("--completion-code", metavar="CODE", help="study-wide completion code (Prolific)")
+    s.add_argument("--completion-url", metavar="URL", help="e.g. https://app.prolific.com/submissions/complete?cc={code}")
+    s.add_argument("--consent-file", metavar="FILE", help="plain-text consent statement")
     s.set_defaults(func=cmd_serve)
 
     r = sub.add_parser("report", help="Table I, Kaplan-Meier curves, pairwise tests, CSV/Parquet tables")
@@ -63,11 +115,48 @@ def register(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def _pair(text: str, flag: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise CamoError(f"{flag} must be LO,HI (two numbers), not {text!r}") from None
+    return lo, hi
+
+
 def cmd_build_stimuli(args) -> int:
     from .stimuli import build_stimuli, summarize
 
-    manifest = build_stimuli(args.eval_dirs, args.out, practice_dirs=args.practice, force=args.force)
+    scenes = [x for x in args.practice_scenes.split(",") if x.strip()]
+    if args.synthetic_practice < 0 or args.synthetic_practice > 200:
+        raise CamoError("--synthetic-practice must be 0-200")
+    if args.copy:
+        manifest = build_stimuli(args.eval_dirs, args.out, practice_dirs=args.practice, force=args.force,
+                                 practice_scenes=scenes, synthetic_practice_n=args.synthetic_practice)
+    else:
+        from .render_stimuli import render_stimuli
+
+        manifest = render_stimuli(
+            args.eval_dirs, args.out, practice_dirs=args.practice, practice_scenes=scenes, size=args.size,
+            views=args.views, spp=args.spp, seed=args.seed, object_frac=_pair(args.object_size, "--object-size"),
+            margin=args.margin, synthetic_practice_n=args.synthetic_practice, threads=args.threads, force=args.force,
+        )
     print(f"{args.out}: {summarize(manifest)}")
+    return 0
+
+
+def cmd_make_key(args) -> int:
+    import secrets
+
+    path = args.path
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise CamoError(f"{path}: already exists (a new key would change every stored participant hash)") from None
+    except OSError as exc:
+        raise CamoError(f"{path}: {exc.strerror}") from None
+    with os.fdopen(fd, "w") as f:
+        f.write(secrets.token_hex(32) + "\n")
+    print(f"wrote a new 256-bit key to {path} (mode 0600); keep it outside the database and never change it")
     return 0
 
 
@@ -82,11 +171,26 @@ def cmd_serve(args) -> int:
         raise CamoError("--threads must be 1-256")
     if not os.path.isdir(args.stimuli):
         raise CamoError(f"{args.stimuli}: no such stimulus directory")
-    cfg = from_env()
-    cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
-    app = create_app(cfg)
     if not 10 <= args.connections <= 100_000:
         raise CamoError("--connections must be 10-100000")
+    cfg = from_env()
+    cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
+    for flag, key in (
+        ("id_key_file", "ID_HMAC_KEY_FILE"),
+        ("admin_token_file", "ADMIN_TOKEN_FILE"),
+        ("time_limit", "TRIAL_TIME_LIMIT_S"),
+        ("practice_trials", "PRACTICE_TRIALS"),
+        ("min_age", "MIN_AGE"),
+        ("completion_code", "COMPLETION_CODE"),
+        ("completion_url", "COMPLETION_URL"),
+        ("consent_file", "CONSENT_FILE"),
+    ):
+        v = getattr(args, flag)
+        if v is not None:
+            cfg[key] = v
+    if args.dev:
+        cfg["DEV"] = True
+    app = create_app(cfg)
     serve_app(app, args.host, args.port, threads=args.threads, connections=args.connections, dev=args.dev)
     return 0
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import math
 import os
+from pathlib import Path
 from typing import Any, Mapping
 
 from optimizer.errors import CamoError
@@ -11,14 +13,29 @@ DEFAULTS: dict[str, Any] = {
     # where things are
     "STIMULI_DIR": None,  # required: output of `camo study build-stimuli`
     "DATABASE_URL": None,  # default: sqlite:///<instance>/study.sqlite
-    # secrets (generated once and kept in the database when not given)
-    "SECRET_KEY": None,  # signs the session cookie
-    "ID_HMAC_KEY": None,  # key of the HMAC that replaces participant ids; set it in production
+    # secrets
+    "SECRET_KEY": None,  # signs the session cookie (generated once and kept in the database when not given)
+    # key of the HMAC that replaces participant ids: from the environment or a file, never the database
+    # (anyone holding the database could otherwise re-identify known ids). Required unless DEV.
+    "ID_HMAC_KEY": None,
+    "ID_HMAC_KEY_FILE": None,  # a file holding the key (`camo study make-key FILE`)
     "ADMIN_TOKEN": None,  # admin pages and CSV export; disabled (404) when unset
+    "ADMIN_TOKEN_FILE": None,  # a file holding the admin token
+    "DEV": False,  # development only: an id key generated and kept in the database is allowed
     # protocol
     "TRIAL_TIME_LIMIT_S": 40.0,
     "PRACTICE_TRIALS": 5,
     "HIT_TOLERANCE_PX": 0,  # a click within this many image pixels of the object counts as a hit
+    # the deadline lives on the server (issued by POST /api/start when the trial is first shown):
+    "DEADLINE_GRACE_S": 2.0,  # network allowance: answers arriving later than limit + grace are timeouts
+    "RT_FLOOR_MS": 300.0,  # faster answers are stored but flagged too_fast; the analysis excludes them
+    # display: the image's height is this share of the viewport's height (capped by DISPLAY_MAX_WIDTH_SHARE
+    # of its width); displayed size, viewport and device pixel ratio are stored with every trial
+    "DISPLAY_HEIGHT_SHARE": 0.72,
+    "DISPLAY_MAX_WIDTH_SHARE": 0.94,
+    "MIN_VIEWPORT_W": 800,  # smaller windows are asked to enlarge before a trial starts
+    "MIN_VIEWPORT_H": 600,
+    "MIN_AGE": 18,  # youngest age bracket starts here; below 18 the consent page says guardians must agree
     "ASSIGNMENT_HOLD_S": 3600.0,  # an unfinished participant's cells count as filled for this long
     "ALLOW_ANONYMOUS": True,  # landing page offers "start" without an id (a random id is made)
     # completion
@@ -60,8 +77,15 @@ _TYPES = {
     "NEW_PARTICIPANTS_PER_MIN": float,
     "SQLITE_BUSY_TIMEOUT_MS": int,
     "DB_POOL_SIZE": int,
+    "DEADLINE_GRACE_S": float,
+    "RT_FLOOR_MS": float,
+    "DISPLAY_HEIGHT_SHARE": float,
+    "DISPLAY_MAX_WIDTH_SHARE": float,
+    "MIN_VIEWPORT_W": int,
+    "MIN_VIEWPORT_H": int,
+    "MIN_AGE": int,
 }
-_BOOLS = {"ALLOW_ANONYMOUS", "SESSION_COOKIE_SECURE", "SESSION_COOKIE_HTTPONLY"}
+_BOOLS = {"ALLOW_ANONYMOUS", "SESSION_COOKIE_SECURE", "SESSION_COOKIE_HTTPONLY", "DEV"}
 
 ENV_PREFIX = "CAMO_STUDY_"
 
@@ -87,7 +111,9 @@ def resolve(config: Mapping[str, Any] | None) -> dict[str, Any]:
             continue
         try:
             cfg[key] = typ(cfg[key])
-        except (TypeError, ValueError):
+            if typ is float and not math.isfinite(cfg[key]):
+                raise ValueError
+        except (TypeError, ValueError, OverflowError):
             raise CamoError(f"config {key}: expected a number, got {cfg[key]!r}") from None
     for key in _BOOLS:
         v = cfg.get(key)
@@ -104,7 +130,40 @@ def resolve(config: Mapping[str, Any] | None) -> dict[str, Any]:
         raise CamoError("config TRIAL_TIME_LIMIT_S must be between 1 and 600 seconds")
     if not 0 <= cfg["PRACTICE_TRIALS"] <= 50:
         raise CamoError("config PRACTICE_TRIALS must be between 0 and 50")
+    if not 0.0 <= cfg["DEADLINE_GRACE_S"] <= 30.0:
+        raise CamoError("config DEADLINE_GRACE_S must be between 0 and 30 seconds")
+    if not 0.0 <= cfg["RT_FLOOR_MS"] <= 5000.0:
+        raise CamoError("config RT_FLOOR_MS must be between 0 and 5000 ms")
+    for key in ("DISPLAY_HEIGHT_SHARE", "DISPLAY_MAX_WIDTH_SHARE"):
+        if not 0.2 <= cfg[key] <= 1.0:
+            raise CamoError(f"config {key} must be between 0.2 and 1")
+    if not 10 <= cfg["MIN_AGE"] <= 99:
+        raise CamoError("config MIN_AGE must be between 10 and 99")
     url = cfg.get("COMPLETION_URL")
     if url and not str(url).startswith(("https://", "http://")):
         raise CamoError("config COMPLETION_URL must be an http(s) URL")
     return cfg
+
+
+def read_secret_file(path: str, what: str, min_len: int = 16) -> str:
+    """The stripped contents of a secret file; CamoError (one line) when unreadable or too short."""
+    p = Path(path)
+    try:
+        value = p.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CamoError(f"{what} file {p}: {getattr(exc, 'strerror', None) or exc}") from None
+    if len(value) < min_len:
+        raise CamoError(f"{what} file {p}: shorter than {min_len} characters")
+    return value
+
+
+def age_brackets(min_age: int) -> list[tuple[str, str]]:
+    """``[(value, label)]`` age brackets starting at ``min_age``: up to 24, then decades to 64, 65+."""
+    edges = [e for e in (25, 35, 45, 55, 65) if e > min_age]
+    out, lo = [], min_age
+    for e in edges:
+        out.append((f"{lo}-{e - 1}", f"{lo}\u2013{e - 1}"))
+        lo = e
+    out.append((f"{lo}+", f"{lo} or older"))
+    out.append(("prefer_not", "Prefer not to say"))
+    return out

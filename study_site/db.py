@@ -94,6 +94,9 @@ class PlanItem(Base):
     view: Mapped[str] = mapped_column(String(64))
     width: Mapped[int] = mapped_column(Integer)
     height: Mapped[int] = mapped_column(Integer)
+    # the trial's server-side clock: set by the first POST /api/start (image shown), never reset
+    started_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
+    starts: Mapped[int] = mapped_column(Integer, default=0)  # how often it was shown (reloads count)
 
 
 class Trial(Base):
@@ -119,7 +122,15 @@ class Trial(Base):
     time_limit_s: Mapped[float] = mapped_column(Float)
     display_w: Mapped[float | None] = mapped_column(Float, nullable=True)  # CSS px the image was shown at
     display_h: Mapped[float | None] = mapped_column(Float, nullable=True)
+    viewport_w: Mapped[float | None] = mapped_column(Float, nullable=True)  # CSS px of the browser viewport
+    viewport_h: Mapped[float | None] = mapped_column(Float, nullable=True)
+    dpr: Mapped[float | None] = mapped_column(Float, nullable=True)  # window.devicePixelRatio
     server_received_at: Mapped[datetime] = mapped_column(DateTime)
+    # server clock: ms from the trial's first /api/start to this answer's arrival
+    server_rt_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
+    late: Mapped[bool] = mapped_column(Boolean, default=False)  # a click after the deadline, stored as a timeout
+    too_fast: Mapped[bool] = mapped_column(Boolean, default=False)  # rt_ms below RT_FLOOR_MS (excluded in analysis)
+    starts: Mapped[int] = mapped_column(Integer, default=1)  # times the image was shown (> 1: reloaded)
 
 
 # ---------------------------------------------------------------------------
@@ -182,6 +193,7 @@ class Database:
             Base.metadata.create_all(self.engine)
         except OperationalError as exc:
             raise CamoError(f"cannot open database {url!r}: {exc.orig}") from None
+        check_schema(self.engine, url)
 
     def read(self) -> Session:
         return self._read()
@@ -228,6 +240,21 @@ class Database:
 
     def dispose(self) -> None:
         self.engine.dispose()
+
+
+def check_schema(engine: Engine, url: str) -> None:
+    """CamoError when an existing database lacks columns of this version (made by an older camo)."""
+    from sqlalchemy import inspect
+
+    insp = inspect(engine)
+    for table in Base.metadata.sorted_tables:
+        have = {c["name"] for c in insp.get_columns(table.name)}
+        missing = [c.name for c in table.columns if c.name not in have]
+        if missing:
+            raise CamoError(
+                f"database {engine.url.render_as_string(hide_password=True)}: table {table.name} lacks "
+                f"{', '.join(missing)} (made by an older camo); use a new database for this study"
+            )
 
 
 def lock_for_assignment(session: Session) -> None:

@@ -19,6 +19,21 @@ Output (``STIMULI_DIR``)::
 that reaches a browser before the click (URL, file name, bytes) carries the
 scene, the method, the mask or the outline. Images are decoded and re-encoded
 with Pillow so PNG text chunks of the source files are dropped.
+
+Two ways to make the images: :mod:`study_site.render_stimuli` re-renders every
+evaluated run at study size with the object at varied, recorded positions and
+sizes (``camo study build-stimuli``, the default), and :func:`build_stimuli`
+here copies the evaluation renders as they are (``--copy``; their object sits at
+the frame centre, which the summary reports). Both record per stimulus where the
+object is (``centroid_x/y`` as fractions of width/height, ``bbox``, ``area_share``,
+``centre_hit``: whether a click on the centre pixel would hit).
+
+Practice never shares a scene with the formal trials: practice stimuli come from
+``--practice`` evaluation directories, from scenes named with
+``--practice-scenes`` (taken out of the formal pool), or, by default, from a
+synthetic practice set (procedural textures with a low-contrast blob; scene
+names ``practice_synthetic_NN``). A set whose practice and formal scenes overlap
+is refused when built and when loaded.
 """
 
 from __future__ import annotations
@@ -36,7 +51,9 @@ import numpy as np
 from optimizer.atomic import atomic_path, write_json
 from optimizer.errors import CamoError
 
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2
+READABLE_VERSIONS = (1, 2)
+SYNTHETIC_SCENE = "practice_synthetic"
 REQUIRED_KEYS = ("run", "scene", "method", "view", "image", "mask")
 OUTLINE_RGB = (255, 40, 200)  # magenta: rarely present in natural backgrounds
 
@@ -57,6 +74,10 @@ class Stimulus:
     width: int
     height: int
     mask_pixels: int
+    centroid_x: float | None = None  # object's mask centroid, fraction of the width (0 left)
+    centroid_y: float | None = None  # fraction of the height (0 top)
+    area_share: float | None = None  # mask pixels / image pixels
+    centre_hit: bool | None = None  # the centre pixel (width // 2, height // 2) lies on the object
 
     @property
     def condition(self) -> str:
@@ -86,15 +107,21 @@ class StimulusSet:
             raise CamoError(f"{self.root}: no manifest.json (build it with `camo study build-stimuli`)")
         try:
             data = json.loads(mpath.read_text(encoding="utf-8"))
-            if data.get("version") != MANIFEST_VERSION:
+            if data.get("version") not in READABLE_VERSIONS:
                 raise CamoError(f"{mpath}: unsupported manifest version {data.get('version')!r}")
-            self.stimuli = [Stimulus(**{k: s[k] for k in Stimulus.__dataclass_fields__}) for s in data["stimuli"]]
+            self.stimuli = [
+                Stimulus(**{k: s[k] for k in Stimulus.__dataclass_fields__ if k in s}) for s in data["stimuli"]
+            ]
         except CamoError:
             raise
         except (ValueError, KeyError, TypeError) as exc:
             raise CamoError(f"{mpath}: malformed manifest ({exc})") from None
         if not any(not s.practice for s in self.stimuli):
             raise CamoError(f"{mpath}: the stimulus set has no (non-practice) stimuli")
+        check_no_leak(
+            {s.scene for s in self.stimuli if not s.practice}, {s.scene for s in self.stimuli if s.practice}, mpath
+        )
+        self.data = data
         self.by_id = {s.id: s for s in self.stimuli}
         self.by_reveal = {s.reveal_id: s for s in self.stimuli}
         self._masks: dict[str, np.ndarray] = {}
@@ -141,9 +168,33 @@ class StimulusSet:
         return pool
 
     def practice_pool(self) -> list[Stimulus]:
-        """Dedicated practice stimuli if the set has any, else every stimulus."""
-        dedicated = [s for s in self.stimuli if s.practice]
-        return dedicated or list(self.stimuli)
+        """The set's dedicated practice stimuli (their scenes are never formal scenes); may be empty."""
+        return [s for s in self.stimuli if s.practice]
+
+
+def check_no_leak(formal_scenes: set[str], practice_scenes: set[str], where: Any = "stimulus set") -> None:
+    """CamoError when a practice scene is also a formal scene (practice would show where the object sits)."""
+    both = sorted(formal_scenes & practice_scenes)
+    if both:
+        raise CamoError(
+            f"{where}: practice scene(s) {', '.join(both)[:200]} also appear in the formal trials (practice would "
+            "reveal where the object is); use other scenes for practice"
+        )
+
+
+def placement(mask: np.ndarray) -> dict[str, Any]:
+    """Where the object is in the frame: centroid (fractions), bbox (px, half-open), area share, centre hit."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return {"centroid_x": None, "centroid_y": None, "bbox": None, "area_share": 0.0, "centre_hit": False}
+    return {
+        "centroid_x": float((xs.mean() + 0.5) / w),
+        "centroid_y": float((ys.mean() + 0.5) / h),
+        "bbox": [int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1],
+        "area_share": float(len(xs) / (w * h)),
+        "centre_hit": bool(mask[h // 2, w // 2]),
+    }
 
 
 def load_mask(path: Path) -> np.ndarray:
@@ -233,28 +284,129 @@ def _save_png(path: Path, arr: np.ndarray) -> None:
         Image.fromarray(arr).save(tmp, format="PNG", optimize=False)
 
 
+class StimulusWriter:
+    """Writes images/, masks/, reveal/ of a new stimulus set, then manifest.json (last, atomically)."""
+
+    def __init__(self, out_dir: str | Path, force: bool = False):
+        self.out = Path(out_dir)
+        if (self.out / "manifest.json").exists() and not force:
+            raise CamoError(
+                f"{self.out}: already holds a stimulus set; a rebuild gives new ids, which breaks a running study "
+                "(use another --out, or --force)"
+            )
+        self.stimuli: list[dict[str, Any]] = []
+
+    def add(self, rgb: np.ndarray, mask: np.ndarray, meta: dict[str, Any], practice: bool) -> dict[str, Any]:
+        sid = secrets.token_urlsafe(12)
+        rid = secrets.token_urlsafe(12)
+        _save_png(self.out / "images" / f"{sid}.png", rgb)
+        _save_png(self.out / "masks" / f"{sid}.png", mask.astype(np.uint8) * 255)
+        _save_png(self.out / "reveal" / f"{rid}.png", outline_overlay(rgb, mask))
+        entry = {
+            "id": sid,
+            "reveal_id": rid,
+            "run": str(meta["run"]),
+            "scene": str(meta["scene"]),
+            "object": str(meta.get("object") or ""),
+            "method": str(meta["method"]),
+            "ablation": str(meta.get("ablation") or ""),
+            "view": str(meta["view"]),
+            "practice": bool(practice),
+            "width": int(rgb.shape[1]),
+            "height": int(rgb.shape[0]),
+            "mask_pixels": int(mask.sum()),
+            **placement(mask),
+            **{k: v for k, v in meta.items() if k not in ("run", "scene", "object", "method", "ablation", "view")},
+        }
+        self.stimuli.append(entry)
+        return entry
+
+    def finish(self, sources: list[str], **extra) -> dict[str, Any]:
+        if not any(not s["practice"] for s in self.stimuli):
+            raise CamoError("no usable stimuli: every formal render entry was skipped")
+        check_no_leak(
+            {s["scene"] for s in self.stimuli if not s["practice"]},
+            {s["scene"] for s in self.stimuli if s["practice"]},
+            self.out,
+        )
+        manifest = {
+            "version": MANIFEST_VERSION,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "sources": sources,
+            **extra,
+            "stimuli": self.stimuli,
+        }
+        write_json(self.out / "manifest.json", manifest)  # written last: a set without manifest is incomplete
+        return manifest
+
+
+def practice_split(
+    formal_scenes: set[str], practice_dir_scenes: set[str], practice_scenes: list[str] | None
+) -> set[str]:
+    """Scenes taken out of the formal pool for practice (``--practice-scenes``); refuses a leaking set."""
+    named = {s.strip() for s in (practice_scenes or []) if s.strip()}
+    unknown = sorted(named - formal_scenes - practice_dir_scenes)
+    if unknown:
+        raise CamoError(f"--practice-scenes: no such scene {', '.join(unknown)} (scenes: {', '.join(sorted(formal_scenes))})")
+    if named and named >= formal_scenes:
+        raise CamoError("--practice-scenes names every scene: no formal scene would be left")
+    check_no_leak(formal_scenes - named, practice_dir_scenes, "--practice")
+    return named
+
+
+def synthetic_practice(n: int, size: tuple[int, int], seed: int = 0):
+    """``n`` procedural practice images: ``[(rgb uint8 (H, W, 3), mask (H, W) bool, meta)]``.
+
+    Background: smooth random colour field with pixel noise. Object: an ellipse (axes 6-13 % of the smaller
+    side, centre uniform where it fits) filled with a shifted copy of the background, tinted and 25 %
+    brighter or darker, so it is findable with some search. Scenes are named ``practice_synthetic_NN``.
+    """
+    from PIL import Image
+
+    rng = np.random.default_rng(10_000 + seed)
+    w, h = size
+    out = []
+    for i in range(n):
+        gh, gw = max(2, h // 48), max(2, w // 48)
+        lum = rng.uniform(60, 200, (gh, gw, 1))
+        tint = rng.normal(0, 1, 3) * 20 + rng.normal(0, 1, (gh, gw, 3)) * 12
+        coarse = np.clip(lum + tint, 0, 255).astype(np.uint8)
+        bg = np.asarray(Image.fromarray(coarse).resize((w, h), Image.BICUBIC), dtype=np.float32)
+        bg += rng.normal(0, 7, (h, w, 1))
+        m = min(w, h)
+        ax, ay = rng.uniform(0.06, 0.13) * m, rng.uniform(0.06, 0.13) * m
+        cx, cy = rng.uniform(ax + 2, w - ax - 2), rng.uniform(ay + 2, h - ay - 2)
+        yy, xx = np.mgrid[0:h, 0:w]
+        mask = ((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2 <= 1.0
+        shifted = np.roll(bg, (int(rng.integers(h // 4, h // 2)), int(rng.integers(w // 4, w // 2))), axis=(0, 1))
+        gain = 1.25 if rng.random() < 0.5 else 0.8
+        obj = np.clip(shifted * gain + rng.normal(0, 6, 3), 0, 255)
+        img = np.where(mask[..., None], obj, bg)
+        meta = {"run": SYNTHETIC_SCENE, "scene": f"{SYNTHETIC_SCENE}_{i:02d}", "object": "blob",
+                "method": "practice", "ablation": "", "view": "0"}
+        out.append((np.clip(img, 0, 255).astype(np.uint8), mask, meta))
+    return out
+
+
 def build_stimuli(
     eval_dirs: list[str | Path],
     out_dir: str | Path,
     practice_dirs: list[str | Path] | None = None,
     force: bool = False,
     log=None,
+    practice_scenes: list[str] | None = None,
+    synthetic_practice_n: int = 8,
 ) -> dict[str, Any]:
-    """Export a stimulus set from evaluation directories; returns the manifest dict.
+    """Export a stimulus set by copying evaluation renders as they are (``--copy``); returns the manifest.
 
     Entries whose mask is empty (object fully hidden in that view) are skipped
     with a warning: nothing could be clicked. Duplicate ``(run, view)`` entries
-    are kept once. ``practice_dirs`` provide dedicated practice stimuli
-    (recommended: other scenes than the formal ones, so practice trials do not
-    reveal where the object sits in a formal scene).
+    are kept once. Practice: ``practice_dirs`` (scenes must differ from the formal
+    ones), ``practice_scenes`` (named scenes of ``eval_dirs`` become practice only),
+    else ``synthetic_practice_n`` synthetic images (0: none).
     """
     log = log or (lambda msg: print(msg, file=sys.stderr))
-    out = Path(out_dir)
-    if (out / "manifest.json").exists() and not force:
-        raise CamoError(
-            f"{out}: already holds a stimulus set; a rebuild gives new ids, which breaks a running study "
-            "(use another --out, or --force)"
-        )
+    writer = StimulusWriter(out_dir, force)
     if not eval_dirs:
         raise CamoError("build-stimuli needs at least one EVAL_DIR")
 
@@ -264,10 +416,13 @@ def build_stimuli(
     for d, practice in sources:
         for e in _read_renders(d):
             plan.append((d, e, practice))
+    formal_scenes = {str(e["scene"]) for _, e, p in plan if not p}
+    named = practice_split(formal_scenes, {str(e["scene"]) for _, e, p in plan if p}, practice_scenes)
+    plan = [(d, e, p or str(e["scene"]) in named) for d, e, p in plan]
 
     seen: set[tuple[str, str, bool]] = set()
-    stimuli: list[dict[str, Any]] = []
     skipped_empty = 0
+    sizes = []
     for d, e, practice in plan:
         key = (str(e["run"]), str(e["view"]), practice)
         if key in seen:
@@ -285,39 +440,21 @@ def build_stimuli(
             skipped_empty += 1
             log(f"warning: empty mask for run={e['run']} view={e['view']} (object not visible); skipped")
             continue
-        sid = secrets.token_urlsafe(12)
-        rid = secrets.token_urlsafe(12)
-        _save_png(out / "images" / f"{sid}.png", rgb)
-        _save_png(out / "masks" / f"{sid}.png", mask.astype(np.uint8) * 255)
-        _save_png(out / "reveal" / f"{rid}.png", outline_overlay(rgb, mask))
-        stimuli.append(
-            {
-                "id": sid,
-                "reveal_id": rid,
-                "run": str(e["run"]),
-                "scene": str(e["scene"]),
-                "object": str(e.get("object") or ""),
-                "method": str(e["method"]),
-                "ablation": str(e.get("ablation") or ""),
-                "view": str(e["view"]),
-                "practice": practice,
-                "width": int(rgb.shape[1]),
-                "height": int(rgb.shape[0]),
-                "mask_pixels": int(mask.sum()),
-                "source_image": str((d / str(e["image"])).resolve()),
-            }
-        )
-    if not any(not s["practice"] for s in stimuli):
-        raise CamoError("no usable stimuli: every formal render entry was skipped")
-    manifest = {
-        "version": MANIFEST_VERSION,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "sources": [str(d.resolve()) for d, _ in sources],
-        "skipped_empty_masks": skipped_empty,
-        "stimuli": stimuli,
-    }
-    write_json(out / "manifest.json", manifest)  # written last: a set without manifest is incomplete
-    return manifest
+        sizes.append((rgb.shape[1], rgb.shape[0]))
+        meta = {k: e.get(k) for k in ("run", "scene", "object", "method", "ablation", "view")}
+        meta["source_image"] = str((d / str(e["image"])).resolve())
+        writer.add(rgb, mask, meta, practice)
+    has_practice = any(s["practice"] for s in writer.stimuli)
+    if not has_practice and synthetic_practice_n > 0 and sizes:
+        size = max(set(sizes), key=sizes.count)
+        for rgb, mask, meta in synthetic_practice(synthetic_practice_n, size):
+            writer.add(rgb, mask, meta, True)
+    return writer.finish(
+        [str(d.resolve()) for d, _ in sources],
+        mode="copy",
+        placement="as rendered by `camo evaluate` (orbit cameras aimed at the object: it sits at the centre)",
+        skipped_empty_masks=skipped_empty,
+    )
 
 
 def summarize(manifest: dict[str, Any]) -> str:
@@ -325,7 +462,7 @@ def summarize(manifest: dict[str, Any]) -> str:
     scenes = sorted({s["scene"] for s in formal})
     conds = sorted({condition_label(s["method"], s["ablation"]) for s in formal})
     cells = {(s["scene"], condition_label(s["method"], s["ablation"])) for s in formal}
-    n_practice = len(manifest["stimuli"]) - len(formal)
+    practice = [s for s in manifest["stimuli"] if s["practice"]]
     missing = len(scenes) * len(conds) - len(cells)
     text = (
         f"{len(formal)} stimuli: {len(scenes)} scenes x {len(conds)} methods ({', '.join(conds)}), "
@@ -333,6 +470,26 @@ def summarize(manifest: dict[str, Any]) -> str:
     )
     if missing:
         text += f" ({missing} scene x method cells have no render)"
-    if n_practice:
-        text += f"; {n_practice} dedicated practice stimuli"
+    if practice:
+        pscenes = sorted({s["scene"] for s in practice})
+        text += f"; {len(practice)} practice stimuli from {len(pscenes)} other scene(s)"
+    b = location_baselines(manifest)
+    if b["n"]:
+        text += (
+            f"; centre click hits {b['centre_hits']}/{b['n']} ({100 * b['centre_hit_rate']:.1f} %), "
+            f"mean object area share {100 * b['mean_area_share']:.1f} %"
+        )
     return text
+
+
+def location_baselines(manifest: dict[str, Any]) -> dict[str, Any]:
+    """Formal stimuli: how often a click at the centre pixel hits, next to the object's mean area share.
+
+    Under a uniform spread of positions the centre-click hit rate is close to the area share; an object
+    always at the centre gives 100 %.
+    """
+    formal = [s for s in manifest["stimuli"] if not s["practice"] and s.get("centre_hit") is not None]
+    n = len(formal)
+    hits = sum(bool(s["centre_hit"]) for s in formal)
+    share = float(np.mean([s["area_share"] for s in formal])) if n else float("nan")
+    return {"n": n, "centre_hits": hits, "centre_hit_rate": hits / n if n else float("nan"), "mean_area_share": share}

@@ -32,20 +32,12 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from .assign import create_plan
+from .config import age_brackets
 from .db import Participant, PlanItem, Trial, lock_for_assignment, utcnow
 from .security import TOKEN_RE, check_csrf, hmac_id, valid_id
 
 bp = Blueprint("study", __name__)
 
-AGE_BRACKETS = [
-    ("10-20", "10–20"),
-    ("20-30", "20–30"),
-    ("30-40", "30–40"),
-    ("40-50", "40–50"),
-    ("50-60", "50–60"),
-    ("60-70", "60–70"),
-    ("prefer_not", "Prefer not to say"),
-]
 STAGE_ENDPOINT = {
     "consent": "study.consent",
     "declined": "study.declined",
@@ -246,14 +238,14 @@ def about():
     if request.method == "POST":
         check_csrf()
         age = request.form.get("age") or None
-        if age is not None and age not in dict(AGE_BRACKETS):
+        if age is not None and age not in dict(age_brackets(int(_cfg("MIN_AGE")))):
             abort(400, description="Unknown age bracket.")
         with st().db.write() as s, s.begin():
             q = s.get(Participant, p.id)
             q.age_bracket = age
             q.demographics_at = utcnow()
         return redirect(url_for("study.instructions"))
-    return render_template("about.html", brackets=AGE_BRACKETS, **_step_context("about"))
+    return render_template("about.html", brackets=age_brackets(int(_cfg("MIN_AGE"))), **_step_context("about"))
 
 
 @bp.route("/instructions", methods=["GET", "POST"])
@@ -328,6 +320,12 @@ def api_state():
         practice=n_practice,
         time_limit_ms=int(round(p.time_limit_s * 1000)),
         next=nxt,
+        display={
+            "height_share": float(_cfg("DISPLAY_HEIGHT_SHARE")),
+            "max_width_share": float(_cfg("DISPLAY_MAX_WIDTH_SHARE")),
+            "min_viewport_w": int(_cfg("MIN_VIEWPORT_W")),
+            "min_viewport_h": int(_cfg("MIN_VIEWPORT_H")),
+        },
         trials=[
             {
                 "index": it.idx,
@@ -335,11 +333,59 @@ def api_state():
                 "src": url_for("study.image", sid=it.stimulus_id),
                 "w": it.width,
                 "h": it.height,
+                "started": it.started_at is not None,
             }
             for it in plan
             if it.idx not in answered
         ],
     )
+
+
+def _elapsed_ms(started_at, now) -> float:
+    return max(0.0, (now - started_at).total_seconds() * 1000.0)
+
+
+@bp.post("/api/start")
+def api_start():
+    """The trial's image is about to be shown: start its server-side clock (once; a reload keeps it).
+
+    Answer: ``elapsed_ms`` since the first start and ``remaining_ms`` of the time limit (0: the trial is
+    over; the page then sends a timeout).
+    """
+    check_csrf()
+    body = _json_body()
+    if not isinstance(body, dict) or set(body) - {"trial_index"}:
+        abort(400, description="expected {\"trial_index\": N}")
+    idx = body.get("trial_index")
+    if isinstance(idx, bool) or not isinstance(idx, int) or not 0 <= idx < 10_000:
+        abort(400, description="trial_index must be a small non-negative integer")
+    state = st()
+    now = utcnow()
+    with state.db.write() as s, s.begin():
+        p = _api_participant(s)
+        item = s.get(PlanItem, (p.id, idx))
+        if item is None:
+            abort(400, description="no such trial")
+        n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
+        if idx != n_done:
+            abort(409, description=f"trial {idx} is not the next one (next is {n_done})")
+        if item.started_at is None:
+            item.started_at = now
+        item.starts = (item.starts or 0) + 1
+        started_at, starts, limit_s = item.started_at, item.starts, p.time_limit_s
+    elapsed = _elapsed_ms(started_at, now)
+    limit_ms = limit_s * 1000.0
+    return jsonify(
+        ok=True,
+        trial_index=idx,
+        starts=starts,
+        time_limit_ms=int(round(limit_ms)),
+        elapsed_ms=round(elapsed, 1),
+        remaining_ms=round(max(0.0, limit_ms - elapsed), 1),
+    )
+
+
+MAX_ABS_NUMBER = 1e12  # larger JSON numbers are rejected before any arithmetic (no OverflowError)
 
 
 def _num(body: dict, key: str, required: bool = True, lo: float = -math.inf, hi: float = math.inf):
@@ -348,7 +394,13 @@ def _num(body: dict, key: str, required: bool = True, lo: float = -math.inf, hi:
         if required:
             abort(400, description=f"{key} is required")
         return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        abort(400, description=f"{key} must be a finite number")
+    if isinstance(v, int):
+        if not -MAX_ABS_NUMBER <= v <= MAX_ABS_NUMBER:  # exact integer comparison: 10**400 never becomes a float
+            abort(400, description=f"{key} is out of range")
+        v = float(v)
+    if not math.isfinite(v):
         abort(400, description=f"{key} must be a finite number")
     if not lo <= v <= hi:
         abort(400, description=f"{key} is out of range")
@@ -364,10 +416,17 @@ def _json_body():
         abort(400, description="body is not valid JSON")
 
 
+TRIAL_FIELDS = {
+    "trial_index", "client_trial_id", "timed_out", "x", "y", "rt_ms", "display_w", "display_h",
+    "viewport_w", "viewport_h", "dpr",
+}
+CLOCK_TOLERANCE_MS = 1000.0  # the page's clock may run ahead of the server's by this much (start latency)
+
+
 def _parse_trial(body) -> dict:
     if not isinstance(body, dict):
         abort(400, description="expected a JSON object")
-    unknown = set(body) - {"trial_index", "client_trial_id", "timed_out", "x", "y", "rt_ms", "display_w", "display_h"}
+    unknown = set(body) - TRIAL_FIELDS
     if unknown:
         abort(400, description=f"unknown fields: {', '.join(sorted(map(str, unknown)))[:200]}")
     idx = body.get("trial_index")
@@ -383,9 +442,12 @@ def _parse_trial(body) -> dict:
         "trial_index": idx,
         "client_trial_id": cid,
         "timed_out": timed_out,
-        "rt_ms": float(_num(body, "rt_ms", True, 0.0, 3_600_000.0)),
+        "rt_ms": _num(body, "rt_ms", True, 0.0, 3_600_000.0),
         "display_w": _num(body, "display_w", False, 0.0, 100_000.0),
         "display_h": _num(body, "display_h", False, 0.0, 100_000.0),
+        "viewport_w": _num(body, "viewport_w", False, 0.0, 100_000.0),
+        "viewport_h": _num(body, "viewport_h", False, 0.0, 100_000.0),
+        "dpr": _num(body, "dpr", False, 0.05, 20.0),
         "x": None,
         "y": None,
     }
@@ -397,32 +459,74 @@ def _parse_trial(body) -> dict:
     return out
 
 
+def _trial_answer(existing: Trial, item: PlanItem, total: int, ack: str, duplicate: bool):
+    return jsonify(
+        ok=True,
+        ack=ack,
+        stored_client_trial_id=existing.client_trial_id,
+        duplicate=duplicate,
+        trial_index=existing.trial_index,
+        hit=existing.hit,
+        timed_out=existing.timed_out,
+        late=existing.late,
+        too_fast=existing.too_fast,
+        reveal=url_for("study.reveal", rid=item.reveal_id),
+        next=existing.trial_index + 1,
+        done=existing.trial_index + 1 >= total,
+    )
+
+
 @bp.post("/api/trial")
 def api_trial():
+    """Store one answer, judged against the server's clock of that trial.
+
+    * a retry of a stored trial returns the stored answer (idempotent; no re-judging);
+    * the trial must have been started (``/api/start``), else 409;
+    * ``rt_ms`` may not exceed the server's elapsed time by more than ``CLOCK_TOLERANCE_MS`` (400);
+    * a timeout before the time limit (page or server clock) is 400;
+    * a click after the limit (``rt_ms`` > limit, or arriving after limit + ``DEADLINE_GRACE_S`` on the
+      server) is stored as a timeout with ``late = true`` (not a hit, whatever it clicked);
+    * ``rt_ms`` below ``RT_FLOOR_MS`` is stored with ``too_fast = true`` (the analysis excludes it).
+    """
     check_csrf()
     data = _parse_trial(_json_body())
     state = st()
     idx = data["trial_index"]
+    now = utcnow()
     with state.db.read() as s:
         p = _api_participant(s)
         item = s.get(PlanItem, (p.id, idx))
         total = s.scalar(select(func.count()).where(PlanItem.participant_id == p.id))
+        existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
     if item is None:
         abort(400, description="no such trial")
+    if existing is not None:  # a retry (lost acknowledgement) or a second answer: the first one stands
+        return _trial_answer(existing, item, total, data["client_trial_id"], True)
+    if item.started_at is None:
+        abort(409, description="trial not started (POST /api/start first)")
     limit_ms = p.time_limit_s * 1000.0
-    if data["rt_ms"] > limit_ms + 2000.0:
-        abort(400, description="rt_ms exceeds the trial time limit")
+    server_ms = _elapsed_ms(item.started_at, now)
+    rt = data["rt_ms"]
+    if rt > server_ms + CLOCK_TOLERANCE_MS:
+        abort(400, description="rt_ms exceeds the time since the trial started")
+    late = False
+    if data["timed_out"]:
+        if rt < limit_ms - CLOCK_TOLERANCE_MS or server_ms < limit_ms - CLOCK_TOLERANCE_MS:
+            abort(400, description="a timeout before the time limit")
+    elif rt > limit_ms or server_ms > limit_ms + 1000.0 * float(_cfg("DEADLINE_GRACE_S")):
+        late = True
     x = y = None
     hit = False
     if not data["timed_out"]:
         x, y = int(data["x"]), int(data["y"])
         if x >= item.width or y >= item.height:
             abort(400, description="click position outside the image")
-        stim = state.stimuli.by_id.get(item.stimulus_id)
-        if stim is None:
-            abort(409, description="stimulus set changed since this session started")
-        hit = state.stimuli.hit(stim, x, y, int(_cfg("HIT_TOLERANCE_PX")))
-    now = utcnow()
+        if not late:
+            stim = state.stimuli.by_id.get(item.stimulus_id)
+            if stim is None:
+                abort(409, description="stimulus set changed since this session started")
+            hit = state.stimuli.hit(stim, x, y, int(_cfg("HIT_TOLERANCE_PX")))
+    too_fast = (not data["timed_out"]) and rt < float(_cfg("RT_FLOOR_MS"))
     with state.db.write() as s, s.begin():
         existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
         duplicate = existing is not None
@@ -443,14 +547,21 @@ def api_trial():
                 ablation=item.ablation,
                 view=item.view,
                 hit=hit,
-                timed_out=data["timed_out"],
+                timed_out=data["timed_out"] or late,
                 click_x=x,
                 click_y=y,
-                rt_ms=data["rt_ms"],
+                rt_ms=rt,
                 time_limit_s=p.time_limit_s,
                 display_w=data["display_w"],
                 display_h=data["display_h"],
+                viewport_w=data["viewport_w"],
+                viewport_h=data["viewport_h"],
+                dpr=data["dpr"],
                 server_received_at=now,
+                server_rt_ms=server_ms,
+                late=late,
+                too_fast=too_fast,
+                starts=int(item.starts or 1),
             )
             if not state.db.insert_ignore(s, Trial, values):
                 duplicate = True
@@ -459,20 +570,7 @@ def api_trial():
                 abort(409, description="client_trial_id already used for another trial")
             q = s.get(Participant, p.id)
             q.last_seen_at = now
-        stored_hit, stored_timeout = existing.hit, existing.timed_out
-        stored_cid = existing.client_trial_id
-    return jsonify(
-        ok=True,
-        ack=data["client_trial_id"],
-        stored_client_trial_id=stored_cid,
-        duplicate=duplicate,
-        trial_index=idx,
-        hit=stored_hit,
-        timed_out=stored_timeout,
-        reveal=url_for("study.reveal", rid=item.reveal_id),
-        next=idx + 1,
-        done=idx + 1 >= total,
-    )
+        return _trial_answer(existing, item, total, data["client_trial_id"], duplicate)
 
 
 @bp.post("/api/complete")

@@ -31,6 +31,9 @@ def stim_dir(tmp_path_factory):
     return root / "stim"
 
 
+ID_KEY = "k" * 64
+
+
 def _app(stim_dir, tmp_path, **cfg):
     base = {
         "STIMULI_DIR": str(stim_dir),
@@ -38,6 +41,7 @@ def _app(stim_dir, tmp_path, **cfg):
         "PRACTICE_TRIALS": 2,
         "TRIAL_TIME_LIMIT_S": 40,
         "ADMIN_TOKEN": "admintok123",
+        "ID_HMAC_KEY": ID_KEY,
     }
     base.update(cfg)
     app = create_app(base)
@@ -51,7 +55,7 @@ def _csrf(html: str) -> str:
     return m.group(1)
 
 
-def _to_task(client, pid="PID_0001", age="20-30"):
+def _to_task(client, pid="PID_0001", age="18-24"):
     r = client.get(f"/?PROLIFIC_PID={pid}&STUDY_ID=study1&SESSION_ID=sess{pid}")
     assert r.status_code == 302 and r.headers["Location"].endswith("/consent")
     r = client.get("/consent")
@@ -63,10 +67,31 @@ def _to_task(client, pid="PID_0001", age="20-30"):
     return tok
 
 
-def _post_trial(client, tok, idx, cid=None, **kw):
-    body = {"trial_index": idx, "client_trial_id": cid or f"cid{idx:04d}xx", "timed_out": False, "rt_ms": 1234.5}
+def _start(client, tok, idx):
+    return client.post("/api/start", json={"trial_index": idx}, headers={"X-CSRF-Token": tok})
+
+
+def _post_trial(client, tok, idx, cid=None, start=True, **kw):
+    """Answer trial ``idx`` (started first unless ``start=False``); rt 800 ms unless given."""
+    if start:
+        r = _start(client, tok, idx)
+        assert r.status_code in (200, 409), r.text
+    body = {"trial_index": idx, "client_trial_id": cid or f"cid{idx:04d}xx", "timed_out": False, "rt_ms": 800.0}
     body.update(kw)
     return client.post("/api/trial", json=body, headers={"X-CSRF-Token": tok})
+
+
+def _age_trial(app, idx, seconds):
+    """Move trial ``idx``'s server-side start ``seconds`` into the past (every participant of this app)."""
+    from datetime import timedelta
+
+    from sqlalchemy import select
+
+    from study_site.db import PlanItem
+
+    with app.extensions["camo_study"].db.write() as s, s.begin():
+        for it in s.scalars(select(PlanItem).where(PlanItem.idx == idx, PlanItem.started_at.is_not(None))):
+            it.started_at = it.started_at - timedelta(seconds=seconds)
 
 
 def _finish(client, tok, rects, hit_every=2):
@@ -91,14 +116,26 @@ def _finish(client, tok, rects, hit_every=2):
 
 def test_build_stimuli_layout_and_opacity(stim_dir):
     man = json.loads((stim_dir / "manifest.json").read_text())
-    assert len(man["stimuli"]) == len(SCENES) * len(METHODS) * 2
+    formal = [s for s in man["stimuli"] if not s["practice"]]
+    practice = [s for s in man["stimuli"] if s["practice"]]
+    assert len(formal) == len(SCENES) * len(METHODS) * 2
+    # no practice source given: a synthetic practice set of 8 images, none in a formal scene
+    assert len(practice) == 8 and all(s["scene"].startswith("practice_synthetic_") for s in practice)
+    assert not {s["scene"] for s in practice} & set(SCENES)
     names = " ".join(p.name for p in stim_dir.rglob("*.png"))
-    for secret in SCENES + METHODS + ("view_", "mask", "obj"):
+    for secret in SCENES + METHODS + ("view_", "mask", "obj", "practice"):
         assert secret not in names
     ids = {s["id"] for s in man["stimuli"]}
     rids = {s["reveal_id"] for s in man["stimuli"]}
     assert len(ids) == len(man["stimuli"]) and not ids & rids
-    for s in man["stimuli"]:
+    rects = mask_rects(stim_dir)
+    for s in formal:  # recorded placement = the fake renders' rectangles
+        x0, y0, x1, y1 = rects[s["id"]]
+        assert s["bbox"] == [x0, y0, x1, y1]
+        assert s["centroid_x"] == pytest.approx((x0 + x1) / 2 / 64) and s["centroid_y"] == pytest.approx((y0 + y1) / 2 / 48)
+        assert s["area_share"] == pytest.approx((x1 - x0) * (y1 - y0) / (64 * 48))
+        assert s["centre_hit"] == (x0 <= 32 < x1 and y0 <= 24 < y1)
+    for s in formal:
         img = np.asarray(Image.open(stim_dir / "images" / f"{s['id']}.png"))
         src = np.asarray(Image.open(s["source_image"]).convert("RGB"))
         assert np.array_equal(img, src)  # pixels unchanged, only re-encoded
@@ -167,6 +204,7 @@ def test_full_session_rows_and_no_leak(stim_dir, tmp_path):
     assert c.get(f"/r/{rid}").status_code == 404
     sid = t0["src"].rsplit("/", 1)[1]
     x0, y0, x1, y1 = rects[sid]
+    x0, y0 = (x0 + x1) // 2, (y0 + y1) // 2  # practice images are synthetic ellipses: aim at the centre
     r = _post_trial(c, tok, 0, x=x0, y=y0, display_w=640.0, display_h=480.0)
     j = r.get_json()
     assert r.status_code == 200 and j["hit"] is True and j["ack"] == "cid0000xx"
@@ -176,8 +214,10 @@ def test_full_session_rows_and_no_leak(stim_dir, tmp_path):
     assert r2.status_code == 200 and r2.get_json()["hit"] is True and r2.get_json()["duplicate"] is True
     # out of order
     assert _post_trial(c, tok, 3, x=1, y=1).status_code == 409
-    # a timeout
-    r = _post_trial(c, tok, 1, cid="cid0001xx", timed_out=True, rt_ms=40010.0)
+    # a timeout (the server's clock of trial 1 has run out)
+    assert _start(c, tok, 1).status_code == 200
+    _age_trial(app, 1, 41)
+    r = _post_trial(c, tok, 1, cid="cid0001xx", start=False, timed_out=True, rt_ms=40010.0)
     assert r.status_code == 200 and r.get_json()["timed_out"] is True and r.get_json()["hit"] is False
     # completion refused while trials are missing
     assert c.post("/api/complete", json={}, headers={"X-CSRF-Token": tok}).status_code == 409
@@ -191,9 +231,10 @@ def test_full_session_rows_and_no_leak(stim_dir, tmp_path):
     assert trials["trial_index"].tolist() == list(range(state["total"]))
     row0 = trials.iloc[0]
     assert (row0.click_x, row0.click_y, row0.hit, row0.display_w) == (x0, y0, True, 640.0)
+    assert not row0.late and not row0.too_fast and row0.starts == 1 and 0 <= row0.server_rt_ms < 5000
     assert trials.iloc[1].timed_out and np.isnan(trials.iloc[1].click_x)
     assert sorted(trials.loc[~trials.practice, "scene"]) == sorted(SCENES)
-    assert parts.iloc[0].age_bracket == "20-30" and parts.iloc[0].completed
+    assert parts.iloc[0].age_bracket == "18-24" and parts.iloc[0].completed
     assert "PID_0001" not in parts.to_csv() and len(parts.iloc[0].pid_hmac) == 64
     # cannot take the study twice; resume of a finished session lands on /done
     c2 = app.test_client()
@@ -256,8 +297,11 @@ def test_anonymous_start_and_admin(stim_dir, tmp_path):
     tok = _csrf(c.get("/").text)
     r = c.post("/", data={"csrf_token": tok, "participant_id": ""})
     assert r.status_code == 302
-    assert c.get("/admin/").headers["Location"].endswith("/admin/login")
-    assert c.get("/admin/export/trials.csv").status_code == 403
+    r = c.get("/admin/")
+    assert r.status_code == 401 and r.headers["WWW-Authenticate"].startswith("Bearer") and "Admin token" in r.text
+    assert c.get("/admin/export/trials.csv").status_code == 401
+    assert c.get("/admin/", headers={"Authorization": "Bearer wrong"}).status_code == 403
+    assert c.get("/admin/export/trials.csv", headers={"Authorization": "Bearer wrong"}).status_code == 403
     assert c.post("/admin/login", data={"csrf_token": tok, "token": "nope"}).status_code == 403
     r = c.get("/admin/export/participants.csv", headers={"Authorization": "Bearer admintok123"})
     assert r.status_code == 200 and r.text.startswith("participant,")
@@ -292,12 +336,26 @@ def test_anonymous_start_and_admin(stim_dir, tmp_path):
         {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": True, "rt_ms": 1, "x": 1, "y": 1},
         {"trial_index": 999, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 1, "y": 1},
         {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 1, "y": 1, "z": 2},
+        # a timeout 3 ms into a 40 s trial
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": True, "rt_ms": 3},
+        # more time than the server has seen since the start
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 5000, "x": 1, "y": 1},
+        # 401-digit integers (json.loads makes Python ints; float() of them overflows)
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 10**400, "y": 1},
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": -(10**400), "x": 1, "y": 1},
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 1, "y": 1,
+         "display_w": 10**400},
+        {"trial_index": 10**400, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 1, "y": 1},
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 1, "y": 1, "dpr": 0},
+        {"trial_index": 0, "client_trial_id": "abcdefgh", "timed_out": False, "rt_ms": 1, "x": 1, "y": 1,
+         "viewport_w": -1},
     ],
 )
 def test_malformed_trials_are_4xx(stim_dir, tmp_path, body):
     app = _app(stim_dir, tmp_path)
     c = app.test_client()
     tok = _to_task(c)
+    assert _start(c, tok, 0).status_code == 200
     if body is None or isinstance(body, str):
         raw = "{nope" if body is None else body
         r = c.post("/api/trial", data=raw, content_type="application/json", headers={"X-CSRF-Token": tok})
@@ -305,7 +363,7 @@ def test_malformed_trials_are_4xx(stim_dir, tmp_path, body):
         raw = json.dumps(body, allow_nan=True)
         r = c.post("/api/trial", data=raw, content_type="application/json", headers={"X-CSRF-Token": tok})
     assert 400 <= r.status_code < 500, (body, r.status_code)
-    assert r.is_json and "error" in r.get_json()
+    assert r.is_json and "error" in r.get_json() and "\n" not in r.get_json()["error"]
     assert c.get("/api/state").get_json()["next"] == 0  # nothing stored
 
 
@@ -351,7 +409,7 @@ def test_cli_build_and_report(tmp_path, capsys):
     ev = tmp_path / "ev"
     make_fake_eval_dir(ev, scenes=("s1", "s2"), methods=("m1", "m2"), views=1, size=(40, 30))
     p = _parser()
-    args = p.parse_args(["study", "build-stimuli", str(ev), "--out", str(tmp_path / "stim")])
+    args = p.parse_args(["study", "build-stimuli", str(ev), "--out", str(tmp_path / "stim"), "--copy"])
     assert args.func(args) == 0
     assert "2 scenes x 2 methods" in capsys.readouterr().out
     app = _app(tmp_path / "stim", tmp_path, PRACTICE_TRIALS=1)
@@ -369,6 +427,7 @@ def test_cli_build_and_report(tmp_path, capsys):
 
     t = pd.read_parquet(tmp_path / "rep" / "trials.parquet")
     assert len(t) == 3 * 3 and t["practice"].sum() == 3
+    assert set(t.loc[t.practice, "scene"]) <= {f"practice_synthetic_{i:02d}" for i in range(8)}
 
 
 def test_cli_bad_input_raises_camoerror(tmp_path):
@@ -424,11 +483,13 @@ def test_locked_database_is_503_then_retry_succeeds(stim_dir, tmp_path):
     app = _app(stim_dir, tmp_path, SQLITE_BUSY_TIMEOUT_MS=100)
     c = app.test_client()
     tok = _to_task(c, "LOCK_1")
+    assert _start(c, tok, 0).status_code == 200
+    _age_trial(app, 0, 40)
     con = sqlite3.connect(tmp_path / "study.sqlite", isolation_level=None)
     con.execute("BEGIN IMMEDIATE")  # another writer holds the database
-    r = _post_trial(c, tok, 0, timed_out=True, rt_ms=40000.0)
+    r = _post_trial(c, tok, 0, start=False, timed_out=True, rt_ms=40000.0)
     assert r.status_code == 503 and r.headers["Retry-After"] == "1"
     con.execute("ROLLBACK")
     con.close()
-    r = _post_trial(c, tok, 0, timed_out=True, rt_ms=40000.0)  # the client's retry
+    r = _post_trial(c, tok, 0, start=False, timed_out=True, rt_ms=40000.0)  # the client's retry
     assert r.status_code == 200 and r.get_json()["duplicate"] is False

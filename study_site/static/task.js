@@ -2,9 +2,11 @@
  *
  * 1. GET the participant's remaining trials (opaque image URLs only).
  * 2. Preload and decode every image before the first trial, so download time never counts.
- * 3. Per trial: show the image, start the clock (performance.now) after it is painted, wait for one
- *    click or the time limit, POST the answer (retried until acknowledged; kept in localStorage so a
- *    reload re-sends it), then show the server's reveal image.
+ * 3. Per trial: POST /api/start (the server starts the trial's clock the first time and answers with the
+ *    time already used, so a reload continues the same deadline), show the image at a fixed share of the
+ *    viewport, start the page's clock (performance.now) after it is painted, wait for one click or the
+ *    remaining time, POST the answer (retried until acknowledged; kept in localStorage so a reload
+ *    re-sends it) with the displayed size, viewport and device pixel ratio, then show the reveal image.
  * 4. After every trial is acknowledged, POST /api/complete and go to the completion page.
  */
 (function () {
@@ -13,7 +15,8 @@
   var root = document.getElementById('task');
   if (!root) return;
   var CSRF = root.dataset.csrf;
-  var URLS = { state: root.dataset.state, trial: root.dataset.trial, complete: root.dataset.complete };
+  var URLS = { state: root.dataset.state, start: root.dataset.start, trial: root.dataset.trial,
+               complete: root.dataset.complete };
 
   function $(id) { return document.getElementById(id); }
   var stage = $('stage'), panel = $('panel'), panelText = $('panel-text'), panelButton = $('panel-button');
@@ -140,11 +143,11 @@
     }));
   }
 
-  function startTimerBar(ms) {
+  function startTimerBar(remaining, limit) {
     timerFill.style.transition = 'none';
-    timerFill.style.width = '100%';
+    timerFill.style.width = (100 * remaining / limit) + '%';
     void timerFill.offsetWidth;
-    timerFill.style.transition = 'width ' + ms + 'ms linear';
+    timerFill.style.transition = 'width ' + remaining + 'ms linear';
     timerFill.style.width = '0%';
   }
   function stopTimerBar() {
@@ -153,16 +156,48 @@
     timerFill.style.width = w;
   }
 
-  /* Show the image, return {timed_out, x, y, rt_ms, display_w, display_h, fx, fy}. */
+  /* The image's size is a fixed share of the viewport: height = height_share * viewport height, unless
+     that makes it wider than max_width_share * viewport width. Same share for every participant. */
+  function fitImage(img) {
+    var d = state.display, vw = window.innerWidth, vh = window.innerHeight;
+    var aspect = img.naturalWidth / img.naturalHeight;
+    var h = d.height_share * vh, w = h * aspect;
+    if (w > d.max_width_share * vw) { w = d.max_width_share * vw; h = w / aspect; }
+    img.style.width = Math.round(w) + 'px';
+    img.style.height = Math.round(h) + 'px';
+  }
+  async function ensureViewport() {
+    var d = state.display;
+    while (window.innerWidth < d.min_viewport_w || window.innerHeight < d.min_viewport_h) {
+      await panelWait('Please make this window larger (at least ' + d.min_viewport_w + ' \u00d7 ' +
+        d.min_viewport_h + ' pixels; now ' + window.innerWidth + ' \u00d7 ' + window.innerHeight +
+        '), e.g. by maximising it, then press Continue.', 'Continue');
+    }
+  }
+  function sizes(img) {
+    var r = img.getBoundingClientRect();
+    return { display_w: r.width, display_h: r.height, viewport_w: window.innerWidth,
+             viewport_h: window.innerHeight, dpr: window.devicePixelRatio || 1 };
+  }
+
+  /* Start the trial on the server, show the image, return {timed_out, x, y, rt_ms, sizes..., fx, fy}.
+     rt_ms counts from the trial's first start: after a reload the time already used is included. */
   async function present(t) {
+    await ensureViewport();
     var img = images.get(t.index);
+    var limit = state.time_limit_ms;
+    var start = await request(URLS.start, { trial_index: t.index });
+    if (start.remaining_ms <= 0) {
+      return Object.assign({ timed_out: true, rt_ms: Math.max(limit, start.elapsed_ms) }, sizes(img));
+    }
     img.className = 'stim';
+    fitImage(img);
     showImage(img);
     await frame();
     await frame(); // the image has been painted
-    var limit = state.time_limit_ms;
+    var base = start.elapsed_ms, remaining = start.remaining_ms;
     var t0 = performance.now();
-    startTimerBar(limit);
+    startTimerBar(remaining, limit);
     return new Promise(function (resolve) {
       var finished = false;
       function end(r) {
@@ -175,20 +210,19 @@
       }
       function onDown(e) {
         if (e.button !== 0) return;
-        var rt = performance.now() - t0;
+        var rt = base + performance.now() - t0;
         e.preventDefault();
         var r = img.getBoundingClientRect();
         var fx = (e.clientX - r.left) / r.width, fy = (e.clientY - r.top) / r.height;
         var x = Math.min(img.naturalWidth - 1, Math.max(0, Math.floor(fx * img.naturalWidth)));
         var y = Math.min(img.naturalHeight - 1, Math.max(0, Math.floor(fy * img.naturalHeight)));
-        end({ timed_out: false, x: x, y: y, rt_ms: rt, display_w: r.width, display_h: r.height, fx: fx, fy: fy });
+        end(Object.assign({ timed_out: false, x: x, y: y, rt_ms: rt, fx: fx, fy: fy }, sizes(img)));
       }
       img.addEventListener('pointerdown', onDown);
       setPhase('trial');
       var timer = setTimeout(function () {
-        var r = img.getBoundingClientRect();
-        end({ timed_out: true, rt_ms: performance.now() - t0, display_w: r.width, display_h: r.height });
-      }, limit);
+        end(Object.assign({ timed_out: true, rt_ms: Math.max(limit, base + performance.now() - t0) }, sizes(img)));
+      }, remaining);
     });
   }
 
@@ -199,6 +233,7 @@
     rev.src = url;
     try { await rev.decode(); } catch (e) { rev = shown; /* keep the image; the answer is saved anyway */ }
     rev.className = 'stim revealed';
+    fitImage(rev);
     showImage(rev);
     if (!answer.timed_out) {
       var r = rev.getBoundingClientRect(), f = frameEl.getBoundingClientRect();
@@ -225,7 +260,8 @@
     nextBtn.hidden = true;
     var a = await present(t);
     var body = { trial_index: t.index, client_trial_id: randomId(), timed_out: a.timed_out, rt_ms: a.rt_ms,
-                 display_w: a.display_w, display_h: a.display_h };
+                 display_w: a.display_w, display_h: a.display_h, viewport_w: a.viewport_w,
+                 viewport_h: a.viewport_h, dpr: a.dpr };
     if (!a.timed_out) { body.x = a.x; body.y = a.y; }
     savePending(body);
     setPhase('saving');
@@ -234,7 +270,8 @@
     clearPending();
     progressFill.style.width = (100 * (t.index + 1) / state.total) + '%';
     await showReveal(resp.reveal, a, images.get(t.index));
-    if (resp.timed_out) showStatus('Time is up. Here is where the object was.', 'bad');
+    if (resp.late) showStatus('Too late: time was up before your click. Here is where the object was.', 'bad');
+    else if (resp.timed_out) showStatus('Time is up. Here is where the object was.', 'bad');
     else if (resp.hit) showStatus('Found it! (' + (a.rt_ms / 1000).toFixed(1) + ' s)', 'good');
     else showStatus('Not quite. Here is where the object was.', 'bad');
     setPhase('reveal');
@@ -269,7 +306,8 @@
       if (i === 0) {
         var first = t.index === 0
           ? 'Practice first: find the hidden object in each image and click on it as quickly as you can.'
-          : 'Welcome back. You continue with ' + (t.practice ? 'the practice.' : 'the main task.');
+          : 'Welcome back. You continue with ' + (t.practice ? 'the practice.' : 'the main task.') +
+            (t.started ? ' The image you were looking at continues with the time that was left.' : '');
         setProgress(t);
         await panelWait(first, t.practice ? 'Start the practice' : 'Continue');
       } else if (prev.practice && !t.practice) {

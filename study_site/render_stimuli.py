@@ -1,0 +1,259 @@
+"""Study stimuli rendered for the study, not for metrics (``camo study build-stimuli``, default mode).
+
+Evaluation renders (``camo evaluate``) come from orbit cameras aimed at the object, so the object always
+sits at the frame centre and the images are as small as the training resolution. Here every evaluated run
+is rendered again at the study size (``size`` x ``size``, default 512 px, independent of the training
+resolution) from the same evaluation camera *positions* (``evaluation.views.evaluation_cameras`` with the
+evaluation's seed and jitter), but each camera is turned and zoomed so that the object lands at a random,
+recorded place and size in the frame.
+
+Distribution (per scene and view, the same for every method of that scene, so methods are compared on
+identical framings and share one background render):
+
+* **size**: the object's nominal extent (the pack's normalised object size, seen from the camera's
+  distance) spans a fraction ``s ~ U(object_frac)`` of the frame width (default 0.10-0.30); the field of
+  view is set to give that, clamped to 8-100 degrees;
+* **position**: the object centre's image position, in normalised device coordinates, is uniform in the
+  square where an object of extent ``s`` stays ``margin`` (default 4 % of the frame) inside the frame.
+
+The camera keeps its position; its look-at target moves to ``origin + f'`` with
+``f' = normalise(f - px tan(fov'/2) r - py tan(fov'/2) u)`` (``f, r, u`` the forward, right and up axes of
+the original camera aimed at the object), which puts the object centre at ``(px, py)`` to first order. The
+actual placement is *measured* on the rendered mask and recorded in the manifest (``centroid_x/y``,
+``bbox``, ``area_share``, ``centre_hit``) next to the draw (``draw_px/py``, ``draw_object_frac``,
+``fov``, ``target``). Background-only and with-object images use the same camera and sampler seed
+(``evaluation.views.ViewRenderer``: common random numbers).
+
+Views whose mask is empty (object hidden, e.g. occluded) are skipped with a warning.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from optimizer.errors import CamoError
+
+from .stimuli import StimulusWriter, check_no_leak, practice_split, synthetic_practice
+
+DEFAULT_SIZE = 512
+DEFAULT_OBJECT_FRAC = (0.10, 0.30)
+DEFAULT_MARGIN = 0.04
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def camera_basis(origin, target, up=(0.0, 0.0, 1.0)):
+    """Forward, right, up unit vectors of a look-at camera."""
+    f = _unit(np.asarray(target, float) - np.asarray(origin, float))
+    r = np.cross(f, np.asarray(up, float))
+    if np.linalg.norm(r) < 1e-9:  # looking straight up/down: any right vector
+        r = np.cross(f, np.array([0.0, 1.0, 0.0]))
+    r = _unit(r)
+    u = np.cross(r, f)
+    return f, r, u
+
+
+def draw_placement(key: str, seed: int, object_frac=DEFAULT_OBJECT_FRAC, margin=DEFAULT_MARGIN) -> dict[str, float]:
+    """The seeded draw of one (scene, view): object extent ``s`` (fraction of the frame width) and the
+    object centre's NDC position ``(px, py)`` in [-1, 1] (x right, y up)."""
+    h = hashlib.sha256(f"{seed}:{key}".encode()).digest()
+    rng = np.random.default_rng(int.from_bytes(h[:8], "little"))
+    lo, hi = object_frac
+    s = float(rng.uniform(lo, hi))
+    half = max(0.0, 1.0 - s - 2.0 * margin)  # NDC half-range of the centre: frame width = 2 NDC units
+    return {"object_frac": s, "px": float(rng.uniform(-half, half)), "py": float(rng.uniform(-half, half))}
+
+
+def place_camera(cam, centre, object_size: float, draw: dict[str, float], size: int):
+    """A camera at ``cam.origin`` with field of view and target such that an object of nominal extent
+    ``object_size`` at ``centre`` spans ``draw['object_frac']`` of the frame with its centre at NDC
+    ``(draw['px'], draw['py'])``; returns ``(Camera, fov_deg, target)``."""
+    from optimizer.cameras import Camera
+
+    origin = np.asarray(cam.origin, float)
+    c = np.asarray(centre, float)
+    dist = float(np.linalg.norm(c - origin))
+    if dist <= 1e-6:
+        raise CamoError("a camera sits at the object's centre; cannot frame it")
+    half_angle = math.atan(0.5 * object_size / dist)
+    tan_h = math.tan(half_angle) / draw["object_frac"]
+    fov = math.degrees(2.0 * math.atan(tan_h))
+    fov = min(100.0, max(8.0, fov))
+    tan_h = math.tan(math.radians(fov) / 2.0)
+    f, r, u = camera_basis(origin, c, cam.up)
+    f2 = _unit(f - draw["px"] * tan_h * r - draw["py"] * tan_h * u)
+    target = origin + f2 * dist
+    new = Camera(tuple(float(x) for x in origin), tuple(float(x) for x in target), float(fov), int(size), int(size),
+                 tuple(cam.up))
+    return new, fov, target
+
+
+def project_ndc(cam, point) -> tuple[float, float]:
+    """Pinhole projection of a world point into ``cam``'s NDC (x right, y up; +-1 at the frame edges)."""
+    f, r, u = camera_basis(cam.origin, cam.target, cam.up)
+    d = np.asarray(point, float) - np.asarray(cam.origin, float)
+    tan_h = math.tan(math.radians(cam.fov) / 2.0)
+    z = float(d @ f)
+    return float(d @ r) / z / tan_h, float(d @ u) / z / tan_h * cam.width / cam.height
+
+
+# ------------------------------------------------------------------------------------------------------------
+# reading evaluation directories
+# ------------------------------------------------------------------------------------------------------------
+
+
+def runs_of_eval_dir(eval_dir: str | Path) -> tuple[list[Path], dict[str, Any]]:
+    """Run directories an evaluation used (from its ``eval_config.toml``) and its ``[evaluate]`` settings."""
+    from evaluation.evaluate import read_eval_config
+
+    d = Path(eval_dir)
+    if not d.is_dir():
+        raise CamoError(f"{d}: not a directory")
+    cfg = read_eval_config(d)
+    if not cfg:
+        raise CamoError(f"{d}: no readable eval_config.toml (is this an evaluation directory from `camo evaluate`?)")
+    runs = cfg.get("runs") or []
+    paths = [Path(str(r.get("path", ""))) for r in runs if isinstance(r, dict)]
+    if not paths:
+        raise CamoError(f"{d / 'eval_config.toml'}: lists no runs")
+    missing = [str(p) for p in paths if not p.is_dir()]
+    if missing:
+        raise CamoError(f"{d}: run directory {missing[0]} is gone (stimuli are re-rendered from the runs; --copy "
+                        "uses the evaluation's renders instead)")
+    return paths, dict(cfg.get("evaluate") or {})
+
+
+# ------------------------------------------------------------------------------------------------------------
+# rendering
+# ------------------------------------------------------------------------------------------------------------
+
+
+def render_stimuli(
+    eval_dirs: list[str | Path],
+    out_dir: str | Path,
+    practice_dirs: list[str | Path] | None = None,
+    practice_scenes: list[str] | None = None,
+    size: int = DEFAULT_SIZE,
+    views: int = 8,
+    spp: int = 64,
+    seed: int = 0,
+    object_frac: tuple[float, float] = DEFAULT_OBJECT_FRAC,
+    margin: float = DEFAULT_MARGIN,
+    synthetic_practice_n: int = 8,
+    threads: int | None = None,
+    force: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Render a stimulus set (see the module docstring); returns the manifest."""
+    from evaluation.evaluate import srgb8
+    from evaluation.views import (
+        DEFAULT_JITTER,
+        ViewRenderer,
+        evaluation_cameras,
+        evaluation_plan,
+        load_result,
+        load_run,
+        object_mesh_of,
+    )
+    from optimizer import backend
+    from optimizer.cameras import object_centre
+    from optimizer.environments import get_environment
+
+    log = log or (lambda msg: print(msg, file=sys.stderr))
+    if not eval_dirs:
+        raise CamoError("build-stimuli needs at least one EVAL_DIR")
+    if not 32 <= size <= 4096:
+        raise CamoError(f"--size must be 32-4096 px, not {size}")
+    if not 1 <= views <= 256:
+        raise CamoError(f"--views must be 1-256, not {views}")
+    if not 1 <= spp <= 65536:
+        raise CamoError(f"--spp must be 1-65536, not {spp}")
+    lo, hi = object_frac
+    if not (0.01 <= lo <= hi <= 0.8):
+        raise CamoError(f"--object-size must be LO,HI with 0.01 <= LO <= HI <= 0.8, not {lo},{hi}")
+    if not 0.0 <= margin <= 0.2:
+        raise CamoError(f"--margin must be 0-0.2, not {margin}")
+    writer = StimulusWriter(out_dir, force)
+
+    # every input is read and checked before anything is rendered
+    jobs: list[tuple[Any, bool, dict[str, Any]]] = []  # (run, practice, evaluation settings)
+    for d, practice in [(Path(x), False) for x in eval_dirs] + [(Path(x), True) for x in (practice_dirs or [])]:
+        paths, ev = runs_of_eval_dir(d)
+        for p in paths:
+            jobs.append((load_run(p), practice, ev))
+    formal_scenes = {r.scene for r, p, _ in jobs if not p}
+    named = practice_split(formal_scenes, {r.scene for r, p, _ in jobs if p}, practice_scenes)
+    jobs = [(r, p or r.scene in named, ev) for r, p, ev in jobs]
+    check_no_leak({r.scene for r, p, _ in jobs if not p}, {r.scene for r, p, _ in jobs if p}, "build-stimuli")
+
+    backend.init(threads=threads)
+    renderer = ViewRenderer(spp, seed)
+    skipped = 0
+    for run, practice, ev in jobs:
+        env = get_environment(run.pack.environment)
+        plan = evaluation_plan(run.pack, env)
+        jitter = float(ev.get("jitter", DEFAULT_JITTER))
+        ev_seed = int(ev.get("seed", 0))
+        base = evaluation_cameras(run.pack, views, jitter, ev_seed, (size, size)).cams
+        centre = object_centre(run.pack)
+        obj_size = float(run.pack.object.size)
+        cams, draws = [], []
+        for v, cam in enumerate(base):
+            draw = draw_placement(f"{run.scene}:{v}", seed, object_frac, margin)
+            new, fov, target = place_camera(cam, centre, obj_size, draw, size)
+            cams.append(new)
+            draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
+                          "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
+        assets = load_result(run)
+        log(f"rendering {run.name} ({run.scene}, {run.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
+            + (" [practice]" if practice else ""))
+        bg = renderer.background(run.pack, env, cams, plan.integrator)
+        objr = renderer.with_object(env, lambda: object_mesh_of(run, assets), cams, plan.integrator)
+        for v in range(len(cams)):
+            mask = objr.mask[v]
+            if not mask.any():
+                skipped += 1
+                log(f"warning: object not visible in {run.name} view {v}; skipped")
+                continue
+            meta = {"run": run.name, "scene": run.scene, "object": run.object, "method": run.method,
+                    "ablation": run.ablation_label, "view": str(v), "source_run": str(run.path.resolve()),
+                    "spp": spp, "seed": seed, **draws[v]}
+            writer.add(srgb8(objr.image[v]), mask, meta, practice)
+            # the background of the same camera and seed is kept next to the set (not served)
+            _save_background(writer.out, run.scene, v, srgb8(bg.image[v]))
+    if not any(s["practice"] for s in writer.stimuli) and synthetic_practice_n > 0:
+        for rgb, mask, meta in synthetic_practice(synthetic_practice_n, (size, size), seed):
+            writer.add(rgb, mask, meta, True)
+    return writer.finish(
+        [str(Path(d).resolve()) for d in list(eval_dirs) + list(practice_dirs or [])],
+        mode="render",
+        size=size,
+        views=views,
+        spp=spp,
+        seed=seed,
+        placement={
+            "object_frac": list(object_frac),
+            "margin": margin,
+            "meaning": "per scene and view: object extent s ~ U(object_frac) of the frame width (field of view "
+                       "set accordingly, 8-100 deg); object centre uniform in NDC [-(1-s-2 margin), +(1-s-2 "
+                       "margin)]^2; measured placement recorded per stimulus",
+        },
+        skipped_empty_masks=skipped,
+    )
+
+
+def _save_background(out: Path, scene: str, view: int, rgb: np.ndarray) -> None:
+    from .stimuli import _save_png
+
+    name = hashlib.sha256(f"{scene}:{view}".encode()).hexdigest()[:16]
+    path = out / "backgrounds" / f"{name}.png"
+    if not path.exists():
+        _save_png(path, rgb)
