@@ -9,8 +9,22 @@ DEFAULT_JITTER = 0.25
 
 
 def register(sub) -> None:
-    p = sub.add_parser("evaluate", help="render jittered novel views of run directories and score them (Table II)")
-    p.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="output of `camo optimize`")
+    p = sub.add_parser("evaluate", help="render jittered novel views of run directories and external assets, score "
+                       "them and given image triplets (Table II)")
+    p.add_argument("run_dirs", nargs="*", metavar="RUN_DIR", help="output of `camo optimize`")
+    p.add_argument("--asset", action="append", default=[], metavar="FILE",
+                   help="a glTF/GLB or OBJ+MTL result of any method, placed in --scene (repeatable)")
+    p.add_argument("--triplets", action="append", default=[], metavar="DIR",
+                   help="a folder of <view>_obj / _bg / _mask images (optional _depth) of a 2D method (repeatable)")
+    p.add_argument("--inputs", metavar="LIST.toml", help="many inputs: [[run]], [[asset]], [[triplets]] tables")
+    p.add_argument("--scene", help="for --asset: built-in scene (e.g. meadow, split:chair), scene pack .toml or a run "
+                   "directory (its scene and cameras); for --triplets: the scene label")
+    p.add_argument("--method", help="method label of --asset / --triplets (a run directory's comes from its config.toml)")
+    p.add_argument("--seconds", type=float, help="what producing --asset / --triplets cost, in seconds (report column)")
+    p.add_argument("--placement", default="auto", choices=("auto", "scene", "pack"),
+                   help="--asset coordinates: scene = already in scene coordinates (camo's result.glb/obj), pack = "
+                   "normalised and posed by the scene's [object] (size, rotation, translation); auto (default): "
+                   "scene for files camo wrote, else pack")
     p.add_argument("--out", required=True, help="evaluation directory (metrics, renders, report)")
     p.add_argument("--views", type=int, help="evaluation views per run (default: the number of training views; "
                    "more repeats the jitter)")
@@ -36,14 +50,42 @@ def register(sub) -> None:
     p.set_defaults(func=run_report)
 
 
+def input_specs(args) -> list:
+    """The inputs named on the command line (RUN_DIRs, --asset, --triplets, --inputs), in that order."""
+    from optimizer.errors import CamoError
+
+    from .inputs import InputSpec, read_input_list
+
+    if (args.asset or args.triplets) and not args.method:
+        raise CamoError("--asset / --triplets need --method LABEL (the method's name in the report)")
+    if args.asset and not args.scene:
+        raise CamoError("--asset needs --scene (a built-in scene, a scene pack .toml or a run directory)")
+    if args.seconds is not None and not (args.asset or args.triplets):
+        raise CamoError("--seconds applies to --asset / --triplets (a run's seconds come from its summary.json)")
+    specs = [InputSpec("run", d) for d in args.run_dirs]
+    specs += [InputSpec("asset", a, method=args.method, scene=args.scene, seconds=args.seconds,
+                        placement=args.placement) for a in args.asset]
+    specs += [InputSpec("triplets", t, method=args.method, scene=args.scene, seconds=args.seconds)
+              for t in args.triplets]
+    if args.inputs:
+        specs += read_input_list(args.inputs)
+    if not specs:
+        raise CamoError("evaluate needs at least one input: RUN_DIR, --asset FILE, --triplets DIR or --inputs LIST.toml")
+    return specs
+
+
 def run_evaluate(args) -> int:
     from .evaluate import EvalSettings, evaluate, parse_metrics
+    from .inputs import finite_seconds
+
+    if args.seconds is not None:
+        finite_seconds(args.seconds, "--seconds")
 
     settings = EvalSettings(views=args.views, jitter=args.jitter, spp=args.spp, resolution=args.resolution,
                             metrics=parse_metrics(args.metrics), seed=args.seed, lpips_weights=args.lpips_weights,
                             inception_weights=args.inception_weights, dreamsim_weights=args.dreamsim_weights,
                             threads=args.threads, progress=not args.quiet)
-    evaluate(args.run_dirs, args.out, settings)
+    evaluate(input_specs(args), args.out, settings)
     print(f"wrote {args.out}")
     return 0
 

@@ -36,8 +36,8 @@ import numpy as np
 
 from optimizer.errors import CamoError
 
-from .views import DEFAULT_JITTER, EvalCameras, RunInfo, ViewRenderer, evaluation_cameras, evaluation_plan, \
-    load_result, load_run, object_mesh_of, render_seed
+from .inputs import Entry, InputSpec, resolve
+from .views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
 
 #: The metric columns, one per metric of :data:`evaluation.metrics.METRICS` (NaN where not computed).
 METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim")
@@ -45,12 +45,24 @@ METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy"
 VARIANT_COLUMNS = ("lpips_variant", "lpips_proxy_variant", "sifid_variant", "sifid_proxy_variant", "dreamsim_variant")
 #: SHA-256 of the weight files behind each learned metric ("" where not computed).
 SHA_COLUMNS = ("lpips_weights_sha256", "sifid_weights_sha256", "dreamsim_weights_sha256")
-#: Columns that identify a row (run, view, region and the evaluation protocol).
+#: Columns that identify a row (input, view, region and the evaluation protocol). ``source``: ``run`` (a run
+#: directory), ``asset`` (a glTF/OBJ file placed in a scene) or ``triplets`` (given images; ``spp`` and ``jitter``
+#: are 0 and ``camera_set`` is ``images:<hash>``: nothing was rendered).
 KEY_COLUMNS = ("run", "scene", "object", "method", "ablation", "view", "seed", "region", "spp", "width", "height",
-               "jitter", "camera_set")
-#: Every column of metrics.parquet / metrics.csv, in order.
+               "jitter", "camera_set", "source")
+#: Seconds of the method (repeated on each row of an input): ``seconds_setup`` / ``seconds_stage1`` /
+#: ``seconds_stage2`` from a run directory (:meth:`optimizer.rundir.RunDir.seconds`), ``seconds_method`` their sum
+#: or the user's ``seconds`` for an asset or triplets (NaN when unknown).
+METHOD_SECONDS_COLUMNS = ("seconds_setup", "seconds_stage1", "seconds_stage2", "seconds_method")
+#: Seconds of each metric on this row's image pair (NaN where not computed).
+METRIC_SECONDS_COLUMNS = tuple(f"seconds_{m}" for m in METRIC_COLUMNS)
+#: Every column of metrics.parquet / metrics.csv, in order. ``seconds_render``: evaluation rendering of this view
+#: (with-object render + its share of the scene's background render; NaN for triplets), ``seconds_metrics``: all
+#: metrics of the row.
 COLUMNS = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels",
-           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, "seconds_render", "seconds_metrics")
+           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, "seconds_render", "seconds_metrics",
+           *METRIC_SECONDS_COLUMNS, *METHOD_SECONDS_COLUMNS)
+SECONDS_COLUMNS = tuple(c for c in COLUMNS if c.startswith("seconds_"))
 REGIONS = ("full", "crop")
 #: Metrics computed when --metrics is not given (plus the learned ones whose weights are given or found).
 DEFAULT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
@@ -211,7 +223,7 @@ def srgb8(linear: np.ndarray) -> np.ndarray:
 
 
 def _empty_metric_fields() -> dict[str, Any]:
-    out: dict[str, Any] = {m: math.nan for m in METRIC_COLUMNS}
+    out: dict[str, Any] = {m: math.nan for m in (*METRIC_COLUMNS, *METRIC_SECONDS_COLUMNS)}
     out.update({c: "" for c in (*VARIANT_COLUMNS, *SHA_COLUMNS)})
     return out
 
@@ -239,8 +251,10 @@ def score_view(obj8: np.ndarray, bg8: np.ndarray, mask: np.ndarray, names: Seque
                    mask_pixels=int(m.sum()))
         t = time.perf_counter()
         if a is not None:
-            for key, val in compute_metrics(a, b, names, weights).items():
-                row[key] = val
+            for name in names:  # one call per metric so that each one's seconds are known
+                t_m = time.perf_counter()
+                row.update(compute_metrics(a, b, [name], weights))
+                row[f"seconds_{name}"] = time.perf_counter() - t_m
         row["seconds_metrics"] = time.perf_counter() - t
         rows.append(row)
     return rows
@@ -251,22 +265,29 @@ def view_stem(v: int) -> str:
 
 
 def write_view_files(out: Path, run: str, v: int, obj: np.ndarray, bg: np.ndarray, mask: np.ndarray,
-                     depth: np.ndarray) -> dict[str, str]:
-    """``renders/<run>/view_XX_*``; returns the renders.json paths (relative to ``out``)."""
+                     depth: np.ndarray | None, obj8: np.ndarray | None = None,
+                     bg8: np.ndarray | None = None) -> dict[str, str]:
+    """``renders/<run>/view_XX_*``; returns the renders.json paths (relative to ``out``). ``obj8`` / ``bg8``: the
+    8-bit sRGB images when they are given (triplets) rather than encoded from the linear ``obj`` / ``bg``; no
+    ``depth`` file (and key) when ``depth`` is None."""
     from optimizer import atomic
     from optimizer.imaging import save_png
 
     rel = Path("renders") / run
     stem = view_stem(v)
-    save_png(out / rel / f"{stem}_obj.png", srgb8(obj))
-    save_png(out / rel / f"{stem}_bg.png", srgb8(bg))
+    save_png(out / rel / f"{stem}_obj.png", srgb8(obj) if obj8 is None else obj8)
+    save_png(out / rel / f"{stem}_bg.png", srgb8(bg) if bg8 is None else bg8)
     save_png(out / rel / f"{stem}_mask.png", mask.astype(bool))
-    for suffix, arr in (("obj", obj), ("bg", bg), ("depth", depth)):
+    arrays = [("obj", obj), ("bg", bg)] + ([("depth", depth)] if depth is not None else [])
+    for suffix, arr in arrays:
         with atomic.atomic_path(out / rel / f"{stem}_{suffix}.npy") as tmp:
             with open(tmp, "wb") as fh:
                 np.save(fh, np.asarray(arr, dtype=np.float32))
-    return {"image": (rel / f"{stem}_obj.png").as_posix(), "background": (rel / f"{stem}_bg.png").as_posix(),
-            "mask": (rel / f"{stem}_mask.png").as_posix(), "depth": (rel / f"{stem}_depth.npy").as_posix()}
+    paths = {"image": (rel / f"{stem}_obj.png").as_posix(), "background": (rel / f"{stem}_bg.png").as_posix(),
+             "mask": (rel / f"{stem}_mask.png").as_posix()}
+    if depth is not None:
+        paths["depth"] = (rel / f"{stem}_depth.npy").as_posix()
+    return paths
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -276,50 +297,104 @@ def write_view_files(out: Path, run: str, v: int, obj: np.ndarray, bg: np.ndarra
 
 @dataclasses.dataclass
 class _Job:
-    run: RunInfo
-    assets: Any
-    env: Any
-    cams: EvalCameras
-    plan: Any
+    entry: Entry
+    env: Any = None
+    cams: EvalCameras | None = None
+    plan: Any = None
 
 
-def _prepare(run_dirs: Sequence[str | Path], settings: EvalSettings) -> list[_Job]:
+def as_specs(inputs: Sequence[str | Path | InputSpec]) -> list[InputSpec]:
+    """Plain paths are run directories; :class:`evaluation.inputs.InputSpec` objects are taken as they are."""
+    return [i if isinstance(i, InputSpec) else InputSpec("run", str(i)) for i in inputs]
+
+
+def _prepare(inputs: Sequence[str | Path | InputSpec], settings: EvalSettings) -> list[_Job]:
     from optimizer.environments import get_environment
 
-    if not run_dirs:
-        raise CamoError("evaluate needs at least one RUN_DIR")
-    runs = [load_run(d) for d in run_dirs]
-    seen: dict[str, Path] = {}
-    for r in runs:
-        if r.name in seen and seen[r.name].resolve() != r.path.resolve():
-            raise CamoError(f"two run directories are both named {r.name!r} ({seen[r.name]}, {r.path}); "
-                            "renders/<run>/ needs distinct names")
-        seen[r.name] = r.path
-    unique = list({r.path.resolve(): r for r in runs}.values())
     jobs = []
-    for r in unique:
-        res = (settings.resolution, settings.resolution) if settings.resolution else tuple(r.pack.render.resolution)
-        cams = evaluation_cameras(r.pack, settings.views, settings.jitter, settings.seed, res)
-        env = get_environment(r.pack.environment)
-        jobs.append(_Job(r, load_result(r), env, cams, evaluation_plan(r.pack, env)))
+    for e in resolve(as_specs(inputs)):
+        if e.kind == "triplets":
+            jobs.append(_Job(e))
+            continue
+        res = (settings.resolution, settings.resolution) if settings.resolution else tuple(e.pack.render.resolution)
+        cams = evaluation_cameras(e.pack, settings.views, settings.jitter, settings.seed, res)
+        env = get_environment(e.pack.environment)
+        jobs.append(_Job(e, env, cams, evaluation_plan(e.pack, env)))
     return jobs
 
 
 def _check_sizes(jobs: list[_Job], names: Sequence[str]) -> None:
     from evaluation.metrics import MIN_SIZE
 
+    need = max(MIN_SIZE.get(n, 1) for n in names)
+    worst = max(names, key=lambda n: MIN_SIZE.get(n, 1))
     for j in jobs:
-        c = j.cams.cams[0]
-        need = max(MIN_SIZE.get(n, 1) for n in names)
-        if min(c.width, c.height) < need:
-            worst = max(names, key=lambda n: MIN_SIZE.get(n, 1))
-            raise CamoError(f"{j.run.name}: {c.width}x{c.height} px is too small for metric {worst} (needs >= "
-                            f"{need} px); raise --resolution or drop it from --metrics")
+        if j.cams is not None:
+            w, h = j.cams.cams[0].width, j.cams.cams[0].height
+            fix = "raise --resolution or drop it from --metrics"
+        else:
+            h, w = j.entry.triplets.mask.shape[1:]
+            fix = "drop it from --metrics"
+        if min(w, h) < need:
+            raise CamoError(f"{j.entry.name}: {w}x{h} px is too small for metric {worst} (needs >= {need} px); {fix}")
 
 
-def evaluate(run_dirs: Sequence[str | Path], out: str | Path, settings: EvalSettings | None = None,
+def hardware() -> dict[str, Any]:
+    """Where the seconds were measured: CPU model, logical cores (and those this process may use), GPU, threads."""
+    import os
+    import platform
+
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    out: dict[str, Any] = {"cpu": model, "cpu_cores": os.cpu_count() or 0}
+    try:
+        out["cpu_cores_usable"] = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        out["cpu_cores_usable"] = out["cpu_cores"]
+    gpu = "none"
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            gpu = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+        out["torch_threads"] = torch.get_num_threads()
+    except Exception:  # torch missing or broken CUDA: the hardware line just says less
+        pass
+    out["gpu"] = gpu
+    try:
+        from optimizer import backend
+
+        info = backend.info()
+        if info:
+            out["mitsuba_variant"], out["render_threads"] = info.variant, int(info.threads)
+    except Exception:
+        pass
+    return out
+
+
+def hardware_text(hw: dict[str, Any]) -> str:
+    """One line, e.g. ``AMD EPYC, 2 CPU cores (2 usable), GPU none; llvm_ad_rgb, 2 render threads``."""
+    if not hw:
+        return "not recorded"
+    text = f"{hw.get('cpu', '?')}, {hw.get('cpu_cores', '?')} CPU cores ({hw.get('cpu_cores_usable', '?')} usable), " \
+           f"GPU {hw.get('gpu', '?')}"
+    if hw.get("mitsuba_variant"):
+        text += f"; {hw['mitsuba_variant']}, {hw.get('render_threads', '?')} render threads"
+    if hw.get("torch_threads"):
+        text += f", {hw['torch_threads']} torch threads"
+    return text
+
+
+def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings: EvalSettings | None = None,
              log: Callable[[str], None] | None = None):
-    """Evaluate run directories into ``out``; returns the metrics table (pandas DataFrame)."""
+    """Evaluate run directories, assets and image triplets (:mod:`evaluation.inputs`) into ``out``; returns the
+    metrics table (pandas DataFrame). Plain paths in ``inputs`` are run directories."""
     import pandas as pd
 
     from optimizer import atomic, backend
@@ -332,7 +407,7 @@ def evaluate(run_dirs: Sequence[str | Path], out: str | Path, settings: EvalSett
     settings.validate()
     weights = weights_of(settings)
     names, skipped = select_metrics(settings.metrics, weights)
-    jobs = _prepare(run_dirs, settings)
+    jobs = _prepare(inputs, settings)
     _check_sizes(jobs, names)
     backend.init(threads=settings.threads)
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
@@ -345,42 +420,72 @@ def evaluate(run_dirs: Sequence[str | Path], out: str | Path, settings: EvalSett
     bg_users: dict[str, int] = {}
     t_all = time.perf_counter()
     for j in jobs:
-        r, ec = j.run, j.cams
-        say(f"evaluating {r.name} ({r.scene}, {r.method}, ablation {r.ablation_label}): {len(ec.cams)} views, "
+        e = j.entry
+        secs = e.seconds
+        method_cols = {"seconds_setup": secs["setup"], "seconds_stage1": secs["stage1"],
+                       "seconds_stage2": secs["stage2"], "seconds_method": secs["total"]}
+        ident = {"run": e.name, "scene": e.scene, "object": e.object, "method": e.method, "ablation": e.ablation}
+        warnings = list(e.warnings) + (list(e.asset.warnings) if e.asset is not None else [])
+        if e.kind == "triplets":
+            t = e.triplets
+            n, h, w = t.mask.shape
+            say(f"scoring {e.name} (triplets, {e.scene}, {e.method}): {n} views, {w}x{h} px")
+            cam_key = t.key()
+            base = {**ident, "seed": settings.seed, "spp": 0, "width": w, "height": h, "jitter": 0.0,
+                    "camera_set": cam_key, "source": "triplets", **method_cols}
+            for v in range(n):
+                from optimizer.imaging import srgb_to_linear
+
+                lin_o = t.obj_linear[v] if t.obj_linear is not None else srgb_to_linear(t.obj8[v] / 255.0)
+                lin_b = t.bg_linear[v] if t.bg_linear is not None else srgb_to_linear(t.bg8[v] / 255.0)
+                depth = t.depth[v] if t.depth is not None else None
+                paths = write_view_files(out, e.name, v, lin_o, lin_b, t.mask[v], depth, obj8=t.obj8[v], bg8=t.bg8[v])
+                entries.append({**ident, "view": v, **paths})
+                for row in score_view(t.obj8[v], t.bg8[v], t.mask[v], names, weights):
+                    rows.append({**base, "view": v, **row, "_bg": None, "_obj_seconds": math.nan, "_bg_seconds": 0.0})
+            per_run.append({"name": e.name, "kind": e.kind, "path": str(e.path.resolve()), "scene": e.scene,
+                            "object": e.object, "method": e.method, "ablation": e.ablation, "camera_set": cam_key,
+                            "views": list(t.views), "seconds": _plain_seconds(secs), "warnings": warnings})
+            for wmsg in warnings:
+                say(f"warning: {wmsg}")
+            continue
+        ec = j.cams
+        say(f"evaluating {e.name} ({e.kind}, {e.scene}, {e.method}, ablation {e.ablation}): {len(ec.cams)} views, "
             f"{ec.cams[0].width}x{ec.cams[0].height} px, {settings.spp} spp")
-        bg = renderer.background(r.pack, j.env, ec.cams, j.plan.integrator)
+        bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
-        objr = renderer.with_object(j.env, lambda: object_mesh_of(r, j.assets), ec.cams, j.plan.integrator)
+        objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator)
         cam_key = ec.key()
         scenes.setdefault(bg.key, {
-            "scene": r.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),
+            "scene": e.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),
             "plan_reasons": [f"{k}: {v}" for k, v in j.plan.reasons], "jitter_bound": ec.bound,
             "width": ec.cams[0].width, "height": ec.cams[0].height,
             "training_cameras": [list(c.origin) for c in ec.training],
             "cameras": [list(c.origin) for c in ec.cams], "targets": [list(c.target) for c in ec.cams],
             "base_views": ec.base, "background_seconds": bg.seconds,
         })
-        base = {"run": r.name, "scene": r.scene, "object": r.object, "method": r.method, "ablation": r.ablation_label,
-                "seed": settings.seed, "spp": settings.spp, "width": ec.cams[0].width, "height": ec.cams[0].height,
-                "jitter": float(settings.jitter), "camera_set": cam_key}
+        base = {**ident, "seed": settings.seed, "spp": settings.spp, "width": ec.cams[0].width,
+                "height": ec.cams[0].height, "jitter": float(settings.jitter), "camera_set": cam_key,
+                "source": e.kind, **method_cols}
         for v in range(len(ec.cams)):
-            paths = write_view_files(out, r.name, v, objr.image[v], bg.image[v], objr.mask[v], bg.depth[v])
-            entries.append({"run": r.name, "scene": r.scene, "object": r.object, "method": r.method,
-                            "ablation": r.ablation_label, "view": v, **paths})
+            paths = write_view_files(out, e.name, v, objr.image[v], bg.image[v], objr.mask[v], bg.depth[v])
+            entries.append({**ident, "view": v, **paths})
             o8, b8 = srgb8(objr.image[v]), srgb8(bg.image[v])
             for row in score_view(o8, b8, objr.mask[v], names, weights):
                 rows.append({**base, "view": v, **row, "_bg": bg.key, "_obj_seconds": objr.seconds / len(ec.cams),
                              "_bg_seconds": bg.seconds / len(ec.cams)})
-        per_run.append({"name": r.name, "path": str(r.path.resolve()), "scene": r.scene, "object": r.object,
-                        "method": r.method, "ablation": r.ablation_label, "camera_set": cam_key,
+        per_run.append({"name": e.name, "kind": e.kind, "path": str(e.path.resolve()), "scene": e.scene,
+                        "object": e.object, "method": e.method, "ablation": e.ablation, "camera_set": cam_key,
                         "background_key": bg.key, "object_render_seconds": objr.seconds,
-                        "warnings": list(j.assets.warnings)})
-        for w in j.assets.warnings:
-            say(f"warning: {w}")
+                        "seconds": _plain_seconds(secs), "warnings": warnings})
+        for wmsg in warnings:
+            say(f"warning: {wmsg}")
     for row in rows:  # the background render is shared equally by the runs that use it
-        row["seconds_render"] = row.pop("_obj_seconds") + row.pop("_bg_seconds") / bg_users[row.pop("_bg")]
+        key = row.pop("_bg")
+        share = row.pop("_bg_seconds") / bg_users[key] if key is not None else 0.0
+        row["seconds_render"] = row.pop("_obj_seconds") + share
     table = pd.DataFrame(rows, columns=list(COLUMNS))
-    table = table.astype({c: "float64" for c in (*METRIC_COLUMNS, "jitter", "seconds_render", "seconds_metrics")})
+    table = table.astype({c: "float64" for c in (*METRIC_COLUMNS, "jitter", *SECONDS_COLUMNS)})
     table = table.astype({c: "int64" for c in ("view", "seed", "spp", "width", "height", "region_y0", "region_x0",
                                                 "region_height", "region_width", "mask_pixels")})
 
@@ -395,8 +500,12 @@ def evaluate(run_dirs: Sequence[str | Path], out: str | Path, settings: EvalSett
         from .report import write_report
 
         write_report([out], out)
-    say(f"{len(jobs)} run(s), {renderer.background_renders} background render(s), {len(table)} rows")
+    say(f"{len(jobs)} input(s), {renderer.background_renders} background render(s), {len(table)} rows")
     return table
+
+
+def _plain_seconds(secs: dict[str, float]) -> dict[str, float]:
+    return {k: float(v) for k, v in secs.items() if math.isfinite(v)}
 
 
 def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], skipped: dict[str, str],
@@ -428,6 +537,7 @@ def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], 
             "seconds": seconds,
             "background_renders": renderer.background_renders,
         },
+        "hardware": hardware(),
         "skipped": dict(skipped),
         "metric_info": {n: {"higher_is_better": METRICS[n].higher_is_better, "units": METRICS[n].units,
                             "description": METRICS[n].description} for n in names},

@@ -30,11 +30,19 @@ import numpy as np
 
 from optimizer.errors import CamoError
 
+from .evaluate import SECONDS_COLUMNS
+
 #: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
 TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
                  ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓"), ("sifid_proxy", "SIFID-proxy↓"))
 HIGHER_IS_BETTER = {"psnr", "ssim"}
 TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
+#: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
+#: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
+#: user's ``--seconds`` for an asset or triplets), evaluation rendering per view, each metric per image pair.
+TIME_COLUMNS = (("seconds_setup", "Setup s"), ("seconds_stage1", "Stage 1 s"), ("seconds_stage2", "Stage 2 s"),
+                ("seconds_method", "Method s"), ("seconds_render", "Render s/view"))
+METRIC_TIME_HEADER = "{} s/img"
 
 #: Baseline methods (``camo optimize --method``) in the paper's order, with their Table II labels.
 BASELINES = {"transparent": "Transparent", "random": "Random [6]", "mean": "Mean [6]", "greedy": "Greedy [6]",
@@ -118,8 +126,9 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
     df = pd.concat(frames, ignore_index=True, sort=False)
     for c in COLUMNS:
         if c not in df.columns:
-            df[c] = np.nan
-    ident = [c for c in df.columns if c not in ("seconds_render", "seconds_metrics", "_eval_dir")]
+            df[c] = "run" if c == "source" else np.nan  # tables written before the column existed
+    df["source"] = df["source"].fillna("run")
+    ident = [c for c in df.columns if not str(c).startswith("seconds_") and c != "_eval_dir"]
     df = df.loc[~df[ident].astype(str).duplicated()].reset_index(drop=True)
     df["label"] = [method_label(m, a) for m, a in zip(df["method"], df["ablation"])]
     df["_order"] = [label_order(m, a) for m, a in zip(df["method"], df["ablation"])]
@@ -127,13 +136,44 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
 
 
 def protocols(df) -> list[tuple]:
+    """The evaluation protocols ``(spp, width, height, jitter)`` of rendered rows; given images (triplets: spp 0)
+    form a protocol of their own only when no rendered protocol has their size (see :func:`_protocol_rows`)."""
     keys = ["spp", "width", "height", "jitter"]
-    return sorted({tuple(r) for r in df[keys].itertuples(index=False, name=None)}, key=lambda t: tuple(map(float, t)))
+    rendered = df.loc[df["spp"] > 0]
+    out = {tuple(r) for r in rendered[keys].itertuples(index=False, name=None)}
+    sizes = {(p[1], p[2]) for p in out}
+    for r in df.loc[df["spp"] <= 0][keys].itertuples(index=False, name=None):
+        if (r[1], r[2]) not in sizes:
+            out.add(tuple(r))
+    return sorted(out, key=lambda t: tuple(map(float, t)))
 
 
 def _protocol_rows(df, proto: tuple):
-    m = (df["spp"] == proto[0]) & (df["width"] == proto[1]) & (df["height"] == proto[2]) & (df["jitter"] == proto[3])
-    return df.loc[m]
+    """Rows of one protocol: rendered at its spp / size / jitter, plus given images (triplets) of its size."""
+    same_size = (df["width"] == proto[1]) & (df["height"] == proto[2])
+    if proto[0] <= 0:
+        return df.loc[same_size & (df["spp"] <= 0)]
+    m = (df["spp"] == proto[0]) & same_size & (df["jitter"] == proto[3])
+    return df.loc[m | (same_size & (df["spp"] <= 0))]
+
+
+def protocol_title(proto: tuple) -> str:
+    if proto[0] <= 0:
+        return f"given images, {int(proto[1])}x{int(proto[2])} px"
+    return f"{int(proto[0])} spp, {int(proto[1])}x{int(proto[2])} px, jitter ±{float(proto[3]):g}"
+
+
+def _time_columns(df) -> list[tuple[str, str]]:
+    """Seconds columns shown: the method / render ones, and one per metric that was computed."""
+    from .evaluate import METRIC_COLUMNS
+
+    names = dict(TABLE_METRICS)
+    out = list(TIME_COLUMNS)
+    for m in METRIC_COLUMNS:
+        c = f"seconds_{m}"
+        if c in df.columns and df[m].notna().any():
+            out.append((c, METRIC_TIME_HEADER.format(names.get(m, m).rstrip("↑↓"))))
+    return out
 
 
 def summary(df, region: str = "crop"):
@@ -148,12 +188,13 @@ def summary(df, region: str = "crop"):
     d = df.loc[df["region"] == region]
     if d.empty:
         return pd.DataFrame(columns=metrics + [f"{m}_std" for m in metrics] + ["scenes"])
+    metrics = metrics + [c for c in SECONDS_COLUMNS if c in d.columns]
     per_run = d.groupby(["label", "scene", "run"], sort=False)[metrics].mean()
     per_scene = per_run.groupby(level=["label", "scene"], sort=False).mean()
     g = per_scene.groupby(level="label", sort=False)
     mean, std = g.mean(), g.std(ddof=1)
     out = mean.copy()
-    for m in metrics:
+    for m, _ in TABLE_METRICS:
         out[f"{m}_std"] = std[m]
     out["scenes"] = g.size()
     order = d.drop_duplicates("label").set_index("label")["_order"]
@@ -161,8 +202,8 @@ def summary(df, region: str = "crop"):
 
 
 def per_scene(df, scene: str, region: str):
-    metrics = [m for m, _ in TABLE_METRICS]
     d = df.loc[(df["region"] == region) & (df["scene"] == scene)]
+    metrics = [m for m, _ in TABLE_METRICS] + [c for c in SECONDS_COLUMNS if c in d.columns]
     t = d.groupby(["label", "run"], sort=False)[metrics].mean().groupby(level="label", sort=False).mean()
     t["views"] = d.groupby("label", sort=False)["view"].nunique()
     order = d.drop_duplicates("label").set_index("label")["_order"]
@@ -190,9 +231,18 @@ def _best(values: dict[str, float], metric: str) -> set[str]:
     return {k for k, v in finite.items() if v == target}
 
 
-def table_cells(t, with_std: bool, count_col: str) -> tuple[list[str], list[list[tuple[str, bool]]]]:
-    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table."""
+def _fmt_seconds(v: float) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{v:.3g}" if v < 1000 else f"{v:.0f}"
+
+
+def table_cells(t, with_std: bool, count_col: str, times: Sequence[tuple[str, str]] = ()) \
+        -> tuple[list[str], list[list[tuple[str, bool]]]]:
+    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table; ``times``: seconds columns
+    ``(column, header)`` after the count ("-" where unknown)."""
     header = ["Model"] + [h for _, h in TABLE_METRICS] + ["Scenes" if count_col == "scenes" else "Views"]
+    header += [h for _, h in times]
     best = {m: _best({lab: float(t.loc[lab, m]) for lab in t.index}, m) for m, _ in TABLE_METRICS}
     rows = []
     for lab in t.index:
@@ -206,6 +256,8 @@ def table_cells(t, with_std: bool, count_col: str) -> tuple[list[str], list[list
                     text += f" ± {_fmt(m, s)}"
             cells.append((text, lab in best[m]))
         cells.append((str(int(t.loc[lab, count_col])), False))
+        for c, _ in times:
+            cells.append((_fmt_seconds(float(t.loc[lab, c]) if c in t.columns else math.nan), False))
         rows.append(cells)
     return header, rows
 
@@ -322,6 +374,96 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 
 
 # --------------------------------------------------------------------------------------------------------------
+# accuracy vs time
+# --------------------------------------------------------------------------------------------------------------
+
+#: Metrics of the quality-vs-seconds plot, in this order (those computed).
+PLOT_METRICS = ("psnr", "ssim", "lpips_proxy", "lpips", "sifid", "sifid_proxy", "dreamsim")
+
+
+def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool) -> list[int]:
+    """Indices of the points not dominated by another (fewer or equal seconds and better or equal quality, one of
+    them strictly), sorted by seconds. ``points``: ``(seconds, quality)``, both finite."""
+    front = []
+    for i, (s, q) in enumerate(points):
+        dominated = False
+        for j, (s2, q2) in enumerate(points):
+            if j == i:
+                continue
+            better = q2 >= q if higher_is_better else q2 <= q
+            strictly = s2 < s or (q2 > q if higher_is_better else q2 < q)
+            if s2 <= s and better and strictly:
+                dominated = True
+                break
+        if not dominated:
+            front.append(i)
+    return sorted(front, key=lambda i: (points[i][0], points[i][1]))
+
+
+def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[Path, list[str]] | None:
+    """One PNG: per scene and overall (rows) x metric (columns), each label's mean quality against its method
+    seconds (``seconds_method``: a run's setup + Stage 1 + Stage 2, or the user's figure), log x axis, the Pareto
+    front (fewer seconds, better quality) drawn as a line through ringed points. Returns ``(path, labels without
+    seconds)``, or None when no label has seconds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from optimizer import atomic
+
+    d = df.loc[df["region"] == region]
+    metrics = [m for m in PLOT_METRICS if m in d.columns and d[m].notna().any()]
+    if d.empty or not metrics:
+        return None
+    per_run = d.groupby(["label", "scene", "run"], sort=False)[metrics + ["seconds_method"]].mean()
+    per_scene = per_run.groupby(level=["label", "scene"], sort=False).mean()
+    overall = per_scene.groupby(level="label", sort=False).mean()
+    no_seconds = sorted(lab for lab in overall.index if not np.isfinite(overall.loc[lab, "seconds_method"]))
+    if len(no_seconds) == len(overall):
+        return None
+    scenes = sorted(d["scene"].unique())
+    panels = [(f"{sc}", per_scene.xs(sc, level="scene")) for sc in scenes] + \
+             ([("all scenes (mean)", overall)] if len(scenes) > 1 else [])
+    labels = sorted(overall.index, key=lambda lab: d.loc[d["label"] == lab, "_order"].iloc[0])
+    colours = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+    names = dict(TABLE_METRICS)
+    fig, axes = plt.subplots(len(panels), len(metrics), figsize=(3.4 * len(metrics), 2.8 * len(panels) + 0.6),
+                             dpi=100, squeeze=False)
+    for r, (title, t) in enumerate(panels):
+        for c, m in enumerate(metrics):
+            ax = axes[r][c]
+            pts, labs = [], []
+            for lab in t.index:
+                x, y = float(t.loc[lab, "seconds_method"]), float(t.loc[lab, m])
+                if np.isfinite(x) and np.isfinite(y) and x > 0:
+                    pts.append((x, y))
+                    labs.append(lab)
+                    ax.scatter([x], [y], color=colours[lab], s=28, zorder=3, label=lab)
+            front = pareto_front(pts, m in HIGHER_IS_BETTER)
+            if front:
+                ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "-", color="0.3", lw=1, zorder=2)
+                ax.scatter([pts[i][0] for i in front], [pts[i][1] for i in front], s=110, facecolors="none",
+                           edgecolors="k", lw=1.2, zorder=4)
+            ax.set_xscale("log")
+            ax.set_title(f"{title}: {names.get(m, m)}", fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3, which="both")
+            if r == len(panels) - 1:
+                ax.set_xlabel("method seconds (log)", fontsize=7)
+    handles = [plt.Line2D([], [], marker="o", ls="", color=colours[lab], label=lab) for lab in labels
+               if lab not in no_seconds]
+    handles.append(plt.Line2D([], [], marker="o", ls="-", color="0.3", mfc="none", mec="k", label="Pareto front"))
+    fig.legend(handles=handles, loc="upper center", ncol=min(len(handles), 5), fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / (2.8 * len(panels) + 0.6)))
+    path = out / "plots" / f"quality_vs_seconds{name}.png"
+    with atomic.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path, no_seconds
+
+
+# --------------------------------------------------------------------------------------------------------------
 # the report
 # --------------------------------------------------------------------------------------------------------------
 
@@ -333,10 +475,15 @@ def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[li
     (``named`` folder names shown, then "and N more")."""
     from .evaluate import read_eval_config
 
+    from .evaluate import hardware_text
+
     groups: dict[tuple[str, str], list[str]] = {}
     skipped: dict[str, str] = {}
+    machines: dict[str, list[str]] = {}
     for d in eval_dirs:
         cfg = read_eval_config(d)
+        if cfg:
+            machines.setdefault(hardware_text(cfg.get("hardware", {})), []).append(Path(d).resolve().name)
         ev = cfg.get("evaluate", {})
         if ev:
             text = (f"views {ev.get('views')}, jitter ±{ev.get('jitter')} at radius 4, {ev.get('spp')} spp, "
@@ -357,6 +504,13 @@ def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[li
         lines.append(f"- {who}: {text}")
         if integ:
             lines.append(f"  - integrator: {integ}")
+    for text, names in machines.items():
+        who = "" if len(machines) == 1 else f" ({', '.join(f'`{n}`' for n in names[:named])}" + \
+            (f" and {len(names) - named} more)" if len(names) > named else ")")
+        lines.append(f"- hardware of the evaluation seconds{who}: {text}")
+    if machines:
+        lines.append("- method seconds: a run's setup + Stage 1 + Stage 2 from its `summary.json` / `log.jsonl` "
+                     "(measured where it ran); assets and triplets: the figure the user gave (`--seconds`), else -")
     return lines, skipped
 
 
@@ -403,15 +557,23 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
                                                    for m, why in skipped.items()] + ["</ul>"]
 
     protos = protocols(df)
-    for proto in protos:
+    times = _time_columns(df)
+    plots: list[tuple[str, Path]] = []
+    if times:
+        note = ("Seconds: " + ", ".join(h for _, h in TIME_COLUMNS[:4]) + " per run (a run's own timings; assets "
+                "and triplets show the user's figure as Method s, else -); Render s/view: evaluation rendering per "
+                "view (with-object render + its share of the scene's background); `<metric> s/img`: one image pair.")
+        md += [note, ""]
+        ht += [f"<p>{html.escape(note)}</p>"]
+    for k, proto in enumerate(protos):
         sub = _protocol_rows(df, proto)
-        ptitle = f"{int(proto[0])} spp, {int(proto[1])}x{int(proto[2])} px, jitter ±{float(proto[3]):g}"
+        ptitle = protocol_title(proto)
         suffix = f" — {ptitle}" if len(protos) > 1 else ""
         for region in ("crop", "full"):
             t = summary(sub, region)
             if t.empty:
                 continue
-            header, rows = table_cells(t, True, "scenes")
+            header, rows = table_cells(t, True, "scenes", times)
             title = f"Table II — {REGION_TITLES[region]}{suffix}"
             md += [f"## {title}", "", markdown_table(header, rows), ""]
             ht += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows)]
@@ -422,10 +584,27 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
                 t = per_scene(sub, scene, region)
                 if t.empty:
                     continue
-                header, rows = table_cells(t, False, "views")
+                header, rows = table_cells(t, False, "views", times)
                 md += [f"### {scene} — {REGION_TITLES[region]}", "", markdown_table(header, rows), ""]
                 ht += [f"<h3>{html.escape(scene)} — {html.escape(REGION_TITLES[region])}</h3>", html_table(header, rows)]
+        made = quality_vs_seconds(sub, out, f"_{k}" if len(protos) > 1 else "")
+        if made is not None:
+            path, missing = made
+            cap = (f"Quality vs method seconds{suffix} ({REGION_TITLES['crop']}), per scene and overall; ringed "
+                   "points joined by the line: the Pareto front (no other method is both faster and better)")
+            if missing:
+                cap += f"; without seconds, not plotted: {', '.join(missing)}"
+            plots.append((cap, path))
 
+    if plots:
+        md += ["## Quality vs seconds", ""]
+        ht += ["<h2>Quality vs seconds</h2>"]
+        for caption, path in plots:
+            rel = path.relative_to(out).as_posix()
+            md += [f"**{caption}**", "", f"![quality vs seconds]({rel})", ""]
+            data = base64.b64encode(path.read_bytes()).decode("ascii")
+            ht += [f"<figure><img src=\"data:image/png;base64,{data}\" alt=\"quality vs seconds\">"
+                   f"<figcaption>{html.escape(caption)}</figcaption></figure>"]
     if grids:
         md += ["## Image grids", ""]
         ht += ["<h2>Image grids</h2>"]
