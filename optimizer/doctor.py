@@ -76,6 +76,41 @@ def _weights() -> list[tuple[str, str]]:
     return rows
 
 
+def real_packs(root=None) -> list[tuple[str, bool, str]]:
+    """``(pack, present, detail)`` for each real scene pack in ``packs/real/`` (present = every file it names is
+    there). ``root`` is the repository (default: the one this package is in). Nothing is loaded or rendered."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
+    rows = []
+    for pack in sorted((root / "packs" / "real").glob("*.toml")):
+        try:
+            data = tomllib.loads(pack.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            rows.append((pack.stem, False, f"unreadable: {exc}"))
+            continue
+        files = [v for sec, key in (("object", "mesh"), ("environment", "panorama"), ("environment", "xml"))
+                 if isinstance(v := data.get(sec, {}).get(key), str)]
+        missing = [f for f in files if not (pack.parent / f).is_file()]
+        rows.append((pack.stem, not missing, f"missing {', '.join(Path(m).name for m in missing)}" if missing else "ok"))
+    return rows
+
+
+def _real_packs_report() -> None:
+    rows = real_packs()
+    if not rows:
+        return
+    have = [r for r in rows if r[1]]
+    print(f"real scene packs (packs/real): {len(have)} of {len(rows)} present"
+          + ("" if len(have) == len(rows) else
+             "; the rest need: camo data fetch data_manifests/pmndrs_hdris.toml --dest data/real && "
+             "camo data fetch data_manifests/registry_objects.toml --dest data/real"))
+    if have:
+        names = ", ".join(r[0] for r in have)
+        print(f"  present: {names}")
+
+
 def run_doctor() -> int:
     ok = _renderer()
     try:
@@ -89,5 +124,6 @@ def run_doctor() -> int:
     print("optional local weights (never downloaded):")
     for label, status in _weights():
         _line(f"  {label}", status)
+    _real_packs_report()
     print("status:", "ok" if ok else "the renderer cannot run; see above")
     return 0 if ok else 1

@@ -130,7 +130,7 @@ def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndar
     (e.g. -3894 beside a 2.99e4 sun) and the ones beside those overshoot by about as much. Setting the
     negative values to 0 alone would keep the overshoot and make the sun up to 13 % brighter (``sky``).
     Here each negative value is set to 0 and its (negative) energy is taken, per channel, from the positive
-    pixels in the ``(2 radius + 1)^2`` window around it, in proportion to their values: the positive
+    pixels in the ``(2 radius + 1)^2`` window around it, in proportion to their energy (value x solid angle): the positive
     overshoot absorbs the negative lobe, as the filter's lobes cancel in the original. A pixel never goes
     below 0; energy it cannot give is reported as ``residual_fraction`` (then the repair added that much).
 
@@ -150,9 +150,11 @@ def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndar
     if not np.isfinite(a).all():
         raise CamoError("panorama contains NaN or infinite values; refusing to repair it")
     x = a.astype(np.float64)
+    w = solid_angles(a.shape[0], a.shape[1])
+    e = x * w[..., None]  # energy per pixel: the redistribution conserves this, not the pixel sum
     out = np.empty_like(x)
     for ch in range(3):
-        v = x[..., ch]
+        v = e[..., ch]
         pos = np.maximum(v, 0.0)
         debt = np.maximum(-v, 0.0)
         if not debt.any():
@@ -162,7 +164,7 @@ def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndar
         share = np.where(debt > 0, debt / np.maximum(s_pos, 1e-30), 0.0)
         take = _box_sum(share, radius)
         out[..., ch] = np.maximum(pos * (1.0 - take), 0.0)
-    w = solid_angles(a.shape[0], a.shape[1])
+    out /= w[..., None]
     luma = np.asarray(REC709_LUMA, np.float64)
     before = float(np.sum((x @ luma) * w))
     negative = float(-np.sum((np.minimum(x, 0.0) @ luma) * w))
