@@ -26,6 +26,17 @@ Definitions (formal trials only; practice trials are stored but never analysed):
 
 By default only participants who completed the study are analysed
 (``include_incomplete=True`` adds the formal trials of the others).
+
+Trial clock: the deadline lives on the server. A click that arrived after the limit
+(``late``) is stored as a timeout; a click faster than ``RT_FLOOR_MS`` (``too_fast``) is
+stored but **excluded** from Table I (the report says how many). ``starts > 1`` marks a
+trial whose page was reloaded (its time counts from the first showing).
+
+Location baselines (``stimuli_dir`` given): for the analysed formal trials, the hit rate a
+participant would get by clicking the image centre (``centre_click``) and by clicking where the
+object was in their own last practice image (``last_practice``, same relative position). They
+show location bias and practice leakage next to Table I; with objects spread over the frame they
+are close to the object's area share.
 """
 
 from __future__ import annotations
@@ -181,8 +192,8 @@ def load_tables(db) -> tuple[pd.DataFrame, pd.DataFrame]:
     )
     trials = trials.drop(columns=["id"])
     participants["completed"] = participants["completed_at"].notna()
-    for col in ("hit", "timed_out", "practice"):
-        trials[col] = trials[col].astype(bool)
+    for col in ("hit", "timed_out", "practice", "late", "too_fast"):
+        trials[col] = trials[col].fillna(False).astype(bool)
     trials["rt_s"] = trials["rt_ms"].astype(float) / 1000.0
     trials["found"] = trials["hit"] & ~trials["timed_out"] & (trials["rt_s"] <= trials["time_limit_s"])
     trials["time_on_trial_s"] = np.where(trials["timed_out"], trials["time_limit_s"], trials["rt_s"])
@@ -200,11 +211,56 @@ def load_tables(db) -> tuple[pd.DataFrame, pd.DataFrame]:
     return trials, participants
 
 
-def formal_trials(trials: pd.DataFrame, include_incomplete: bool = False) -> pd.DataFrame:
+def formal_trials(trials: pd.DataFrame, include_incomplete: bool = False, keep_too_fast: bool = False) -> pd.DataFrame:
+    """Formal trials to analyse: completed participants (unless ``include_incomplete``), too-fast answers
+    dropped (unless ``keep_too_fast``)."""
     f = trials[~trials["practice"]]
     if not include_incomplete:
         f = f[f["completed"]]
+    if not keep_too_fast and "too_fast" in f:
+        f = f[~f["too_fast"].astype(bool)]
     return f.copy()
+
+
+def location_baselines(trials: pd.DataFrame, formal: pd.DataFrame, stimuli_dir) -> pd.DataFrame:
+    """Per method (and ``all``): hit rate of a click at the image centre and at the participant's last
+    practice object's position (centroid, as a fraction of the image), over the trials in ``formal``;
+    next to the formal stimuli's mean object area share."""
+    from .stimuli import StimulusSet
+
+    ss = StimulusSet(stimuli_dir)
+    last_practice: dict[Any, tuple[float, float]] = {}
+    prac = trials[trials["practice"]].sort_values(["participant", "trial_index"])
+    for pid, g in prac.groupby("participant"):
+        st = ss.by_id.get(g.iloc[-1]["stimulus_id"])
+        if st is not None and st.centroid_x is not None:
+            last_practice[pid] = (st.centroid_x, st.centroid_y)
+        elif st is not None:  # a version-1 manifest: measure the mask
+            ys, xs = np.nonzero(ss.mask(st))
+            last_practice[pid] = ((xs.mean() + 0.5) / st.width, (ys.mean() + 0.5) / st.height)
+    rows = []
+    for r in formal.itertuples():
+        st = ss.by_id.get(r.stimulus_id)
+        if st is None:
+            continue
+        centre = ss.hit(st, st.width // 2, st.height // 2)
+        lp = last_practice.get(r.participant)
+        lp_hit = ss.hit(st, min(st.width - 1, int(lp[0] * st.width)), min(st.height - 1, int(lp[1] * st.height))) \
+            if lp else math.nan
+        share = float(ss.mask(st).mean())
+        rows.append({"method": r.method, "centre": centre, "last_practice": lp_hit, "share": share})
+    df = pd.DataFrame(rows, columns=["method", "centre", "last_practice", "share"])
+    out = []
+    for m, g in [("all", df)] + list(df.groupby("method")):
+        lp = g["last_practice"].dropna()
+        out.append({
+            "method": m,
+            "n_trials": len(g),
+            "centre_click_hit_rate": float(g["centre"].mean()) if len(g) else math.nan,
+            "last_practice_hit_rate": float(lp.astype(float).mean()) if len(lp) else math.nan,
+            "mean_area_share": float(g["share"].mean()) if len(g) else math.nan,
+        })
+    return pd.DataFrame(out)
 
 
 # ---------------------------------------------------------------------------
@@ -395,6 +451,29 @@ def table_markdown(table: pd.DataFrame, participants: pd.DataFrame, formal: pd.D
         "('> limit': fewer than half were found). Curves: km.png. Pairwise tests (Holm-corrected): pairwise.csv.",
         "- Practice trials are excluded.",
     ]
+    n_fast = meta.get("n_too_fast", 0)
+    lines += [
+        f"- Excluded: {n_fast} formal trial(s) answered faster than the plausible floor (`too_fast`). "
+        f"Clicks after the deadline are counted as timeouts ({meta.get('n_late', 0)} `late`); "
+        f"{meta.get('n_reloaded', 0)} trial(s) were shown again after a reload (the deadline held).",
+    ]
+    base = meta.get("baselines")
+    if base is not None and len(base):
+        lines += [
+            "",
+            "## Location baselines",
+            "",
+            "Hit rate of a participant who clicks the image centre, or where the object was in their last practice "
+            "image, on the same formal trials; mean share of the image the object covers.",
+            "",
+            "| Method | Trials | Centre click | Last-practice location | Object area share |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for r in base.itertuples():
+            lines.append(
+                f"| {r.method} | {r.n_trials} | {_pct(r.centre_click_hit_rate)} | {_pct(r.last_practice_hit_rate)} | "
+                f"{_pct(r.mean_area_share)} |"
+            )
     ages = participants.loc[participants["participant"].isin(formal["participant"].unique()), "age_bracket"]
     if len(ages):
         labels = {"prefer_not": "prefer not to say"}
@@ -412,9 +491,12 @@ def write_report(
     seed: int = 0,
     include_incomplete: bool = False,
     miss_censor: str = "limit",
+    stimuli_dir=None,
 ) -> dict[str, Any]:
-    """Write table_i.md/.csv, km.png, pairwise.csv, trials.csv/.parquet, participants.csv/.parquet."""
+    """Write table_i.md/.csv, km.png, pairwise.csv, trials.csv/.parquet, participants.csv/.parquet
+    (and baselines.csv when ``stimuli_dir`` is given)."""
     trials, participants = load_tables(db)
+    all_formal = formal_trials(trials, include_incomplete, keep_too_fast=True)
     formal = formal_trials(trials, include_incomplete)
     if formal.empty:
         raise CamoError(
@@ -427,8 +509,15 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     table = table_i(formal, n_boot=n_boot, seed=seed, miss_censor=miss_censor)
     pairs = pairwise_tests(formal, miss_censor=miss_censor)
-    meta = {"n_boot": n_boot, "seed": seed, "include_incomplete": include_incomplete, "miss_censor": miss_censor}
+    baselines = location_baselines(trials, formal, stimuli_dir) if stimuli_dir is not None else None
+    meta = {"n_boot": n_boot, "seed": seed, "include_incomplete": include_incomplete, "miss_censor": miss_censor,
+            "n_too_fast": int(all_formal["too_fast"].astype(bool).sum()),
+            "n_late": int(formal["late"].astype(bool).sum()),
+            "n_reloaded": int((formal["starts"].fillna(1) > 1).sum()), "baselines": baselines}
     write_text(out / "table_i.md", table_markdown(table, participants, formal, meta))
+    if baselines is not None:
+        with atomic_path(out / "baselines.csv") as tmp:
+            baselines.to_csv(tmp, index=False)
     for name, df in (("table_i", table), ("pairwise", pairs), ("trials", trials), ("participants", participants)):
         with atomic_path(out / f"{name}.csv") as tmp:
             df.to_csv(tmp, index=False)
@@ -436,4 +525,4 @@ def write_report(
         with atomic_path(out / f"{name}.parquet") as tmp:
             df.to_parquet(tmp, index=False)
     plot_km(formal, out / "km.png", miss_censor=miss_censor)
-    return {"table": table, "pairwise": pairs, "trials": trials, "participants": participants}
+    return {"table": table, "pairwise": pairs, "trials": trials, "participants": participants, "baselines": baselines}

@@ -64,7 +64,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="LO,HI",
         help="object extent as a fraction of the frame width, drawn uniformly (default 0.10,0.30)",
     )
-    b.add_argument("--margin", type=float, default=0.04, help="object kept this share of the frame inside (0.04)")
+    b.add_argument("--margin", type=float, default=0.02, help="object kept this share of the frame inside (0.02)")
     b.add_argument("--threads", type=int, default=None, help="render threads (default: CAMO_THREADS or all cores)")
     b.add_argument(
         "--copy",
@@ -110,6 +110,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     r.add_argument("--include-incomplete", action="store_true", help="also analyse unfinished sessions")
     r.add_argument(
         "--miss-censor", choices=("limit", "click"), default="limit", help="censor misses at the limit or at the click"
+    )
+    r.add_argument(
+        "--stimuli",
+        metavar="STIMULI_DIR",
+        help="the study's stimulus set: adds centre-click and last-practice-location baseline hit rates",
     )
     r.set_defaults(func=cmd_report)
     return p
@@ -244,12 +249,21 @@ def cmd_report(args) -> int:
         seed=args.seed,
         include_incomplete=args.include_incomplete,
         miss_censor=args.miss_censor,
+        stimuli_dir=args.stimuli,
     )
     t = res["table"]
     for r in t.itertuples():
         print(
             f"{r.method}: confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
             f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s"
+        )
+    b = res.get("baselines")
+    if b is not None:
+        a = b[b["method"] == "all"].iloc[0]
+        print(
+            f"baselines over {a.n_trials} formal trials: centre click {100 * a.centre_click_hit_rate:.1f} %, "
+            f"last-practice location {100 * a.last_practice_hit_rate:.1f} %, object area share "
+            f"{100 * a.mean_area_share:.1f} %"
         )
     print(f"wrote {args.out}/table_i.md, table_i.csv, km.png, pairwise.csv, trials/participants .csv/.parquet")
     return 0

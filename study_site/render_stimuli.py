@@ -14,11 +14,12 @@ identical framings and share one background render):
   distance) spans a fraction ``s ~ U(object_frac)`` of the frame width (default 0.10-0.30); the field of
   view is set to give that, clamped to 8-100 degrees;
 * **position**: the object centre's image position, in normalised device coordinates, is uniform in the
-  square where an object of extent ``s`` stays ``margin`` (default 4 % of the frame) inside the frame.
+  square where an object of extent ``s`` stays ``margin`` (default 2 % of the frame) inside the frame.
 
 The camera keeps its position; its look-at target moves to ``origin + f'`` with
 ``f' = normalise(f - px tan(fov'/2) r - py tan(fov'/2) u)`` (``f, r, u`` the forward, right and up axes of
-the original camera aimed at the object), which puts the object centre at ``(px, py)`` to first order. The
+the original camera aimed at the object) as the first guess, then solved (yaw and pitch about the camera's
+up vector, least squares) until the pinhole projection of the object centre is at ``(px, py)``. The
 actual placement is *measured* on the rendered mask and recorded in the manifest (``centroid_x/y``,
 ``bbox``, ``area_share``, ``centre_hit``) next to the draw (``draw_px/py``, ``draw_object_frac``,
 ``fov``, ``target``). Background-only and with-object images use the same camera and sampler seed
@@ -43,7 +44,7 @@ from .stimuli import StimulusWriter, check_no_leak, practice_split, synthetic_pr
 
 DEFAULT_SIZE = 512
 DEFAULT_OBJECT_FRAC = (0.10, 0.30)
-DEFAULT_MARGIN = 0.04
+DEFAULT_MARGIN = 0.02
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -88,11 +89,31 @@ def place_camera(cam, centre, object_size: float, draw: dict[str, float], size: 
     fov = math.degrees(2.0 * math.atan(tan_h))
     fov = min(100.0, max(8.0, fov))
     tan_h = math.tan(math.radians(fov) / 2.0)
-    f, r, u = camera_basis(origin, c, cam.up)
-    f2 = _unit(f - draw["px"] * tan_h * r - draw["py"] * tan_h * u)
-    target = origin + f2 * dist
-    new = Camera(tuple(float(x) for x in origin), tuple(float(x) for x in target), float(fov), int(size), int(size),
-                 tuple(cam.up))
+    from scipy.optimize import least_squares
+
+    o, up = tuple(float(x) for x in origin), tuple(cam.up)
+    w = _unit(np.asarray(up, float))
+    e1 = _unit(np.cross(w, [1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.cross(w, [0.0, 1.0, 0.0]))
+    e2 = np.cross(w, e1)
+
+    def forward(a):  # yaw a[0] around ``up``, pitch a[1] towards it
+        return math.cos(a[1]) * (math.cos(a[0]) * e1 + math.sin(a[0]) * e2) + math.sin(a[1]) * w
+
+    def cam_for(a):
+        return Camera(o, tuple(float(x) for x in origin + forward(a) * dist), float(fov), int(size), int(size), up)
+
+    def residual(a):
+        qx, qy = project_ndc(cam_for(a), c)
+        return [qx - draw["px"], qy - draw["py"]]
+
+    f, r, u = camera_basis(origin, c, up)
+    f2 = _unit(f - draw["px"] * tan_h * r - draw["py"] * tan_h * u)  # first-order guess
+    a0 = [math.atan2(f2 @ e2, f2 @ e1), math.asin(max(-1.0, min(1.0, f2 @ w)))]
+    sol = least_squares(residual, a0, bounds=([-np.inf, -1.5], [np.inf, 1.5]), xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    if max(abs(x) for x in sol.fun) > 1e-4:
+        raise CamoError(f"cannot aim the camera at {o} to put the object at ({draw['px']:.3f}, {draw['py']:.3f})")
+    target = origin + forward(sol.x) * dist
+    new = cam_for(sol.x)
     return new, fov, target
 
 
