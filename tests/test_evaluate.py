@@ -191,7 +191,7 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     run = load_run(runs[0])
     assets = load_result(run)
     rough = np.load(runs[0] / "maps" / "roughness.npy")
-    bsdf = mi.load_dict(object_bsdf(assets.values, run.app))
+    bsdf = mi.load_dict(object_bsdf(assets.values(), run.app))
     params = mi.traverse(bsdf)
     key = next(k for k in params.keys() if k.startswith("roughness") and k.endswith("data"))
     np.testing.assert_allclose(np.asarray(params[key]).reshape(rough.shape), rough, atol=1e-6)
@@ -213,7 +213,7 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     # (same-process renders are bit-exact; so far every re-render here was too).
     assert changed(img) <= 0.02, changed(img)
     # applying the safe minimum twice gives a visibly different object
-    wrong = dict(assets.values, roughness=assets.rendered["roughness"])
+    wrong = dict(assets.values(), roughness=assets.maps["roughness"])
     mesh = scn.object_mesh(assets.vertices, assets.faces, assets.uvs, object_bsdf(wrong, run.app))
     img2 = render_shaded(env.build(), mesh, cameras(run.pack), shading, s1["target_spp"], s1["seed"] * 7919 + 12345)
     assert changed(img2) > 0.3, changed(img2)
@@ -253,8 +253,10 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert "## Skipped metrics" in md and "`dreamsim`" in md
     grids = sorted((out / "grids").glob("*.png"))
     assert len(grids) == 2 and all(f"grids/{g.name}" in md for g in grids)
+    plots = sorted((out / "plots").glob("*.png"))
+    assert len(plots) == 2 and all(f"plots/{p.name}" in md for p in plots)  # quality vs seconds per protocol
     page = (out / "report.html").read_text()
-    assert page.count("data:image/png;base64,") == 2 and "<table>" in page
+    assert page.count("data:image/png;base64,") == 4 and "<table>" in page
     # the Table II value of "Ours" is the mean over views of its rows (one scene)
     df = pd.read_parquet(eval_dir / "metrics.parquet")
     ours = df[(df["run"] == "ours_full") & (df["region"] == "crop")]["psnr"].mean()
@@ -375,14 +377,16 @@ def test_hidden_object_gives_no_crop_scores():
     rng = np.random.default_rng(0)
     a, b = (rng.integers(0, 256, (40, 48, 3), dtype=np.uint8) for _ in range(2))
     full, crop = score_view(a, b, np.zeros((40, 48), bool), ["psnr", "ssim"], {})
+    assert full["seconds_psnr"] > 0 and full["seconds_ssim"] > 0 and np.isnan(full["seconds_lpips"])
     assert full["region"] == "full" and np.isfinite(full["psnr"]) and (full["region_height"], full["region_width"]) == (40, 48)
     assert crop["region"] == "crop" and np.isnan(crop["psnr"]) and np.isnan(crop["ssim"])
     assert crop["region_height"] == crop["region_width"] == crop["mask_pixels"] == 0
 
 
 def test_read_ply_round_trips_export(tmp_path):
+    from optimizer.asset import map_values_from_rendered
     from optimizer.export import write_ply
-    from evaluation.views import map_values_from_rendered, read_ply
+    from optimizer.rundir import read_ply
     from optimizer.scene import effective_roughness
 
     rng = np.random.default_rng(1)
@@ -411,8 +415,12 @@ def test_report_settings_group_identical_protocols(eval_dir, eval_dir_big, tmp_p
         shutil.copytree(eval_dir, c)
         copies.append(c)
     lines, _ = _settings_lines([*copies, eval_dir_big], named=3)
-    heads = [ln for ln in lines if ln.startswith("- ")]
+    heads = [ln for ln in lines if ln.startswith("- ") and "spp" in ln]
     assert len(heads) == 2
+    # one hardware line (every copy was measured on this machine) and the note on method seconds
+    hw = [ln for ln in lines if ln.startswith("- hardware of the evaluation seconds: ")]
+    assert len(hw) == 1 and "CPU cores" in hw[0] and "GPU" in hw[0]
+    assert lines[-1].startswith("- method seconds: ")
     assert heads[0].startswith("- 5 evaluations (`cell_0`, `cell_1`, `cell_2` and 2 more): views ")
     assert heads[1].startswith(f"- `{eval_dir_big.resolve().name}`: ") and "2 spp" in heads[1]
     assert sum(ln.startswith("  - integrator: ") for ln in lines) == 2
