@@ -90,3 +90,113 @@ def mask_rects(stimuli_dir: str | Path) -> dict[str, tuple[int, int, int, int]]:
         ys, xs = np.nonzero(m)
         out[st.id] = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
     return out
+
+
+# ---------------------------------------------------------------------------
+# a throw-away PostgreSQL server (tests, bench)
+# ---------------------------------------------------------------------------
+
+
+def find_postgres_bin() -> Path | None:
+    """The folder holding initdb/pg_ctl: on PATH, or Debian's /usr/lib/postgresql/<version>/bin (newest)."""
+    import shutil
+
+    found = shutil.which("initdb")
+    if found and shutil.which("pg_ctl"):
+        return Path(found).resolve().parent
+    cands = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"), key=lambda p: _version_key(p.parent.parent.name))
+    return cands[-1].parent if cands else None
+
+
+def _version_key(name: str):
+    try:
+        return tuple(int(x) for x in name.split("."))
+    except ValueError:
+        return (0,)
+
+
+class ThrowawayPostgres:
+    """A private PostgreSQL cluster in a temporary folder: initdb, pg_ctl start on a unix socket only (no TCP),
+    one database; ``stop()`` shuts it down and deletes everything.
+
+    PostgreSQL refuses to run as root: as root the cluster runs as the ``postgres`` user (Debian's package
+    creates it), or, without one, as a created system user ``camo-pg``. ``install=True`` runs
+    ``.ci/system-deps postgresql`` first when no server binaries are found. ``durable=False`` (tests) turns
+    off fsync; the bench keeps PostgreSQL's defaults.
+    """
+
+    def __init__(self, dbname: str = "camo_study_test", install: bool = False, durable: bool = False):
+        self.dbname, self.install, self.durable = dbname, install, durable
+        self.dir: Path | None = None
+        self.bin: Path | None = None
+        self.user: str | None = None
+        self.url: str | None = None
+
+    def _run(self, args: list[str], **kw):
+        import subprocess
+
+        cmd = [str(self.bin / args[0]), *args[1:]]
+        if self.user is not None:
+            cmd = ["runuser", "-u", self.user, "--", *cmd]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, **kw)
+        if res.returncode != 0:
+            raise RuntimeError(f"{args[0]} failed ({res.returncode}): {(res.stderr or res.stdout).strip()[-400:]}")
+        return res
+
+    def start(self) -> str:
+        import os
+        import pwd
+        import subprocess
+        import tempfile
+
+        self.bin = find_postgres_bin()
+        if self.bin is None and self.install:
+            script = Path(__file__).resolve().parents[1] / ".ci" / "system-deps"
+            subprocess.run(["bash", str(script), "postgresql"], check=False, timeout=900)
+            self.bin = find_postgres_bin()
+        if self.bin is None:
+            raise RuntimeError("PostgreSQL server binaries (initdb, pg_ctl) not found: sudo apt-get install postgresql")
+        if os.geteuid() == 0:
+            for name in ("postgres", "camo-pg"):
+                try:
+                    pwd.getpwnam(name)
+                    self.user = name
+                    break
+                except KeyError:
+                    continue
+            if self.user is None:
+                subprocess.run(["useradd", "--system", "--no-create-home", "camo-pg"], check=True, timeout=60)
+                self.user = "camo-pg"
+        self.dir = Path(tempfile.mkdtemp(prefix="camo_pg_", dir="/tmp"))
+        if self.user is not None:
+            pw = pwd.getpwnam(self.user)
+            os.chown(self.dir, pw.pw_uid, pw.pw_gid)
+        data, sock = self.dir / "data", self.dir
+        self._run(["initdb", "-D", str(data), "-U", "postgres", "--auth=trust", "-E", "UTF8", "--no-locale",
+                   *([] if self.durable else ["--no-sync"])])
+        opts = f"-k {sock} -c listen_addresses='' -c max_connections=300"
+        if not self.durable:
+            opts += " -c fsync=off -c synchronous_commit=off -c full_page_writes=off"
+        self._run(["pg_ctl", "-D", str(data), "-l", str(self.dir / "server.log"), "-w", "-t", "60", "-o", opts,
+                   "start"])
+        self._run(["createdb", "-h", str(sock), "-U", "postgres", self.dbname])
+        self.url = f"postgresql+psycopg://postgres@/{self.dbname}?host={sock}"
+        return self.url
+
+    def stop(self) -> None:
+        import shutil
+
+        if self.dir is None:
+            return
+        try:
+            self._run(["pg_ctl", "-D", str(self.dir / "data"), "-m", "immediate", "-w", "stop"])
+        except RuntimeError:
+            pass
+        shutil.rmtree(self.dir, ignore_errors=True)
+        self.dir = None
+
+    def __enter__(self) -> str:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

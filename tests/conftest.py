@@ -64,3 +64,30 @@ def write_eval_renders():
                          "mask": f"renders/view_{v}_mask.png", "view": v, **fields})
         (ev / "renders.json").write_text(json.dumps(recs))
     return write
+
+
+@pytest.fixture(scope="session")
+def postgres_url():
+    """A throw-away PostgreSQL database for the study's storage tests: CAMO_TEST_POSTGRES_URL when set (a
+    database named *test*, whose study tables are dropped), else a private cluster started here (initdb +
+    pg_ctl in a temporary folder, unix socket only; `.ci/system-deps postgresql` installs the server if
+    missing) and deleted afterwards."""
+    url = os.environ.get("CAMO_TEST_POSTGRES_URL", "")
+    if url:
+        from sqlalchemy.engine import make_url
+
+        if "test" not in (make_url(url).database or ""):
+            pytest.fail("CAMO_TEST_POSTGRES_URL must name a throw-away database whose name contains 'test'")
+        yield url
+        return
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        pytest.fail("psycopg is missing (the PostgreSQL driver): pip install -e '.[dev]' (or '.[postgres]')")
+    from study_site.testing import ThrowawayPostgres
+
+    pg = ThrowawayPostgres(install=True)
+    try:
+        yield pg.start()
+    finally:
+        pg.stop()

@@ -1,84 +1,156 @@
-"""The study app on PostgreSQL (opt-in): set CAMO_TEST_POSTGRES_URL to a *throw-away* database whose
-name contains "test", e.g. postgresql+psycopg://postgres@/camo_study_test?host=/tmp/pgsock. Its study
-tables are dropped and recreated."""
+"""The study app's storage on a real PostgreSQL server (the documented hosting database).
+
+The server is a throw-away cluster started by the ``postgres_url`` fixture (tests/conftest.py: initdb +
+pg_ctl in a temporary folder, unix socket only; ``.ci/system-deps postgresql`` installs the server when
+missing), or the database named by CAMO_TEST_POSTGRES_URL. Study tables are dropped first."""
 
 from __future__ import annotations
 
-import os
 import re
 import threading
 from collections import Counter
+from datetime import timedelta
 
 import pytest
+from sqlalchemy import select
 
-URL = os.environ.get("CAMO_TEST_POSTGRES_URL", "")
-
-
-def _db_name(url: str) -> str:
-    from sqlalchemy.engine import make_url
-
-    try:
-        return make_url(url).database or ""
-    except Exception:  # noqa: BLE001
-        return ""
+ID_KEY = "p" * 64
 
 
-pytestmark = pytest.mark.skipif(
-    not URL or "test" not in _db_name(URL),
-    reason="set CAMO_TEST_POSTGRES_URL to a throw-away PostgreSQL database named *test*",
-)
+@pytest.fixture()
+def pg(postgres_url):
+    from study_site.db import Base, make_engine
+
+    eng = make_engine(postgres_url)
+    Base.metadata.drop_all(eng)
+    eng.dispose()
+    return postgres_url
+
+
+@pytest.fixture(scope="module")
+def stim(tmp_path_factory):
+    from study_site.stimuli import build_stimuli
+    from study_site.testing import make_fake_eval_dir
+
+    root = tmp_path_factory.mktemp("pgstim")
+    make_fake_eval_dir(root / "ev", scenes=("pa", "pb"), methods=("m1", "m2", "m3"), views=1, size=(40, 30))
+    build_stimuli([root / "ev"], root / "stim", log=lambda m: None)
+    return root / "stim"
+
+
+def _app(stim, url, **cfg):
+    from study_site import create_app
+
+    app = create_app({"STIMULI_DIR": str(stim), "DATABASE_URL": url, "PRACTICE_TRIALS": 1, "RATE_LIMIT_PER_S": 0,
+                      "ID_HMAC_KEY": ID_KEY, "TRIAL_TIME_LIMIT_S": 10, **cfg})
+    app.testing = True
+    return app
 
 
 def _to_task(client, pid):
     client.get(f"/?PROLIFIC_PID={pid}")
     tok = re.search(r'name="csrf_token" value="([^"]+)"', client.get("/consent").text).group(1)
     client.post("/consent", data={"csrf_token": tok, "consent": "yes"})
-    client.post("/about-you", data={"csrf_token": tok, "age": "30-40"})
+    client.post("/about-you", data={"csrf_token": tok, "age": "35-44"})
     assert client.post("/instructions", data={"csrf_token": tok}).status_code == 302
     return tok
 
 
-def test_postgres_concurrent_sessions_and_report(tmp_path):
-    pytest.importorskip("psycopg")
-    from study_site import create_app
-    from study_site.analysis import write_report
-    from study_site.db import Base, make_engine
-    from study_site.stimuli import build_stimuli
-    from study_site.testing import make_fake_eval_dir
+def test_postgres_round_trip_retries_and_clock(pg, stim):
+    """One participant: stored values read back exactly, retries (same and new client id) never duplicate,
+    out-of-order answers are refused, the server clock survives a reload, late answers become timeouts."""
+    from study_site.analysis import load_tables
+    from study_site.db import PlanItem
+    from study_site.testing import mask_rects
 
-    eng = make_engine(URL)
-    Base.metadata.drop_all(eng)
-    eng.dispose()
-    make_fake_eval_dir(tmp_path / "ev", scenes=("pa", "pb"), methods=("m1", "m2", "m3"), views=1, size=(40, 30))
-    build_stimuli([tmp_path / "ev"], tmp_path / "stim", log=lambda m: None)
-    app = create_app({"STIMULI_DIR": str(tmp_path / "stim"), "DATABASE_URL": URL, "PRACTICE_TRIALS": 1,
-                      "RATE_LIMIT_PER_S": 0})
+    app = _app(stim, pg)
+    assert app.extensions["camo_study"].db.dialect == "postgresql"
+    c = app.test_client()
+    tok = _to_task(c, "PG_ROUND")
+    h = {"X-CSRF-Token": tok}
+    rects = mask_rects(stim)
+    trials = c.get("/api/state").get_json()["trials"]
+    assert [t["practice"] for t in trials] == [True, False, False]
+    # trial 0: hit, then two retries
+    sid = trials[0]["src"].rsplit("/", 1)[1]
+    x0, y0, x1, y1 = rects[sid]
+    assert c.post("/api/start", json={"trial_index": 0}, headers=h).get_json()["starts"] == 1
+    body = {"trial_index": 0, "client_trial_id": "pground-0", "timed_out": False, "rt_ms": 612.5,
+            "x": (x0 + x1) // 2, "y": (y0 + y1) // 2, "display_w": 576.0, "display_h": 432.0,
+            "viewport_w": 1280.0, "viewport_h": 800.0, "dpr": 2.0}
+    first = c.post("/api/trial", json=body, headers=h).get_json()
+    again = c.post("/api/trial", json=body, headers=h).get_json()
+    other = c.post("/api/trial", json=dict(body, client_trial_id="pground-0b", x=0, y=0), headers=h).get_json()
+    assert first["hit"] is True and first["duplicate"] is False
+    assert again["duplicate"] is True and other["duplicate"] is True and other["hit"] is True
+    assert other["stored_client_trial_id"] == "pground-0"
+    # out of order
+    r = c.post("/api/trial", json=dict(body, trial_index=2, client_trial_id="pground-2"), headers=h)
+    assert r.status_code == 409
+    # trial 1: reload after 4 s keeps the clock; trial answered late -> timeout
+    c.post("/api/start", json={"trial_index": 1}, headers=h)
+    db = app.extensions["camo_study"].db
+    with db.write() as s, s.begin():
+        it = s.scalar(select(PlanItem).where(PlanItem.idx == 1))
+        it.started_at -= timedelta(seconds=13)
+    st = c.post("/api/start", json={"trial_index": 1}, headers=h).get_json()
+    assert st["starts"] == 2 and st["remaining_ms"] == 0 and st["elapsed_ms"] >= 13000
+    sid = trials[1]["src"].rsplit("/", 1)[1]
+    x0, y0, x1, y1 = rects[sid]
+    late = {"trial_index": 1, "client_trial_id": "pground-1", "timed_out": False, "rt_ms": 12000.0,
+            "x": (x0 + x1) // 2, "y": (y0 + y1) // 2}
+    j = c.post("/api/trial", json=late, headers=h).get_json()
+    assert j["timed_out"] is True and j["late"] is True and j["hit"] is False
+    c.post("/api/start", json={"trial_index": 2}, headers=h)
+    j = c.post("/api/trial", json={"trial_index": 2, "client_trial_id": "pground-2", "timed_out": False,
+                                   "rt_ms": 10.0, "x": 1, "y": 1}, headers=h).get_json()
+    assert j["too_fast"] is True
+    assert c.post("/api/complete", json={}, headers=h).status_code == 200
+    t, parts = load_tables(db.engine)
+    assert t["trial_index"].tolist() == [0, 1, 2] and t["client_trial_id"].tolist() == ["pground-0", "pground-1",
+                                                                                      "pground-2"]
+    r0 = t.iloc[0]
+    assert (r0.rt_ms, r0.display_w, r0.viewport_h, r0.dpr, r0.click_x) == (612.5, 576.0, 800.0, 2.0, body["x"])
+    assert bool(r0.hit) and not bool(r0.late) and r0.starts == 1
+    assert bool(t.iloc[1].late) and bool(t.iloc[1].timed_out) and t.iloc[1].starts == 2
+    assert t.iloc[1].server_rt_ms >= 13000 and bool(t.iloc[2].too_fast)
+    assert parts.iloc[0].age_bracket == "35-44" and bool(parts.iloc[0].completed)
+    db.dispose()
+
+
+def test_postgres_concurrent_sessions_and_report(pg, stim, tmp_path):
+    from study_site.analysis import write_report
+
+    app = _app(stim, pg)
     errors = []
 
     def participant(i):
         try:
             c = app.test_client()
             tok = _to_task(c, f"PG_{i}")
+            h = {"X-CSRF-Token": tok}
             st = c.get("/api/state").get_json()
             for t in st["trials"]:
+                assert c.post("/api/start", json={"trial_index": t["index"]}, headers=h).status_code == 200
                 body = {"trial_index": t["index"], "client_trial_id": f"pg{i:03d}t{t['index']:02d}",
-                        "timed_out": False, "rt_ms": 1000.0 + i, "x": 1, "y": 1}
+                        "timed_out": False, "rt_ms": 400.0 + i, "x": 1, "y": 1}
                 for _ in range(2):  # a retry of the same answer is ignored
-                    r = c.post("/api/trial", json=body, headers={"X-CSRF-Token": tok})
+                    r = c.post("/api/trial", json=body, headers=h)
                     assert r.status_code == 200, r.text
-            assert c.post("/api/complete", json={}, headers={"X-CSRF-Token": tok}).status_code == 200
+            assert c.post("/api/complete", json={}, headers=h).status_code == 200
         except Exception as exc:  # noqa: BLE001
             errors.append(repr(exc))
 
-    threads = [threading.Thread(target=participant, args=(i,)) for i in range(6)]
+    threads = [threading.Thread(target=participant, args=(i,)) for i in range(12)]
     for t in threads:
         t.start()
     for t in threads:
-        t.join(60)
+        t.join(120)
     assert not errors, errors
-    res = write_report(URL, tmp_path / "rep", n_boot=100)
+    res = write_report(pg, tmp_path / "rep", n_boot=100, stimuli_dir=stim)
     trials = res["trials"]
-    assert len(trials) == 6 * 3 and trials.groupby(["participant", "trial_index"]).size().max() == 1
+    assert len(trials) == 12 * 3 and trials.groupby(["participant", "trial_index"]).size().max() == 1
     cells = Counter(zip(trials.loc[~trials.practice, "scene"], trials.loc[~trials.practice, "method"]))
-    assert set(cells.values()) == {2}  # 6 participants over 3 methods per scene, least-filled first
+    assert set(cells.values()) == {4}  # 12 participants over 3 methods per scene, least-filled first
+    assert res["baselines"].set_index("method").loc["all", "n_trials"] == 24
     app.extensions["camo_study"].db.dispose()
