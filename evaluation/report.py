@@ -409,6 +409,7 @@ def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib import ticker
 
     from optimizer import atomic
 
@@ -446,6 +447,11 @@ def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[
                 ax.scatter([pts[i][0] for i in front], [pts[i][1] for i in front], s=110, facecolors="none",
                            edgecolors="k", lw=1.2, zorder=4)
             ax.set_xscale("log")
+            if pts:
+                xs = [x for x, _ in pts]
+                ax.set_xlim(min(xs) / 2, max(xs) * 2)
+            ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda x, _: f"{x:g}"))
+            ax.xaxis.set_minor_formatter(ticker.NullFormatter())
             ax.set_title(f"{title}: {names.get(m, m)}", fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, which="both")
