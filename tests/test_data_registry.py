@@ -565,7 +565,7 @@ def test_real_grid_parses_into_eight_pairs():
         pytest.skip("the real data is not fetched into data/real (camo data fetch ...); the grid checks its packs exist")
     g = load_grid(REPO / "grids" / "real.toml")
     scenes = {c.scene for c in g.cells}
-    assert len(scenes) == 8 and len(g.cells) == 8 * 11
+    assert len(scenes) == 8 and len(g.cells) == 8 * 8
     assert {c.method for c in g.cells} == {"ours", "transparent", "mean", "random", "greedy", "diffusion2d",
                                            "ganmouflage"}
 
@@ -614,14 +614,18 @@ def test_real_hdri_and_real_mesh_prepare_optimise_evaluate(tmp_path):
     run_dir = tmp_path / "run"
     rc = main(["optimize", str(pack_path), "--out", str(run_dir), "--views", "4", "--resolution", "48",
                "--iterations", "6", "--stage2-iterations", "2", "--target-vertices", "3000", "--map-resolution", "64",
-               "--displacement-resolution", "32", "--spp", "2", "--target-spp", "8", "--threads", "2"])
+               "--displacement-resolution", "32", "--spp", "2", "--target-spp", "8", "--threads", "1"])
     assert rc == 0
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert np.isfinite(summary["final_loss"] if "final_loss" in summary else list(summary.values())[0] or 0)
+    assert summary["scene"] == "real-sky-duck" and summary["nonfinite_grads_total"] == 0
+    # 6 + 2 iterations at 48 px are too few to promise a lower loss; it must stay finite and not diverge
+    assert 0 < summary["final_loss_high_spp"] < 1.5 * summary["initial_loss_high_spp"]
+    albedo = np.load(run_dir / "maps" / "albedo.npy")
+    assert np.isfinite(albedo).all() and albedo.min() >= 0 and albedo.max() <= 1 and albedo.std() > 0
     assert (run_dir / "result.glb").is_file() and (run_dir / "maps" / "albedo.npy").is_file()
     eval_dir = tmp_path / "eval"
     assert main(["evaluate", str(run_dir), "--out", str(eval_dir), "--views", "2", "--spp", "8",
-                 "--metrics", "psnr,ssim", "--quiet", "--threads", "2"]) == 0
+                 "--metrics", "psnr,ssim", "--quiet", "--threads", "1"]) == 0
     df = pd.read_csv(eval_dir / "metrics.csv")
     assert len(df) == 4 and np.isfinite(df["psnr"]).all() and (df["psnr"] > 10).all()
     assert ((df["ssim"] > 0) & (df["ssim"] <= 1)).all()
