@@ -49,24 +49,23 @@ class Recorder:
         return chunks
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory):
+def _serve_site(root, limit_s=LIMIT_S, n_practice=N_PRACTICE):
     from werkzeug.serving import WSGIRequestHandler, make_server
 
     from study_site import create_app
     from study_site.stimuli import build_stimuli
     from study_site.testing import make_fake_eval_dir, mask_rects
 
-    root = tmp_path_factory.mktemp("browser_study")
     make_fake_eval_dir(root / "eval", scenes=SCENES, methods=METHODS, views=2, size=SIZE, seed=3)
     build_stimuli([root / "eval"], root / "stim", log=lambda m: None)
     app = create_app(
         {
             "STIMULI_DIR": str(root / "stim"),
             "DATABASE_URL": f"sqlite:///{root / 'study.sqlite'}",
-            "TRIAL_TIME_LIMIT_S": LIMIT_S,
-            "PRACTICE_TRIALS": N_PRACTICE,
+            "TRIAL_TIME_LIMIT_S": limit_s,
+            "PRACTICE_TRIALS": n_practice,
             "COMPLETION_CODE": "C0DE1234",
+            "ID_HMAC_KEY": "b" * 64,
         }
     )
     rec = Recorder(app)
@@ -79,7 +78,7 @@ def site(tmp_path_factory):
     th = threading.Thread(target=srv.serve_forever, daemon=True)
     th.start()
     manifest = json.loads((root / "stim" / "manifest.json").read_text())
-    yield {
+    site = {
         "base": f"http://127.0.0.1:{srv.server_port}",
         "app": app,
         "rec": rec,
@@ -87,9 +86,28 @@ def site(tmp_path_factory):
         "manifest": manifest,
         "stim_dir": root / "stim",
     }
-    srv.shutdown()
-    th.join(5)
-    app.extensions["camo_study"].db.dispose()
+
+    def close():
+        srv.shutdown()
+        th.join(5)
+        app.extensions["camo_study"].db.dispose()
+
+    return site, close
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    s, close = _serve_site(tmp_path_factory.mktemp("browser_study"))
+    yield s
+    close()
+
+
+@pytest.fixture(scope="module")
+def slow_site(tmp_path_factory):
+    """6 s per trial, one practice trial: room for a reload in the middle of a trial."""
+    s, close = _serve_site(tmp_path_factory.mktemp("browser_reload"), limit_s=6.0, n_practice=1)
+    yield s
+    close()
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +147,7 @@ class Participant:
             shot(p, "02_consent")
         p.click("#agree")
         p.wait_for_url("**/about-you")
-        p.check("input[value='20-30']")
+        p.check("input[value='18-24']")
         if shots:
             shot(p, "03_about_you")
         p.click("#continue")
@@ -148,7 +166,7 @@ class Participant:
             shot(p, shot_name)
         p.click("#panel-button")
 
-    def trial(self, index, action, shot_name=None):
+    def trial(self, index, action, shot_name=None, limit_s=LIMIT_S):
         """Answer the trial on screen: 'hit', 'miss' or 'timeout'; wait for the reveal."""
         p = self.page
         p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
@@ -168,7 +186,7 @@ class Participant:
             box = p.locator("#stage img.stim").bounding_box()
             p.mouse.click(box["x"] + (x + 0.5) * box["width"] / SIZE[0], box["y"] + (y + 0.5) * box["height"] / SIZE[1])
         self.clicks[index] = {"sid": sid, "action": action, "x": x, "y": y}
-        p.wait_for_selector("#task[data-phase='reveal'] #next:visible", timeout=LIMIT_S * 1000 + 10_000)
+        p.wait_for_selector("#task[data-phase='reveal'] #next:visible", timeout=limit_s * 1000 + 10_000)
         status = p.inner_text("#status")
         assert {"hit": "Found it", "miss": "Not quite", "timeout": "Time is up"}[action] in status, status
         if shot_name:
@@ -193,7 +211,7 @@ def _db_trials(site, pid):
     return trials[trials["participant"] == part.iloc[0]["participant"]].sort_values("trial_index"), part.iloc[0]
 
 
-def _check_rows(site, who: Participant):
+def _check_rows(site, who: Participant, reloaded=()):
     rows, part = _db_trials(site, who.pid)
     n = N_PRACTICE + len(SCENES)
     assert rows["trial_index"].tolist() == list(range(n)) and bool(part["completed"])
@@ -210,6 +228,11 @@ def _check_rows(site, who: Participant):
             assert not r.timed_out and r.hit == (c["action"] == "hit")
             assert abs(r.click_x - c["x"]) <= 1 and abs(r.click_y - c["y"]) <= 1
             assert 0 < r.rt_ms < LIMIT_S * 1000
+        # displayed at the configured share of the viewport; viewport and device pixel ratio recorded
+        assert r.display_h == pytest.approx(0.72 * r.viewport_h, abs=1.0)
+        assert r.display_w == pytest.approx(r.display_h * SIZE[0] / SIZE[1], abs=1.5) and r.dpr == 1.0
+        assert r.starts == (2 if r.trial_index in reloaded else 1) and not r.late
+        assert r.rt_ms <= r.server_rt_ms + 50  # the page's clock never runs ahead of the server's
     return rows
 
 
@@ -237,7 +260,7 @@ def test_full_session_with_reload_and_leak_scan(site, browser):
     who.trial(N_PRACTICE + 1, "miss")
     who.trial(N_PRACTICE + 2, "hit")
     who.done(shots=True)
-    _check_rows(site, who)
+    _check_rows(site, who, reloaded=(N_PRACTICE + 1,))  # #next had started that trial before the reload
 
     # malformed, forged and oversized requests from the participant's browser get 4xx
     codes = who.page.evaluate(
@@ -266,7 +289,8 @@ def test_full_session_with_reload_and_leak_scan(site, browser):
     # leak scan: nothing the browser received before a click names scene/method/run/object, nor reveals
     # (reveal ids appear first in the /api/trial answer to a click; masks are never served)
     man = site["manifest"]["stimuli"]
-    names = {s[k] for s in man for k in ("scene", "method", "run", "object")}
+    names = {s[k] for s in man for k in ("scene", "method", "run", "object") if not s["practice"]}
+    names |= {s["scene"] for s in man if s["practice"]}  # synthetic practice: method "practice" is a UI word
     reveal_ids = {s["reveal_id"] for s in man}
     mask_bytes = {p.read_bytes() for p in (site["stim_dir"] / "masks").glob("*.png")}
     reveal_bytes = {p.read_bytes() for p in (site["stim_dir"] / "reveal").glob("*.png")}
@@ -311,3 +335,49 @@ def test_two_participants_at_once(site, browser):
     assert not set(rows_a.client_trial_id) & set(rows_b.client_trial_id)
     a_ctx.close()
     b_ctx.close()
+
+
+def test_reload_mid_trial_keeps_the_deadline(slow_site, browser):
+    """A reload 2 s into a trial shows the same image with the time that was left: the stored reaction time
+    counts from the first showing; a reload after the deadline ends the trial as timed out."""
+    site = slow_site
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+    who = Participant(site, ctx, "RELOADER_1")
+    who.start()
+    who.press_panel("Practice first")
+    p = who.page
+    p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
+    first_src = p.get_attribute("#stage img.stim", "src")
+    time.sleep(2.0)
+    p.reload()
+    who.press_panel("continues with the time that was left")
+    p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
+    assert p.get_attribute("#stage img.stim", "src") == first_src  # the same image
+    # the time bar starts from the remaining share, not from full
+    bar = p.evaluate("() => parseFloat(document.getElementById('timer-fill').style.width)")
+    assert bar == 0 or bar < 80
+    who.seen.append(first_src.rsplit("/", 1)[1])
+    x0, y0, x1, y1 = site["rects"][first_src.rsplit("/", 1)[1]]
+    box = p.locator("#stage img.stim").bounding_box()
+    p.mouse.click(box["x"] + ((x0 + x1) / 2 + 0.5) * box["width"] / SIZE[0],
+                  box["y"] + ((y0 + y1) / 2 + 0.5) * box["height"] / SIZE[1])
+    p.wait_for_selector("#task[data-phase='reveal'] #next:visible")
+    assert "Found it" in p.inner_text("#status")
+    rows, _ = _db_trials(site, "RELOADER_1")
+    r = rows.iloc[0]
+    assert r.starts == 2 and r.hit and 2000 <= r.rt_ms <= 6000 and r.server_rt_ms >= 2000
+    assert r.rt_ms <= r.server_rt_ms + 50  # the page's clock does not run ahead of the server's
+    # next trial (formal): reload and stay away past the 6 s deadline -> stored as a timeout on return
+    p.click("#next")
+    who.press_panel("Practice complete")
+    p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
+    p.goto("about:blank")
+    time.sleep(6.5)
+    p.goto(site["base"] + "/task")
+    who.press_panel("Welcome back")
+    p.wait_for_selector("#task[data-phase='reveal'] #next:visible", timeout=10_000)
+    assert "Time is up" in p.inner_text("#status")
+    rows, _ = _db_trials(site, "RELOADER_1")
+    r = rows.iloc[1]
+    assert r.timed_out and not r.hit and r.starts == 2 and r.server_rt_ms >= 6000
+    ctx.close()

@@ -304,7 +304,7 @@
     for (var i = 0; i < trials.length; i++) {
       var t = trials[i], prev = i > 0 ? trials[i - 1] : null;
       if (i === 0) {
-        var first = t.index === 0
+        var first = t.index === 0 && !t.started
           ? 'Practice first: find the hidden object in each image and click on it as quickly as you can.'
           : 'Welcome back. You continue with ' + (t.practice ? 'the practice.' : 'the main task.') +
             (t.started ? ' The image you were looking at continues with the time that was left.' : '');
