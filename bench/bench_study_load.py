@@ -1,16 +1,24 @@
 """Load and crash benchmark of the study site (loopback only, bounded, stops by itself).
 
 1. Builds a small fake stimulus set, starts ``camo study serve`` (waitress when installed,
-   else werkzeug threaded) in a subprocess on 127.0.0.1 with a SQLite database.
+   else werkzeug threaded) in a subprocess on 127.0.0.1 with a SQLite database, or with
+   ``--db postgres`` a throw-away PostgreSQL cluster (initdb + pg_ctl in a temporary folder,
+   unix socket, PostgreSQL's durable defaults: fsync and synchronous_commit on).
 2. Load phase: N concurrent simulated participants (threads + http.client) run full sessions
    (landing, consent, about, instructions, state, image preload, every trial, completion).
-   Prints p50/p90/p99 latency of trial writes and lost / duplicated trial counts; each client
-   also re-sends one acknowledged trial (same and new client id) to exercise idempotency.
+   Each trial is ``POST /api/start`` (the server's clock), a search of ``--think`` seconds
+   (a timeout at ``--trial-limit``), then ``POST /api/trial``. Prints p50/p90/p99 latency of
+   trial writes (and of starts) and lost / duplicated trial counts; each client also re-sends
+   one acknowledged trial (same and new client id) to exercise idempotency.
 3. Crash phase: another N participants; when ~35% of their trials are acknowledged the server
    is killed with SIGKILL and restarted on the same database and port; clients retry until
    acknowledged. Verifies that every acknowledged trial is in the database exactly once.
 
-Usage: python bench/bench_study_load.py [--participants 200] [--scenes 6] [--time-limit 240]
+The clients run on the same machine as the server: on 2 cores they take CPU from it, so the
+figures are an upper bound of the server's own latency (``--server-cpus``/``--client-cpus``
+pin them apart with ``taskset``).
+
+Usage: python bench/bench_study_load.py [--participants 200] [--db sqlite|postgres] [--time-limit 300]
 """
 
 from __future__ import annotations
@@ -23,7 +31,6 @@ import random
 import re
 import signal
 import socket
-import sqlite3
 import statistics
 import subprocess
 import sys
@@ -45,11 +52,16 @@ class Deadline(Exception):
     pass
 
 
+class _SkipCrash(Exception):
+    pass
+
+
 class Client:
     """One simulated participant: its own cookie and keep-alive connection; retries until answered."""
 
-    def __init__(self, port: int, pid: str, deadline: float, stats: "Stats", think=(0.0, 0.03)):
+    def __init__(self, port: int, pid: str, deadline: float, stats: "Stats", think=(0.0, 0.03), limit_s=5.0):
         self.port, self.pid, self.deadline, self.stats, self.think = port, pid, deadline, stats, think
+        self.limit_s = limit_s
         self.conn: http.client.HTTPConnection | None = None
         self.cookie = ""
         self.csrf = ""
@@ -112,7 +124,7 @@ class Client:
         st, _, html, _ = self.request("GET", "/consent")
         self.csrf = CSRF_RE.search(html.decode()).group(1)
         self.form("/consent", {"consent": "yes"})
-        self.form("/about-you", {"age": rng.choice(["20-30", "30-40", "prefer_not", ""])})
+        self.form("/about-you", {"age": rng.choice(["18-24", "25-34", "prefer_not", ""])})
         self.form("/instructions", {})
         st, _, data, _ = self.request("GET", "/api/state")
         state = json.loads(data)
@@ -121,10 +133,18 @@ class Client:
                 self.request("GET", t["src"])
         first = None
         for t in state["trials"]:
-            time.sleep(rng.uniform(*self.think))  # search + looking at the reveal
-            timed_out = rng.random() < 0.1
+            st, j, dt0 = self.api("/api/start", {"trial_index": t["index"]})
+            if st != 200:
+                self.stats.count("unexpected_start_answers")
+                raise RuntimeError(f"{self.pid}: start {t['index']} -> {st} {j}")
+            self.stats.start_latency(dt0)
+            t_shown = time.monotonic() - j["elapsed_ms"] / 1000.0
+            search = rng.uniform(*self.think)  # search time; a timeout at the limit
+            timed_out = search >= self.limit_s
+            time.sleep(min(search, self.limit_s))
+            rt = (time.monotonic() - t_shown) * 1000.0
             body = {"trial_index": t["index"], "client_trial_id": f"{self.pid}-{t['index']}-{rng.getrandbits(40):x}",
-                    "timed_out": timed_out, "rt_ms": rng.uniform(300, 9000)}
+                    "timed_out": timed_out, "rt_ms": max(rt, self.limit_s * 1000.0) if timed_out else rt}
             if not timed_out:
                 body.update(x=rng.randrange(t["w"]), y=rng.randrange(t["h"]))
             st, j, dt = self.api("/api/trial", body)
@@ -152,6 +172,7 @@ class Stats:
     def __init__(self):
         self.lock = threading.Lock()
         self.latencies: list[float] = []
+        self.start_latencies: list[float] = []
         self.counts: dict[str, int] = {}
         self.acks = 0
 
@@ -162,6 +183,10 @@ class Stats:
     def trial_latency(self, dt):
         with self.lock:
             self.latencies.append(dt)
+
+    def start_latency(self, dt):
+        with self.lock:
+            self.start_latencies.append(dt)
 
     def ack(self):
         with self.lock:
@@ -174,16 +199,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(stim: Path, db: Path, port: int, threads: int, log) -> subprocess.Popen:
+def start_server(stim: Path, db: str, port: int, threads: int, log, limit_s: float, cpus: str | None = None):
     env = dict(os.environ)
     env.update(
         CAMO_STUDY_RATE_LIMIT_PER_S="200",
         CAMO_STUDY_RATE_LIMIT_BURST="400",
         CAMO_STUDY_NEW_PARTICIPANTS_PER_MIN="100000",
+        CAMO_STUDY_ID_HMAC_KEY="bench-" + "0" * 58,
+        CAMO_STUDY_TRIAL_TIME_LIMIT_S=str(limit_s),
         PYTHONPATH=str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""),
     )
     cmd = [sys.executable, "-m", "study_site.cli", "study", "serve", "--stimuli", str(stim), "--db", str(db),
            "--host", HOST, "--port", str(port), "--threads", str(threads)]
+    if cpus:
+        cmd = ["taskset", "-c", cpus, *cmd]
     proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=log, cwd=str(ROOT))
     t_end = time.monotonic() + 60
     while time.monotonic() < t_end:
@@ -200,8 +229,8 @@ def start_server(stim: Path, db: Path, port: int, threads: int, log) -> subproce
     raise RuntimeError("server did not start within 60 s")
 
 
-def run_phase(name, port, n, images, deadline, stats, seed, think, on_progress=None):
-    clients = [Client(port, f"{name}{i:04d}", deadline, stats, think) for i in range(n)]
+def run_phase(name, port, n, images, deadline, stats, seed, think, limit_s, on_progress=None):
+    clients = [Client(port, f"{name}{i:04d}", deadline, stats, think, limit_s) for i in range(n)]
     errors: list[str] = []
 
     def work(c, k):
@@ -222,27 +251,27 @@ def run_phase(name, port, n, images, deadline, stats, seed, think, on_progress=N
     return clients, errors
 
 
-def verify(db: Path, clients) -> dict:
+def verify(url: str, clients) -> dict:
     """Every acknowledged trial is in the database with the acknowledged client id, exactly once."""
-    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30)
-    rows = con.execute("SELECT client_trial_id, participant_id, trial_index FROM trials").fetchall()
-    dup_keys = con.execute(
-        "SELECT COUNT(*) FROM (SELECT participant_id, trial_index FROM trials GROUP BY 1, 2 HAVING COUNT(*) > 1)"
-    ).fetchone()[0]
-    integrity = con.execute("PRAGMA integrity_check").fetchone()[0]
-    con.close()
+    from sqlalchemy import create_engine, text
+
+    eng = create_engine(url)
+    with eng.connect() as con:
+        rows = con.execute(text("SELECT client_trial_id, participant_id, trial_index FROM trials")).all()
+        dup_keys = con.execute(text(
+            "SELECT COUNT(*) FROM (SELECT participant_id, trial_index FROM trials GROUP BY 1, 2 HAVING COUNT(*) > 1) d"
+        )).scalar()
+        integrity = (con.execute(text("PRAGMA integrity_check")).scalar() if eng.dialect.name == "sqlite"
+                     else "n/a (postgresql)")
+    eng.dispose()
     stored = {cid for cid, _, _ in rows}
     acked = {cid for c in clients for cid in c.acked.values()}
-    by_pid_prefix = {}
-    for cid in stored:
-        by_pid_prefix.setdefault(cid.rsplit("-", 2)[0], []).append(cid)
+    pids = {c.pid for c in clients}
     return {
         "acked": len(acked),
         "lost": len(acked - stored),
         "duplicate_rows": dup_keys,
-        "stored_but_not_acked": len(
-            [cid for cid in stored if cid.rsplit("-", 2)[0] in {c.pid for c in clients} and cid not in acked]
-        ),
+        "stored_but_not_acked": len([cid for cid in stored if cid.rsplit("-", 2)[0] in pids and cid not in acked]),
         "integrity": integrity,
     }
 
@@ -268,7 +297,15 @@ def main(argv=None) -> int:
         help="seconds between a participant's trials, uniform (default 2,6: search time plus looking at the "
         "reveal; 0,0.03 makes it a saturation test)",
     )
-    ap.add_argument("--time-limit", type=float, default=240.0, help="seconds for the whole benchmark")
+    ap.add_argument("--trial-limit", type=float, default=5.0,
+                    help="the study's time limit per trial in seconds (default 5: searches of --think 2-6 s time "
+                         "out ~25%% of the time)")
+    ap.add_argument("--db", choices=("sqlite", "postgres"), default="sqlite",
+                    help="sqlite (a file, WAL, synchronous=FULL) or postgres (a throw-away local cluster)")
+    ap.add_argument("--server-cpus", help="taskset CPU list for the server, e.g. 0 (clients: --client-cpus)")
+    ap.add_argument("--client-cpus", help="taskset CPU list for this client process, e.g. 1")
+    ap.add_argument("--no-crash", action="store_true", help="skip the kill -9 phase")
+    ap.add_argument("--time-limit", type=float, default=300.0, help="seconds for the whole benchmark")
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
     if not 1 <= args.participants <= 1000 or not 1 <= args.scenes <= 50:
@@ -278,6 +315,8 @@ def main(argv=None) -> int:
         assert len(think) == 2 and 0 <= think[0] <= think[1] <= 60
     except (ValueError, AssertionError):
         ap.error("--think must be MIN,MAX seconds, 0 <= MIN <= MAX <= 60")
+    if args.client_cpus:
+        os.sched_setaffinity(0, {int(c) for c in args.client_cpus.split(",")})
     t_all = time.monotonic()
     deadline = t_all + args.time_limit
 
@@ -285,18 +324,28 @@ def main(argv=None) -> int:
     from study_site.testing import make_fake_eval_dir
 
     results: dict = {"participants": args.participants, "scenes": args.scenes, "practice": args.practice,
-                     "think_s": think}
+                     "think_s": think, "db": args.db, "trial_limit_s": args.trial_limit, "cpus": os.cpu_count()}
+    pg = None
+    if args.db == "postgres":
+        from study_site.testing import ThrowawayPostgres
+
+        pg = ThrowawayPostgres(dbname="camo_study_bench", durable=True)
+        db_url = pg.start()
     with tempfile.TemporaryDirectory(prefix="bench_study_") as tmp:
         tmp = Path(tmp)
         scenes = tuple(f"scene{i:02d}" for i in range(args.scenes))
         make_fake_eval_dir(tmp / "eval", scenes=scenes, methods=("ours", "random", "gan"), views=2, size=(256, 192))
         build_stimuli([tmp / "eval"], tmp / "stim", log=lambda m: None)
-        db = tmp / "study.sqlite"
+        if pg is None:
+            db_url = f"sqlite:///{tmp / 'study.sqlite'}"
         port = free_port()
         log = open(tmp / "server.log", "wb")
-        env_cfg = {"practice": args.practice}
-        os.environ["CAMO_STUDY_PRACTICE_TRIALS"] = str(env_cfg["practice"])
-        proc = start_server(tmp / "stim", db, port, args.threads, log)
+        os.environ["CAMO_STUDY_PRACTICE_TRIALS"] = str(args.practice)
+
+        def server():
+            return start_server(tmp / "stim", db_url, port, args.threads, log, args.trial_limit, args.server_cpus)
+
+        proc = server()
         server_kind = "waitress" if b"waitress" in (tmp / "server.log").read_bytes() else "werkzeug"
         results["server"] = server_kind
         try:
@@ -305,11 +354,12 @@ def main(argv=None) -> int:
             t0 = time.monotonic()
             phase_deadline = min(deadline, t0 + args.time_limit * 0.5)
             clients, errors = run_phase(
-                "load", port, args.participants, not args.no_images, phase_deadline, stats, 1, think
+                "load", port, args.participants, not args.no_images, phase_deadline, stats, 1, think, args.trial_limit
             )
             wall = time.monotonic() - t0
-            v = verify(db, clients)
+            v = verify(db_url, clients)
             lat = [x * 1000 for x in stats.latencies]
+            slat = [x * 1000 for x in stats.start_latencies]
             results["load"] = {
                 "wall_s": round(wall, 2),
                 "completed": stats.counts.get("completed", 0),
@@ -320,13 +370,17 @@ def main(argv=None) -> int:
                 "p99_ms": round(pct(lat, 99), 2),
                 "max_ms": round(max(lat), 2) if lat else None,
                 "mean_ms": round(statistics.fmean(lat), 2) if lat else None,
+                "start_p50_ms": round(pct(slat, 50), 2),
+                "start_p99_ms": round(pct(slat, 99), 2),
                 "counts": stats.counts,
                 "errors": errors[:5],
                 **v,
             }
             print(f"[load] {args.participants} concurrent participants x {args.practice + args.scenes} trials, "
-                  f"think {think[0]:g}-{think[1]:g} s, server={server_kind}, wall {wall:.1f} s, "
-                  f"completed {results['load']['completed']}")
+                  f"search {think[0]:g}-{think[1]:g} s (limit {args.trial_limit:g} s), server={server_kind}, "
+                  f"db={args.db}, wall {wall:.1f} s, completed {results['load']['completed']}")
+            print(f"[load] trial starts: n={len(slat)}, p50 {results['load']['start_p50_ms']} ms, "
+                  f"p99 {results['load']['start_p99_ms']} ms")
             print(f"[load] trial writes: n={len(lat)} ({results['load']['writes_per_s']}/s), "
                   f"p50 {results['load']['p50_ms']} ms, p90 {results['load']['p90_ms']} ms, "
                   f"p99 {results['load']['p99_ms']} ms, max {results['load']['max_ms']} ms")
@@ -335,6 +389,8 @@ def main(argv=None) -> int:
                   f"errors {len(errors)}, integrity {v['integrity']}")
 
             # ---- crash phase --------------------------------------------------------------
+            if args.no_crash:
+                raise _SkipCrash()
             stats2 = Stats()
             expected = args.participants * (args.practice + args.scenes)
             state = {"proc": proc, "killed_at_acks": None, "restart_s": None}
@@ -346,16 +402,17 @@ def main(argv=None) -> int:
                     state["proc"].wait()
                     t_r = time.monotonic()
                     time.sleep(0.5)
-                    state["proc"] = start_server(tmp / "stim", db, port, args.threads, log)
+                    state["proc"] = server()
                     state["restart_s"] = round(time.monotonic() - t_r, 2)
 
             t0 = time.monotonic()
             clients2, errors2 = run_phase(
-                "crash", port, args.participants, False, deadline, stats2, 2, think, maybe_crash
+                "crash", port, args.participants, False, deadline, stats2, 2, think, args.trial_limit, maybe_crash
             )
             wall2 = time.monotonic() - t0
             proc = state["proc"]
-            v2 = verify(db, clients2)
+            v2 = verify(db_url, clients2)
+            lat2 = [x * 1000 for x in stats2.latencies]
             results["crash"] = {
                 "wall_s": round(wall2, 2),
                 "killed_after_acks": state["killed_at_acks"],
@@ -363,6 +420,8 @@ def main(argv=None) -> int:
                 "completed": stats2.counts.get("completed", 0),
                 "counts": stats2.counts,
                 "errors": errors2[:5],
+                "p50_ms": round(pct(lat2, 50), 2),
+                "p99_ms": round(pct(lat2, 99), 2),
                 **v2,
             }
             print(f"[crash] SIGKILL after {state['killed_at_acks']} of {expected} acknowledged trials, "
@@ -371,6 +430,10 @@ def main(argv=None) -> int:
             print(f"[crash] acknowledged {v2['acked']}, lost {v2['lost']}, duplicated rows {v2['duplicate_rows']}, "
                   f"committed-but-unacknowledged {v2['stored_but_not_acked']}, errors {len(errors2)}, "
                   f"integrity {v2['integrity']}")
+            print(f"[crash] trial writes incl. the outage: p50 {results['crash']['p50_ms']} ms, "
+                  f"p99 {results['crash']['p99_ms']} ms")
+        except _SkipCrash:
+            pass
         finally:
             if proc.poll() is None:
                 proc.terminate()
@@ -379,14 +442,16 @@ def main(argv=None) -> int:
                 except subprocess.TimeoutExpired:
                     proc.kill()
             log.close()
+            if pg is not None:
+                pg.stop()
     results["total_s"] = round(time.monotonic() - t_all, 1)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     ok = (
         results["load"]["lost"] == 0
         and results["load"]["duplicate_rows"] == 0
-        and results.get("crash", {}).get("lost", 1) == 0
-        and results["crash"]["duplicate_rows"] == 0
+        and (args.no_crash or (results.get("crash", {}).get("lost", 1) == 0
+                               and results["crash"]["duplicate_rows"] == 0))
     )
     print(f"total {results['total_s']} s: {'OK' if ok else 'FAILED'}")
     return 0 if ok else 1
