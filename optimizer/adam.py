@@ -54,10 +54,15 @@ class Adam:
                 dr.set_grad(x, dr.select(ok, g, 0.0))
         return bad
 
-    def step(self, project: dict[str, Callable] | None = None) -> None:
-        """One Adam update of every parameter from its gradient; then ``project[name](x)`` (e.g. a clamp)."""
+    def step(self, project: dict[str, Callable] | None = None, scale: float = 1.0) -> None:
+        """One Adam update of every parameter from its gradient; then ``project[name](x)`` (e.g. a clamp).
+
+        ``scale`` multiplies every learning rate for this step (a schedule, :func:`optimizer.schedule.lr_scale`);
+        the moments are updated as usual."""
         import drjit as dr
 
+        if not (scale >= 0.0 and scale < float("inf")):
+            raise ValueError(f"learning-rate scale must be finite and >= 0, got {scale}")
         self.t += 1
         c1 = 1.0 - self.b1**self.t
         c2 = 1.0 - self.b2**self.t
@@ -65,7 +70,7 @@ class Adam:
             g = dr.detach(dr.grad(x))
             m = self.b1 * self.m[name] + (1.0 - self.b1) * g
             v = self.b2 * self.v[name] + (1.0 - self.b2) * dr.square(g)
-            new = dr.detach(x) - self.lrs[name] * (m / c1) / (dr.sqrt(v / c2) + self.eps)
+            new = dr.detach(x) - (scale * self.lrs[name]) * (m / c1) / (dr.sqrt(v / c2) + self.eps)
             if project and name in project:
                 new = project[name](new)
             new = type(x)(new)

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 
+import math
+
 from .errors import CamoError
+
+#: Iteration cap of a stage under --time-budget when no iteration count is given (the budget ends it first).
+UNCAPPED = 100_000
 
 METHODS = ("ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage", "ganmouflage-paper")
 
@@ -14,7 +19,20 @@ def register(sub) -> None:
     p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
     p.add_argument("--out", required=True, help="run directory (must be new or empty unless --resume/--overwrite)")
     p.add_argument("--method", default="ours", help=f"method: {', '.join(METHODS)}")
-    p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50)")
+    p.add_argument("--preset", choices=("fast", "paper"), default="fast",
+                   help="fast (default): least-squares albedo warm start, cosine learning-rate decay, 20 + 4 "
+                        "iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
+                        "50 + 20 iterations, silhouette term on every view). Explicit flags override either")
+    p.add_argument("--time-budget", type=float, metavar="SECONDS",
+                   help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
+                        "without --iterations / --stage2-iterations the iteration caps are lifted)")
+    p.add_argument("--warm-start", choices=("on", "off"), help="least-squares albedo start (fast: on, paper: off)")
+    p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (fast: cosine)")
+    p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
+    p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
+    p.add_argument("--snapshot-every", type=int, default=0, metavar="N",
+                   help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
+    p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 20)")
     p.add_argument("--resolution", type=int, help="render width = height in pixels (default: the pack's)")
     p.add_argument("--spp", type=int, help="samples per pixel per training render (default 4)")
     p.add_argument("--target-spp", type=int, help="samples per pixel of background targets and final renders (default 64)")
@@ -31,7 +49,7 @@ def register(sub) -> None:
     p.add_argument("--target-vertices", type=int, help="remeshing target (paper: ~30,000)")
     p.add_argument("--domain", choices=("object+shadow", "frame"), help="loss pixel domain (default object+shadow)")
     p.add_argument("--stages", default="1,2", help="stages to run: 1 (background matching), 2 (synthesis); default 1,2")
-    p.add_argument("--stage2-iterations", type=int, help="Stage 2 iterations (paper: 20)")
+    p.add_argument("--stage2-iterations", type=int, help="Stage 2 iterations (paper: 20, fast: 4)")
     p.add_argument("--stage2-backend", choices=("patch", "diffusers"), help="Stage 2 inpainter (default: patch, offline)")
     p.add_argument("--stage2-strength", type=float, help="Stage 2 noise strength t_start in (0, 1] (default 0.5)")
     p.add_argument("--stage2-fixed-displacement", action="store_true",
@@ -82,6 +100,7 @@ def parse_init(text: str) -> dict:
 
 def config_from_args(args):
     from .cli import load_scene_arg, parse_ablate
+    from .appearance import AppearanceConfig
     from .run import RunConfig, appearance_for
     from .stage1 import Stage1Config
     from .stage2 import Stage2Config
@@ -104,7 +123,20 @@ def config_from_args(args):
             raise CamoError(f"--init {key} conflicts with --ablate {part} (the ablation fixes it)")
     if init:
         pack.material = dataclasses.replace(pack.material, **init)
-    app = appearance_for(ablate)
+    from .schedule import PRESETS
+
+    preset = PRESETS[args.preset]
+    app = appearance_for(ablate, dataclasses.replace(AppearanceConfig(), **preset["appearance"]))
+    for name in ("lr_maps", "lr_displacement"):
+        value = getattr(args, name)
+        if value is not None:
+            if not (math.isfinite(value) and 0.0 < value <= 10.0):
+                raise CamoError(f"--{name.replace('_', '-')} must be in (0, 10], got {value}")
+            app = dataclasses.replace(app, **{name: value})
+    if args.time_budget is not None and not (math.isfinite(args.time_budget) and args.time_budget > 0):
+        raise CamoError(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
+    if args.snapshot_every < 0:
+        raise CamoError(f"--snapshot-every must be >= 0, got {args.snapshot_every}")
     if args.map_resolution:
         app = dataclasses.replace(app, map_resolution=args.map_resolution)
     if args.displacement_resolution:
@@ -113,7 +145,13 @@ def config_from_args(args):
         app = dataclasses.replace(app, displacement_bound=args.displacement_bound)
     if "transmittance" in ablate or "bsdf" in ablate:
         pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    s1 = Stage1Config(seed=args.seed, loss=args.loss)
+    s1 = Stage1Config(seed=args.seed, loss=args.loss, **preset["stage1"])
+    if args.time_budget and args.iterations is None:
+        s1 = dataclasses.replace(s1, iterations=UNCAPPED)
+    if args.warm_start:
+        s1 = dataclasses.replace(s1, warm_start=args.warm_start == "on")
+    if args.lr_schedule:
+        s1 = dataclasses.replace(s1, lr_schedule=args.lr_schedule)
     for name in ("iterations", "spp", "target_spp", "domain", "silhouette_every"):
         if getattr(args, name) is not None:
             s1 = dataclasses.replace(s1, **{name: getattr(args, name)})
@@ -125,7 +163,9 @@ def config_from_args(args):
         raise CamoError(f"--stages must include 1 and may include 2, got {args.stages!r}")
     if "inpainting" in ablate:
         stages = (1,)
-    s2 = Stage2Config()
+    s2 = Stage2Config(**preset["stage2"])
+    if args.time_budget and args.stage2_iterations is None:
+        s2 = dataclasses.replace(s2, iterations=UNCAPPED)
     if args.stage2_iterations:
         s2 = dataclasses.replace(s2, iterations=args.stage2_iterations)
     if args.stage2_backend:
@@ -140,7 +180,10 @@ def config_from_args(args):
         raise CamoError("--stage2-backend diffusers needs --sdxl-path and --controlnet-path (local folders; nothing is downloaded)")
     cfg = RunConfig(scene=args.scene, method=args.method, stages=stages, ablate=tuple(sorted(ablate)),
                     checkpoint_every=args.checkpoint_every, planner=not args.no_planner,
-                    shadow_gradients=args.shadow_gradients, threads=args.threads, stage1=s1, stage2=s2, appearance=app)
+                    shadow_gradients=args.shadow_gradients, threads=args.threads, preset=args.preset,
+                    time_budget=args.time_budget, snapshot_every=args.snapshot_every,
+                    rough_start=args.preset == "fast" and "roughness" not in init,
+                    stage1=s1, stage2=s2, appearance=app)
     return pack, cfg
 
 

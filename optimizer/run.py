@@ -40,6 +40,10 @@ class RunConfig:
     planner: bool = True
     shadow_gradients: bool = False
     threads: int | None = None
+    preset: str = "fast"  # optimizer/schedule.PRESETS: "fast" (default) or "paper"
+    time_budget: float | None = None  # seconds for warm start + Stage 1 + Stage 2 iterations (setup excluded)
+    snapshot_every: int = 0  # > 0: snapshots/sS_XXXX.npz every N iterations of each stage (bench_convergence)
+    rough_start: bool = True  # raise a glint-prone initial roughness to planner.GLINT_ROUGHNESS (fast preset)
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
     stage2: Stage2Config = dataclasses.field(default_factory=Stage2Config)
     appearance: AppearanceConfig = dataclasses.field(default_factory=AppearanceConfig)
@@ -90,6 +94,7 @@ def config_fingerprint(cfg: RunConfig, pack: ScenePack) -> str:
     d = _plain(cfg)
     d.pop("checkpoint_every", None)
     d.pop("threads", None)
+    d.pop("snapshot_every", None)
     d["stage1"].pop("iterations", None)
     d["stage2"].pop("iterations", None)
     blob = json.dumps({"cfg": d, "pack": _plain(pack.to_dict())}, sort_keys=True).encode()
@@ -154,6 +159,8 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
     out = Path(out)
     prepare_run_dir(out, resume, overwrite)
     backend.init(threads=cfg.threads)
+    env = get_environment(pack.environment)
+    pack, rough_note = glint_safe_start(pack, env, cfg)
     fingerprint = config_fingerprint(cfg, pack)
     state = None
     if resume:
@@ -161,7 +168,8 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
         if str(state.get("fingerprint", "")) != fingerprint:
             raise CamoError(f"--resume: {out} was made with a different configuration; start a new run instead")
     resume_stage = int(state["stage"]) if state is not None and "stage" in state else 1
-    if state is not None and resume_stage == 2 and int(state.get("stage1_iterations", -1)) != cfg.stage1.iterations:
+    if state is not None and resume_stage == 2 and not cfg.time_budget and \
+            int(state.get("stage1_iterations", -1)) != cfg.stage1.iterations:
         raise CamoError(f"--resume: {out} finished Stage 1 with {int(state.get('stage1_iterations', -1))} iterations; "
                         f"it cannot continue with --iterations {cfg.stage1.iterations} (start a new run)")
 
@@ -176,7 +184,6 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
 
     t_setup = time.perf_counter()
     prepared = prepare_object(pack)
-    env = get_environment(pack.environment)
     app = cfg.appearance
 
     def plan_for(a: AppearanceConfig):
@@ -188,10 +195,19 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
     cams = cameras(pack)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
     advice = dict(pl.reasons).get("initial roughness")
-    if advice:
+    if rough_note:
+        say(f"note: {rough_note}")
+    elif advice:
         say(f"note: initial roughness {advice}")
-    s1 = Stage1(pack, env, prepared, cams, pl, cfg.stage1, app, say)
-    setup_seconds = time.perf_counter() - t_setup
+    budget1 = stage_budgets(cfg)[0]
+    s1cfg = dataclasses.replace(cfg.stage1, time_budget=budget1)
+    t_ws = time.perf_counter()
+    s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say)
+    warm_seconds = s1.warm_start_info.seconds if s1.warm_start_info else 0.0
+    setup_seconds = time.perf_counter() - t_setup - warm_seconds
+    if budget1:
+        s1.time_budget = max(budget1 - warm_seconds, 1e-3)  # the warm start is paid from Stage 1's budget
+    clock = {"offset": warm_seconds}
     history: list[dict[str, Any]] = []
     if state is not None:
         if resume_stage == 1:
@@ -200,6 +216,7 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
             _check_stage2_checkpoint(state, s1)
         history = _read_log(out / "log.jsonl", s1.iteration if resume_stage == 1 else None,
                             int(state["iteration"]) if resume_stage == 2 else None)
+        s1.elapsed = stage_seconds(history, 1)
     write_config(out / "config.toml", cfg, pack, {
         "versions": versions(),
         "plan": {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons],
@@ -212,8 +229,9 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
     final_stage: Stage1 = s1
     with open(out / "log.jsonl", "a", encoding="utf-8") as log:
         if resume_stage == 1:
-            _loop(s1, cfg.stage1.iterations, "stage 1", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint), cfg.checkpoint_every)
+            _loop(s1, "stage 1", progress, log, history,
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint), cfg.checkpoint_every,
+                  snapshots(out, cfg.snapshot_every, clock))
             values1 = s1.current_values()
         else:
             values1 = {k[len("stage1/"):]: v for k, v in state.items() if k.startswith("stage1/")}
@@ -226,18 +244,76 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
             s2 = Stage2(pack, env, prepared, cams, plan_for(app2), cfg.stage1, app2, say, initial=values1,
                         targets=s1.targets, stage2=cfg.stage2, inpainter=inpainter)
             s2.initial_render = s1.initial_render
+            s2.total_iterations = cfg.stage2.iterations
+            s1_seconds = warm_seconds + stage_seconds(history, 1)
+            if cfg.time_budget:
+                s2.time_budget = max(cfg.time_budget - s1_seconds, 1e-3)
+            clock["offset"] = s1_seconds
             if resume_stage == 2:
                 s2.load_checkpoint_state(state)
+                s2.elapsed = stage_seconds(history, 2)
             extra = {f"stage1/{k}": v for k, v in values1.items()}
-            extra["stage1_iterations"] = np.array(cfg.stage1.iterations)
-            _loop(s2, cfg.stage2.iterations, "stage 2", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), cfg.checkpoint_every)
+            extra["stage1_iterations"] = np.array(s1.iteration if resume_stage == 1 else int(state["stage1_iterations"]))
+            _loop(s2, "stage 2", progress, log, history,
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), cfg.checkpoint_every,
+                  snapshots(out, cfg.snapshot_every, clock))
             for v in sorted(s2.pseudo_np):
                 imaging.save_png(out / "stage2" / f"view_{v:02d}_pseudo_gt.png", s2.pseudo_np[v])
                 imaging.save_png(out / "stage2" / f"view_{v:02d}_strip.png", pseudo_gt_strip(s2, v))
             final_stage = s2
-    finish_run(out, final_stage, pack, env, history, setup_seconds)
+    finish_run(out, final_stage, pack, env, history, setup_seconds, cfg, s1.warm_start_info)
     return out
+
+
+def glint_safe_start(pack: ScenePack, env, cfg: RunConfig) -> tuple[ScenePack, str | None]:
+    """With ``cfg.rough_start``, a pack whose initial roughness would keep sun glints (the planner's "initial
+    roughness" advice: a compact light and roughness below ``planner.GLINT_ROUGHNESS``) starts at that roughness
+    instead; returns the pack (a copy when changed) and a note saying so, or ``(pack, None)``."""
+    from .planner import GLINT_ROUGHNESS, glint_advice
+
+    params = cfg.appearance.planner_params()
+    if not cfg.rough_start or not glint_advice(pack, env, params):
+        return pack, None
+    old = pack.material.roughness
+    pack = dataclasses.replace(pack, material=dataclasses.replace(pack.material, roughness=GLINT_ROUGHNESS))
+    return pack, (f"initial roughness {old:g} -> {GLINT_ROUGHNESS:g}: the scene has a compact light, and a smoother "
+                  "start keeps specular glints (README, 'Why the built-in scenes start rough'); --init roughness=X or "
+                  "--preset paper keeps the pack's value")
+
+
+def stage_budgets(cfg: RunConfig) -> tuple[float | None, float | None]:
+    """``--time-budget`` split: Stage 1 (warm start included) gets 80 % when Stage 2 runs, all of it otherwise;
+    Stage 2 gets whatever Stage 1 left."""
+    if not cfg.time_budget:
+        return None, None
+    if 2 in cfg.stages:
+        return 0.8 * cfg.time_budget, 0.2 * cfg.time_budget
+    return float(cfg.time_budget), None
+
+
+def stage_seconds(history: list[dict[str, Any]], stage: int) -> float:
+    """Wall-clock seconds of a stage's logged iterations (Stage 2: inpainting and its render included)."""
+    return float(sum(h.get("seconds_total", h.get("seconds", 0.0)) for h in history if h.get("stage") == stage))
+
+
+def snapshots(out: Path, every: int, clock: dict[str, float]):
+    """A callback saving ``snapshots/sS_XXXX.npz`` (the parameters and the optimisation seconds so far) every
+    ``every`` iterations, or None. ``clock["offset"]``: seconds spent before this stage (warm start, Stage 1)."""
+    if every <= 0:
+        return None
+
+    def save(stage: Stage1) -> None:
+        if stage.iteration % every:
+            return
+        vals = stage.current_values()
+        vals["seconds"] = np.array(clock["offset"] + stage.elapsed)
+        vals["iteration"] = np.array(stage.iteration)
+        vals["stage"] = np.array(stage.STAGE)
+        with atomic.atomic_path(out / "snapshots" / f"s{stage.STAGE}_{stage.iteration:04d}.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, **vals)
+
+    return save
 
 
 def _check_stage2_checkpoint(state: dict[str, np.ndarray], s1: Stage1) -> None:
@@ -259,11 +335,15 @@ def _check_stage2_checkpoint(state: dict[str, np.ndarray], s1: Stage1) -> None:
                 raise CamoError(f"checkpoint is corrupt or from another configuration: bad {key}/{name}")
 
 
-def _loop(stage: Stage1, iterations: int, label: str, progress: bool, log, history: list, checkpoint, every: int) -> None:
+def _loop(stage: Stage1, label: str, progress: bool, log, history: list, checkpoint, every: int,
+          snapshot=None) -> None:
     from tqdm import tqdm
 
+    iterations = stage.total_iterations
+    if snapshot is not None and stage.iteration == 0:
+        snapshot(stage)
     bar = tqdm(total=iterations, initial=stage.iteration, disable=not progress, desc=label, unit="it")
-    while stage.iteration < iterations:
+    while not stage.done():
         rec = stage.step()
         history.append(rec)
         log.write(json.dumps(rec) + "\n")
@@ -272,7 +352,9 @@ def _loop(stage: Stage1, iterations: int, label: str, progress: bool, log, histo
         # total can rise while the image match improves
         bar.set_postfix(loss=f"{rec['loss']:.4f}", photo=f"{rec['loss_photo']:.4f}", nonfinite=rec["nonfinite_grads"])
         bar.update(1)
-        if stage.iteration % every == 0 or stage.iteration == iterations:
+        if snapshot is not None:
+            snapshot(stage)
+        if stage.iteration % every == 0 or stage.done():
             checkpoint(stage)
     bar.close()
 
@@ -287,7 +369,8 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
             np.savez(f, **st)
 
 
-def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float) -> None:
+def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
+               cfg: RunConfig | None = None, warm=None) -> None:
     """Final render, previews, exported asset and summary of a Stage 1 run."""
     from .loss import make_loss
     from .result import Result, final_render_seed, write_result
@@ -300,6 +383,8 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
     dom = [None if s1.cfg.domain == "frame" else s1.targets.domain[v] for v in range(len(final))]
     per_view = [lossfn.numpy(final[v], bg[v], dom[v]) for v in range(len(final))]
     initial = [lossfn.numpy(s1.initial_render[v], bg[v], dom[v]) for v in range(len(final))]
+    warm_s = float(warm.seconds) if warm is not None else 0.0
+    s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
     atomic.write_json(out / "summary.json", {
         "scene": pack.name,
         "iterations": {f"stage{st}": sum(1 for h in history if h.get("stage") == st) for st in (1, 2)},
@@ -309,6 +394,15 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
         "final_loss_per_view": per_view,
         "seconds_setup": setup_seconds,
         "seconds_iterations": float(sum(h["seconds"] for h in history)),
+        # wall-clock seconds of the optimisation: Stage 1 = warm start + its iterations, Stage 2 = its iterations
+        # with their pseudo-ground-truth renders and inpainting (``seconds_iterations`` counts gradient steps only)
+        "seconds_warm_start": warm_s,
+        "seconds_stage1": warm_s + s1_s,
+        "seconds_stage2": s2_s,
+        "seconds_optimisation": warm_s + s1_s + s2_s,
+        "preset": cfg.preset if cfg else None,
+        "time_budget": cfg.time_budget if cfg else None,
+        "warm_start": warm.to_dict() if warm is not None else None,
         "nonfinite_grads_total": int(sum(h["nonfinite_grads"] for h in history)),
         "final_render": {"integrator": res.integrator, "spp": res.spp, "seed": final_render_seed(s1.cfg.seed)},
     })

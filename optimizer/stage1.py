@@ -11,8 +11,17 @@ The loss domain defaults to the object's visible mask united with its shadow
 dilated by ``domain_dilate`` of the image size: the shadow on the ground gives
 the object away, so it must count. ``domain = "frame"`` uses the whole image.
 
+Beyond the paper (``--preset fast``, the default; ``--preset paper`` turns both off):
+
+* the albedo starts from the least-squares match to the background (:mod:`optimizer.warmstart`) instead of
+  grey 0.5, computed once after the targets are rendered;
+* every learning rate follows a cosine decay over the stage's progress (:mod:`optimizer.schedule`), and
+  ``time_budget`` (seconds of iterations) ends the stage early; progress is then the larger of the iteration
+  and the time fraction.
+
 Determinism: the primal and adjoint seeds differ and change per iteration and
-view; one machine and one seed give the same numbers (resume included).
+view; one machine and one seed give the same numbers (resume included; a run ended
+by ``time_budget`` depends on the machine's speed by design).
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ from .loss import gated_loss_terms, mse_loss
 from .planner import Plan, training_integrator
 from .render import coverage_and_depth, render_shaded, uses_batch
 from .scenepack import ScenePack
+from .schedule import lr_scale, progress
 
 
 @dataclasses.dataclass
@@ -49,6 +59,12 @@ class Stage1Config:
     domain_dilate: float = 0.04  # fraction of the image's larger side
     shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
     silhouette_every: int = 4  # projective: the silhouette term on a random 1/N of the views per step, weighted
+    # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/schedule.PRESETS: the
+    # default "fast" turns on the warm start and the cosine schedule)
+    warm_start: bool = False  # least-squares albedo start (optimizer/warmstart.py); paper: grey 0.5
+    lr_schedule: str = "constant"  # optimizer/schedule.py; fast: "cosine"
+    lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
+    time_budget: float | None = None  # seconds of iterations for this stage (None: iterations decide)
 
 
 @dataclasses.dataclass
@@ -80,6 +96,12 @@ def influence_domain(bg: np.ndarray, obj: np.ndarray, coverage: np.ndarray, thre
     return dilate((coverage > 0) | changed, dilate_px).astype(np.float32)
 
 
+def target_seed(seed: int) -> int:
+    """Sampler seed of the background targets, the initial render and the warm start's renders (common random
+    numbers: paths that miss the object give the same radiance in all of them)."""
+    return seed * 7919 + 1
+
+
 def shading_integrator(plan: Plan) -> dict:
     """The plain path tracer matching a training plan's depth (targets, final renders)."""
     return {"type": "path", "max_depth": plan.max_depth, "rr_depth": plan.max_depth}
@@ -101,16 +123,26 @@ class Stage1:
         self.pack, self.env, self.cams, self.plan, self.cfg, self.app = pack, env, cams, plan, cfg, app
         self.geometry = Geometry.build(prepared, pack.object, app)
         self.values = {k: v.copy() for k, v in (initial or initial_values(app, pack.material)).items()}
-        self.opt = Adam(app.learning_rates())
-        for name in app.trainable():
-            v = self.values[name]
-            self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
         self.project = clamp_projections(app, pack.object.size)
         self.iteration = 0
+        self.elapsed = 0.0  # seconds of this stage's iterations so far (the schedule's clock)
+        self.total_iterations = cfg.iterations  # the schedule's length (Stage 2 sets its own)
+        self.time_budget = cfg.time_budget
         self.history: list[dict[str, Any]] = []
         if targets is None:
             log("rendering background targets and the loss domain")
         self.targets = targets if targets is not None else self._targets()
+        self.warm_start_info = None
+        if cfg.warm_start and initial is None:
+            from .warmstart import warm_start_albedo
+
+            self.values, self.warm_start_info = warm_start_albedo(
+                self.values, self.geometry, app, env, cams, self.shading_integrator(), self.targets.background,
+                self.targets.coverage, cfg.target_spp, target_seed(cfg.seed), log)
+        self.opt = Adam(app.learning_rates())
+        for name in app.trainable():
+            v = self.values[name]
+            self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
@@ -130,7 +162,7 @@ class Stage1:
     def _targets(self) -> Targets:
         cfg = self.cfg
         integ = self.shading_integrator()
-        seed = cfg.seed * 7919 + 1
+        seed = target_seed(cfg.seed)
         bg = render_shaded(self.env.build(), None, self.cams, integ, cfg.target_spp, seed)
         obj_mesh = self._object()
         init = render_shaded(self.env.build(), obj_mesh, self.cams, integ, cfg.target_spp, seed)
@@ -308,21 +340,36 @@ class Stage1:
             dr.backward(l_disp)
             disp = float(l_disp[0])
         nonfinite = self.opt.sanitise_grads()
-        self.opt.step(self.project)
+        scale = self.lr_scale()
+        self.opt.step(self.project, scale)
         self.iteration += 1
+        seconds = time.perf_counter() - t0
+        self.elapsed += seconds
         rec = {
             "iteration": self.iteration,
             "stage": self.STAGE,
             "loss": photo + disp,
             "loss_photo": photo,
             "loss_disp": disp,
-            "seconds": time.perf_counter() - t0,
+            "seconds": seconds,
             "nonfinite_grads": nonfinite,
+            "lr_scale": scale,
         }
         if has_terms:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         self.history.append(rec)
         return rec
+
+    def lr_scale(self) -> float:
+        """This step's learning-rate multiplier (:func:`optimizer.schedule.lr_scale` at the stage's progress)."""
+        p = progress(self.iteration, self.total_iterations, self.elapsed, self.time_budget)
+        return lr_scale(p, self.cfg.lr_schedule, self.cfg.lr_floor)
+
+    def done(self) -> bool:
+        """All iterations taken, or the stage's time budget spent."""
+        if self.iteration >= self.total_iterations:
+            return True
+        return bool(self.time_budget) and self.elapsed >= self.time_budget
 
     # --- results --------------------------------------------------------------
     def current_values(self) -> dict[str, np.ndarray]:

@@ -134,6 +134,7 @@ class Stage2(Stage1):
         rec["view_inpainted"] = view
         rec["seconds_inpaint"] = self.inpaint_seconds[-1]
         rec["seconds_total"] = time.perf_counter() - t0
+        self.elapsed += rec["seconds_total"] - rec["seconds"]  # the schedule's clock counts the pseudo-GT too
         rec["views_with_pseudo_gt"] = len(self.pseudo)
         return rec
 

@@ -57,7 +57,7 @@ from ..appearance import AppearanceConfig, Geometry, initial_values, object_bsdf
 from ..cameras import Camera
 from ..errors import CamoError
 from ..scenepack import ScenePack
-from ..stage1 import Stage1Config, Targets, influence_domain, shading_integrator
+from ..stage1 import Stage1Config, Targets, influence_domain, shading_integrator, target_seed
 from . import projection
 
 ALBEDO_MODES = ("global", "local", "photo")
@@ -80,7 +80,7 @@ def render_targets(env, cams: list[Camera], obj_mesh, integrator: dict, cfg: Sta
     from .. import scene as scn
     from ..render import coverage_and_depth, render_shaded
 
-    seed = cfg.seed * 7919 + 1
+    seed = target_seed(cfg.seed)
     bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, seed)
     init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, seed)
     sc_obj = scn.build_scene(env.build(), obj_mesh)

@@ -1,0 +1,235 @@
+"""Quality against seconds: time-to-quality curves of ``camo optimize`` presets on every built-in scene.
+
+For each scene and variant (default: ``fast``, the default preset, and ``paper``, the paper's schedule) one
+``camo optimize`` run is made at the demo's sizes with ``--snapshot-every N``; every snapshot (the parameters
+after N iterations, with the wall-clock seconds of the optimisation so far: warm start + Stage 1 + Stage 2
+iterations, set-up excluded, as ``summary.json`` records them) is then scored exactly like ``camo evaluate``:
+rendered on jittered novel views (``--eval-views``, default 8, +-0.25 at radius 4, seed 0) at ``--eval-spp``
+(default 64) with the evaluation path tracer, 8-bit sRGB, GANmouflage object crop, mean over views of crop
+PSNR, SSIM, LPIPS-proxy and SIFID-proxy. All variants of a scene share the background render and cameras.
+
+Outputs in ``--out``: ``curves.csv`` (one row per scene x variant x snapshot), ``curves.png`` (one panel per
+scene and metric: quality vs seconds), ``marks.md`` (each variant's quality at the last snapshot taken within
+20 / 60 / 180 s) and the with-object renders of the final snapshot per variant (``final_<scene>_<variant>.png``:
+background row over object row). Variants run one after another in one process tree, so they see the same
+machine load.
+
+    python bench/bench_convergence.py [--scenes meadow,gravel] [--variants fast,paper] [--out bench_out/convergence]
+    python bench/bench_convergence.py --scenes meadow --variants fast,paper,mean   # a baseline as a variant
+    python bench/bench_convergence.py --scenes pack:meadow:backpack                # a user pack (paper start)
+    python bench/bench_convergence.py --paper-sizes --scenes gravel                # 16 views, 128 px, 30k, 800 px
+
+A variant is a preset name, a baseline method (``mean``, ``random``, ``greedy``: one point), or
+``NAME=FLAGS`` with extra ``camo optimize`` flags, e.g. ``"t1=--init transmittance=1"``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEMO = ["--views", "8", "--resolution", "96", "--target-vertices", "10000", "--map-resolution", "256",
+        "--displacement-resolution", "128", "--spp", "4", "--target-spp", "32"]
+PAPER_SIZES = ["--views", "16", "--resolution", "128", "--target-vertices", "30000", "--map-resolution", "800",
+               "--displacement-resolution", "256", "--spp", "4", "--target-spp", "64"]
+BASELINES = ("mean", "random", "greedy")
+METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
+MARKS = (20.0, 60.0, 180.0)
+
+
+def scene_arg(name: str, workdir: Path) -> str:
+    """``pack:ENV:OBJECT`` -> a user pack file around a built-in environment (the paper's initial material)."""
+    if not name.startswith("pack:"):
+        return name
+    _, env, obj = (name.split(":") + ["backpack"])[:3]
+    path = workdir / f"pack_{env}_{obj}.toml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f'name = "user-{env}-{obj}"\n[object]\nprimitive = "{obj}"\n[environment]\nbuiltin = "{env}"\n')
+    return str(path)
+
+
+def variant_flags(variant: str) -> tuple[str, list[str]]:
+    name, _, flags = variant.partition("=")
+    if name in BASELINES:
+        return name, ["--method", name]
+    if flags:
+        return name, shlex.split(flags)
+    return name, ["--preset", name]
+
+
+def run_variant(camo: str, scene: str, variant: str, sizes: list[str], out: Path, every: int) -> tuple[Path, float]:
+    name, flags = variant_flags(variant)
+    cmd = [camo, "optimize", scene, "--out", str(out), *sizes, "--overwrite", "--quiet", *flags]
+    if name not in BASELINES:
+        cmd += ["--snapshot-every", str(every)]
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return out, time.perf_counter() - t
+
+
+class Scorer:
+    """Scores parameter snapshots of one scene on jittered novel views, ``camo evaluate``'s way."""
+
+    def __init__(self, run_dir: Path, views: int, spp: int):
+        from evaluation.views import ViewRenderer, evaluation_cameras, evaluation_plan
+        from optimizer.rundir import open_run
+        from optimizer.environments import get_environment
+
+        run = open_run(run_dir)
+        self.pack = run.pack
+        self.env = get_environment(self.pack.environment)
+        self.cams = evaluation_cameras(self.pack, views, 0.25, 0, tuple(self.pack.render.resolution)).cams
+        self.integrator = evaluation_plan(self.pack, self.env).integrator
+        self.renderer = ViewRenderer(spp, 0)
+        self.bg = self.renderer.background(self.pack, self.env, self.cams, self.integrator)
+
+    def score(self, run_dir: Path, values: dict[str, np.ndarray]) -> tuple[dict[str, float], np.ndarray]:
+        from evaluation.evaluate import score_view, srgb8
+        from optimizer import scene as scn
+        from optimizer.appearance import Geometry, object_bsdf, world_positions
+        from optimizer.placement import prepare_object
+        from optimizer.rundir import open_run
+
+        run = open_run(run_dir)
+        geometry = Geometry.build(prepare_object(run.pack), run.pack.object, run.app)
+
+        def mesh():
+            return scn.object_mesh(world_positions(geometry, values, run.app), geometry.faces, geometry.uvs,
+                                   object_bsdf(values, run.app))
+
+        objr = self.renderer.with_object(self.env, mesh, self.cams, self.integrator)
+        acc: dict[str, list[float]] = {m: [] for m in METRICS}
+        for v in range(len(self.cams)):
+            for row in score_view(srgb8(objr.image[v]), srgb8(self.bg.image[v]), objr.mask[v], METRICS, {}):
+                if row["region"] == "crop":
+                    for m in METRICS:
+                        if np.isfinite(row[m]):
+                            acc[m].append(float(row[m]))
+        return {m: float(np.mean(x)) if x else float("nan") for m, x in acc.items()}, objr.image
+
+
+def snapshot_values(path: Path) -> tuple[dict[str, np.ndarray], float, int, int]:
+    with np.load(path) as z:
+        vals = {k: z[k] for k in z.files if k not in ("seconds", "iteration", "stage")}
+        return vals, float(z["seconds"]), int(z["iteration"]), int(z["stage"])
+
+
+def final_values(run_dir: Path) -> dict[str, np.ndarray]:
+    """A baseline's parameters from its run directory (maps as optimised; no displacement, no pose)."""
+    from optimizer.rundir import open_run
+
+    run = open_run(run_dir)
+    maps = run.asset().values()
+    rd = run.app.displacement_resolution
+    return {**{k: v if v.ndim == 3 else v[..., None] for k, v in maps.items()},
+            "displacement": np.zeros((rd, rd, 1), np.float32), "translation": np.zeros(3, np.float32),
+            "rotation": np.zeros(1, np.float32)}
+
+
+def at_mark(rows: list[dict], mark: float) -> dict | None:
+    """The last snapshot taken within ``mark`` seconds (a finished run counts with its final snapshot)."""
+    inside = [r for r in rows if r["seconds"] <= mark + 1e-9]
+    return max(inside, key=lambda r: r["seconds"]) if inside else None
+
+
+def plot(rows: list[dict], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3 * len(scenes)), squeeze=False)
+    for i, sc in enumerate(scenes):
+        for j, metric in enumerate(("psnr", "lpips_proxy")):
+            ax = axes[i, j]
+            for var in dict.fromkeys(r["variant"] for r in rows if r["scene"] == sc):
+                pts = sorted((r["seconds"], r[metric]) for r in rows if r["scene"] == sc and r["variant"] == var)
+                xs, ys = zip(*pts)
+                ax.plot(xs, ys, "o-" if len(xs) > 1 else "s", label=var, ms=3)
+            for m in MARKS:
+                ax.axvline(m, color="0.8", lw=0.8, zorder=0)
+            ax.set_title(f"{sc}: crop {metric} ({'higher' if metric == 'psnr' else 'lower'} is better)", fontsize=9)
+            ax.set_xlabel("seconds of optimisation (2 CPU cores)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default="meadow,gravel,split,room,occluded,panorama")
+    ap.add_argument("--variants", default="fast,paper")
+    ap.add_argument("--every", type=int, default=5, help="snapshot every N iterations")
+    ap.add_argument("--eval-views", type=int, default=8)
+    ap.add_argument("--eval-spp", type=int, default=64)
+    ap.add_argument("--paper-sizes", action="store_true", help="16 views, 128 px, 30k vertices, 800 px maps")
+    ap.add_argument("--out", default="bench_out/convergence")
+    args = ap.parse_args()
+
+    from optimizer import backend
+    from optimizer.imaging import linear_to_srgb, save_png
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    camo = str(Path(sys.executable).with_name("camo"))
+    sizes = PAPER_SIZES if args.paper_sizes else DEMO
+    backend.init()
+    rows: list[dict] = []
+    finals: dict[tuple[str, str], float] = {}
+    for scene in [s.strip() for s in args.scenes.split(",") if s.strip()]:
+        sarg = scene_arg(scene, out / "packs")
+        scorer = None
+        for variant in [v.strip() for v in args.variants.split(",") if v.strip()]:
+            name, _ = variant_flags(variant)
+            run_dir = out / "runs" / scene.replace(":", "_") / name
+            _, wall = run_variant(camo, sarg, variant, sizes, run_dir, args.every)
+            scorer = scorer or Scorer(run_dir, args.eval_views, args.eval_spp)
+            summary = json.loads((run_dir / "summary.json").read_text())
+            if name in BASELINES:
+                snaps = [(final_values(run_dir), float(summary["seconds_method"]), 0, 0)]
+            else:
+                snaps = [snapshot_values(p) for p in sorted((run_dir / "snapshots").glob("*.npz"))]
+                snaps.sort(key=lambda s: s[1])
+            img = None
+            for vals, secs, it, stage in snaps:
+                scores, img = scorer.score(run_dir, vals)
+                rows.append({"scene": scene, "variant": name, "stage": stage, "iteration": it,
+                             "seconds": round(secs, 2), **{k: round(v, 4) for k, v in scores.items()}})
+                print(json.dumps(rows[-1]), flush=True)
+            finals[(scene, name)] = wall
+            if img is not None:
+                strip = np.concatenate([np.concatenate(list(scorer.bg.image), 1), np.concatenate(list(img), 1)], 0)
+                save_png(out / f"final_{scene.replace(':', '_')}_{name}.png", linear_to_srgb(strip))
+    with open(out / "curves.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    plot(rows, out / "curves.png")
+    lines = ["| scene | variant | " + " | ".join(f"{m:g} s: PSNR / LPIPS-proxy" for m in MARKS) + " | final (s) |",
+             "|---|---|" + "---|" * (len(MARKS) + 1)]
+    for scene, name in finals:
+        rs = [r for r in rows if r["scene"] == scene and r["variant"] == name]
+        cells = []
+        for m in MARKS:
+            r = at_mark(rs, m)
+            cells.append(f"{r['psnr']:.2f} / {r['lpips_proxy']:.3f}" if r else "-")
+        last = max(rs, key=lambda r: r["seconds"])
+        cells.append(f"{last['psnr']:.2f} / {last['lpips_proxy']:.3f} ({last['seconds']:.0f})")
+        lines.append(f"| {scene} | {name} | " + " | ".join(cells) + " |")
+    (out / "marks.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

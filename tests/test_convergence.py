@@ -1,0 +1,193 @@
+"""The fast preset's parts: the least-squares albedo warm start, the learning-rate schedule, the time budget,
+snapshots and the presets, each checked against analytic values or end to end through the CLI on a tiny scene."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+from optimizer.cli import main
+from optimizer.schedule import PRESETS, lr_scale, progress
+from optimizer.warmstart import least_squares_albedo
+
+TINY = ["--views", "3", "--resolution", "32", "--map-resolution", "48", "--displacement-resolution", "16",
+        "--target-vertices", "800", "--spp", "2", "--target-spp", "16", "--quiet", "--threads", "1"]
+
+
+# --- least squares, analytic ---------------------------------------------------------------------------------
+
+def test_least_squares_recovers_a_known_albedo_from_noisy_affine_views():
+    """B = L0 + a (L1 - L0) in every view (different lighting per view): the solve returns a exactly; with
+    zero-mean noise on B it returns the weighted least-squares estimate sum(w s r) / sum(w s^2)."""
+    rng = np.random.default_rng(0)
+    V, N = 5, 200
+    a = rng.uniform(0.05, 0.95, (N, 3))
+    L0 = rng.uniform(0.0, 0.2, (V, N, 3))
+    s = rng.uniform(0.3, 2.0, (V, N, 3))
+    B = L0 + a * s
+    w = rng.uniform(0.1, 1.0, (V, N))
+    got, assigned, raw = least_squares_albedo(B, L0, L0 + s, w)
+    assert assigned.all()
+    np.testing.assert_allclose(got, a, atol=1e-5)
+    noise = rng.normal(0, 0.05, B.shape)
+    got, _, raw = least_squares_albedo(B + noise, L0, L0 + s, w)
+    want = (w[..., None] * s * (B + noise - L0)).sum(0) / (w[..., None] * s * s).sum(0)
+    np.testing.assert_allclose(raw, want, rtol=1e-5)
+    np.testing.assert_allclose(got, np.clip(want, 0, 1), atol=1e-6)
+
+
+def test_least_squares_clips_ignores_nonfinite_and_unseen():
+    """Too dark a background -> 0, too bright -> 1 (raw keeps the sign); a NaN/Inf observation carries no
+    weight; a texel seen by no view, or with zero slope (black even at albedo 1), is unassigned."""
+    V, N = 2, 5
+    L0 = np.zeros((V, N, 3))
+    L1 = np.ones((V, N, 3))
+    B = np.full((V, N, 3), 0.25)
+    B[:, 0] = -1.0  # needs a < 0
+    B[:, 1] = 3.0  # needs a > 1
+    B[0, 2] = np.nan  # view 0 poisoned, view 1 says 0.25
+    L1[0, 2, 1] = np.inf
+    w = np.ones((V, N))
+    w[:, 3] = 0.0  # never seen
+    L1[:, 4] = 0.0  # no slope
+    got, assigned, raw = least_squares_albedo(B, L0, L1, w)
+    assert np.isfinite(got).all() and np.isfinite(raw).all()
+    assert assigned.tolist() == [True, True, True, False, False]
+    np.testing.assert_allclose(got[0], 0.0)
+    np.testing.assert_allclose(got[1], 1.0)
+    assert raw[0, 0] == pytest.approx(-1.0) and raw[1, 0] == pytest.approx(3.0)
+    np.testing.assert_allclose(got[2], 0.25, atol=1e-6)
+
+
+# --- schedule ------------------------------------------------------------------------------------------------
+
+def test_cosine_schedule_values_and_extremes():
+    assert lr_scale(0.0) == pytest.approx(1.0)
+    assert lr_scale(0.5, floor=0.1) == pytest.approx(0.55)
+    assert lr_scale(1.0, floor=0.1) == pytest.approx(0.1)
+    assert lr_scale(7.0, floor=0.0) == 0.0 and lr_scale(-3.0) == pytest.approx(1.0)  # clamped
+    assert lr_scale(math.nan) == pytest.approx(0.1)  # a broken clock ends on small steps, never NaN
+    assert lr_scale(0.3, "constant") == 1.0
+    with pytest.raises(ValueError):
+        lr_scale(0.3, "linear")
+    assert progress(5, 20) == 0.25
+    assert progress(5, 20, seconds=9.0, budget=10.0) == 0.9  # the budget runs out first
+    assert progress(30, 20) == 1.0 and progress(0, 0) == 0.0
+
+
+def test_adam_scale_multiplies_the_step(mi_backend):
+    """One Adam step moves by lr * scale (the first bias-corrected step is lr * sign(g)); scale 0 keeps the
+    value; a non-finite scale is refused."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from optimizer.adam import Adam
+
+    for scale in (1.0, 0.25, 0.0):
+        opt = Adam({"x": 0.1})
+        opt.add("x", mi.Float([0.5, 0.5]))
+        dr.backward(dr.sum(opt["x"] * mi.Float([2.0, -3.0])))
+        opt.step(scale=scale)
+        np.testing.assert_allclose(np.asarray(opt["x"]), [0.5 - 0.1 * scale, 0.5 + 0.1 * scale], atol=1e-6)
+    with pytest.raises(ValueError):
+        opt.step(scale=float("nan"))
+
+
+# --- end to end --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("conv")
+    out = {}
+    for name, extra in (("fast", ["--iterations", "3", "--stage2-iterations", "1", "--snapshot-every", "1"]),
+                        ("paper", ["--preset", "paper", "--iterations", "3", "--stages", "1"])):
+        assert main(["optimize", "meadow", "--out", str(base / name), *TINY, *extra]) == 0
+        out[name] = base / name
+    return out
+
+
+def _config(run):
+    return tomllib.loads((run / "config.toml").read_text())
+
+
+def test_presets_are_recorded(runs):
+    fast, paper = _config(runs["fast"])["run"], _config(runs["paper"])["run"]
+    assert fast["preset"] == "fast" and paper["preset"] == "paper"
+    assert fast["stage1"]["warm_start"] is True and fast["stage1"]["lr_schedule"] == "cosine"
+    assert paper["stage1"]["warm_start"] is False and paper["stage1"]["lr_schedule"] == "constant"
+    assert paper["stage1"]["silhouette_every"] == 1 and paper["stage2"]["iterations"] == 20
+    assert paper["appearance"]["lr_maps"] == 0.01 and paper["appearance"]["lr_displacement"] == 0.1
+    assert fast["appearance"]["lr_displacement"] == PRESETS["fast"]["appearance"]["lr_displacement"]
+
+
+def test_warm_start_matches_the_background_better_than_grey(runs):
+    """Iteration 0 of the fast run (the warm-started albedo) already has a lower loss than the grey start at
+    the same high spp, and the summary records the warm start and the seconds per part."""
+    s = json.loads((runs["fast"] / "summary.json").read_text())
+    ws = s["warm_start"]
+    assert 0 < ws["texels_seen"] <= ws["texels"] and ws["seconds"] > 0
+    assert all(0.0 <= x <= 1.0 for x in ws["mean_albedo"])
+    assert s["seconds_stage1"] == pytest.approx(s["seconds_warm_start"] + sum(
+        r.get("seconds_total", r["seconds"]) for r in map(json.loads, (runs["fast"] / "log.jsonl").read_text().splitlines())
+        if r["stage"] == 1), rel=1e-6)
+    assert s["seconds_optimisation"] == pytest.approx(s["seconds_stage1"] + s["seconds_stage2"])
+    first = json.loads((runs["fast"] / "log.jsonl").read_text().splitlines()[0])
+    paper_first = json.loads((runs["paper"] / "log.jsonl").read_text().splitlines()[0])
+    assert first["loss_photo"] < 0.8 * paper_first["loss_photo"]
+    assert s["final_loss_high_spp"] < s["initial_loss_high_spp"]
+
+
+def test_snapshots_have_increasing_seconds_and_the_final_values(runs):
+    snaps = sorted((runs["fast"] / "snapshots").glob("*.npz"))
+    assert [p.name for p in snaps] == ["s1_0000.npz", "s1_0001.npz", "s1_0002.npz", "s1_0003.npz", "s2_0000.npz",
+                                       "s2_0001.npz"]
+    secs = [float(np.load(p)["seconds"]) for p in snaps]
+    assert all(b >= a for a, b in zip(secs, secs[1:])) and secs[0] > 0  # s1_0000 already paid the warm start
+    last = np.load(snaps[-1])
+    albedo = np.load(runs["fast"] / "maps" / "albedo.npy")
+    np.testing.assert_allclose(last["albedo"], albedo, atol=1e-6)
+    lr = [json.loads(x)["lr_scale"] for x in (runs["fast"] / "log.jsonl").read_text().splitlines()]
+    assert lr[0] == pytest.approx(1.0) and lr[1] < lr[0]  # cosine: decays within each stage
+
+
+def test_time_budget_ends_the_run(tmp_path):
+    """A budget far below one iteration's cost: Stage 1 takes one step, Stage 2 one step, and the run is a
+    complete run directory whose config records the budget."""
+    out = tmp_path / "budget"
+    assert main(["optimize", "meadow", "--out", str(out), *TINY, "--time-budget", "0.01"]) == 0
+    log = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
+    assert [(r["stage"], r["iteration"]) for r in log] == [(1, 1), (2, 1)]
+    assert _config(out)["run"]["time_budget"] == 0.01
+    assert (out / "result.glb").is_file()
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--time-budget", "0"], "--time-budget must be a positive"),
+    (["--time-budget", "nan"], "--time-budget must be a positive"),
+    (["--lr-maps", "-1"], "--lr-maps must be in (0, 10]"),
+    (["--snapshot-every", "-2"], "--snapshot-every must be >= 0"),
+])
+def test_bad_schedule_flags_are_one_line_errors(tmp_path, capsys, flags, message):
+    out = tmp_path / "bad"
+    assert main(["optimize", "meadow", "--out", str(out), *TINY, *flags]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_user_pack_under_the_sun_starts_rough_in_the_fast_preset(tmp_path, capsys):
+    """A user pack (paper material, roughness 0) around the sunlit meadow: the fast preset starts at the
+    planner's glint-safe roughness and says so; --init roughness=0 and --preset paper keep 0."""
+    pack = tmp_path / "user.toml"
+    pack.write_text('name = "user"\n[object]\nprimitive = "vase"\n[environment]\nbuiltin = "meadow"\n')
+    common = [*TINY, "--iterations", "1", "--stages", "1"]
+    assert main(["optimize", str(pack), "--out", str(tmp_path / "a"), *common]) == 0
+    assert _config(tmp_path / "a")["pack"]["material"]["roughness"] == 0.5
+    assert main(["optimize", str(pack), "--out", str(tmp_path / "b"), *common, "--init", "roughness=0"]) == 0
+    assert _config(tmp_path / "b")["pack"]["material"]["roughness"] == 0.0
+    assert main(["optimize", str(pack), "--out", str(tmp_path / "c"), *common, "--preset", "paper"]) == 0
+    assert _config(tmp_path / "c")["pack"]["material"]["roughness"] == 0.0
