@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import re
 import os
 from pathlib import Path
 
@@ -318,6 +319,83 @@ def test_frechet_rank_deficient_and_identical():
         frechet_distance(np.zeros(2), np.full((2, 2), np.nan), np.zeros(2), np.eye(2))
 
 
+def test_frechet_bad_covariances_are_one_line_errors_and_identical_skip_the_term():
+    rng = _rng(11)
+    a = rng.normal(size=(4, 4))
+    s = a @ a.T + np.eye(4)
+    m1, m2 = rng.normal(size=4), rng.normal(size=4)
+    # identical covariances: exactly ||mu1 - mu2||^2 (no eigen-solver round-off)
+    assert frechet_distance(m1, s, m2, s.copy()) == float((m1 - m2) @ (m1 - m2))
+    cases = [
+        (1e160 * s, s, "beyond 1e+150"),  # was an uncaught LinAlgError (Sigma1 Sigma2 overflows)
+        (s, 1e160 * np.eye(4), "beyond 1e+150"),
+        (s + np.triu(np.ones((4, 4)), 1), s, "not symmetric"),  # was 0-or-anything without complaint
+        (np.diag([1.0, -2.0, 1.0, 1.0]), s, "not positive semi-definite"),
+        (-np.eye(4), -np.eye(4), "not positive semi-definite"),  # identical but not PSD: still refused
+    ]
+    for s1, s2, needle in cases:
+        with pytest.raises(CamoError, match=re.escape(needle)) as err:
+            frechet_distance(m1, s1, m2, s2)
+        assert "\n" not in str(err.value)
+    # round-off asymmetry and tiny negative eigenvalues of real covariance estimates are accepted
+    f = rng.normal(size=(3, 6))  # rank 2 < 6: np.cov has eigenvalues ~ -1e-16
+    c = np.cov(f, rowvar=False)
+    c[0, 1] += 1e-12
+    assert np.isfinite(frechet_distance(np.zeros(6), c, np.zeros(6), np.eye(6)))
+
+
+def test_psnr_fast_path_equals_the_generic_path():
+    """Float images in [0, 1] take the cache-blocked sweep; uint8, autograd and values to clamp take the torch path:
+    the two agree to 4e-7 relative in the MSE (float32), i.e. < 2e-6 dB, and to round-off in float64."""
+    from evaluation.metrics.psnr import _fast_mse
+
+    rng = _rng(12)
+    x = rng.random((3, 70, 90, 3)).astype(np.float32)
+    y = np.clip(x + 0.02 * rng.standard_normal(x.shape), 0, 1).astype(np.float32)
+    ref = np.array([10 * np.log10(1 / np.mean((a.astype(np.float64) - b) ** 2)) for a, b in zip(x, y)])
+    assert _fast_mse(x, y, 1.0) is not None
+    np.testing.assert_allclose(psnr(x, y).numpy(), ref, atol=2e-6)
+    tx, ty = torch.from_numpy(x).permute(0, 3, 1, 2), torch.from_numpy(y).permute(0, 3, 1, 2)  # channels-last view
+    assert _fast_mse(tx, ty, 1.0) is not None and _fast_mse(tx.contiguous(), ty.contiguous(), 1.0) is not None
+    np.testing.assert_allclose(psnr(tx, ty).numpy(), ref, atol=2e-6)
+    np.testing.assert_allclose(psnr(x.astype(np.float64), y.astype(np.float64)).numpy(), ref, rtol=1e-12)
+    # generic path: slightly out of range (clamped), negative zero, uint8, autograd
+    x2 = x.copy()
+    x2[0, 0, 0, 0] = 1.00005
+    x2[1, 0, 0, 0] = -0.0
+    assert _fast_mse(x2, y, 1.0) is None
+    ref2 = [10 * np.log10(1 / np.mean((np.clip(a, 0, 1).astype(np.float64) - b) ** 2)) for a, b in zip(x2, y)]
+    np.testing.assert_allclose(psnr(x2, y).numpy(), ref2, atol=2e-6)
+    u8x, u8y = (x * 255).round().astype(np.uint8), (y * 255).round().astype(np.uint8)
+    assert _fast_mse(u8x, u8y, 1.0) is None
+    np.testing.assert_allclose(psnr(u8x, u8y).numpy(), psnr(u8x / 255.0, u8y / 255.0).numpy(), rtol=1e-6)
+    g = tx.contiguous().clone().requires_grad_(True)
+    out = psnr(g, ty)
+    out.sum().backward()
+    assert g.grad is not None and torch.allclose(out.detach(), torch.from_numpy(ref), atol=2e-5)
+    with pytest.raises(CamoError, match="outside"):
+        psnr(x + 0.5, y)
+    with pytest.raises(CamoError, match="NaN"):
+        psnr(np.where(x > 0.5, np.nan, x).astype(np.float32), y)
+
+
+def test_metrics_run_single_threaded_by_default(monkeypatch):
+    seen = []
+    orig = torch.get_num_threads()
+
+    def spy(x, y):
+        seen.append(torch.get_num_threads())
+        return torch.zeros(x.shape[0])
+
+    from evaluation.metrics._common import metric_thread_policy
+
+    wrapped = metric_thread_policy(spy)
+    wrapped(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))
+    monkeypatch.setenv("CAMO_METRIC_THREADS", "2")
+    wrapped(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))
+    assert seen == [1, 2] and torch.get_num_threads() == orig
+
+
 def test_feature_statistics_match_numpy_cov():
     f = torch.randn(5, 7, 9, dtype=torch.float64, generator=torch.Generator().manual_seed(10))
     mu, cov = feature_statistics(f)
@@ -416,6 +494,10 @@ def test_object_crop_box_centred_shifted_and_clamped():
     assert apply_crop(torch.zeros(1, 3, 100, 150), (y0, x0, side)).shape == (1, 3, 100, 100)
     with pytest.raises(CamoError, match="empty"):
         object_crop_box(np.zeros((10, 10), bool))
+    # an odd leftover goes above / left: a 1-px object at row 100 (side 64) gets 32 rows above, 31 below
+    m4 = np.zeros((300, 300), bool)
+    m4[100, 200] = True
+    assert object_crop_box(m4) == (68, 168, 64)
 
 
 @settings(max_examples=30, deadline=None)

@@ -12,8 +12,11 @@ encode it first with ``optimizer.imaging.linear_to_srgb`` (which tone-clips to `
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import math
-from typing import Iterator, Union
+import os
+from typing import Callable, Iterator, TypeVar, Union
 
 import numpy as np
 import torch
@@ -40,6 +43,47 @@ MIN_SIZE = {
     "sifid_proxy": 32,
     "dreamsim": 32,
 }
+
+
+def metric_threads() -> int:
+    """Torch intra-op threads of the weight-free metrics: ``$CAMO_METRIC_THREADS``, default **1**.
+
+    One image pair of the benchmark is a few hundred kB: torch's intra-op threads gain little on it and lose badly
+    as soon as another process shares the cores (each op's parallel region waits for a descheduled thread): on the
+    2-core reference machine, busy, SSIM took 0.50 s for 32 pairs of 256x256 with 2 threads and 0.15 s with 1
+    (``bench/bench_metrics.py``). Set ``CAMO_METRIC_THREADS`` (e.g. to the core count) on an idle many-core machine.
+    """
+    try:
+        return max(1, int(os.environ.get("CAMO_METRIC_THREADS", "1")))
+    except ValueError:
+        return 1
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run the block with ``n`` torch intra-op threads (restored afterwards; cheap: ~50 us)."""
+    old = torch.get_num_threads()
+    if old == n:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+F_ = TypeVar("F_", bound=Callable)
+
+
+def metric_thread_policy(fn: F_) -> F_:
+    """Decorator: run ``fn`` with :func:`metric_threads` torch threads."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with torch_threads(metric_threads()):
+            return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
 
 
 def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torch.Tensor:

@@ -26,7 +26,9 @@ def object_crop_box(mask: Union[np.ndarray, torch.Tensor]) -> tuple[int, int, in
 
     ``d`` is the larger side of the bounding box of the ``True`` pixels of ``mask`` ``(H, W)`` and
     ``side = 32 * ceil(d / 32) + 32`` px. The square is centred on the bounding box (``y0 = (y_min + y_max + 1 -
-    side) // 2``, so an odd leftover puts the extra pixel below/right), then shifted to lie inside the image.
+    side) // 2``: the floor division rounds the start *down*, so an odd leftover ``side - (y_max - y_min + 1)``
+    puts the extra pixel **above / left** of the object, e.g. a 1-px object at row 100 gets the 64 rows 68-131: 32 above it, 31 below),
+    then shifted to lie inside the image.
     If ``side`` exceeds the shorter image side it is **clamped** to ``min(H, W)``: the crop stays square and
     inside the image, no padded (synthetic) pixels ever enter a metric.
 

@@ -41,7 +41,8 @@ def frechet_distance(
     the square roots of the (real, clipped >= 0) eigenvalues of :math:`\Sigma_1 \Sigma_2`, in float64, so no
     ``scipy.linalg.sqrtm`` is needed. Rank-deficient covariances (fewer samples than dimensions, dead ReLU
     channels, flat images) need no special case here: their zero eigenvalues are simply clipped to 0 and the
-    result stays finite and exact (e.g. ``diag(1, 0)`` vs ``diag(0, 1)`` gives 2). Only if the eigen-solver
+    result stays finite and exact (e.g. ``diag(1, 0)`` vs ``diag(0, 1)`` gives 2). Identical covariances skip the
+    term altogether (it is exactly 0): the result is then ``||mu1 - mu2||^2``. Only if the eigen-solver
     fails or returns non-finite values is a ridge ``eps * I`` added to both covariances inside the square-root
     term (pytorch-fid's and SinGAN's fallback). It is not added by default because it moves the result by about
     ``2 sqrt(eps * var)`` per direction that is flat in one image only (~2e-3 for unit variance), the size of the
@@ -50,8 +51,12 @@ def frechet_distance(
 
     Args:
         mu1, mu2: means ``(D,)``.
-        sigma1, sigma2: covariances ``(D, D)``, symmetric PSD.
+        sigma1, sigma2: covariances ``(D, D)``, symmetric PSD (checked: :func:`check_covariance`).
         eps: ridge used only when the eigen-solver fails (see above).
+
+    Raises:
+        CamoError: one line for mismatched shapes, NaN/inf, a covariance that is not symmetric or not PSD (to a
+        relative 1e-6), entries above 1e150 (the product would overflow), or a non-finite result.
 
     Returns:
         Python float >= 0, in squared feature units; 0 for identical Gaussians.
@@ -65,9 +70,11 @@ def frechet_distance(
         )
     if not all(np.isfinite(a).all() for a in (m1, m2, s1, s2)):
         raise CamoError("frechet_distance: statistics contain NaN or infinite values")
-    if np.array_equal(m1, m2) and np.array_equal(s1, s2):
-        return 0.0  # identical statistics: exactly 0 rather than round-off
+    for name, s_ in (("sigma1", s1), ("sigma2", s2)):
+        check_covariance(s_, name)
     diff = m1 - m2
+    if np.array_equal(s1, s2):
+        return float(diff @ diff)  # identical covariances: the covariance term is exactly 0
     try:
         tr_covmean = trace_sqrt_product(s1, s2)
         ok = np.isfinite(tr_covmean)
@@ -75,9 +82,40 @@ def frechet_distance(
         ok = False
     if not ok:
         ridge = eps * np.eye(d)
-        tr_covmean = trace_sqrt_product(s1 + ridge, s2 + ridge)
+        try:
+            tr_covmean = trace_sqrt_product(s1 + ridge, s2 + ridge)
+        except np.linalg.LinAlgError as exc:
+            raise CamoError(f"frechet_distance: the eigen-solver failed on sigma1 @ sigma2 ({exc})") from None
     value = float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * tr_covmean)
+    if not np.isfinite(value):
+        raise CamoError("frechet_distance: the result overflows float64; rescale the features")
     return max(value, 0.0)
+
+
+#: Largest covariance entry accepted: the product of two such matrices (D up to ~1e4 terms per entry) stays finite.
+MAX_COVARIANCE = 1e150
+#: Relative tolerance of the symmetry and positive semi-definiteness checks (float64 round-off of np.cov is
+#: ~1e-16 relative; statistics from float32 features ~1e-7).
+COVARIANCE_RTOL = 1e-6
+
+
+def check_covariance(sigma: np.ndarray, name: str = "sigma") -> None:
+    """CamoError (one line) unless ``sigma`` is a symmetric positive semi-definite matrix with entries below
+    :data:`MAX_COVARIANCE` in magnitude; symmetry and PSD are checked to :data:`COVARIANCE_RTOL` times the
+    largest entry (resp. eigenvalue)."""
+    scale = float(np.abs(sigma).max()) if sigma.size else 0.0
+    if scale > MAX_COVARIANCE:
+        raise CamoError(f"frechet_distance: {name} has entries up to {scale:.3g}, beyond {MAX_COVARIANCE:g} (its product "
+                        "with the other covariance would overflow float64); rescale the features")
+    asym = float(np.abs(sigma - sigma.T).max()) if sigma.size else 0.0
+    if asym > COVARIANCE_RTOL * scale:
+        raise CamoError(f"frechet_distance: {name} is not symmetric (max |sigma - sigma^T| = {asym:.3g}, largest entry "
+                        f"{scale:.3g}); pass a covariance matrix")
+    if scale > 0:
+        lo = float(np.linalg.eigvalsh(0.5 * (sigma + sigma.T)).min())
+        if lo < -COVARIANCE_RTOL * scale:
+            raise CamoError(f"frechet_distance: {name} is not positive semi-definite (smallest eigenvalue {lo:.3g}, "
+                            f"largest entry {scale:.3g}); pass a covariance matrix")
 
 
 def feature_statistics(features: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ._common import ImageLike, chunks, prepare_pair
+from ._common import ImageLike, chunks, metric_thread_policy, prepare_pair
 from .frechet import frechet_of_feature_maps
 
 SIFID_PROXY_SCALES = (1.0, 2.0, 4.0)
@@ -121,6 +121,7 @@ def proxy_features(x: torch.Tensor) -> torch.Tensor:
     return torch.cat([_features(x[s]) for s in chunks(x)], dim=0)
 
 
+@metric_thread_policy
 def sifid_proxy(x: ImageLike, y: ImageLike) -> torch.Tensor:
     r"""Weight-free SIFID-like distance of each pair (lower is better).
 

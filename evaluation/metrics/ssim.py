@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ._common import ImageLike, chunks, prepare_pair
+from ._common import ImageLike, chunks, metric_thread_policy, prepare_pair
 
 #: Window of Wang et al.: Gaussian, sigma 1.5, truncated at 3.5 sigma -> 11 taps (scikit-image's choice).
 SSIM_SIGMA = 1.5
@@ -54,6 +54,7 @@ def _ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float, k1: float, k2
     return num / den
 
 
+@metric_thread_policy
 def ssim_map(
     x: ImageLike,
     y: ImageLike,
@@ -75,6 +76,7 @@ def ssim_map(
     return torch.cat([_ssim_map(x[s], y[s], data_range, k1, k2) for s in chunks(x)], dim=0)
 
 
+@metric_thread_policy
 def ssim(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Tensor:
     r"""Mean structural similarity of each image pair (higher is better, 1 for identical images).
 
