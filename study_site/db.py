@@ -189,6 +189,20 @@ class Database:
         self._read = sessionmaker(self.engine, expire_on_commit=False)
         self._write = sessionmaker(self.engine.execution_options(sqlite_begin="IMMEDIATE"), expire_on_commit=False)
         self._write_lock = threading.Lock() if self.engine.dialect.name == "sqlite" else contextlib.nullcontext()
+        self._light_engine = None
+        if self.engine.dialect.name == "sqlite":  # same file, commits without fsync (see write_light)
+            self._light_engine = make_engine(url, **dict(engine_kwargs, synchronous="NORMAL"))
+            self._light = sessionmaker(self._light_engine.execution_options(sqlite_begin="IMMEDIATE"),
+                                       expire_on_commit=False)
+        else:
+            if self.engine.dialect.name == "postgresql":
+
+                @event.listens_for(self.engine, "begin")
+                def _light_begin(conn):
+                    if conn.get_execution_options().get("camo_light"):
+                        conn.exec_driver_sql("SET LOCAL synchronous_commit TO OFF")
+
+            self._light = sessionmaker(self.engine.execution_options(camo_light=True), expire_on_commit=False)
         try:
             Base.metadata.create_all(self.engine)
         except OperationalError as exc:
@@ -204,6 +218,16 @@ class Database:
         SQLite's own busy handler sleeps in growing steps, which would show up as latency spikes."""
         with self._write_lock:
             with self._write() as s:
+                yield s
+
+    @contextlib.contextmanager
+    def write_light(self) -> Iterator[Session]:
+        """Write transaction for records whose loss in a power failure is harmless (a trial's start time:
+        lost, the page would start a fresh clock). SQLite commits it without fsync (``synchronous=NORMAL``
+        in WAL mode: durable against a crash of the server process, not of the machine); PostgreSQL with
+        ``synchronous_commit = off`` for that transaction. Trials themselves always use :meth:`write`."""
+        with self._write_lock:
+            with self._light() as s:
                 yield s
 
     @property
@@ -240,6 +264,8 @@ class Database:
 
     def dispose(self) -> None:
         self.engine.dispose()
+        if self._light_engine is not None:
+            self._light_engine.dispose()
 
 
 def check_schema(engine: Engine, url: str) -> None:

@@ -28,7 +28,7 @@ from flask import (
     session,
     url_for,
 )
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from .assign import create_plan
@@ -360,19 +360,22 @@ def api_start():
     if isinstance(idx, bool) or not isinstance(idx, int) or not 0 <= idx < 10_000:
         abort(400, description="trial_index must be a small non-negative integer")
     state = st()
-    now = utcnow()
-    with state.db.write() as s, s.begin():
+    with state.db.read() as s:  # checks outside the (on SQLite: serialised) write
         p = _api_participant(s)
-        item = s.get(PlanItem, (p.id, idx))
-        if item is None:
+        if s.get(PlanItem, (p.id, idx)) is None:
             abort(400, description="no such trial")
         n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
-        if idx != n_done:
-            abort(409, description=f"trial {idx} is not the next one (next is {n_done})")
-        if item.started_at is None:
-            item.started_at = now
-        item.starts = (item.starts or 0) + 1
-        started_at, starts, limit_s = item.started_at, item.starts, p.time_limit_s
+    if idx != n_done:
+        abort(409, description=f"trial {idx} is not the next one (next is {n_done})")
+    limit_s = p.time_limit_s
+    now = utcnow()
+    with state.db.write_light() as s, s.begin():  # one statement: the first start wins, later ones only count
+        started_at, starts = s.execute(
+            update(PlanItem)
+            .where(PlanItem.participant_id == p.id, PlanItem.idx == idx)
+            .values(started_at=func.coalesce(PlanItem.started_at, now), starts=func.coalesce(PlanItem.starts, 0) + 1)
+            .returning(PlanItem.started_at, PlanItem.starts)
+        ).one()
     elapsed = _elapsed_ms(started_at, now)
     limit_ms = limit_s * 1000.0
     return jsonify(
@@ -527,50 +530,51 @@ def api_trial():
                 abort(409, description="stimulus set changed since this session started")
             hit = state.stimuli.hit(stim, x, y, int(_cfg("HIT_TOLERANCE_PX")))
     too_fast = (not data["timed_out"]) and rt < float(_cfg("RT_FLOOR_MS"))
+    values = dict(
+        participant_id=p.id,
+        trial_index=idx,
+        client_trial_id=data["client_trial_id"],
+        practice=item.practice,
+        stimulus_id=item.stimulus_id,
+        run=item.run,
+        scene=item.scene,
+        object=item.object,
+        method=item.method,
+        ablation=item.ablation,
+        view=item.view,
+        hit=hit,
+        timed_out=data["timed_out"] or late,
+        click_x=x,
+        click_y=y,
+        rt_ms=rt,
+        time_limit_s=p.time_limit_s,
+        display_w=data["display_w"],
+        display_h=data["display_h"],
+        viewport_w=data["viewport_w"],
+        viewport_h=data["viewport_h"],
+        dpr=data["dpr"],
+        server_received_at=now,
+        server_rt_ms=server_ms,
+        late=late,
+        too_fast=too_fast,
+        starts=int(item.starts or 1),
+    )
+    # the write holds SQLite's writer lock: as few statements as possible
     with state.db.write() as s, s.begin():
-        existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
-        duplicate = existing is not None
-        if existing is None:
-            n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
-            if idx != n_done:
-                abort(409, description=f"trial {idx} answered out of order (next is {n_done})")
-            values = dict(
-                participant_id=p.id,
-                trial_index=idx,
-                client_trial_id=data["client_trial_id"],
-                practice=item.practice,
-                stimulus_id=item.stimulus_id,
-                run=item.run,
-                scene=item.scene,
-                object=item.object,
-                method=item.method,
-                ablation=item.ablation,
-                view=item.view,
-                hit=hit,
-                timed_out=data["timed_out"] or late,
-                click_x=x,
-                click_y=y,
-                rt_ms=rt,
-                time_limit_s=p.time_limit_s,
-                display_w=data["display_w"],
-                display_h=data["display_h"],
-                viewport_w=data["viewport_w"],
-                viewport_h=data["viewport_h"],
-                dpr=data["dpr"],
-                server_received_at=now,
-                server_rt_ms=server_ms,
-                late=late,
-                too_fast=too_fast,
-                starts=int(item.starts or 1),
-            )
-            if not state.db.insert_ignore(s, Trial, values):
-                duplicate = True
-            existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
-            if existing is None:  # client_trial_id reused for another trial
+        n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
+        inserted = False
+        if idx == n_done:
+            inserted = state.db.insert_ignore(s, Trial, values)
+        elif idx > n_done:
+            abort(409, description=f"trial {idx} answered out of order (next is {n_done})")
+        if inserted:
+            s.execute(update(Participant).where(Participant.id == p.id).values(last_seen_at=now))
+            stored = Trial(**values)
+        else:  # answered meanwhile (another tab or a retry racing this one), or client_trial_id reused
+            stored = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
+            if stored is None:
                 abort(409, description="client_trial_id already used for another trial")
-            q = s.get(Participant, p.id)
-            q.last_seen_at = now
-        return _trial_answer(existing, item, total, data["client_trial_id"], duplicate)
+    return _trial_answer(stored, item, total, data["client_trial_id"], not inserted)
 
 
 @bp.post("/api/complete")

@@ -63,8 +63,14 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
     from study_site.db import PlanItem
     from study_site.testing import mask_rects
 
+    from sqlalchemy import text
+
     app = _app(stim, pg)
     assert app.extensions["camo_study"].db.dialect == "postgresql"
+    with app.extensions["camo_study"].db.write_light() as s, s.begin():  # trial starts: no WAL flush wait
+        assert s.execute(text("SHOW synchronous_commit")).scalar() == "off"
+    with app.extensions["camo_study"].db.write() as s, s.begin():  # trials: durable commits
+        assert s.execute(text("SHOW synchronous_commit")).scalar() == "on"
     c = app.test_client()
     tok = _to_task(c, "PG_ROUND")
     h = {"X-CSRF-Token": tok}

@@ -398,3 +398,18 @@ def test_old_database_is_refused_in_one_line(stim_dir, tmp_path):
     with pytest.raises(CamoError, match="table trials lacks .* older camo"):
         _app(stim_dir, tmp_path, DATABASE_URL=f"sqlite:///{db}")
 
+
+
+def test_trial_starts_commit_without_fsync_trials_with(tmp_path):
+    """Starts go through write_light (SQLite synchronous=NORMAL: no fsync per commit, still safe against a
+    killed server process); trials through write (synchronous=FULL)."""
+    from sqlalchemy import text
+
+    from study_site.db import Database
+
+    db = Database(f"sqlite:///{tmp_path / 'x.sqlite'}")
+    with db.write_light() as s, s.begin():
+        assert s.execute(text("PRAGMA synchronous")).scalar() == 1  # NORMAL
+    with db.write() as s, s.begin():
+        assert s.execute(text("PRAGMA synchronous")).scalar() == 2  # FULL
+    db.dispose()
