@@ -629,3 +629,23 @@ def test_real_hdri_and_real_mesh_prepare_optimise_evaluate(tmp_path):
     df = pd.read_csv(eval_dir / "metrics.csv")
     assert len(df) == 4 and np.isfinite(df["psnr"]).all() and (df["psnr"] > 10).all()
     assert ((df["ssim"] > 0) & (df["ssim"] <= 1)).all()
+
+
+def test_unpinned_registry_entry_is_refused_then_pinned(server, fixtures, capsys, tmp_path):
+    man = _manifest(tmp_path, fixtures, sun_sha="PIN")
+    text = man.read_text()
+    i = text.index('name = "sun"')
+    block_end = text.index("[asset.source]", i)
+    block = text[i:block_end]
+    new_block = "\n".join('sha256 = "TO-BE-PINNED"' if ln.startswith("sha256") else
+                          'size = "TO-BE-PINNED"' if ln.startswith("size") else ln for ln in block.split("\n"))
+    man.write_text(text[:i] + new_block + text[block_end:])
+    dest = tmp_path / "d"
+    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun")
+    assert rc == 2 and "not pinned" in err and server.log == []
+    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun", "--pin")
+    assert rc == 0, err
+    pinned = tomllib.loads(man.with_name("registry.pinned.toml").read_text())
+    sun = next(a for a in pinned["asset"] if a["name"] == "sun")
+    exp = _expected(fixtures)["sun.exr"]
+    assert sun["sha256"] == sha(exp) and sun["size"] == len(exp) and (dest / "sun.exr").read_bytes() == exp
