@@ -19,7 +19,8 @@ def register(sub) -> None:
     p.add_argument("--inputs", metavar="LIST.toml", help="many inputs: [[run]], [[asset]], [[triplets]] tables")
     p.add_argument("--scene", help="for --asset: built-in scene (e.g. meadow, split:chair), scene pack .toml or a run "
                    "directory (its scene and cameras); for --triplets: the scene label")
-    p.add_argument("--method", help="method label of --asset / --triplets (a run directory's comes from its config.toml)")
+    p.add_argument("--method", help="method label of --asset / --triplets (a run directory's comes from its "
+                   "config.toml)")
     p.add_argument("--seconds", type=float, help="what producing --asset / --triplets cost, in seconds (report column)")
     p.add_argument("--placement", default="auto", choices=("auto", "scene", "pack"),
                    help="--asset coordinates: scene = already in scene coordinates (camo's result.glb/obj), pack = "
@@ -70,7 +71,8 @@ def input_specs(args) -> list:
     if args.inputs:
         specs += read_input_list(args.inputs)
     if not specs:
-        raise CamoError("evaluate needs at least one input: RUN_DIR, --asset FILE, --triplets DIR or --inputs LIST.toml")
+        raise CamoError("evaluate needs at least one input: RUN_DIR, --asset FILE, --triplets DIR or --inputs "
+                        "LIST.toml")
     return specs
 
 

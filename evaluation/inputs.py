@@ -146,8 +146,8 @@ def read_input_list(path: str | Path) -> list[InputSpec]:
             if bad:
                 raise CamoError(f"{where}: unknown key(s) {', '.join(bad)}; known: {', '.join(sorted(fields))}")
             item = dict(item)
-            item["path"] = str((p.parent / str(item["path"])).expanduser()) if not Path(str(item["path"])).is_absolute() \
-                else str(item["path"])
+            given = Path(str(item["path"])).expanduser()
+            item["path"] = str(given if given.is_absolute() else p.parent / given)
             if isinstance(item.get("scene"), str) and kind != "run":
                 cand = p.parent / item["scene"]
                 if (cand.suffix == ".toml" or cand.is_dir()) and cand.exists():
@@ -288,8 +288,8 @@ def _read_rgb8(path: Path, warnings: list[str]) -> tuple[np.ndarray, np.ndarray 
         try:
             lin = np.asarray(load_exr(path), dtype=np.float32)
         except Exception as exc:  # OpenEXR raises several types
-            raise CamoError(f"{path}: cannot read EXR ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") \
-                from None
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise CamoError(f"{path}: cannot read EXR ({why})") from None
         lin = lin[..., :3] if lin.ndim == 3 else np.repeat(lin[..., None], 3, -1)
         if not np.isfinite(lin).all():
             raise CamoError(f"{path}: contains NaN or infinite values")

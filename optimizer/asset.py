@@ -53,8 +53,6 @@ import json
 import math
 import struct
 from pathlib import Path
-from typing import Any
-
 import numpy as np
 
 from .errors import CamoError
@@ -596,8 +594,11 @@ def read_obj(path: str | Path) -> Asset:
         return _decode_image(_read_file(_mtl_map(mat[key], mtl_path, key), f"{key} texture"), f"{mtl_path}: {key}") \
             if key in mat else None
 
-    kd = np.asarray([float(x) for x in mat.get("Kd", ["0.8", "0.8", "0.8"])][:3] * (3 if len(mat.get("Kd", [0, 0, 0])) == 1
-                                                                                       else 1), np.float32)[:3]
+    try:
+        kd = [float(x) for x in mat.get("Kd", ["0.8", "0.8", "0.8"])][:3]
+    except ValueError:
+        raise CamoError(f"{mtl_path}: Kd is not a number: {' '.join(mat['Kd'])}") from None
+    kd = np.asarray(kd * 3 if len(kd) == 1 else kd, np.float32)[:3]
     img = image("map_Kd")
     albedo = kd if img is None else _srgb_to_linear(_rgb(img)) * kd
     if "Pr" in mat or "map_Pr" in mat:

@@ -209,9 +209,9 @@ class RunDir:
 
     def seconds(self) -> dict[str, float]:
         """What the run cost, in seconds: ``setup`` (``summary.json`` ``seconds_setup``), ``stage1`` and ``stage2``
-        (``summary.json`` ``seconds_stage1`` / ``seconds_stage2`` when present, else the sum of ``log.jsonl``'s
-        per-iteration ``seconds`` of that stage: together they are ``summary.json``'s ``seconds_iterations``) and
-        ``total`` (setup + both stages). NaN for what the run directory does not record."""
+        (``summary.json`` ``seconds_stage1`` / ``seconds_stage2``: wall clock of the stage, Stage 1 with its warm
+        start; runs written before those keys existed: the sum of ``log.jsonl``'s per-iteration ``seconds_total``,
+        else ``seconds``, of that stage) and ``total`` (setup + both stages). NaN for what the run does not record."""
         s = self.summary()
         log = self.log()
         out = {"setup": _num(s.get("seconds_setup"))}
@@ -220,7 +220,8 @@ class RunDir:
             if key in s:
                 out[f"stage{st}"] = _num(s[key])
             elif log:
-                out[f"stage{st}"] = float(sum(_num(r.get("seconds"), 0.0) for r in log if r.get("stage", 1) == st))
+                out[f"stage{st}"] = float(sum(_num(r.get("seconds_total", r.get("seconds")), 0.0)
+                                              for r in log if r.get("stage", 1) == st))
             else:
                 out[f"stage{st}"] = math.nan
         parts = [out["setup"], out["stage1"], out["stage2"]]

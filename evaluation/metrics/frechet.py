@@ -105,8 +105,8 @@ def check_covariance(sigma: np.ndarray, name: str = "sigma") -> None:
     largest entry (resp. eigenvalue)."""
     scale = float(np.abs(sigma).max()) if sigma.size else 0.0
     if scale > MAX_COVARIANCE:
-        raise CamoError(f"frechet_distance: {name} has entries up to {scale:.3g}, beyond {MAX_COVARIANCE:g} (its product "
-                        "with the other covariance would overflow float64); rescale the features")
+        raise CamoError(f"frechet_distance: {name} has entries up to {scale:.3g}, beyond {MAX_COVARIANCE:g} (its "
+                        "product with the other covariance would overflow float64); rescale the features")
     asym = float(np.abs(sigma - sigma.T).max()) if sigma.size else 0.0
     if asym > COVARIANCE_RTOL * scale:
         raise CamoError(f"frechet_distance: {name} is not symmetric (max |sigma - sigma^T| = {asym:.3g}, largest entry "
