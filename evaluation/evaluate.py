@@ -1,9 +1,11 @@
-"""``camo evaluate``: the automatic benchmark of run directories (paper Sec. IV-D, Table II).
+"""``camo evaluate``: the automatic benchmark (paper Sec. IV-D, Table II) of run directories, external assets and
+2D image triplets (:mod:`evaluation.inputs`), mixed in one evaluation.
 
-For each run directory: rebuild its scene, render jittered novel views (:mod:`evaluation.views`) with and
-without the object at evaluation quality, and score every view in two regions -- the ``full`` frame and the
-GANmouflage object ``crop`` (:func:`evaluation.metrics.object_crop_box` of the visible-object mask) -- with the
-image metrics of :mod:`evaluation.metrics`, comparing the with-object image to the background image.
+For each run directory or asset: rebuild its scene, render jittered novel views (:mod:`evaluation.views`) with and
+without the object at evaluation quality; for triplets take the given images. Score every view in two regions --
+the ``full`` frame and the GANmouflage object ``crop`` (:func:`evaluation.metrics.object_crop_box` of the
+visible-object mask) -- with the image metrics of :mod:`evaluation.metrics`, comparing the with-object image to the
+background image, and time each metric, the evaluation render and (from the run directory or the user) the method.
 
 Images enter the metrics exactly as the saved PNGs hold them: linear radiance -> sRGB
 (``optimizer.imaging.linear_to_srgb``, tone-clipped) -> 8 bit. So every score can be recomputed from the PNGs
