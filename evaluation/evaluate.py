@@ -365,7 +365,10 @@ def hardware() -> dict[str, Any]:
 
         if torch.cuda.is_available():
             gpu = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+        from evaluation.metrics._common import metric_threads
+
         out["torch_threads"] = torch.get_num_threads()
+        out["metric_threads"] = metric_threads()
     except Exception:  # torch missing or broken CUDA: the hardware line just says less
         pass
     out["gpu"] = gpu
@@ -388,7 +391,9 @@ def hardware_text(hw: dict[str, Any]) -> str:
            f"GPU {hw.get('gpu', '?')}"
     if hw.get("mitsuba_variant"):
         text += f"; {hw['mitsuba_variant']}, {hw.get('render_threads', '?')} render threads"
-    if hw.get("torch_threads"):
+    if hw.get("metric_threads"):
+        text += f"; metrics on {hw['metric_threads']} torch thread(s)"
+    elif hw.get("torch_threads"):
         text += f", {hw['torch_threads']} torch threads"
     return text
 

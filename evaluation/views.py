@@ -1,4 +1,4 @@
-"""Novel evaluation views of run directories, rendered at evaluation quality (paper Sec. IV-B).
+"""Novel evaluation views of run directories and placed assets, rendered at evaluation quality (paper Sec. IV-B).
 
 Three steps, each usable on its own:
 
