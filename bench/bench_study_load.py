@@ -305,6 +305,10 @@ def main(argv=None) -> int:
     ap.add_argument("--server-cpus", help="taskset CPU list for the server, e.g. 0 (clients: --client-cpus)")
     ap.add_argument("--client-cpus", help="taskset CPU list for this client process, e.g. 1")
     ap.add_argument("--no-crash", action="store_true", help="skip the kill -9 phase")
+    ap.add_argument("--nice", type=int, default=None, metavar="N",
+                    help="run this client, the server and a --db postgres cluster at scheduling priority N "
+                         "(e.g. -10, needs root): an estimate of the server alone on a machine busy with other "
+                         "jobs")
     ap.add_argument("--time-limit", type=float, default=300.0, help="seconds for the whole benchmark")
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
@@ -315,6 +319,11 @@ def main(argv=None) -> int:
         assert len(think) == 2 and 0 <= think[0] <= think[1] <= 60
     except (ValueError, AssertionError):
         ap.error("--think must be MIN,MAX seconds, 0 <= MIN <= MAX <= 60")
+    if args.nice is not None:  # inherited by the server subprocess and the PostgreSQL cluster
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, args.nice)
+        except PermissionError:
+            ap.error("--nice below 0 needs root")
     if args.client_cpus:
         os.sched_setaffinity(0, {int(c) for c in args.client_cpus.split(",")})
     t_all = time.monotonic()
@@ -324,7 +333,8 @@ def main(argv=None) -> int:
     from study_site.testing import make_fake_eval_dir
 
     results: dict = {"participants": args.participants, "scenes": args.scenes, "practice": args.practice,
-                     "think_s": think, "db": args.db, "trial_limit_s": args.trial_limit, "cpus": os.cpu_count()}
+                     "think_s": think, "db": args.db, "trial_limit_s": args.trial_limit, "cpus": os.cpu_count(),
+                     "nice": args.nice, "loadavg_before": os.getloadavg()}
     pg = None
     if args.db == "postgres":
         from study_site.testing import ThrowawayPostgres
@@ -445,6 +455,9 @@ def main(argv=None) -> int:
             if pg is not None:
                 pg.stop()
     results["total_s"] = round(time.monotonic() - t_all, 1)
+    results["loadavg_after"] = os.getloadavg()
+    print(f"load average (1, 5, 15 min) before {results['loadavg_before']}, after {results['loadavg_after']} "
+          f"on {os.cpu_count()} CPUs{'' if args.nice is None else f'; ran at nice {args.nice}'}")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     ok = (

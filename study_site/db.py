@@ -148,13 +148,13 @@ def make_engine(url: str, busy_timeout_ms: int = 30000, synchronous: str = "FULL
         raise CamoError(f"SQLITE_SYNCHRONOUS must be OFF, NORMAL, FULL or EXTRA, not {synchronous!r}")
     try:
         is_sqlite = url.startswith("sqlite")
-        kwargs: dict = {"pool_pre_ping": not is_sqlite}
+        # no pool_pre_ping: it costs a round trip per checkout; a connection broken by a database restart
+        # raises OperationalError (503, the page retries) and SQLAlchemy then replaces the pool's connections
+        kwargs: dict = {"pool_size": pool_size, "max_overflow": pool_size, "pool_recycle": 1800}
         if is_sqlite:
             if url in ("sqlite://", "sqlite:///:memory:"):
                 raise CamoError("use a SQLite file (sqlite:///path/study.sqlite), not an in-memory database")
             kwargs["connect_args"] = {"check_same_thread": False, "timeout": busy_timeout_ms / 1000}
-            kwargs["pool_size"] = pool_size
-            kwargs["max_overflow"] = pool_size
         engine = create_engine(url, **kwargs)
     except ArgumentError as exc:
         raise CamoError(f"bad database URL {url!r}: {exc}") from None
