@@ -229,11 +229,12 @@ def start_server(stim: Path, db: str, port: int, threads: int, log, limit_s: flo
     raise RuntimeError("server did not start within 60 s")
 
 
-def run_phase(name, port, n, images, deadline, stats, seed, think, limit_s, on_progress=None):
+def run_phase(name, port, n, images, deadline, stats, seed, think, limit_s, on_progress=None, ramp_s=0.0):
     clients = [Client(port, f"{name}{i:04d}", deadline, stats, think, limit_s) for i in range(n)]
     errors: list[str] = []
 
     def work(c, k):
+        time.sleep(ramp_s * k / max(1, n))  # arrivals spread over ramp_s seconds (0: all at once)
         try:
             c.session(images, random.Random(seed * 100003 + k))
         except Deadline:
@@ -305,6 +306,9 @@ def main(argv=None) -> int:
     ap.add_argument("--server-cpus", help="taskset CPU list for the server, e.g. 0 (clients: --client-cpus)")
     ap.add_argument("--client-cpus", help="taskset CPU list for this client process, e.g. 1")
     ap.add_argument("--no-crash", action="store_true", help="skip the kill -9 phase")
+    ap.add_argument("--ramp", type=float, default=0.0, metavar="S",
+                    help="spread the participants' arrivals over S seconds (default 0: all 200 arrive at once, "
+                         "landing, consent and image preload in the same second)")
     ap.add_argument("--nice", type=int, default=None, metavar="N",
                     help="run this client, the server and a --db postgres cluster at scheduling priority N "
                          "(e.g. -10, needs root): an estimate of the server alone on a machine busy with other "
@@ -334,7 +338,7 @@ def main(argv=None) -> int:
 
     results: dict = {"participants": args.participants, "scenes": args.scenes, "practice": args.practice,
                      "think_s": think, "db": args.db, "trial_limit_s": args.trial_limit, "cpus": os.cpu_count(),
-                     "nice": args.nice, "loadavg_before": os.getloadavg()}
+                     "nice": args.nice, "ramp_s": args.ramp, "loadavg_before": os.getloadavg()}
     pg = None
     if args.db == "postgres":
         from study_site.testing import ThrowawayPostgres
@@ -364,7 +368,8 @@ def main(argv=None) -> int:
             t0 = time.monotonic()
             phase_deadline = min(deadline, t0 + args.time_limit * 0.5)
             clients, errors = run_phase(
-                "load", port, args.participants, not args.no_images, phase_deadline, stats, 1, think, args.trial_limit
+                "load", port, args.participants, not args.no_images, phase_deadline, stats, 1, think, args.trial_limit,
+                ramp_s=args.ramp,
             )
             wall = time.monotonic() - t0
             v = verify(db_url, clients)
@@ -387,7 +392,8 @@ def main(argv=None) -> int:
                 **v,
             }
             print(f"[load] {args.participants} concurrent participants x {args.practice + args.scenes} trials, "
-                  f"search {think[0]:g}-{think[1]:g} s (limit {args.trial_limit:g} s), server={server_kind}, "
+                  f"arrivals over {args.ramp:g} s, search {think[0]:g}-{think[1]:g} s (limit {args.trial_limit:g} s), "
+                  f"server={server_kind}, "
                   f"db={args.db}, wall {wall:.1f} s, completed {results['load']['completed']}")
             print(f"[load] trial starts: n={len(slat)}, p50 {results['load']['start_p50_ms']} ms, "
                   f"p99 {results['load']['start_p99_ms']} ms")
@@ -417,7 +423,8 @@ def main(argv=None) -> int:
 
             t0 = time.monotonic()
             clients2, errors2 = run_phase(
-                "crash", port, args.participants, False, deadline, stats2, 2, think, args.trial_limit, maybe_crash
+                "crash", port, args.participants, False, deadline, stats2, 2, think, args.trial_limit, maybe_crash,
+                ramp_s=args.ramp,
             )
             wall2 = time.monotonic() - t0
             proc = state["proc"]
