@@ -484,7 +484,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         per_run.append({"name": e.name, "kind": e.kind, "path": str(e.path.resolve()), "scene": e.scene,
                         "object": e.object, "method": e.method, "ablation": e.ablation, "camera_set": cam_key,
                         "background_key": bg.key, "object_render_seconds": objr.seconds,
-                        "seconds": _plain_seconds(secs), "warnings": warnings})
+                        "seconds": _plain_seconds(secs), "warnings": warnings, **e.placement})
         for wmsg in warnings:
             say(f"warning: {wmsg}")
     for row in rows:  # the background render is shared equally by the runs that use it

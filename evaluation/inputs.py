@@ -106,6 +106,7 @@ class Entry:
     run: Any = None
     triplets: Triplets | None = None
     warnings: list[str] = dataclasses.field(default_factory=list)
+    placement: dict[str, str] = dataclasses.field(default_factory=dict)  # assets: {"scene": spec, "placement": p}
 
 
 def finite_seconds(v: Any, where: str) -> float | None:
@@ -174,6 +175,12 @@ def scene_pack(scene: str, where: str):
     return resolve_scene(scene)
 
 
+def _scene_source(scene: str) -> str:
+    """``--scene`` as recorded: an absolute path for a pack file or run directory, else the built-in name."""
+    p = Path(scene).expanduser()
+    return str(p.resolve()) if p.exists() else scene
+
+
 def _label(text: str | None, where: str, what: str) -> str:
     if text is None or not str(text).strip():
         raise CamoError(f"{where}: needs a method label (--method, or method = \"...\" in the list)")
@@ -213,7 +220,9 @@ def resolve(specs: Sequence[InputSpec]) -> list[Entry]:
             p = Path(s.path)
             secs = dict(nan, total=s.seconds if s.seconds is not None else math.nan)
             e = Entry("asset", p, safe_name(s.name or p.stem), pack.name, s.object or p.stem, method, "none", secs,
-                      pack=pack, asset=asset)
+                      pack=pack, asset=asset, placement={"scene_source": _scene_source(s.scene or ""),
+                                                         "placement": s.placement,
+                                                         "placed_as": asset.coordinates_from})
         elif s.kind == "triplets":
             method = _label(s.method, where, "method")
             scene = s.scene or Path(s.path).name

@@ -83,6 +83,7 @@ class Asset:
     wrap: str = "clamp"
     coordinates: str = "object"  # "scene" once placed (or when the file says it holds scene coordinates)
     warnings: list[str] = dataclasses.field(default_factory=list)
+    coordinates_from: str = ""  # after place(): the placement used, "scene" or "pack"
 
     def values(self) -> dict[str, np.ndarray]:
         """The maps as optimised: rendered roughness inverted once (clipped to [0, 1]), others clipped to [0, 1]."""
@@ -674,7 +675,7 @@ def place(asset: Asset, pack, placement: str = "auto") -> Asset:
     if placement == "auto":
         placement = "scene" if asset.coordinates == "scene" else "pack"
     if placement == "scene":
-        return dataclasses.replace(asset, coordinates="scene")
+        return dataclasses.replace(asset, coordinates="scene", coordinates_from="scene")
     v = asset.vertices.astype(np.float64)
     lo, hi = v.min(0), v.max(0)
     extent = float((hi - lo).max())
@@ -683,4 +684,4 @@ def place(asset: Asset, pack, placement: str = "auto") -> Asset:
     unit = (v - [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]]) / extent
     o = pack.object
     placed = transform_points(model_matrix(o.size, o.rotation, o.translation), unit)
-    return dataclasses.replace(asset, vertices=placed.astype(np.float32), coordinates="scene")
+    return dataclasses.replace(asset, vertices=placed.astype(np.float32), coordinates="scene", coordinates_from="pack")

@@ -344,6 +344,16 @@ def test_mixed_report_with_time_columns_from_summary_json(run, tmp_path):
     assert main(["evaluate", str(run), "--inputs", str(lst), "--out", str(out), *EVAL]) == 0
     df = pd.read_parquet(out / "metrics.parquet")
     assert set(df["source"]) == {"run", "asset", "triplets"} and set(df["scene"]) == {"gravel"}
+    import tomllib
+
+    cfg = tomllib.loads((out / "eval_config.toml").read_text())
+    kinds = {r["name"]: r for r in cfg["runs"]}
+    assert {r["kind"] for r in cfg["runs"]} == {"run", "asset", "triplets"}
+    # what a re-render of the asset needs: its file, the scene it was placed in and how
+    hand = kinds["handmade"]
+    assert hand["path"] == str(glb.resolve()) and hand["scene_source"] == str(run.resolve())
+    assert (hand["placement"], hand["placed_as"]) == ("auto", "pack") and hand["seconds"]["total"] == 60
+    assert cfg["hardware"]["cpu_cores"] >= 1 and cfg["hardware"]["metric_threads"] == 1
     assert glb.is_file() and (df.loc[df["run"] == "handmade", "mask_pixels"] > 0).any()
 
     summary = json.loads((run / "summary.json").read_text())
