@@ -495,3 +495,54 @@ def test_run_seconds_of_older_run_directories_come_from_log_jsonl(run, tmp_path)
     (old / "summary.json").unlink()
     s = open_run(old).seconds()
     assert math.isnan(s["setup"]) and math.isnan(s["total"]) and s["stage1"] > 0
+
+
+def test_gltf_text_file_interleaved_normalized_uvs_rotation_and_image_file(tmp_path):
+    """A .gltf (JSON) with a data-URI buffer: interleaved POSITION + TEXCOORD_0 (normalized uint16, byteStride),
+    uint16 indices, a node rotated 90 degrees about glTF's y, an external PNG base colour with the default REPEAT
+    sampler, no metallicRoughness texture (factors only)."""
+    import base64
+
+    from optimizer.asset import load_asset
+
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1]], np.float32)
+    uv16 = np.array([[0, 0], [65535, 0], [0, 65535]], np.uint16)
+    rec = np.dtype([("p", "<f4", 3), ("uv", "<u2", 2)])  # 16 bytes per vertex
+    inter = np.empty(3, rec)
+    inter["p"], inter["uv"] = pos, uv16
+    idx = np.array([0, 1, 2], "<u2").tobytes() + b"\0\0"
+    blob = inter.tobytes() + idx
+    Image.fromarray(np.full((2, 2, 3), 128, np.uint8)).save(tmp_path / "base.png")
+    s = math.sqrt(0.5)
+    doc = {
+        "asset": {"version": "2.0", "generator": "hand"},
+        "buffers": [{"byteLength": len(blob), "uri": "data:application/octet-stream;base64," +
+                     base64.b64encode(blob).decode()}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 48, "byteStride": 16},
+                        {"buffer": 0, "byteOffset": 48, "byteLength": 6}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
+                      {"bufferView": 0, "byteOffset": 12, "componentType": 5123, "normalized": True, "count": 3,
+                       "type": "VEC2"},
+                      {"bufferView": 1, "componentType": 5123, "count": 3, "type": "SCALAR"}],
+        "images": [{"uri": "base.png"}], "textures": [{"source": 0}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0.0,
+                                                 "roughnessFactor": 0.4}}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0}]}],
+        "nodes": [{"mesh": 0, "rotation": [0.0, s, 0.0, s]}],  # +90 degrees about y: x -> -z, z -> x
+        "scenes": [{"nodes": [0]}], "scene": 0,
+    }
+    (tmp_path / "t.gltf").write_text(json.dumps(doc))
+    a = load_asset(tmp_path / "t.gltf")
+    yup = np.array([[0, 0, 0], [0, 0, -1], [1, 0, 0]], np.float64)  # rotated in glTF's frame
+    np.testing.assert_allclose(a.vertices, np.stack([yup[:, 0], -yup[:, 2], yup[:, 1]], 1), atol=1e-6)
+    np.testing.assert_allclose(a.uvs, [[0, 0], [1, 0], [0, 1]], atol=1e-6)
+    assert a.faces.tolist() == [[0, 1, 2]] and a.wrap == "repeat"
+    from optimizer.imaging import srgb_to_linear
+
+    np.testing.assert_allclose(a.maps["albedo"][0, 0], srgb_to_linear(np.full(3, 128 / 255)), atol=1e-6)
+    assert float(a.maps["roughness"]) == pytest.approx(0.4) and float(a.maps["metallic"]) == 0.0
+    (tmp_path / "base.png").unlink()
+    from optimizer.errors import CamoError
+
+    with pytest.raises(CamoError, match="not found"):
+        load_asset(tmp_path / "t.gltf")
