@@ -442,6 +442,10 @@ def test_unsupported_asset_features_are_one_line_errors(run, tmp_path, capsys):
     tt_obj = tmp_path / "tt.obj"
     tt_obj.write_text("mtllib o.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl a\nf 1/1 2/2 3/3\n")
     cases.append((tt_obj, "texture transform"))
+    (tmp_path / "m2.mtl").write_text("newmtl a\nmap_Kd gone.png\n")
+    gone_obj = tmp_path / "gone.obj"
+    gone_obj.write_text("mtllib m2.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl a\nf 1/1 2/2 3/3\n")
+    cases.append((gone_obj, "map_Kd texture not found"))
     cases.append((tmp_path / "nope.glb", "not found"))
     out = tmp_path / "ev"
     out.mkdir()
@@ -546,3 +550,18 @@ def test_gltf_text_file_interleaved_normalized_uvs_rotation_and_image_file(tmp_p
 
     with pytest.raises(CamoError, match="not found"):
         load_asset(tmp_path / "t.gltf")
+
+
+def test_report_reads_evaluations_written_before_the_seconds_columns(run, tmp_path):
+    """An older metrics table (no source / seconds_* columns) still reports: its seconds show '-'."""
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(run), "--out", str(out), "--metrics", "psnr", *EVAL]) == 0
+    df = pd.read_parquet(out / "metrics.parquet")
+    old = df.drop(columns=[c for c in df.columns if c.startswith("seconds_") and c not in
+                           ("seconds_render", "seconds_metrics")] + ["source"])
+    old.to_parquet(out / "metrics.parquet", index=False)
+    assert main(["report", str(out), "--out", str(tmp_path / "rep")]) == 0
+    md = (tmp_path / "rep" / "report.md").read_text()
+    line = next(ln for ln in md.splitlines() if ln.startswith("| Ours |"))
+    assert line.count("| - ") >= 4  # setup, stages and method seconds unknown
+    assert "quality_vs_seconds" not in md  # nothing has method seconds: no plot
