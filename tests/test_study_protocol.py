@@ -413,3 +413,22 @@ def test_trial_starts_commit_without_fsync_trials_with(tmp_path):
     with db.write() as s, s.begin():
         assert s.execute(text("PRAGMA synchronous")).scalar() == 2  # FULL
     db.dispose()
+
+
+def test_start_api_never_5xx(stim_dir, tmp_path):
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as hs
+
+    app = _app(stim_dir, tmp_path)
+    c = app.test_client()
+    tok = _to_task(c, "FUZZ_START")
+    leaf = hs.none() | hs.booleans() | hs.integers() | hs.floats(allow_nan=True) | hs.text(max_size=10)
+    body = hs.dictionaries(hs.sampled_from(["trial_index", "x", ""]), leaf, max_size=3) | leaf | hs.lists(leaf)
+
+    @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(b=body)
+    def check(b):
+        r = c.post("/api/start", data=json.dumps(b), content_type="application/json", headers={"X-CSRF-Token": tok})
+        assert r.status_code < 500 and "error" in r.get_json() or r.status_code == 200, (b, r.status_code)
+
+    check()
