@@ -188,7 +188,7 @@
     var limit = state.time_limit_ms;
     var start = await request(URLS.start, { trial_index: t.index });
     if (start.remaining_ms <= 0) {
-      return Object.assign({ timed_out: true, rt_ms: Math.max(limit, start.elapsed_ms) }, sizes(img));
+      return Object.assign({ timed_out: true, rt_ms: limit }, sizes(img)); // a timeout's time is the limit
     }
     img.className = 'stim';
     fitImage(img);
