@@ -62,6 +62,9 @@ class AppearanceConfig:
     lr_translation: float = 2e-3
     lr_rotation: float = 1e-2
     displacement_weight: float = 1.0  # weight of L_disp (Eq. 11 uses 1)
+    # > 0: after each Adam step, shrink d towards 0 by this fraction of the step's displacement rate (the proximal
+    # step of an L1 term in Adam's normalised units; optimizer/schedule.py says why). 0 = the paper.
+    displacement_shrink: float = 0.0
     freeze_displacement: bool = False  # displacement applied from the initial values, not optimised (Stage 2 option)
 
     def trainable(self) -> list[str]:

@@ -303,7 +303,7 @@ def snapshots(out: Path, every: int, clock: dict[str, float]):
         return None
 
     def save(stage: Stage1) -> None:
-        if stage.iteration % every:
+        if stage.iteration % every and not stage.done():
             return
         vals = stage.current_values()
         vals["seconds"] = np.array(clock["offset"] + stage.elapsed)

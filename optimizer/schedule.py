@@ -11,7 +11,9 @@ The paper trains with constant Adam rates (1e-2 for the maps, 1e-1 for the displ
   amplitude of about one learning rate (0.1 of the bound at the paper's rate), and texels with noisy
   photometric gradients random-walk. This is why ``L_disp`` grows or stalls instead of settling.
 
-A cosine decay of every rate, ``scale(p) = floor + (1 - floor) (1 + cos(pi p)) / 2`` over the run's progress
+Two measures: a proximal step for the L1 term (``AppearanceConfig.displacement_shrink``: after each Adam step
+``d <- sign(d) max(|d| - k lr_t, 0)``), which returns noise-driven texels to 0 while a texel with a consistent
+photometric gradient still moves; and a cosine decay of every rate, ``scale(p) = floor + (1 - floor) (1 + cos(pi p)) / 2`` over the run's progress
 ``p`` in [0, 1], removes both: large steps early, vanishing jitter at the end. Progress is the larger of the
 iteration fraction and, with ``--time-budget``, the fraction of the budget spent, so a time-limited run still
 ends on small steps.
@@ -50,12 +52,12 @@ PRESETS: dict[str, dict[str, dict]] = {
     "paper": {
         "stage1": {"iterations": 50, "warm_start": False, "lr_schedule": "constant", "silhouette_every": 1},
         "stage2": {"iterations": 20},
-        "appearance": {"lr_maps": 1e-2, "lr_displacement": 1e-1},
+        "appearance": {"lr_maps": 1e-2, "lr_displacement": 1e-1, "displacement_shrink": 0.0},
     },
     "fast": {
         "stage1": {"iterations": 20, "warm_start": True, "lr_schedule": "cosine", "silhouette_every": 4},
         "stage2": {"iterations": 4},
-        "appearance": {"lr_maps": 1e-2, "lr_displacement": 5e-2},
+        "appearance": {"lr_maps": 1e-2, "lr_displacement": 5e-2, "displacement_shrink": 0.5},
     },
 }
 DEFAULT_PRESET = "fast"

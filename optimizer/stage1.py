@@ -342,6 +342,8 @@ class Stage1:
         nonfinite = self.opt.sanitise_grads()
         scale = self.lr_scale()
         self.opt.step(self.project, scale)
+        if "displacement" in self.opt and self.app.displacement_shrink > 0:
+            self._shrink_displacement(scale)
         self.iteration += 1
         seconds = time.perf_counter() - t0
         self.elapsed += seconds
@@ -359,6 +361,20 @@ class Stage1:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         self.history.append(rec)
         return rec
+
+    def _shrink_displacement(self, scale: float) -> None:
+        """Proximal L1 step on the normalised displacement: ``d <- sign(d) max(|d| - k lr_t, 0)``, k =
+        ``displacement_shrink``. A texel whose photometric gradient keeps one sign moves by ~lr_t per Adam step
+        and keeps (1 - k) of it; one pushed back and forth by gradient noise returns to 0."""
+        import drjit as dr
+        import mitsuba as mi
+
+        k = self.app.displacement_shrink * scale * self.opt.lrs["displacement"]
+        d = dr.detach(self.opt["displacement"])
+        new = mi.TensorXf(dr.sign(d) * dr.maximum(dr.abs(d) - k, 0.0))
+        dr.enable_grad(new)
+        self.opt.values["displacement"] = new
+        dr.eval(new)
 
     def lr_scale(self) -> float:
         """This step's learning-rate multiplier (:func:`optimizer.schedule.lr_scale` at the stage's progress)."""
