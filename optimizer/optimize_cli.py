@@ -26,7 +26,8 @@ def register(sub) -> None:
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
                         "without --iterations / --stage2-iterations the iteration caps are lifted)")
-    p.add_argument("--warm-start", choices=("on", "off"), help="least-squares albedo start (fast: on, paper: off)")
+    p.add_argument("--warm-start", choices=("on", "off"),
+                   help="least-squares albedo start (fast: on unless --init sets albedo; paper: off)")
     p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (fast: cosine)")
     p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
@@ -121,11 +122,13 @@ def config_from_args(args):
     for key, part in (("transmittance", "transmittance"), ("transmittance", "bsdf"), ("metallic", "bsdf"), ("roughness", "bsdf")):
         if key in init and part in ablate:
             raise CamoError(f"--init {key} conflicts with --ablate {part} (the ablation fixes it)")
-    if init:
-        pack.material = dataclasses.replace(pack.material, **init)
     from .schedule import PRESETS
 
     preset = PRESETS[args.preset]
+    # the preset's starting material applies to `ours` only (baselines' loss domain stays the pack's)
+    start = {k: v for k, v in preset["material"].items() if k not in init} if args.method == "ours" else {}
+    if init or start:
+        pack.material = dataclasses.replace(pack.material, **start, **init)
     app = appearance_for(ablate, dataclasses.replace(AppearanceConfig(), **preset["appearance"]))
     for name in ("lr_maps", "lr_displacement"):
         value = getattr(args, name)
@@ -150,6 +153,8 @@ def config_from_args(args):
         s1 = dataclasses.replace(s1, iterations=UNCAPPED)
     if args.warm_start:
         s1 = dataclasses.replace(s1, warm_start=args.warm_start == "on")
+    elif "albedo" in init:  # an explicit starting albedo is kept (the warm start would replace it)
+        s1 = dataclasses.replace(s1, warm_start=False)
     if args.lr_schedule:
         s1 = dataclasses.replace(s1, lr_schedule=args.lr_schedule)
     for name in ("iterations", "spp", "target_spp", "domain", "silhouette_every"):

@@ -36,6 +36,14 @@ def lr_scale(progress: float, kind: str = "cosine", floor: float = 0.1) -> float
     return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * p))
 
 
+def soft_threshold(x, k: float):
+    """The proximal operator of ``k |x|``: ``sign(x) max(|x| - k, 0)`` on a (detached) Dr.Jit array or tensor."""
+    import drjit as dr
+
+    d = dr.detach(x)
+    return type(d)(dr.select(d > 0, 1.0, -1.0) * dr.maximum(dr.abs(d) - k, 0.0))
+
+
 def progress(iteration: int, iterations: int, seconds: float = 0.0, budget: float | None = None) -> float:
     """Fraction of a stage done: iterations done / planned, or seconds spent / budget if that is larger."""
     p = iteration / max(iterations, 1)
@@ -53,11 +61,15 @@ PRESETS: dict[str, dict[str, dict]] = {
         "stage1": {"iterations": 50, "warm_start": False, "lr_schedule": "constant", "silhouette_every": 1},
         "stage2": {"iterations": 20},
         "appearance": {"lr_maps": 1e-2, "lr_displacement": 1e-1, "displacement_shrink": 0.0},
+        "material": {},
     },
     "fast": {
         "stage1": {"iterations": 20, "warm_start": True, "lr_schedule": "cosine", "silhouette_every": 4},
         "stage2": {"iterations": 4},
         "appearance": {"lr_maps": 1e-2, "lr_displacement": 5e-2, "displacement_shrink": 0.5},
+        # initial material values replacing the pack's unless --init names them (the shadow is what is left
+        # once the body matches; transmittance is the only parameter that lightens it)
+        "material": {"transmittance": 0.75},
     },
 }
 DEFAULT_PRESET = "fast"

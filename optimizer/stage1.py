@@ -43,7 +43,7 @@ from .loss import gated_loss_terms, mse_loss
 from .planner import Plan, training_integrator
 from .render import coverage_and_depth, render_shaded, uses_batch
 from .scenepack import ScenePack
-from .schedule import lr_scale, progress
+from .schedule import lr_scale, progress, soft_threshold
 
 
 @dataclasses.dataclass
@@ -367,11 +367,9 @@ class Stage1:
         ``displacement_shrink``. A texel whose photometric gradient keeps one sign moves by ~lr_t per Adam step
         and keeps (1 - k) of it; one pushed back and forth by gradient noise returns to 0."""
         import drjit as dr
-        import mitsuba as mi
 
         k = self.app.displacement_shrink * scale * self.opt.lrs["displacement"]
-        d = dr.detach(self.opt["displacement"])
-        new = mi.TensorXf(dr.sign(d) * dr.maximum(dr.abs(d) - k, 0.0))
+        new = soft_threshold(self.opt["displacement"], k)
         dr.enable_grad(new)
         self.opt.values["displacement"] = new
         dr.eval(new)
