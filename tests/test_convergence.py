@@ -218,3 +218,54 @@ def test_user_pack_under_the_sun_starts_rough_in_the_fast_preset(tmp_path, capsy
     assert _config(tmp_path / "b")["pack"]["material"]["roughness"] == 0.0
     assert main(["optimize", str(pack), "--out", str(tmp_path / "c"), *common, "--preset", "paper"]) == 0
     assert _config(tmp_path / "c")["pack"]["material"]["roughness"] == 0.0
+
+
+# --- numerics: poisoned and degenerate inputs ----------------------------------------------------------------
+
+def test_warm_start_from_black_and_nan_targets_stays_finite_and_in_range(mi_backend):
+    """Hard case: background targets that are black in one view and NaN/Inf in another (a corrupt render).
+    The warm-started albedo is finite and in [0, 1] everywhere; black targets pull the albedo to 0 where only
+    they see the surface; nothing seen at all (every target poisoned) leaves the initial albedo."""
+    from optimizer.appearance import AppearanceConfig
+    from optimizer.cameras import cameras
+    from optimizer.environments import get_environment
+    from optimizer.placement import prepare_object
+    from optimizer.planner import plan
+    from optimizer.scenepack import parse_pack
+    from optimizer.stage1 import Stage1, Stage1Config
+    from optimizer.warmstart import warm_start_albedo
+
+    pack = parse_pack({"object": {"primitive": "utility_box", "target_vertices": 400},
+                       "environment": {"builtin": "gravel"}, "cameras": {"views": 2},
+                       "render": {"resolution": 24}, "material": {"roughness": 0.5}})
+    env = get_environment(pack.environment)
+    app = AppearanceConfig(map_resolution=32, displacement_resolution=16)
+    s1 = Stage1(pack, env, prepare_object(pack), cameras(pack), plan(pack, env, app.planner_params()),
+                Stage1Config(iterations=1, target_spp=8), app)
+    bg = s1.targets.background.copy()
+    bg[0] = 0.0
+    bg[1, ::2] = np.nan
+    bg[1, 1::2] = np.inf
+    vals, info = warm_start_albedo(s1.values, s1.geometry, app, env, s1.cams, s1.shading_integrator(), bg,
+                                   s1.targets.coverage, 8, 1)
+    a = vals["albedo"]
+    assert np.isfinite(a).all() and a.min() >= 0.0 and a.max() <= 1.0
+    assert info.texels_seen > 0 and max(info.mean_albedo) < 0.05  # only the black view counts
+    poisoned = np.full_like(bg, np.nan)
+    vals, info = warm_start_albedo(s1.values, s1.geometry, app, env, s1.cams, s1.shading_integrator(), poisoned,
+                                   s1.targets.coverage, 8, 1)
+    assert info.texels_seen == 0
+    np.testing.assert_allclose(vals["albedo"], 0.5)
+
+
+def test_one_view_and_schedule_extremes_run_finite(tmp_path):
+    """One training view, a zero learning-rate floor reached at once (a tiny time budget) and the largest
+    map rate: the run completes with finite, in-range maps."""
+    out = tmp_path / "one"
+    assert main(["optimize", "gravel", "--out", str(out), *TINY, "--views", "1", "--lr-maps", "10",
+                 "--time-budget", "0.05", "--stages", "1"]) == 0
+    log = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
+    assert all(math.isfinite(r["loss"]) and r["nonfinite_grads"] == 0 for r in log)
+    for k in ("albedo", "metallic", "roughness", "transmittance"):
+        m = np.load(out / "maps" / f"{k}.npy")
+        assert np.isfinite(m).all() and m.min() >= 0.0 and m.max() <= 1.0
