@@ -1,0 +1,164 @@
+"""The simulated observer (evaluation/observer.py): sanity checks of the search model on known images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from evaluation.observer import (ObserverConfig, make_cells, predict_stimulus, predicted_table, simulate_search,
+                                 srgb_to_lab)
+from optimizer.errors import CamoError
+
+N = 256
+
+
+def grass(seed: int = 0, n: int = N) -> np.ndarray:
+    """A green 1/f texture with pixel noise, sRGB (n, n, 3) float32: a stand-in for the meadow's ground."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(n)
+    fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
+    fr[0, 0] = 1.0
+    tex = np.real(np.fft.ifft2((rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / fr))
+    tex = (tex - tex.mean()) / tex.std()
+    t = 0.5 + 0.12 * tex + 0.06 * rng.normal(size=(n, n))
+    return np.clip(np.stack([0.35 * t, 0.75 * t, 0.25 * t], -1), 0, 1).astype(np.float32)
+
+
+def disc(cx: float, cy: float, r: float, n: int = N) -> np.ndarray:
+    yy, xx = np.mgrid[0:n, 0:n]
+    return (yy - cy) ** 2 + (xx - cx) ** 2 < r * r
+
+
+RED = np.array([0.9, 0.05, 0.05], np.float32)
+
+
+def with_object(bg: np.ndarray, mask: np.ndarray, alpha: float) -> np.ndarray:
+    """The red object mixed into the background: alpha 0 = saturated red, 1 = invisible (background only)."""
+    img = bg.copy()
+    img[mask] = alpha * bg[mask] + (1 - alpha) * RED
+    return img
+
+
+def test_lab_known_values():
+    lab = srgb_to_lab(np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], np.float32))
+    np.testing.assert_allclose(lab[0], [100.0, 0.0, 0.0], atol=0.01)
+    np.testing.assert_allclose(lab[1], [53.24, 80.09, 67.20], atol=0.05)  # CIE L*a*b* of sRGB red (D65)
+    np.testing.assert_allclose(lab[2], [0.0, 0.0, 0.0], atol=1e-3)
+
+
+def test_red_object_on_grass_is_found_in_the_first_fixations():
+    bg = grass()
+    mask = disc(70, 170, 14)  # 4.7 deg from the centre at 16 deg per image height
+    p = predict_stimulus(with_object(bg, mask, 0.0), mask, n=200, seed=1)
+    assert p.p_found >= 0.97
+    assert np.median(p.result.fixations) <= 2 and p.result.fixations.max() <= 4
+    assert np.median(p.rt_found_s) < 1.5
+    assert p.max_d_object > 5  # far above the criterion (3.5)
+
+
+def test_first_fixation_detection_time_is_fixation_plus_fitts():
+    """A large red disc at the centre is seen at the first fixation: rt = fixation + Fitts' law to the click."""
+    bg = grass(2)
+    mask = disc(128, 128, 40)
+    cfg = ObserverConfig()
+    img = with_object(bg, mask, 0.0)
+    cells = make_cells(img, cfg)
+    res = simulate_search(img, n=50, seed=0, config=cfg, mask=mask, cells=cells)
+    assert res.found.all() and (res.fixations == 1).all()
+    # which cell was clicked: the one whose click point equals the recorded click
+    idx = [int(np.flatnonzero((cells.click_px[:, 0] == x) & (cells.click_px[:, 1] == y))[0])
+           for x, y in zip(res.click_x, res.click_y)]
+    d = np.linalg.norm(cells.pos_deg[idx] - [cells.width_deg / 2, cells.height_deg / 2], axis=1)
+    expected = cfg.fixation_s + cfg.fitts_a_s + cfg.fitts_b_s * np.log2(d / cfg.fitts_width_deg + 1)
+    np.testing.assert_allclose(res.rt_s, expected, rtol=1e-12)
+
+
+def test_blending_the_object_into_the_background_raises_the_time_monotonically():
+    bg = grass(3)
+    mask = disc(190, 80, 16)
+    alphas = (0.0, 0.6, 0.8, 0.88, 0.94, 1.0)
+    preds = [predict_stimulus(with_object(bg, mask, a), mask, n=300, seed=5) for a in alphas]
+    times = [float(p.time_to_find_s.mean()) for p in preds]  # misses and timeouts at the limit
+    found = [p.p_found for p in preds]
+    d_obj = [p.max_d_object for p in preds]
+    assert all(b >= a - 1e-9 for a, b in zip(times, times[1:])), times
+    assert all(b <= a + 1e-9 for a, b in zip(found, found[1:])), found
+    assert all(b < a for a, b in zip(d_obj, d_obj[1:])), d_obj  # discriminability falls strictly
+    assert times[0] < 2.0 and times[-1] > 35.0  # from found at once to (almost) never found
+    assert found[0] >= 0.97 and found[-1] <= 0.05
+
+
+def test_without_the_object_found_only_by_chance_and_the_mask_is_never_seen():
+    bg = grass(4)
+    rng = np.random.default_rng(0)
+    rates, shares = [], []
+    clicks = None
+    for k in range(12):
+        cx, cy = rng.uniform(30, N - 30, 2)
+        mask = disc(cx, cy, 14)
+        res = simulate_search(bg, n=100, seed=9, mask=mask)
+        # same image and seed, another mask: the observer behaves identically (it never sees the mask)
+        c = (res.click_x.copy(), res.click_y.copy(), res.rt_s.copy())
+        if clicks is not None:
+            for a, b in zip(clicks, c):
+                np.testing.assert_array_equal(a, b)
+        clicks = c
+        rates.append(res.found.mean())
+        shares.append(mask.mean())
+    # a chance click hits a 14 px disc about as often as its share of the image (~1 %); allow generous slack
+    assert np.mean(rates) <= 3 * np.mean(shares) + 0.02
+    assert np.mean(rates) < 0.1
+
+
+def test_time_limit_bounds_the_search():
+    cfg = ObserverConfig(time_limit_s=2.0)
+    res = simulate_search(grass(5), n=40, seed=0, config=cfg)
+    assert (res.rt_s <= 2.0).all()
+    assert (res.rt_s[res.timed_out] == 2.0).all() and (res.click_x[res.timed_out] == -1).all()
+    assert res.fixations.max() <= math.ceil(2.0 / cfg.fixation_s) + 1
+
+
+def test_deterministic_for_a_seed():
+    img = with_object(grass(6), disc(60, 60, 12), 0.85)
+    a = simulate_search(img, n=30, seed=3)
+    b = simulate_search(img, n=30, seed=3)
+    np.testing.assert_array_equal(a.rt_s, b.rt_s)
+    np.testing.assert_array_equal(a.click_x, b.click_x)
+
+
+def test_bad_input_is_camoerror():
+    img = grass(7, 64)
+    with pytest.raises(CamoError, match="expected an"):
+        simulate_search(img[..., 0])
+    bad = img.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(CamoError, match="finite sRGB"):
+        simulate_search(bad)
+    with pytest.raises(CamoError, match="mask is"):
+        simulate_search(img, n=2, mask=np.zeros((10, 10), bool))
+    with pytest.raises(CamoError, match="must be > 0"):
+        simulate_search(img, config=ObserverConfig(fixation_s=0))
+    with pytest.raises(CamoError, match="start"):
+        simulate_search(img, config=ObserverConfig(start="left"))
+    with pytest.raises(CamoError, match="n must be"):
+        simulate_search(img, n=0)
+
+
+def test_predicted_table_means_and_times():
+    views = pd.DataFrame({
+        "scene": ["a", "b", "a", "b"], "method": ["m1", "m1", "m2", "m2"], "p_found": [1.0, 0.5, 0.2, 0.0],
+        "p_miss": [0.0, 0.25, 0.3, 0.5], "p_timeout": [0.0, 0.25, 0.5, 0.5], "mean_time_found_s": [1, 3, 10, np.nan],
+        "median_time_found_s": [1, 3, 10, np.nan], "mean_time_all_s": [1, 20, 30, 40], "median_time_all_s": [1, 20, 30, 40],
+    })
+    trials = pd.DataFrame({"method": ["m1"] * 3 + ["m2"] * 2, "found": [True, True, False, True, False],
+                           "rt_s": [1.0, 2.0, 40.0, 9.0, 40.0]})
+    t = predicted_table(views, trials=trials).set_index("method")
+    assert t.loc["m1", "confusion_rate"] == pytest.approx(0.25)
+    assert t.loc["m2", "confusion_rate"] == pytest.approx(0.9)
+    assert t.loc["m1", "mean_time_found_s"] == pytest.approx(1.5)
+    assert t.loc["m1", "median_time_all_s"] == pytest.approx(2.0)
+    assert t.loc["m2", "mean_time_all_s"] == pytest.approx(24.5)
+    assert t.loc["m1", "easy_views"] == 1 and t.loc["m2", "easy_views"] == 0
