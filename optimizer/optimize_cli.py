@@ -125,8 +125,9 @@ def config_from_args(args):
     from .schedule import PRESETS
 
     preset = PRESETS[args.preset]
-    # the preset's starting material applies to `ours` only (baselines' loss domain stays the pack's)
-    start = {k: v for k, v in preset["material"].items() if k not in init} if args.method == "ours" else {}
+    # the preset's starting material (every method: a baseline's loss domain and targets stay those of `ours`;
+    # painted baselines set their own maps)
+    start = {k: v for k, v in preset["material"].items() if k not in init}
     if init or start:
         pack.material = dataclasses.replace(pack.material, **start, **init)
     app = appearance_for(ablate, dataclasses.replace(AppearanceConfig(), **preset["appearance"]))
