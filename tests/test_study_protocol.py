@@ -85,7 +85,7 @@ def test_reload_keeps_the_deadline(stim_dir, tmp_path):
     assert first["starts"] == 1 and first["time_limit_ms"] == 6000 and first["elapsed_ms"] < 1000
     _age(app, 0, 2.5)  # 2.5 s into the trial the page is reloaded: the clock is not reset
     again = c.post("/api/start", json={"trial_index": 0}, headers=h).get_json()
-    assert again["starts"] == 2 and 2500 <= again["elapsed_ms"] < 3500
+    assert again["starts"] == 2 and 2500 <= again["elapsed_ms"] < 5000
     assert again["remaining_ms"] == pytest.approx(6000 - again["elapsed_ms"], abs=0.2)
     assert c.get("/api/state").get_json()["trials"][0]["started"] is True
     # the page reports the time since the first showing; it is stored with the reload count
@@ -94,7 +94,7 @@ def test_reload_keeps_the_deadline(stim_dir, tmp_path):
     j = c.post("/api/trial", json=body, headers=h).get_json()
     assert j["hit"] is True and j["late"] is False
     row = _rows(app).loc[0]
-    assert row.starts == 2 and row.rt_ms == 2900.0 and 2500 <= row.server_rt_ms < 3500
+    assert row.starts == 2 and row.rt_ms == 2900.0 and 2500 <= row.server_rt_ms < 5000
     # a trial whose time ran out during a reload answers remaining 0; a timeout is then accepted
     c.post("/api/start", json={"trial_index": 1}, headers=h)
     _age(app, 1, 30)
@@ -154,7 +154,7 @@ def test_late_and_too_fast_answers(stim_dir, tmp_path):
     assert bool(rows.loc[0, "too_fast"]) and bool(rows.loc[0, "hit"]) and rows.loc[0, "rt_ms"] == 0
     assert bool(rows.loc[1, "late"]) and bool(rows.loc[1, "timed_out"]) and not bool(rows.loc[1, "hit"])
     assert rows.loc[1, "rt_ms"] == 7900 and rows.loc[1, "click_x"] == x1  # the click is kept for the record
-    assert 8000 <= rows.loc[1, "server_rt_ms"] < 9500
+    assert 8000 <= rows.loc[1, "server_rt_ms"] < 12000
     assert 3 not in rows.index
 
 
