@@ -42,6 +42,9 @@ def register(sub) -> None:
     p.add_argument("--inception-weights", metavar="PATH", help="Inception v3 state dict for SIFID")
     p.add_argument("--dreamsim-weights", metavar="PATH", help="DreamSim weights folder (its cache_dir)")
     p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
+    p.add_argument("--observer-trials", type=int, default=100, metavar="N",
+                   help="simulated observer trials per view for the report's predicted Table I (default 100; 0 = "
+                   "none; docs/observer.md)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_evaluate)
 
@@ -86,7 +89,7 @@ def run_evaluate(args) -> int:
     settings = EvalSettings(views=args.views, jitter=args.jitter, spp=args.spp, resolution=args.resolution,
                             metrics=parse_metrics(args.metrics), seed=args.seed, lpips_weights=args.lpips_weights,
                             inception_weights=args.inception_weights, dreamsim_weights=args.dreamsim_weights,
-                            threads=args.threads, progress=not args.quiet)
+                            threads=args.threads, progress=not args.quiet, observer_trials=args.observer_trials)
     evaluate(input_specs(args), args.out, settings)
     print(f"wrote {args.out}")
     return 0

@@ -12,7 +12,9 @@ other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods a
 
 Output (``--out DIR``)::
 
-    report.md      Markdown: settings, Table II (crop and full frame), per-scene tables, skipped metrics, grids
+    report.md      Markdown: settings, Table II (crop and full frame), per-scene tables, skipped metrics, the
+                   simulated observer's predicted Table I next to the metrics (when the evaluations have
+                   simulated.parquet; :mod:`evaluation.observer`) and where its order disagrees with theirs, grids
     report.html    the same, self-contained (grids embedded as base64 PNG)
     grids/<scene>__<camera set>.png   per view: background | each method
 """
@@ -528,6 +530,173 @@ def json_key(d: Any) -> str:
     return json.dumps(d, sort_keys=True)
 
 
+# --------------------------------------------------------------------------------------------------------------
+# simulated observer (evaluation.observer): predicted Table I next to the metrics
+# --------------------------------------------------------------------------------------------------------------
+
+#: Metrics set against the observer's order (those computed), crop region.
+AGREEMENT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy", "lpips", "sifid", "dreamsim")
+
+
+def load_simulated(eval_dirs: Sequence[str | Path]):
+    """``(per view, per simulated trial)`` predictions of the evaluations that have them (``simulated.parquet``,
+    written by ``camo evaluate``), with Table II labels; ``(None, None)`` when none has."""
+    import pandas as pd
+
+    views, trials = [], []
+    for d in eval_dirs:
+        d = Path(d)
+        p, q = d / "simulated.parquet", d / "simulated_trials.parquet"
+        if not p.is_file():
+            continue
+        try:
+            v = pd.read_parquet(p)
+            t = pd.read_parquet(q) if q.is_file() else None
+        except Exception as exc:  # pyarrow raises several types for a corrupt file
+            raise CamoError(f"{p}: cannot read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") \
+                from None
+        views.append(v)
+        if t is not None:
+            trials.append(t)
+    if not views:
+        return None, None
+    v = pd.concat(views, ignore_index=True).drop_duplicates(["run", "scene", "method", "ablation", "view"])
+    v["label"] = [method_label(m, a) for m, a in zip(v["method"], v["ablation"])]
+    v["_order"] = [label_order(m, a) for m, a in zip(v["method"], v["ablation"])]
+    t = None
+    if trials:
+        t = pd.concat(trials, ignore_index=True).drop_duplicates(["run", "scene", "method", "ablation", "view", "trial"])
+        t["label"] = [method_label(m, a) for m, a in zip(t["method"], t["ablation"])]
+    return v, t
+
+
+def _kendall(a: Sequence[float], b: Sequence[float]) -> float:
+    """Kendall's tau-a of two paired sequences (NaN with fewer than 2 finite pairs)."""
+    pts = [(x, y) for x, y in zip(a, b) if np.isfinite(x) and np.isfinite(y)]
+    n = len(pts)
+    if n < 2:
+        return math.nan
+    s = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            s += np.sign(pts[i][0] - pts[j][0]) * np.sign(pts[i][1] - pts[j][1])
+    return float(s / (n * (n - 1) / 2))
+
+
+def observer_agreement(df, views) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Per scene, the observer's order of the labels (predicted confusion rate, higher = better hidden) set
+    against each computed metric's (crop region, camouflage direction: higher PSNR/SSIM, lower distances).
+
+    Returns ``(taus, disagreements)``: ``{scene, metric, tau, labels}`` (Kendall's tau between the two orders) and
+    ``{scene, metric, better_by_metric, better_by_observer, confusion, metric values}`` for every pair of labels
+    the two order differently."""
+    from itertools import combinations
+
+    crop = df.loc[df["region"] == "crop"]
+    metrics = [m for m in AGREEMENT_METRICS if m in crop.columns and crop[m].notna().any()]
+    taus, dis = [], []
+    for scene in sorted(views["scene"].unique()):
+        pv = views.loc[views["scene"] == scene].groupby(["label", "run"])["p_found"].mean().groupby("label").mean()
+        conf = 1.0 - pv
+        pm = crop.loc[crop["scene"] == scene].groupby(["label", "run"])[metrics].mean().groupby("label").mean()
+        labels = [lab for lab in conf.index if lab in pm.index]
+        if len(labels) < 2:
+            continue
+        for m in metrics:
+            sign = 1.0 if m in HIGHER_IS_BETTER else -1.0  # camouflage direction: larger = better hidden
+            good = [sign * float(pm.loc[lab, m]) for lab in labels]
+            taus.append({"scene": scene, "metric": m, "tau": _kendall([float(conf[lab]) for lab in labels], good),
+                         "labels": len(labels)})
+            for i, j in combinations(range(len(labels)), 2):
+                dm, do = np.sign(good[i] - good[j]), np.sign(float(conf[labels[i]]) - float(conf[labels[j]]))
+                if dm != 0 and do != 0 and dm != do:
+                    a, b = (labels[i], labels[j]) if dm > 0 else (labels[j], labels[i])
+                    dis.append({"scene": scene, "metric": m, "better_by_metric": a, "better_by_observer": b,
+                                "metric_a": float(pm.loc[a, m]), "metric_b": float(pm.loc[b, m]),
+                                "confusion_a": float(conf[a]), "confusion_b": float(conf[b])})
+    return taus, dis
+
+
+def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], list[str]]:
+    """Markdown and HTML lines of the report's "Simulated observer" section (empty when no evaluation has
+    predictions)."""
+    import json
+
+    from .observer import predicted_table
+
+    views, trials = load_simulated(eval_dirs)
+    if views is None or views.empty:
+        return [], []
+    t = predicted_table(views, by=("label",), trials=trials)
+    order = views.drop_duplicates("label").set_index("label")["_order"]
+    t = t.set_index("label").loc[sorted(t["label"], key=lambda lab: order[lab])]
+    crop = summary(df, "crop")
+    shown = [(m, h) for m, h in TABLE_METRICS if m in crop.columns and crop[m].notna().any()]
+    header = ["Model", "Pred. conf. rate", "P(miss)", "P(timeout)", "Avg. time (s)", "Med. time (s)",
+              "Avg. time, all (s)", "Easy views", "Views"] + [f"{h} (crop)" for _, h in shown]
+    rows = []
+    for lab in t.index:
+        r = t.loc[lab]
+        cells = [(str(lab), False), (f"{100 * r.confusion_rate:.1f}%", False), (f"{100 * r.p_miss:.1f}%", False),
+                 (f"{100 * r.p_timeout:.1f}%", False), (_fmt_seconds(r.mean_time_found_s), False),
+                 (_fmt_seconds(r.median_time_found_s), False), (_fmt_seconds(r.mean_time_all_s), False),
+                 (str(int(r.easy_views)), False), (str(int(r.n_views)), False)]
+        for m, _ in shown:
+            cells.append((_fmt(m, float(crop.loc[lab, m])) if lab in crop.index else "—", False))
+        rows.append(cells)
+    cfg = {}
+    for d in eval_dirs:
+        p = Path(d) / "simulated_config.json"
+        if p.is_file():
+            try:
+                cfg = json.loads(p.read_text(encoding="utf-8"))
+            except ValueError:
+                pass
+            break
+    obs = cfg.get("observer", {})
+    note = (f"Predicted by the simulated observer (`evaluation/observer.py`, docs/observer.md; "
+            f"{cfg.get('trials_per_view', '?')} simulated trials per view, image height = "
+            f"{obs.get('display_deg', '?')} deg, time limit {obs.get('time_limit_s', '?')} s, first fixation "
+            f"{obs.get('start', '?')}) on the evaluation renders: confusion rate = not found (a click off the object "
+            "or a timeout); times over the simulated finds (Avg./Med.) and over all trials with timeouts at the "
+            "limit. Easy views: found with p >= 0.95 within a median 2 s. The observer is not fitted to human data: "
+            "it ranks; absolute figures are indicative. Evaluation renders have the object at the image centre "
+            "(hence a random first fixation); `camo study build-stimuli` places it at random.")
+    taus, dis = observer_agreement(df, views)
+    md = ["## Simulated observer: predicted Table I", "", note, "", markdown_table(header, rows), ""]
+    ht = ["<h2>Simulated observer: predicted Table I</h2>", f"<p>{html.escape(note)}</p>", html_table(header, rows)]
+    if taus:
+        names = dict(TABLE_METRICS)
+        metrics = list(dict.fromkeys(x["metric"] for x in taus))
+        by = {(x["scene"], x["metric"]): x["tau"] for x in taus}
+        th = ["Scene"] + [names.get(m, m) for m in metrics]
+        tr = [[(str(scene), False)] + [("—" if not np.isfinite(by.get((scene, m), math.nan)) else
+                                         f"{by[(scene, m)]:+.2f}", False) for m in metrics]
+              for scene in dict.fromkeys(x["scene"] for x in taus)]
+        tnote = ("Kendall's tau between the observer's order of the methods (predicted confusion rate) and each "
+                 "metric's (crop region; higher PSNR/SSIM or lower distance = better hidden), per scene; +1 = the "
+                 "same order, -1 = reversed.")
+        md += ["### Observer vs metrics", "", tnote, "", markdown_table(th, tr), ""]
+        ht += ["<h3>Observer vs metrics</h3>", f"<p>{html.escape(tnote)}</p>", html_table(th, tr)]
+        if dis:
+            md += ["Where they disagree (the metric ranks A as better hidden, the observer B):", "",
+                   "| Scene | Metric | A (metric) | B (observer) | metric A / B | pred. conf. A / B |",
+                   "|---|---|---|---|---:|---:|"]
+            for x in dis:
+                md.append(f"| {x['scene']} | {names.get(x['metric'], x['metric'])} | {x['better_by_metric']} | "
+                          f"{x['better_by_observer']} | {_fmt(x['metric'], x['metric_a'])} / "
+                          f"{_fmt(x['metric'], x['metric_b'])} | {100 * x['confusion_a']:.1f}% / "
+                          f"{100 * x['confusion_b']:.1f}% |")
+            md.append("")
+            ht += ["<p>Where they disagree:</p><ul>"] + [
+                f"<li>{html.escape(x['scene'])}, {html.escape(names.get(x['metric'], x['metric']))}: metric ranks "
+                f"{html.escape(x['better_by_metric'])} better hidden, the observer "
+                f"{html.escape(x['better_by_observer'])}</li>" for x in dis] + ["</ul>"]
+        else:
+            md += ["The observer and every metric order the methods alike in every scene.", ""]
+    return md, ht
+
+
 def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
     """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
     from optimizer import atomic
@@ -604,6 +773,9 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
                 cap += f"; without seconds, not plotted: {', '.join(missing)}"
             plots.append((cap, path))
 
+    sim_md, sim_ht = simulated_section(df, eval_dirs)
+    md += sim_md
+    ht += sim_ht
     if plots:
         md += ["## Quality vs seconds", ""]
         ht += ["<h2>Quality vs seconds</h2>"]

@@ -162,3 +162,71 @@ def test_predicted_table_means_and_times():
     assert t.loc["m1", "median_time_all_s"] == pytest.approx(2.0)
     assert t.loc["m2", "mean_time_all_s"] == pytest.approx(24.5)
     assert t.loc["m1", "easy_views"] == 1 and t.loc["m2", "easy_views"] == 0
+
+
+# ---------------------------------------------------------------------------
+# evaluation directories and the report's "simulated" section
+# ---------------------------------------------------------------------------
+
+
+def test_predict_eval_dir_writes_predictions_that_match_the_library(tmp_path):
+    import json
+
+    from PIL import Image
+
+    from evaluation.observer import PREDICTION_COLUMNS, TRIAL_COLUMNS, predict_eval_dir
+    from study_site.testing import make_fake_eval_dir
+
+    entries = make_fake_eval_dir(tmp_path, scenes=("s1",), methods=("ours", "mean"), views=2, size=(64, 48))
+    # one view with an empty mask (object hidden): skipped
+    Image.fromarray(np.zeros((48, 64), np.uint8)).save(tmp_path / entries[-1]["mask"])
+    views, trials = predict_eval_dir(tmp_path, n=20, seed=4)
+    assert list(views.columns) == list(PREDICTION_COLUMNS) and list(trials.columns) == list(TRIAL_COLUMNS)
+    assert len(views) == 3 and len(trials) == 3 * 20
+    for f in ("simulated.parquet", "simulated.csv", "simulated_trials.parquet", "simulated_config.json"):
+        assert (tmp_path / f).stat().st_size > 0
+    cfg = json.loads((tmp_path / "simulated_config.json").read_text())
+    assert cfg["observer"]["start"] == "random" and cfg["trials_per_view"] == 20
+    # the stored figures are the library's for that image, mask and seed
+    e = entries[1]
+    img = np.asarray(Image.open(tmp_path / e["image"]).convert("RGB"))
+    mask = np.asarray(Image.open(tmp_path / e["mask"]).convert("L")) >= 128
+    p = predict_stimulus(img, mask, 20, 4 + 7919 * 1, ObserverConfig(start="random"))
+    row = views.iloc[1]
+    assert row["p_found"] == pytest.approx(p.p_found) and row["p_timeout"] == pytest.approx(p.p_timeout)
+    t = trials[(trials["run"] == e["run"]) & (trials["view"] == e["view"])]
+    np.testing.assert_allclose(t["rt_s"].to_numpy(), p.result.rt_s)
+    assert (views["p_found"] + views["p_miss"] + views["p_timeout"]).round(9).eq(1.0).all()
+
+
+def test_predict_eval_dir_bad_input(tmp_path):
+    from evaluation.observer import predict_eval_dir
+
+    with pytest.raises(CamoError, match="no renders.json"):
+        predict_eval_dir(tmp_path)
+    (tmp_path / "renders.json").write_text("{oops")
+    with pytest.raises(CamoError, match="not valid JSON"):
+        predict_eval_dir(tmp_path)
+    (tmp_path / "renders.json").write_text('[{"run": "r", "image": "nope.png", "mask": "nope_mask.png"}]')
+    with pytest.raises(CamoError, match="missing render"):
+        predict_eval_dir(tmp_path)
+    assert not (tmp_path / "simulated.parquet").exists()
+
+
+def test_observer_agreement_lists_the_pairs_ordered_differently():
+    from evaluation.report import _kendall, observer_agreement
+
+    assert _kendall([1, 2, 3], [10, 20, 30]) == pytest.approx(1.0)
+    assert _kendall([1, 2, 3], [30, 20, 10]) == pytest.approx(-1.0)
+    assert _kendall([1, 2, 3], [10, 30, 20]) == pytest.approx(1 / 3)
+    df = pd.DataFrame({
+        "region": ["crop"] * 3, "scene": ["s"] * 3, "run": ["a", "b", "c"], "label": ["A", "B", "C"],
+        "psnr": [30.0, 25.0, 20.0],  # PSNR says A best hidden, then B, then C
+        "lpips_proxy": [0.1, 0.3, 0.2],  # LPIPS-proxy: A, C, B
+    })
+    views = pd.DataFrame({"scene": ["s"] * 3, "run": ["a", "b", "c"], "label": ["A", "B", "C"],
+                          "p_found": [0.2, 0.5, 0.8]})  # observer: A hidden best, then B, then C
+    taus, dis = observer_agreement(df, views)
+    by = {x["metric"]: x["tau"] for x in taus}
+    assert by["psnr"] == pytest.approx(1.0) and by["lpips_proxy"] == pytest.approx(1 / 3)
+    assert [(x["metric"], x["better_by_metric"], x["better_by_observer"]) for x in dis] == [("lpips_proxy", "C", "B")]
