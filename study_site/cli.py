@@ -1,4 +1,4 @@
-"""``camo study ...`` commands: build-stimuli, make-key, serve, report.
+"""``camo study ...`` commands: build-stimuli, make-key, serve, report, power, simulate.
 
 ``register(subparsers)`` adds the ``study`` group to an argparse parser; each
 subcommand stores its handler as ``func`` (``args.func(args) -> int``). Handlers
@@ -117,7 +117,50 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="the study's stimulus set: adds centre-click and last-practice-location baseline hit rates",
     )
     r.set_defaults(func=cmd_report)
+
+    w = sub.add_parser(
+        "power",
+        help="participants needed to separate each pair of methods (resampled through Table I's tests)",
+        description="Power analysis: simulated studies of N participants drawn from predicted (camo evaluate's "
+        "simulated observer) or pilot outcomes, analysed with Table I's pairwise tests (Fisher and log-rank, "
+        "Holm); see study_site/power.py and docs/observer.md.",
+    )
+    src = w.add_mutually_exclusive_group()
+    src.add_argument("--predicted", nargs="+", metavar="EVAL_DIR",
+                     help="evaluation directories with the observer's simulated_trials.parquet")
+    src.add_argument("--db", metavar="URL", help="a pilot study database (SQLAlchemy URL or SQLite path)")
+    w.add_argument("--out", required=True, metavar="DIR")
+    w.add_argument("--participants", default="10,20,30,40,60,80,100,150,200,300", metavar="N,...",
+                   help="numbers of participants to simulate (default 10,20,30,40,60,80,100,150,200,300)")
+    w.add_argument("--reps", type=int, default=200, help="simulated studies per number (default 200)")
+    w.add_argument("--alpha", type=float, default=0.05, help="significance level after Holm (default 0.05)")
+    w.add_argument("--target", type=float, default=0.8, help="power wanted (default 0.8)")
+    w.add_argument("--seed", type=int, default=0)
+    w.set_defaults(func=cmd_power)
     return p
+
+
+def cmd_power(args) -> int:
+    from .power import cells_from_pilot, cells_from_predicted, parse_participants, write_power
+
+    if not args.predicted and not args.db:
+        raise CamoError("power needs --predicted EVAL_DIR ... or --db PILOT_DB")
+    ns = parse_participants(args.participants)
+    if args.reps < 1 or args.reps > 100_000:
+        raise CamoError("--reps must be 1-100000")
+    if args.predicted:
+        cells, source = cells_from_predicted(args.predicted), "predicted by the simulated observer"
+    else:
+        cells, source = cells_from_pilot(args.db), "pilot study"
+    res = write_power(cells, args.out, ns, reps=args.reps, alpha=args.alpha, target=args.target, seed=args.seed,
+                      source=source)
+    from .power import TESTS
+
+    for r in res["needed"].itertuples():
+        n = f"{int(r.participants)}" if r.participants == r.participants else f"> {r.max_n}"
+        print(f"{r.method_a} vs {r.method_b}, {TESTS[r.test]}: {n} participants for {100 * r.target:.0f} % power")
+    print(f"wrote {args.out}/power.md, power.csv, power_needed.csv, power.png")
+    return 0
 
 
 def _pair(text: str, flag: str) -> tuple[float, float]:
