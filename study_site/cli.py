@@ -137,7 +137,49 @@ def register(subparsers) -> argparse.ArgumentParser:
     w.add_argument("--target", type=float, default=0.8, help="power wanted (default 0.8)")
     w.add_argument("--seed", type=int, default=0)
     w.set_defaults(func=cmd_power)
+
+    m = sub.add_parser(
+        "simulate",
+        help="drive simulated participants (the simulated observer) through a live study site over HTTP",
+        description="N simulated participants take the study at --url (loopback only) as the page does: consent, "
+        "practice and formal trials with the simulated observer's clicks and times on the server's clock, "
+        "retries, completion. Rehearses the site, database and `camo study report`; doubles as a load "
+        "generator. See study_site/simulate.py and docs/observer.md.",
+    )
+    m.add_argument("--url", required=True, help="the running study, e.g. http://127.0.0.1:5000")
+    m.add_argument("--participants", type=int, default=100, help="simulated participants (default 100)")
+    m.add_argument("--concurrency", type=int, default=20, help="participants at once (default 20)")
+    m.add_argument("--seed", type=int, default=0, help="participant ids sim-SEED-K and their random streams")
+    m.add_argument("--observer", metavar="KEY=VALUE,...",
+                   help="observer parameters (evaluation.observer.ObserverConfig), e.g. display_deg=14,criterion=4")
+    m.add_argument("--ramp", type=float, default=0.0, metavar="S", help="spread arrivals over S seconds")
+    m.add_argument("--max-seconds", type=float, default=3600.0, help="deadline of the whole run (default 3600)")
+    m.add_argument("--json", metavar="FILE", help="also write the summary and every simulated trial as JSON")
+    m.set_defaults(func=cmd_simulate)
     return p
+
+
+def cmd_simulate(args) -> int:
+    from .simulate import parse_observer, simulate
+
+    cfg = parse_observer(args.observer)
+    res = simulate(args.url, args.participants, args.concurrency, args.seed, args.max_seconds, cfg, args.ramp,
+                   log=lambda s: print(s, file=sys.stderr, flush=True))
+    lat = res["trial_write_ms"]
+    print(f"{res['completed']}/{res['participants']} participants completed in {res['wall_s']} s; "
+          f"{res['trials']} trials stored ({res['formal_trials']} formal: {res['formal_hits']} found, "
+          f"{res['formal_timeouts']} timeouts); trial write p50 {lat['p50']:.1f} ms, p90 {lat['p90']:.1f} ms, "
+          f"p99 {lat['p99']:.1f} ms; retried: {', '.join(f'{k} {v}' for k, v in sorted(res['counts'].items()) if k.startswith(('http_', 'transport'))) or 'none'}")
+    for e in res["errors"]:
+        print(f"error: {e}", file=sys.stderr)
+    if args.json:
+        from optimizer.atomic import write_json
+
+        write_json(args.json, res)
+    if res["n_errors"] or res["completed"] < res["participants"]:
+        raise CamoError(f"{res['participants'] - res['completed']} simulated participant(s) did not complete "
+                        f"({res['n_errors']} error(s), {res['counts'].get('deadline_hit', 0)} at the deadline)")
+    return 0
 
 
 def cmd_power(args) -> int:
