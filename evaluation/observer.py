@@ -320,10 +320,11 @@ class SearchResult:
     found: np.ndarray | None = None  # bool: the click hit the mask (None without a mask)
 
 
-def simulate_search(image: np.ndarray, n: int = 200, seed: int = 0, config: ObserverConfig | None = None,
+def simulate_search(image: np.ndarray | None, n: int = 200, seed: int = 0, config: ObserverConfig | None = None,
                     mask: np.ndarray | None = None, cells: Cells | None = None) -> SearchResult:
     """Simulate ``n`` independent searches of ``image`` (sRGB ``(H, W, 3)``); score clicks against ``mask``
-    (``(H, W)`` bool, optional; never seen by the observer). Deterministic for a given ``seed``."""
+    (``(H, W)`` bool, optional; never seen by the observer). Deterministic for a given ``seed``. ``cells``: the
+    image's :func:`make_cells` when already computed (``image`` is then not read; the study client caches them)."""
     cfg = config or ObserverConfig()
     cfg.validate()
     if n < 1:
