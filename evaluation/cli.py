@@ -45,6 +45,9 @@ def register(sub) -> None:
     p.add_argument("--observer-trials", type=int, default=100, metavar="N",
                    help="simulated observer trials per view for the report's predicted Table I (default 100; 0 = "
                    "none; docs/observer.md)")
+    p.add_argument("--observer-saliency", metavar="FILE",
+                   help="the observer's map from a local TorchScript saliency / camouflaged-object-detection network "
+                   "instead of the weight-free one (never downloaded)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_evaluate)
 
@@ -89,7 +92,8 @@ def run_evaluate(args) -> int:
     settings = EvalSettings(views=args.views, jitter=args.jitter, spp=args.spp, resolution=args.resolution,
                             metrics=parse_metrics(args.metrics), seed=args.seed, lpips_weights=args.lpips_weights,
                             inception_weights=args.inception_weights, dreamsim_weights=args.dreamsim_weights,
-                            threads=args.threads, progress=not args.quiet, observer_trials=args.observer_trials)
+                            threads=args.threads, progress=not args.quiet, observer_trials=args.observer_trials,
+                            observer_saliency=args.observer_saliency)
     evaluate(input_specs(args), args.out, settings)
     print(f"wrote {args.out}")
     return 0

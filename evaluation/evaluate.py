@@ -90,6 +90,7 @@ class EvalSettings:
     progress: bool = True
     write_report: bool = True
     observer_trials: int = 100  # simulated observer trials per view (evaluation.observer); 0 = no prediction
+    observer_saliency: str | None = None  # a local TorchScript saliency network for the observer's map
 
     def validate(self) -> None:
         if self.views is not None and self.views < 1:
@@ -424,6 +425,10 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     _check_sizes(jobs, names)
     backend.init(threads=settings.threads)
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
+    if settings.observer_saliency and settings.observer_trials > 0:
+        from .observer import load_saliency_model
+
+        load_saliency_model(settings.observer_saliency)
 
     renderer = ViewRenderer(settings.spp, settings.seed)
     rows: list[dict[str, Any]] = []
@@ -513,7 +518,10 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         from .observer import predict_eval_dir
 
         t_obs = time.perf_counter()
-        predict_eval_dir(out, n=settings.observer_trials, seed=settings.seed)
+        from .observer import ObserverConfig
+
+        predict_eval_dir(out, n=settings.observer_trials, seed=settings.seed,
+                         config=ObserverConfig(start="random", saliency_model=settings.observer_saliency or ""))
         say(f"simulated observer: {settings.observer_trials} trials per view in {time.perf_counter() - t_obs:.1f} s")
     if settings.write_report:
         from .report import write_report

@@ -113,6 +113,11 @@ class ObserverConfig:
     #: First fixation: "centre" (study stimuli: the object is placed at random) or "random" (uniform; for the
     #: evaluation renders, whose object sits at the image centre).
     start: str = "centre"
+    #: Optional learned map instead of step 1: a local TorchScript file (``torch.jit.save``) of a saliency or
+    #: camouflaged-object-detection network, ``(1, 3, H, W)`` sRGB in [0, 1] -> ``(1, 1, h, w)`` (or ``(1, h, w)``)
+    #: scores, higher = more conspicuous. Its output is resized to the feature grid and z-scored like the
+    #: weight-free map (median / MAD of the image). Never downloaded; "" = the weight-free map.
+    saliency_model: str = ""
 
     def validate(self) -> None:
         for f in dataclasses.fields(self):
@@ -120,6 +125,10 @@ class ObserverConfig:
             if f.name == "start":
                 if v not in ("centre", "random"):
                     raise CamoError(f"observer start must be 'centre' or 'random', not {v!r}")
+                continue
+            if f.name == "saliency_model":
+                if v and not Path(v).expanduser().is_file():
+                    raise CamoError(f"observer saliency_model: file not found: {v}")
                 continue
             vals = v if isinstance(v, tuple) else (v,)
             if not vals or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in vals):
@@ -130,6 +139,10 @@ class ObserverConfig:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["centre_sigmas_deg"] = list(self.centre_sigmas_deg)
+        if self.saliency_model:
+            from evaluation.metrics.weights import weights_sha256
+
+            d["saliency_model_sha256"] = weights_sha256(self.saliency_model)
         return d
 
 
@@ -240,20 +253,73 @@ def _mahalanobis(f: np.ndarray, sigma_s: float, noise: float) -> np.ndarray:
     return _distance(f, mu, cov, noise)
 
 
+_MODELS: dict[tuple, Any] = {}
+
+
+def load_saliency_model(path: str | Path):
+    """A TorchScript saliency network from a local file (cached by path, size and modification time)."""
+    import torch
+
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise CamoError(f"observer saliency_model: file not found: {p}")
+    st = p.stat()
+    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _MODELS:
+        try:
+            m = torch.jit.load(str(p), map_location="cpu")
+        except Exception as exc:  # torch raises RuntimeError / ValueError / pickle errors for a bad file
+            raise CamoError(f"observer saliency_model {p}: not a TorchScript file "
+                            f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        m.eval()
+        _MODELS[key] = m
+    return _MODELS[key]
+
+
+def _zscore(m: np.ndarray, floor: float) -> np.ndarray:
+    med = float(np.median(m))
+    return (m - med) / max(1.4826 * float(np.median(np.abs(m - med))), floor)
+
+
+def learned_map(srgb: np.ndarray, config: ObserverConfig) -> np.ndarray:
+    """``D`` from the TorchScript network of ``config.saliency_model`` at the feature resolution (z-scored)."""
+    import torch
+
+    from scipy import ndimage
+
+    scale = config.display_deg * config.feature_px_per_deg / srgb.shape[0]
+    img = _resample(srgb, scale)
+    model = load_saliency_model(config.saliency_model)
+    x = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))[None].float()
+    try:
+        with torch.no_grad():
+            y = model(x)
+    except Exception as exc:  # a network that does not take this input
+        raise CamoError(f"observer saliency_model: the network failed on a {img.shape[1]}x{img.shape[0]} image "
+                        f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    y = np.asarray(y.detach().cpu().numpy(), np.float64).squeeze()
+    if y.ndim != 2 or not np.isfinite(y).all():
+        raise CamoError(f"observer saliency_model: expected one finite (h, w) map, got shape {tuple(y.shape)}")
+    h, w = img.shape[:2]
+    y = ndimage.zoom(y, (h / y.shape[0], w / y.shape[1]), order=1, mode="nearest", grid_mode=True)[:h, :w]
+    return _zscore(y, 1e-6 + 1e-3 * float(np.std(y))).astype(np.float32)
+
+
 def discriminability_map(image: np.ndarray, config: ObserverConfig | None = None) -> np.ndarray:
     """The observer's discriminability ``D`` (d' units, float32) at the feature resolution, ``(h, w)`` with
-    ``h = display_deg * feature_px_per_deg``. See the module docstring (step 1)."""
+    ``h = display_deg * feature_px_per_deg``. See the module docstring (step 1); with ``saliency_model`` the
+    learned network's map (:func:`learned_map`) instead."""
     cfg = config or ObserverConfig()
     srgb = _as_srgb(image)
+    if cfg.saliency_model:
+        return learned_map(srgb, cfg)
     scale = cfg.display_deg * cfg.feature_px_per_deg / srgb.shape[0]
     lab = srgb_to_lab(_resample(srgb, scale))
     ppd = cfg.feature_px_per_deg
     out = None
     for sc in cfg.centre_sigmas_deg:
         m = _mahalanobis(_features(lab, sc * ppd), cfg.surround_sigma_deg * ppd, cfg.internal_noise)
-        med = float(np.median(m))
-        spread = max(1.4826 * float(np.median(np.abs(m - med))), cfg.spread_floor)
-        z = (m - med) / spread
+        z = _zscore(m, cfg.spread_floor)
         out = z if out is None else np.maximum(out, z)
     return out.astype(np.float32)
 

@@ -331,7 +331,7 @@ def parse_observer(text: str | None):
         k, v = (x.strip() for x in item.split("=", 1))
         if k not in fields or k == "centre_sigmas_deg":
             raise CamoError(f"--observer: unknown key {k!r}; known: {', '.join(n for n in fields if n != 'centre_sigmas_deg')}")
-        if k == "start":
+        if k in ("start", "saliency_model"):
             kw[k] = v
             continue
         try:

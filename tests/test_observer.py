@@ -230,3 +230,49 @@ def test_observer_agreement_lists_the_pairs_ordered_differently():
     by = {x["metric"]: x["tau"] for x in taus}
     assert by["psnr"] == pytest.approx(1.0) and by["lpips_proxy"] == pytest.approx(1 / 3)
     assert [(x["metric"], x["better_by_metric"], x["better_by_observer"]) for x in dis] == [("lpips_proxy", "C", "B")]
+
+
+# ---------------------------------------------------------------------------
+# a learned map from local TorchScript weights (tiny, made here)
+# ---------------------------------------------------------------------------
+
+
+def _tiny_net(path, weight_red: bool = True):
+    """A 1x1 convolution scoring redness (r - g) or, with random weights, anything: saved as TorchScript."""
+    import torch
+
+    net = torch.nn.Conv2d(3, 1, 1)
+    with torch.no_grad():
+        if weight_red:
+            net.weight[:] = torch.tensor([1.0, -1.0, 0.0]).view(1, 3, 1, 1)
+            net.bias.zero_()
+        else:
+            torch.manual_seed(0)
+            net.weight.normal_()
+    torch.jit.save(torch.jit.script(net), str(path))
+    return path
+
+
+def test_learned_saliency_map_from_local_torchscript(tmp_path):
+    from evaluation.observer import discriminability_map
+
+    bg = grass(8)
+    mask = disc(200, 60, 14)
+    img = with_object(bg, mask, 0.0)
+    cfg = ObserverConfig(saliency_model=str(_tiny_net(tmp_path / "red.pt")))
+    d = discriminability_map(img, cfg)
+    assert d.shape == discriminability_map(img).shape  # same grid as the weight-free map
+    # the map is the network's output (r - g), z-scored: its peak lies on the red disc
+    y, x = np.unravel_index(d.argmax(), d.shape)
+    assert mask[int((y + 0.5) * N / d.shape[0]), int((x + 0.5) * N / d.shape[1])]
+    p = predict_stimulus(img, mask, n=50, seed=0, config=cfg)
+    assert p.p_found >= 0.95
+    assert "saliency_model_sha256" in cfg.to_dict() and len(cfg.to_dict()["saliency_model_sha256"]) == 64
+    # random tiny weights run too (any TorchScript map); bad files are one-line errors
+    rnd = ObserverConfig(saliency_model=str(_tiny_net(tmp_path / "rnd.pt", weight_red=False)))
+    assert np.isfinite(discriminability_map(img, rnd)).all()
+    (tmp_path / "bad.pt").write_bytes(b"not a model")
+    with pytest.raises(CamoError, match="not a TorchScript file"):
+        discriminability_map(img, ObserverConfig(saliency_model=str(tmp_path / "bad.pt")))
+    with pytest.raises(CamoError, match="file not found"):
+        simulate_search(img, config=ObserverConfig(saliency_model=str(tmp_path / "missing.pt")))

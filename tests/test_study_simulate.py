@@ -77,8 +77,8 @@ def test_simulated_participants_through_the_site_and_the_report(live_site):
     from study_site.analysis import write_report
 
     url, root = live_site
-    n = 8
-    res = simulate(url, n, concurrency=8, seed=3, max_seconds=120)
+    n = 12
+    res = simulate(url, n, concurrency=12, seed=3, max_seconds=120)
     assert res["completed"] == n and res["n_errors"] == 0, res["errors"]
     assert res["trials"] == n * (1 + 2) and res["formal_trials"] == n * 2
     assert res["stimuli_seen"] <= 2 * 2 + 8  # the observer's map is computed once per image
@@ -98,7 +98,20 @@ def test_simulated_participants_through_the_site_and_the_report(live_site):
     assert set(formal.groupby(["scene", "method"]).size()) == {n // 2}
     t = rep["table"].set_index("method")
     assert t.loc["red", "confusion_rate"] <= 0.25  # a saturated red disc is found
-    assert t.loc["hidden", "confusion_rate"] >= 0.75  # nothing visible: found only by chance
+    # what the library predicts for these images (same observer, the site's 2.5 s limit, centre start): the site's
+    # figures agree within sampling error (6 trials per stimulus; a hidden disc is "found" only where it happens
+    # to lie on a salient spot of the texture)
+    from evaluation.observer import ObserverConfig, predict_stimulus
+
+    expected = {}
+    for e in json.loads((root / "eval" / "renders.json").read_text()):
+        img = np.asarray(Image.open(root / "eval" / e["image"]).convert("RGB"))
+        mask = np.asarray(Image.open(root / "eval" / e["mask"]).convert("L")) >= 128
+        p = predict_stimulus(img, mask, 400, 0, ObserverConfig(time_limit_s=2.5))
+        expected.setdefault(e["method"], []).append(1.0 - p.p_found)
+    for m, conf in expected.items():
+        assert abs(t.loc[m, "confusion_rate"] - np.mean(conf)) <= 0.3, (m, t.loc[m, "confusion_rate"], conf)
+    assert t.loc["hidden", "confusion_rate"] - t.loc["red", "confusion_rate"] >= 0.4
     assert t.loc["red", "median_time_found_s"] < 2.0
     assert (root / "report" / "table_i.md").is_file() and (root / "report" / "km.png").is_file()
     # found trials carry a click on the object, timeouts none
