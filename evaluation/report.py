@@ -665,6 +665,12 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
     taus, dis = observer_agreement(df, views)
     md = ["## Simulated observer: predicted Table I", "", note, "", markdown_table(header, rows), ""]
     ht = ["<h2>Simulated observer: predicted Table I</h2>", f"<p>{html.escape(note)}</p>", html_table(header, rows)]
+    easy = views.loc[(views["p_found"] >= 0.95) & (views["median_time_found_s"] <= 2.0)]
+    if len(easy):
+        items = [f"{r.run} view {int(r.view)} (p found {r.p_found:.2f}, median {r.median_time_found_s:.2f} s)"
+                 for r in easy.sort_values(["scene", "run", "view"]).itertuples()]
+        md += ["Easy views (fix or drop before a study): " + "; ".join(items) + ".", ""]
+        ht += [f"<p>Easy views (fix or drop before a study): {html.escape('; '.join(items))}.</p>"]
     if taus:
         names = dict(TABLE_METRICS)
         metrics = list(dict.fromkeys(x["metric"] for x in taus))

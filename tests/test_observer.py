@@ -276,3 +276,33 @@ def test_learned_saliency_map_from_local_torchscript(tmp_path):
         discriminability_map(img, ObserverConfig(saliency_model=str(tmp_path / "bad.pt")))
     with pytest.raises(CamoError, match="file not found"):
         simulate_search(img, config=ObserverConfig(saliency_model=str(tmp_path / "missing.pt")))
+
+
+def test_simulated_section_of_the_report(tmp_path):
+    import json
+
+    from evaluation.observer import PREDICTION_COLUMNS
+    from evaluation.report import simulated_section
+
+    rows = []
+    for run, method, pf, med in (("s-ours", "ours", 0.2, 5.0), ("s-mean", "mean", 1.0, 1.1)):
+        for v in range(2):
+            rows.append({c: 0 for c in PREDICTION_COLUMNS} | {
+                "run": run, "scene": "s", "object": "o", "method": method, "ablation": "none", "view": v, "n": 10,
+                "p_found": pf, "p_miss": 0.0, "p_timeout": 1 - pf, "median_time_found_s": med, "mean_time_found_s": med,
+                "mean_time_all_s": 30.0, "median_time_all_s": 30.0})
+    pd.DataFrame(rows).to_parquet(tmp_path / "simulated.parquet")
+    (tmp_path / "simulated_config.json").write_text(json.dumps({"observer": {"display_deg": 16.0}, "trials_per_view": 10}))
+    df = pd.DataFrame({"region": ["crop"] * 4, "scene": ["s"] * 4, "run": ["s-ours"] * 2 + ["s-mean"] * 2,
+                       "label": ["Ours"] * 2 + ["Mean [6]"] * 2, "_order": [(5, 0, "")] * 2 + [(0, 1, "")] * 2,
+                       "method": ["ours"] * 2 + ["mean"] * 2, "view": [0, 1, 0, 1],
+                       "psnr": [20.0, 20.0, 30.0, 30.0]})  # PSNR prefers Mean, the observer Ours
+    for m in ("ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim"):
+        df[m] = np.nan
+    md, ht = simulated_section(df, [tmp_path])
+    text = "\n".join(md)
+    assert "| Ours | 80.0% |" in text and "| Mean [6] | 0.0% |" in text  # predicted confusion = 1 - p found
+    assert "s-mean view 0 (p found 1.00, median 1.10 s)" in text and "s-ours view" not in text.split("Easy views")[1]
+    assert "| s | PSNR↑ | Mean [6] | Ours | 30.00 / 20.00 | 0.0% / 80.0% |" in text
+    assert any("Simulated observer" in h for h in ht)
+    assert simulated_section(df, [tmp_path / "nothing"]) == ([], [])
