@@ -28,7 +28,7 @@ The model, and what it follows
    with a visibility that falls with eccentricity ``e`` as ``v(e) = 1 / (1 + e / e2_deg)`` (the E2 form of
    peripheral sensitivity, Levi, Klein & Aitsebaomo 1985), plus unit Gaussian noise: ``W = v(e) D + N(0, 1)``.
    * **Detection**: if some cell's ``W`` beats the criterion (``criterion``, d' units), the observer clicks the
-     best such cell (at its most discriminable pixel). The functional field of view is not a fixed radius: a
+     best such cell (at the peak of ``D`` smoothed over a cell: inside what it found, not on its edge). The functional field of view is not a fixed radius: a
      cell is detectable out to the eccentricity where ``v(e) D`` reaches the criterion, so an easy object is
      seen from far and a camouflaged one only near fixation (Hulleman & Olivers 2017 "The impending demise of
      the item in visual search", BBS 40). A click on a salient background spot is a miss, as in the study.
@@ -330,13 +330,15 @@ class Cells:
 
     d: np.ndarray  # (C,) discriminability of each cell (max over its feature pixels), d'
     pos_deg: np.ndarray  # (C, 2) cell centre (x, y) in degrees from the image's top-left corner
-    click_px: np.ndarray  # (C, 2) int: (x, y) image pixel of the cell's most discriminable point
+    click_px: np.ndarray  # (C, 2) int: (x, y) image pixel the observer clicks in this cell (peak of D smoothed)
     width_deg: float
     height_deg: float
     image_shape: tuple[int, int]
 
 
 def make_cells(image: np.ndarray, config: ObserverConfig | None = None) -> Cells:
+    """The search grid of ``image`` (sRGB ``(H, W, 3)``): :func:`discriminability_map` pooled (max) into cells of
+    ``cell_deg``, each with its centre in degrees and the image pixel a click on it lands on."""
     cfg = config or ObserverConfig()
     srgb = _as_srgb(image)
     H, W = srgb.shape[:2]
