@@ -26,11 +26,12 @@ The model, and what it follows
    "Simple summation rule for optimal fixation selection in visual search", Vision Res. 49): the first fixation
    is at the image centre (central fixation bias at onset, Tatler 2007). At each fixation every cell is seen
    with a visibility that falls with eccentricity ``e`` as ``v(e) = 1 / (1 + e / e2_deg)`` (the E2 form of
-   peripheral sensitivity, Levi, Klein & Aitsebaomo 1985), plus unit Gaussian noise: ``W = v(e) D + N(0, 1)``.
+   peripheral sensitivity, Levi, Klein & Aitsebaomo 1985), plus Gaussian noise per look:
+   ``W = v(e) D + N(0, look_noise^2)``.
    * **Detection**: if some cell's ``W`` beats the criterion (``criterion``, d' units), the observer clicks the
-     best such cell (at the peak of ``D`` smoothed over a cell: inside what it found, not on its edge). The functional field of view is not a fixed radius: a
-     cell is detectable out to the eccentricity where ``v(e) D`` reaches the criterion, so an easy object is
-     seen from far and a camouflaged one only near fixation (Hulleman & Olivers 2017 "The impending demise of
+     best such cell (at the peak of ``D`` smoothed over a cell: inside what it found, not on its edge). The
+     functional field of view is not a fixed radius: a cell is detectable out to the eccentricity where
+     ``v(e) D`` reaches the criterion, so an easy object is seen from far and a camouflaged one only near fixation (Hulleman & Olivers 2017 "The impending demise of
      the item in visual search", BBS 40). A click on a salient background spot is a miss, as in the study.
    * **Next fixation** (MAP rule of Najemnik & Geisler 2009, Itti-Koch winner-take-all): the cell with the
      highest ``W`` minus inhibition of return (Klein 2000 "Inhibition of return", TICS 4; Itti & Koch 2001):
@@ -89,7 +90,10 @@ class ObserverConfig:
     #: Eccentricity (degrees) at which discriminability halves. E2 for pattern and contrast tasks is ~1-3 deg
     #: (Levi et al. 1985); Najemnik & Geisler's visibility maps fall by half within ~2-4 deg.
     e2_deg: float = 2.0
-    #: Standard deviation of the noise of one look (d' units: D is measured in these units).
+    #: Standard deviation of the noise of one look (d' units). D already holds the internal noise (a JND on every
+    #: feature); this is the extra fixation-to-fixation variability of the decision. At 0.5 a background place
+    #: with D = 2 (a typical textured image's 99th percentile) passes the criterion with p = 0.13 % per look,
+    #: while 1.0 made the observer click a background spot at its first fixation on a plain grass texture.
     look_noise: float = 0.5
     #: Detection criterion (d'): a look's W above it is taken for the object. 3.5 keeps a background cell at
     #: D = 0 below it with probability 1 - 2.3e-4 per look (about one false alarm in 4 s of looking at 1,000

@@ -565,7 +565,8 @@ def load_simulated(eval_dirs: Sequence[str | Path]):
     v["_order"] = [label_order(m, a) for m, a in zip(v["method"], v["ablation"])]
     t = None
     if trials:
-        t = pd.concat(trials, ignore_index=True).drop_duplicates(["run", "scene", "method", "ablation", "view", "trial"])
+        t = pd.concat(trials, ignore_index=True).drop_duplicates(
+            ["run", "scene", "method", "ablation", "view", "trial"])
         t["label"] = [method_label(m, a) for m, a in zip(t["method"], t["ablation"])]
     return v, t
 

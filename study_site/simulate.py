@@ -330,7 +330,8 @@ def parse_observer(text: str | None):
             raise CamoError(f"--observer expects KEY=VALUE,..., not {item!r}")
         k, v = (x.strip() for x in item.split("=", 1))
         if k not in fields or k == "centre_sigmas_deg":
-            raise CamoError(f"--observer: unknown key {k!r}; known: {', '.join(n for n in fields if n != 'centre_sigmas_deg')}")
+            known = ", ".join(n for n in fields if n != "centre_sigmas_deg")
+            raise CamoError(f"--observer: unknown key {k!r}; known: {known}")
         if k in ("start", "saliency_model"):
             kw[k] = v
             continue
