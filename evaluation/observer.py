@@ -31,8 +31,9 @@ The model, and what it follows
    * **Detection**: if some cell's ``W`` beats the criterion (``criterion``, d' units), the observer clicks the
      best such cell (at the peak of ``D`` smoothed over a cell: inside what it found, not on its edge). The
      functional field of view is not a fixed radius: a cell is detectable out to the eccentricity where
-     ``v(e) D`` reaches the criterion, so an easy object is seen from far and a camouflaged one only near fixation (Hulleman & Olivers 2017 "The impending demise of
-     the item in visual search", BBS 40). A click on a salient background spot is a miss, as in the study.
+     ``v(e) D`` reaches the criterion, so an easy object is seen from far and a camouflaged one only near
+     fixation (Hulleman & Olivers 2017 "The impending demise of the item in visual search", BBS 40). A click on
+     a salient background spot is a miss, as in the study.
    * **Next fixation** (MAP rule of Najemnik & Geisler 2009, Itti-Koch winner-take-all): the cell with the
      highest ``W`` minus inhibition of return (Klein 2000 "Inhibition of return", TICS 4; Itti & Koch 2001):
      every past fixation subtracts ``ior_strength * exp(-d^2 / 2 ior_radius_deg^2)``.
