@@ -182,7 +182,8 @@ class Participant:
         st, page, _ = self.request("GET", "/consent")
         m = CSRF_RE.search(page.decode("utf-8", "replace"))
         if st != 200 or m is None:
-            raise RuntimeError(f"consent page -> {st} (already completed, or not a camo study site?)")
+            raise RuntimeError(f"consent page -> {st} (this id already took part: use another --seed; or not a camo "
+                               "study site)")
         self.csrf = m.group(1)
         self.form("/consent", {"consent": "yes"})
         ages = ["18-24", "25-34", "35-44", "45-54", "55-64", "65+", "prefer_not", ""]
