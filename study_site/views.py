@@ -294,39 +294,6 @@ def task():
     return render_template("task.html", **_step_context("task"))
 
 
-def _trial_context(s, idx: int):
-    """``(participant, plan item or None, plan length, stored trial or None, trials stored)`` in one query
-    (each round trip to a database server counts under load); the participant checked as in the API."""
-    from sqlalchemy.orm import aliased
-
-    tok = session_token()
-    if tok is None:
-        abort(401, description="no study session; open the study link again")
-    total = select(func.count()).where(PlanItem.participant_id == Participant.id).scalar_subquery()
-    n_done = select(func.count()).where(Trial.participant_id == Participant.id).scalar_subquery()
-    item_t = aliased(PlanItem)
-    trial_t = aliased(Trial)
-    row = s.execute(
-        select(Participant, item_t, total, trial_t, n_done)
-        .outerjoin(item_t, (item_t.participant_id == Participant.id) & (item_t.idx == idx))
-        .outerjoin(trial_t, (trial_t.participant_id == Participant.id) & (trial_t.trial_index == idx))
-        .where(Participant.token == tok)
-    ).first()
-    if row is None:
-        abort(401, description="no study session; open the study link again")
-    p, item, n_total, existing, done = row
-    _check_task_stage(p)
-    return p, item, int(n_total), existing, int(done)
-
-
-def _check_task_stage(p: Participant) -> None:
-    stage = stage_of(p)
-    if stage != "task":
-        resp = jsonify(error=f"not in the task ({stage})", redirect=url_for(STAGE_ENDPOINT[stage]))
-        resp.status_code = 409
-        abort(resp)
-
-
 def _api_participant(s) -> Participant:
     p = current_participant(s)
     if p is None:
@@ -394,9 +361,10 @@ def api_start():
         abort(400, description="trial_index must be a small non-negative integer")
     state = st()
     with state.db.read() as s:  # checks outside the (on SQLite: serialised) write
-        p, item, _, _, n_done = _trial_context(s, idx)
-    if item is None:
-        abort(400, description="no such trial")
+        p = _api_participant(s)
+        if s.get(PlanItem, (p.id, idx)) is None:
+            abort(400, description="no such trial")
+        n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
     if idx != n_done:
         abort(409, description=f"trial {idx} is not the next one (next is {n_done})")
     limit_s = p.time_limit_s
@@ -529,7 +497,10 @@ def api_trial():
     idx = data["trial_index"]
     now = utcnow()
     with state.db.read() as s:
-        p, item, total, existing, _ = _trial_context(s, idx)
+        p = _api_participant(s)
+        item = s.get(PlanItem, (p.id, idx))
+        total = s.scalar(select(func.count()).where(PlanItem.participant_id == p.id))
+        existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
     if item is None:
         abort(400, description="no such trial")
     if existing is not None:  # a retry (lost acknowledgement) or a second answer: the first one stands
