@@ -169,7 +169,7 @@ def plot(rows: list[dict], out: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="meadow,gravel,split,room,occluded,panorama")
-    ap.add_argument("--variants", default="fast,paper")
+    ap.add_argument("--variants", default="fast,paper", help="comma list; use ';' between variants whose flags hold commas")
     ap.add_argument("--every", type=int, default=5, help="snapshot every N iterations")
     ap.add_argument("--eval-views", type=int, default=8)
     ap.add_argument("--eval-spp", type=int, default=64)
@@ -190,7 +190,8 @@ def main() -> None:
     for scene in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         sarg = scene_arg(scene, out / "packs")
         scorer = None
-        for variant in [v.strip() for v in args.variants.split(",") if v.strip()]:
+        sep = ";" if ";" in args.variants else ","
+        for variant in [v.strip() for v in args.variants.split(sep) if v.strip()]:
             name, _ = variant_flags(variant)
             run_dir = out / "runs" / scene.replace(":", "_") / name
             _, wall = run_variant(camo, sarg, variant, sizes, run_dir, args.every)
