@@ -20,15 +20,15 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="run directory (must be new or empty unless --resume/--overwrite)")
     p.add_argument("--method", default="ours", help=f"method: {', '.join(METHODS)}")
     p.add_argument("--preset", choices=("fast", "paper"), default="fast",
-                   help="fast (default): least-squares albedo warm start, cosine learning-rate decay, 20 + 4 "
-                        "iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
+                   help="fast (default): least-squares albedo warm start, transmittance start 0.75, proximal L1 step on "
+                        "the displacement, 20 + 4 iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
                         "50 + 20 iterations, silhouette term on every view). Explicit flags override either")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
                         "without --iterations / --stage2-iterations the iteration caps are lifted)")
     p.add_argument("--warm-start", choices=("on", "off"),
                    help="least-squares albedo start (fast: on unless --init sets albedo; paper: off)")
-    p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (fast: cosine)")
+    p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (both presets: constant)")
     p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
     p.add_argument("--snapshot-every", type=int, default=0, metavar="N",

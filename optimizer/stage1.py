@@ -15,7 +15,8 @@ Beyond the paper (``--preset fast``, the default; ``--preset paper`` turns both 
 
 * the albedo starts from the least-squares match to the background (:mod:`optimizer.warmstart`) instead of
   grey 0.5, computed once after the targets are rendered;
-* every learning rate follows a cosine decay over the stage's progress (:mod:`optimizer.schedule`), and
+* a proximal L1 step on the displacement after each Adam step (``AppearanceConfig.displacement_shrink``);
+* optionally, a cosine decay of every learning rate over the stage's progress (:mod:`optimizer.schedule`);
   ``time_budget`` (seconds of iterations) ends the stage early; progress is then the larger of the iteration
   and the time fraction.
 

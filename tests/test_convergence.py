@@ -144,7 +144,7 @@ def _config(run):
 def test_presets_are_recorded(runs):
     fast, paper = _config(runs["fast"])["run"], _config(runs["paper"])["run"]
     assert fast["preset"] == "fast" and paper["preset"] == "paper"
-    assert fast["stage1"]["warm_start"] is True and fast["stage1"]["lr_schedule"] == "cosine"
+    assert fast["stage1"]["warm_start"] is True and fast["stage1"]["lr_schedule"] == PRESETS["fast"]["stage1"]["lr_schedule"]
     assert paper["stage1"]["warm_start"] is False and paper["stage1"]["lr_schedule"] == "constant"
     assert paper["stage1"]["silhouette_every"] == 1 and paper["stage2"]["iterations"] == 20
     assert paper["appearance"]["lr_maps"] == 0.01 and paper["appearance"]["lr_displacement"] == 0.1
@@ -177,17 +177,21 @@ def test_snapshots_have_increasing_seconds_and_the_final_values(runs):
     last = np.load(snaps[-1])
     albedo = np.load(runs["fast"] / "maps" / "albedo.npy")
     np.testing.assert_allclose(last["albedo"], albedo, atol=1e-6)
-    lr = [json.loads(x)["lr_scale"] for x in (runs["fast"] / "log.jsonl").read_text().splitlines()]
-    assert lr[0] == pytest.approx(1.0) and lr[1] < lr[0]  # cosine: decays within each stage
+    log = [json.loads(x) for x in (runs["fast"] / "log.jsonl").read_text().splitlines()]
+    sched = _config(runs["fast"])["run"]["stage1"]["lr_schedule"]
+    planned = {1: 3, 2: 1}
+    for r in log:  # the step's multiplier is the schedule at the stage's progress before the step
+        assert r["lr_scale"] == pytest.approx(lr_scale(progress(r["iteration"] - 1, planned[r["stage"]]), sched))
 
 
 def test_time_budget_ends_the_run(tmp_path):
     """A budget far below one iteration's cost: Stage 1 takes one step, Stage 2 one step, and the run is a
     complete run directory whose config records the budget."""
     out = tmp_path / "budget"
-    assert main(["optimize", "meadow", "--out", str(out), *TINY, "--time-budget", "0.01"]) == 0
+    assert main(["optimize", "meadow", "--out", str(out), *TINY, "--time-budget", "0.01", "--lr-schedule", "cosine"]) == 0
     log = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
     assert [(r["stage"], r["iteration"]) for r in log] == [(1, 1), (2, 1)]
+    assert all(r["lr_scale"] == pytest.approx(1.0) for r in log)  # each stage's first step is at progress 0
     assert _config(out)["run"]["time_budget"] == 0.01
     assert (out / "result.glb").is_file()
 
