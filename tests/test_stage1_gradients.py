@@ -39,7 +39,7 @@ def test_step_gradient_equals_per_view_reapplication(mi_backend):
             dr.clear_grad(s1.opt[n])
         return g
 
-    s1.opt.step = lambda project: None  # keep the parameters; read the gradients of one step
+    s1.opt.step = lambda project, scale=1.0: None  # keep the parameters; read the gradients of one step
     s1.opt.sanitise_grads = lambda: 0
     s1.step()
     s1.iteration -= 1
