@@ -147,7 +147,7 @@ def glint_advice(pack: ScenePack, env: Environment, params: set[str] | frozenset
             f"A facet mirroring the light outshines the background below roughness ~{GLINT_ROUGHNESS:g} "
             "(bench/glint_roughness.py), no gradient raises the roughness while the lobe is narrower than the light, "
             "and Adam moves a map value by about one learning rate per step; --init roughness=0.5 avoids them "
-            "(README, 'Why the built-in scenes start rough')")
+            "(docs/optimizer.md, 'Why the built-in scenes start rough')")
 
 
 def full_plan(purpose: str = "optimize", geometry: bool = True) -> Plan:

@@ -199,7 +199,7 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
         say(f"note: {rough_note}")
     elif advice:
         say(f"note: initial roughness {advice}")
-    budget1 = stage_budgets(cfg)[0]
+    budget1 = stage1_budget(cfg)
     s1cfg = dataclasses.replace(cfg.stage1, time_budget=budget1)
     t_ws = time.perf_counter()
     s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say)
@@ -277,18 +277,16 @@ def glint_safe_start(pack: ScenePack, env, cfg: RunConfig) -> tuple[ScenePack, s
     old = pack.material.roughness
     pack = dataclasses.replace(pack, material=dataclasses.replace(pack.material, roughness=GLINT_ROUGHNESS))
     return pack, (f"initial roughness {old:g} -> {GLINT_ROUGHNESS:g}: the scene has a compact light, and a smoother "
-                  "start keeps specular glints (README, 'Why the built-in scenes start rough'); --init roughness=X or "
+                  "start keeps specular glints (docs/optimizer.md, 'Why the built-in scenes start rough'); --init roughness=X or "
                   "--preset paper keeps the pack's value")
 
 
-def stage_budgets(cfg: RunConfig) -> tuple[float | None, float | None]:
-    """``--time-budget`` split: Stage 1 (warm start included) gets 80 % when Stage 2 runs, all of it otherwise;
+def stage1_budget(cfg: RunConfig) -> float | None:
+    """Stage 1's share of ``--time-budget`` (warm start included): 80 % when Stage 2 runs, all of it otherwise;
     Stage 2 gets whatever Stage 1 left."""
     if not cfg.time_budget:
-        return None, None
-    if 2 in cfg.stages:
-        return 0.8 * cfg.time_budget, 0.2 * cfg.time_budget
-    return float(cfg.time_budget), None
+        return None
+    return 0.8 * cfg.time_budget if 2 in cfg.stages else float(cfg.time_budget)
 
 
 def stage_seconds(history: list[dict[str, Any]], stage: int) -> float:
