@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import struct
 from pathlib import Path
 
@@ -110,52 +111,45 @@ def one_line_error(capsys, args: list[str], needle: str) -> str:
 
 def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend):
     """The run's result.glb and result.obj, evaluated as external assets in the run's scene, give the run
-    directory's numbers. They differ from ``result.ply`` + ``maps/*.npy`` only by the 8-bit textures (albedo
-    sRGB, roughness / metallic / transmittance linear: <= 0.5/255 each); with the same cameras and sampler seed
-    (common random numbers) that moved crop PSNR by <= 0.016 dB per view and 0.0003 dB in the mean on this run
-    from the paper's start, and by up to 0.08 dB per view from the fast preset's (transmittance 0.75: a texel's
-    transmittance off by 1/255 flips which lobe some paths sample, so the common random numbers decorrelate
-    there), while a second render seed alone moved it by up to 0.37 dB per view and 0.10 dB in the mean.
-    Asserted: the round trip is < 0.15 dB per view and < 1/5 of the seed-to-seed difference of the mean (PSNR,
-    SSIM, LPIPS-proxy)."""
+    directory's numbers once the run's maps carry the same 8-bit quantisation.
+
+    The files differ from ``result.ply`` + ``maps/*.npy`` only by their 8-bit textures (albedo sRGB, roughness /
+    metallic / transmittance linear: <= 0.5/255 each; ``test_run_asset_reads_the_same_mesh_and_maps_as_the_run``
+    checks that bound map by map). So a copy of the run whose ``maps/*.npy`` hold the GLB's decoded maps is the same
+    scene as the GLB: with the same cameras and sampler seed every view must score the same to 1e-3 dB. That is
+    deterministic, unlike a bound on the quantisation's own effect: with transmittance near 0.75 (the fast
+    preset's start) a texel off by 1/255 flips which lobe some paths sample, the common random numbers decorrelate
+    there, and the unquantised run moved by 0.02-0.15 dB per view between machines (CI, 2026-11-23), the size of
+    the seed-to-seed noise. That effect is only bounded loosely here (< 0.5 dB per view), where a decoding error
+    (sRGB read as linear, a flipped V) costs several dB."""
+    from optimizer.asset import load_asset
+    from optimizer.export import save_maps
+
+    quant = tmp_path / "gravel_quantised"
+    shutil.copytree(run, quant)
+    glb_maps = load_asset(run / "result.glb").maps
+    save_maps(quant / "maps", glb_maps)
+
     lst = tmp_path / "assets.toml"
     lst.write_text(f'[[asset]]\npath = "{run}/result.glb"\nscene = "{run}"\nmethod = "ours via glb"\nname = "glb"\n\n'
                    f'[[asset]]\npath = "{run}/result.obj"\nscene = "{run}"\nmethod = "ours via obj"\nname = "obj"\n')
     out = tmp_path / "ev"
-    assert main(["evaluate", str(run), "--inputs", str(lst), "--out", str(out), *EVAL]) == 0
+    assert main(["evaluate", str(run), str(quant), "--inputs", str(lst), "--out", str(out), *EVAL]) == 0
     df = pd.read_parquet(out / "metrics.parquet")
     assert set(df["source"]) == {"run", "asset"} and df["camera_set"].nunique() == 1
     cfg = (out / "eval_config.toml").read_text()
     assert "background_renders = 1" in cfg  # the assets share the run's background (same scene, cameras, seed)
     metrics = ["psnr", "ssim", "lpips_proxy"]
     ref = df[df["run"] == run.name].set_index(["view", "region"])[metrics]
+    q = df[df["run"] == quant.name].set_index(["view", "region"])[metrics]
+    assert len(q) == len(ref) > 0
     for name in ("glb", "obj"):
         got = df[df["run"] == name].set_index(["view", "region"])[metrics]
-        assert (got.index == ref.index).all()
-        assert np.abs(got["psnr"] - ref["psnr"]).max() < 0.15, name
-
-    # Monte Carlo noise: the same cameras rendered with another sampler seed (background and object alike)
-    from evaluation.evaluate import score_view, srgb8
-    from evaluation.views import ViewRenderer, evaluation_cameras, evaluation_plan
-    from optimizer.environments import get_environment
-    from optimizer.rundir import open_run
-
-    r = open_run(run)
-    ec = evaluation_cameras(r.pack, None, 0.25, 0, tuple(r.pack.render.resolution))
-    env = get_environment(r.pack.environment)
-    plan = evaluation_plan(r.pack, env)
-    vr = ViewRenderer(8, seed=1)
-    bg = vr.background(r.pack, env, ec.cams, plan.integrator)
-    obj = vr.with_object(env, r.asset().mesh, ec.cams, plan.integrator)
-    rows = [dict(row, view=v) for v in range(len(ec.cams))
-            for row in score_view(srgb8(obj.image[v]), srgb8(bg.image[v]), obj.mask[v], metrics, {})]
-    seed1 = pd.DataFrame(rows).set_index(["view", "region"])[metrics]
-    for region in ("crop", "full"):
-        noise = np.abs(seed1.xs(region, level="region").mean() - ref.xs(region, level="region").mean())
-        for name in ("glb", "obj"):
-            got = df[df["run"] == name].set_index(["view", "region"])[metrics].xs(region, level="region")
-            diff = np.abs(got.mean() - ref.xs(region, level="region").mean())
-            assert (diff < noise / 5).all(), (name, region, diff.to_dict(), noise.to_dict())
+        assert (got.index == q.index).all()
+        np.testing.assert_allclose(got["psnr"], q["psnr"], atol=1e-3, err_msg=name)
+        np.testing.assert_allclose(got[["ssim", "lpips_proxy"]], q[["ssim", "lpips_proxy"]], atol=1e-4,
+                                   err_msg=name)
+        assert np.abs(got["psnr"] - ref["psnr"]).max() < 0.5, name
 
 
 def test_run_asset_reads_the_same_mesh_and_maps_as_the_run(run):
