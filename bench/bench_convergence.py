@@ -80,8 +80,8 @@ class Scorer:
 
     def __init__(self, run_dir: Path, views: int, spp: int):
         from evaluation.views import ViewRenderer, evaluation_cameras, evaluation_plan
-        from optimizer.rundir import open_run
-        from optimizer.environments import get_environment
+        from optimizer.assets.rundir import open_run
+        from optimizer.scenes.environments import get_environment
 
         run = open_run(run_dir)
         self.pack = run.pack
@@ -93,10 +93,10 @@ class Scorer:
 
     def score(self, run_dir: Path, values: dict[str, np.ndarray]) -> tuple[dict[str, float], np.ndarray]:
         from evaluation.evaluate import score_view, srgb8
-        from optimizer import scene as scn
-        from optimizer.appearance import Geometry, object_bsdf, world_positions
-        from optimizer.placement import prepare_object
-        from optimizer.rundir import open_run
+        from optimizer.rendering import scene as scn
+        from optimizer.rendering.appearance import Geometry, object_bsdf, world_positions
+        from optimizer.rendering.placement import prepare_object
+        from optimizer.assets.rundir import open_run
 
         run = open_run(run_dir)
         geometry = Geometry.build(prepare_object(run.pack), run.pack.object, run.app)
@@ -124,7 +124,7 @@ def snapshot_values(path: Path) -> tuple[dict[str, np.ndarray], float, int, int]
 
 def final_values(run_dir: Path) -> dict[str, np.ndarray]:
     """A baseline's parameters from its run directory (maps as optimised; no displacement, no pose)."""
-    from optimizer.rundir import open_run
+    from optimizer.assets.rundir import open_run
 
     run = open_run(run_dir)
     maps = run.asset().values()
@@ -178,7 +178,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from optimizer import backend
-    from optimizer.imaging import linear_to_srgb, save_png
+    from camo_base.imaging import linear_to_srgb, save_png
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,7 @@ DEFAULT_METRICS = "psnr,ssim,lpips_proxy,sifid_proxy"
 
 
 def make_run(root: Path) -> Path:
-    from optimizer.cli import main
+    from camo.cli import main
 
     out = root / "bench_run"
     if not (out / "config.toml").is_file():
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from optimizer import backend
-    from optimizer.environments import get_environment
+    from optimizer.scenes.environments import get_environment
     from evaluation.evaluate import parse_metrics
     from evaluation.views import evaluation_cameras, evaluation_plan, load_result, load_run
 

@@ -58,7 +58,7 @@ def start_modes(cell: Path) -> list[str]:
 
 
 def grid_cmd(grid: Path, out: Path, executor: str, workers: int) -> list[str]:
-    return [sys.executable, "-m", "optimizer.cli", "grid", "run", str(grid), "--out", str(out), "--quiet",
+    return [sys.executable, "-m", "camo.cli", "grid", "run", str(grid), "--out", str(out), "--quiet",
             "--executor", executor, "--workers", str(workers)]
 
 
@@ -115,7 +115,7 @@ def execute_table2(out: Path) -> dict:
     import nbformat
     import pandas as pd
 
-    from optimizer import atomic
+    from camo_base import atomic
 
     share = Path(tempfile.mkdtemp(prefix="camo_kernel_"))
     spec = share / "kernels" / "camo-bench"

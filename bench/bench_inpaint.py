@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from optimizer.inpaint import get_inpainter  # noqa: E402
+from optimizer.optimise.inpaint import get_inpainter  # noqa: E402
 
 
 def texture(size: int) -> np.ndarray:
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
                                     num_inference_steps=args.steps)
                 cases = [(512, None)]
             else:
-                from optimizer.inpainting._tiny import build_tiny_sdxl_controlnet_inpaint
+                from optimizer.optimise.inpainting._tiny import build_tiny_sdxl_controlnet_inpaint
 
                 label = "diffusers (tiny random SDXL+ControlNet)"
                 tmp = tempfile.mkdtemp(prefix="bench_inpaint_")

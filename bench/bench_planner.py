@@ -22,7 +22,7 @@ import numpy as np
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    from optimizer.imaging import linear_to_srgb
+    from camo_base.imaging import linear_to_srgb
 
     mse = float(np.mean((linear_to_srgb(a) - linear_to_srgb(b)) ** 2))
     return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
@@ -30,8 +30,8 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def time_gradient_pass(pack, env, prepared, cams, plan_, spp: int, reps: int) -> float:
     """Seconds per view of render + backward through all Stage 1 parameters (after one warm-up)."""
-    from optimizer.appearance import AppearanceConfig
-    from optimizer.stage1 import Stage1, Stage1Config
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     s1 = Stage1(pack, env, prepared, cams, plan_, Stage1Config(spp=spp, target_spp=4),
                 AppearanceConfig(map_resolution=128, displacement_resolution=64))
@@ -53,12 +53,13 @@ def main() -> None:
     ap.add_argument("--scenes", default="")
     args = ap.parse_args()
 
-    from optimizer import backend, builtin_scenes
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.placement import prepare_object, static_object_fn
-    from optimizer.planner import full_plan, plan
-    from optimizer.render import render_shaded
+    from optimizer import backend
+    from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.rendering.planner import full_plan, plan
+    from optimizer.rendering.render import render_shaded
 
     info = backend.init()
     names = args.scenes.split(",") if args.scenes else builtin_scenes.names()

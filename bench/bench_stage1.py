@@ -1,6 +1,6 @@
 """Stage 1 speed: ``camo optimize`` iterations vs raw ``mi.render`` + ``dr.backward``, and a full run.
 
-1. Overhead: per-iteration wall time of :class:`optimizer.stage1.Stage1` vs the raw
+1. Overhead: per-iteration wall time of :class:`optimizer.optimise.stage1.Stage1` vs the raw
    Mitsuba work of the same scene, views, spp and integrator (each view rendered with
    gradients enabled on fresh leaves of the same parameter values, then ``dr.backward`` of
    its mean; the image is evaluated as a real loss would; every view's silhouette term).
@@ -35,15 +35,16 @@ def main() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    from optimizer import backend, builtin_scenes
-    from optimizer.cameras import cameras
-    from optimizer.cli import parse_ablate
-    from optimizer.environments import get_environment
-    from optimizer.placement import prepare_object
-    from optimizer.planner import plan
-    from optimizer.render import uses_batch
-    from optimizer.run import appearance_for
-    from optimizer.stage1 import Stage1, Stage1Config
+    from optimizer import backend
+    from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.cameras import cameras
+    from camo.cli import parse_ablate
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import plan
+    from optimizer.rendering.render import uses_batch
+    from optimizer.optimise.run import appearance_for
+    from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     info = backend.init()
     pack = builtin_scenes.get(args.scene)

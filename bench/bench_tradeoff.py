@@ -28,11 +28,11 @@ import numpy as np
 
 
 def heldout_loss(s1, values, cams, eval_spp: int, seed: int) -> float:
-    from optimizer import scene as scn
-    from optimizer.loss import gated_loss_np
-    from optimizer.render import coverage_and_depth, render_shaded
-    from optimizer.result import Result, render_result
-    from optimizer.stage1 import influence_domain
+    from optimizer.rendering import scene as scn
+    from optimizer.optimise.loss import gated_loss_np
+    from optimizer.rendering.render import coverage_and_depth, render_shaded
+    from optimizer.assets.result import Result, render_result
+    from optimizer.optimise.stage1 import influence_domain
 
     integ = s1.shading_integrator()
     bg = render_shaded(s1.env.build(), None, cams, integ, eval_spp, seed)
@@ -49,8 +49,8 @@ def heldout_loss(s1, values, cams, eval_spp: int, seed: int) -> float:
 
 
 def train_loss(s1, values, eval_spp: int) -> float:
-    from optimizer.loss import gated_loss_np
-    from optimizer.result import Result, render_result
+    from optimizer.optimise.loss import gated_loss_np
+    from optimizer.assets.result import Result, render_result
 
     res = Result(s1.pack, s1.env, s1.cams, s1.geometry, values, s1.app, s1.shading_integrator(), eval_spp, None)
     fin = render_result(res, seed=4242)
@@ -73,13 +73,14 @@ def main() -> None:
     ap.add_argument("--out", default="bench_out/tradeoff")
     args = ap.parse_args()
 
-    from optimizer import backend, builtin_scenes
-    from optimizer.appearance import AppearanceConfig
-    from optimizer.cameras import cameras, jitter
-    from optimizer.environments import get_environment
-    from optimizer.placement import prepare_object
-    from optimizer.planner import full_plan, plan
-    from optimizer.stage1 import Stage1, Stage1Config
+    from optimizer import backend
+    from optimizer.scenes import builtin_scenes
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.scenes.cameras import cameras, jitter
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import full_plan, plan
+    from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     info = backend.init()
     spps, resolutions, its, planners = (1, 4, 16), (64, 128, 256), (10, 25, 50, 100), (True, False)

@@ -53,7 +53,7 @@ def brightest_direction(elements: dict, n: int = 4_000_000) -> tuple[np.ndarray,
     import drjit as dr
     import mitsuba as mi
 
-    from optimizer import scene as scn
+    from optimizer.rendering import scene as scn
 
     scene = scn.build_scene(elements)
     env = scene.environment()
@@ -98,11 +98,11 @@ def facet(centre, normal, half: float, bsdf: dict) -> dict:
 def scene_report(name: str, spp: int, roughness: tuple[float, ...]) -> dict:
     import mitsuba as mi
 
-    from optimizer import builtin_scenes
-    from optimizer import scene as scn
-    from optimizer.cameras import Camera, cameras, object_centre
-    from optimizer.environments import get_environment
-    from optimizer.render import render_shaded
+    from optimizer.scenes import builtin_scenes
+    from optimizer.rendering import scene as scn
+    from optimizer.scenes.cameras import Camera, cameras, object_centre
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.render import render_shaded
 
     pack = builtin_scenes.get(name)
     env = get_environment(pack.environment)
@@ -151,7 +151,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=70, help="Stage 1 + Stage 2 iterations (paper 50 + 20)")
     args = ap.parse_args(argv)
 
-    from optimizer import backend, builtin_scenes
+    from optimizer import backend
+    from optimizer.scenes import builtin_scenes
 
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     bad = [s for s in scenes if s not in builtin_scenes.names()]

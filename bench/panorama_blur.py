@@ -30,9 +30,9 @@ METHODS = ("ours", "mean", "transparent")
 
 def setup(out: Path) -> Path:
     from optimizer import backend
-    from optimizer.data.registry import write_exr_float32
-    from optimizer.environments import builtin_panorama
-    from optimizer.imaging import load_exr
+    from optimizer.scenes.data.registry import write_exr_float32
+    from optimizer.scenes.environments import builtin_panorama
+    from camo_base.imaging import load_exr
 
     backend.init()
     pano = load_exr(builtin_panorama())
@@ -122,7 +122,7 @@ def main() -> int:
     args = ap.parse_args()
     if not args.no_run:
         grid = setup(args.out)
-        subprocess.run([sys.executable, "-m", "optimizer.cli", "grid", "run", str(grid), "--out", str(args.out / "grid"),
+        subprocess.run([sys.executable, "-m", "camo.cli", "grid", "run", str(grid), "--out", str(args.out / "grid"),
                         "--workers", str(args.workers)], check=True, cwd=REPO)
     analyse(args.out)
     return 0

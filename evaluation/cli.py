@@ -59,9 +59,9 @@ def register(sub) -> None:
 
 def input_specs(args) -> list:
     """The inputs named on the command line (RUN_DIRs, --asset, --triplets, --inputs), in that order."""
-    from optimizer.errors import CamoError
+    from camo_base.errors import CamoError
 
-    from .inputs import InputSpec, read_input_list
+    from evaluation.inputs import InputSpec, read_input_list
 
     if (args.asset or args.triplets) and not args.method:
         raise CamoError("--asset / --triplets need --method LABEL (the method's name in the report)")
@@ -83,8 +83,8 @@ def input_specs(args) -> list:
 
 
 def run_evaluate(args) -> int:
-    from .evaluate import EvalSettings, evaluate, parse_metrics
-    from .inputs import finite_seconds
+    from evaluation.evaluate import EvalSettings, evaluate, parse_metrics
+    from evaluation.inputs import finite_seconds
 
     if args.seconds is not None:
         finite_seconds(args.seconds, "--seconds")
@@ -100,7 +100,7 @@ def run_evaluate(args) -> int:
 
 
 def run_report(args) -> int:
-    from .report import write_report
+    from evaluation.report import write_report
 
     paths = write_report(args.eval_dirs, args.out)
     print(f"wrote {paths['md']}")

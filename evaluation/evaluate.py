@@ -8,7 +8,7 @@ visible-object mask) -- with the image metrics of :mod:`evaluation.metrics`, com
 background image, and time each metric, the evaluation render and (from the run directory or the user) the method.
 
 Images enter the metrics exactly as the saved PNGs hold them: linear radiance -> sRGB
-(``optimizer.imaging.linear_to_srgb``, tone-clipped) -> 8 bit. So every score can be recomputed from the PNGs
+(``camo_base.imaging.linear_to_srgb``, tone-clipped) -> 8 bit. So every score can be recomputed from the PNGs
 (or from the linear ``.npy`` renders through the same two steps).
 
 Output (EVAL_DIR, every file written atomically; see CONTRIBUTING.md)::
@@ -39,40 +39,18 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from .inputs import Entry, InputSpec, resolve
-from .views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
+from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SECONDS_COLUMNS,  # noqa: F401 (re-exported)
+                                METRIC_COLUMNS, METRIC_SECONDS_COLUMNS, REGIONS, SECONDS_COLUMNS, SHA_COLUMNS,
+                                VARIANT_COLUMNS, hardware, hardware_text, read_eval_config, renders_json,
+                                write_renders)
+from evaluation.inputs import Entry, InputSpec, resolve
+from evaluation.views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
 
-#: The metric columns, one per metric of :data:`evaluation.metrics.METRICS` (NaN where not computed).
-METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim")
-#: Variant strings of the metrics that have one ("" where not computed).
-VARIANT_COLUMNS = ("lpips_variant", "lpips_proxy_variant", "sifid_variant", "sifid_proxy_variant", "dreamsim_variant")
-#: SHA-256 of the weight files behind each learned metric ("" where not computed).
-SHA_COLUMNS = ("lpips_weights_sha256", "sifid_weights_sha256", "dreamsim_weights_sha256")
-#: Columns that identify a row (input, view, region and the evaluation protocol). ``source``: ``run`` (a run
-#: directory), ``asset`` (a glTF/OBJ file placed in a scene) or ``triplets`` (given images; ``spp`` and ``jitter``
-#: are 0 and ``camera_set`` is ``images:<hash>``: nothing was rendered).
-KEY_COLUMNS = ("run", "scene", "object", "method", "ablation", "view", "seed", "region", "spp", "width", "height",
-               "jitter", "camera_set", "source")
-#: Seconds of the method (repeated on each row of an input): ``seconds_setup`` / ``seconds_stage1`` /
-#: ``seconds_stage2`` from a run directory (:meth:`optimizer.rundir.RunDir.seconds`), ``seconds_method`` their sum
-#: or the user's ``seconds`` for an asset or triplets (NaN when unknown).
-METHOD_SECONDS_COLUMNS = ("seconds_setup", "seconds_stage1", "seconds_stage2", "seconds_method")
-#: Seconds of each metric on this row's image pair (NaN where not computed).
-METRIC_SECONDS_COLUMNS = tuple(f"seconds_{m}" for m in METRIC_COLUMNS)
-#: Every column of metrics.parquet / metrics.csv, in order. ``seconds_render``: evaluation rendering of this view
-#: (with-object render + its share of the scene's background render; NaN for triplets), ``seconds_metrics``: all
-#: metrics of the row.
-COLUMNS = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels",
-           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, "seconds_render", "seconds_metrics",
-           *METRIC_SECONDS_COLUMNS, *METHOD_SECONDS_COLUMNS)
-SECONDS_COLUMNS = tuple(c for c in COLUMNS if c.startswith("seconds_"))
-REGIONS = ("full", "crop")
 #: Metrics computed when --metrics is not given (plus the learned ones whose weights are given or found).
 DEFAULT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
 LEARNED = ("lpips", "sifid", "dreamsim")
-IMAGE_ENCODING = "srgb8"  # linear -> sRGB (IEC 61966-2-1, clipped to [0, 1]) -> 8 bit, as in the PNGs
 
 
 @dataclasses.dataclass
@@ -226,7 +204,7 @@ def check_metrics_load(names: Sequence[str], weights: dict[str, str]) -> None:
 
 def srgb8(linear: np.ndarray) -> np.ndarray:
     """Linear radiance -> the 8-bit sRGB values of the saved PNG (what the metrics compare)."""
-    from optimizer.imaging import linear_to_srgb, to_uint8
+    from camo_base.imaging import linear_to_srgb, to_uint8
 
     return to_uint8(linear_to_srgb(linear))
 
@@ -279,8 +257,8 @@ def write_view_files(out: Path, run: str, v: int, obj: np.ndarray, bg: np.ndarra
     """``renders/<run>/view_XX_*``; returns the renders.json paths (relative to ``out``). ``obj8`` / ``bg8``: the
     8-bit sRGB images when they are given (triplets) rather than encoded from the linear ``obj`` / ``bg``; no
     ``depth`` file (and key) when ``depth`` is None."""
-    from optimizer import atomic
-    from optimizer.imaging import save_png
+    from camo_base import atomic
+    from camo_base.imaging import save_png
 
     rel = Path("renders") / run
     stem = view_stem(v)
@@ -318,7 +296,7 @@ def as_specs(inputs: Sequence[str | Path | InputSpec]) -> list[InputSpec]:
 
 
 def _prepare(inputs: Sequence[str | Path | InputSpec], settings: EvalSettings) -> list[_Job]:
-    from optimizer.environments import get_environment
+    from optimizer.scenes.environments import get_environment
 
     jobs = []
     for e in resolve(as_specs(inputs)):
@@ -348,70 +326,14 @@ def _check_sizes(jobs: list[_Job], names: Sequence[str]) -> None:
             raise CamoError(f"{j.entry.name}: {w}x{h} px is too small for metric {worst} (needs >= {need} px); {fix}")
 
 
-def hardware() -> dict[str, Any]:
-    """Where the seconds were measured: CPU model, logical cores (and those this process may use), GPU, threads."""
-    import os
-    import platform
-
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    out: dict[str, Any] = {"cpu": model, "cpu_cores": os.cpu_count() or 0}
-    try:
-        out["cpu_cores_usable"] = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        out["cpu_cores_usable"] = out["cpu_cores"]
-    gpu = "none"
-    try:
-        import torch
-
-        if torch.cuda.is_available():
-            gpu = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
-        from evaluation.metrics._common import metric_threads
-
-        out["torch_threads"] = torch.get_num_threads()
-        out["metric_threads"] = metric_threads()
-    except Exception:  # torch missing or broken CUDA: the hardware line just says less
-        pass
-    out["gpu"] = gpu
-    try:
-        from optimizer import backend
-
-        info = backend.info()
-        if info:
-            out["mitsuba_variant"], out["render_threads"] = info.variant, int(info.threads)
-    except Exception:
-        pass
-    return out
-
-
-def hardware_text(hw: dict[str, Any]) -> str:
-    """One line, e.g. ``AMD EPYC, 2 CPU cores (2 usable), GPU none; llvm_ad_rgb, 2 render threads``."""
-    if not hw:
-        return "not recorded"
-    text = f"{hw.get('cpu', '?')}, {hw.get('cpu_cores', '?')} CPU cores ({hw.get('cpu_cores_usable', '?')} usable), " \
-           f"GPU {hw.get('gpu', '?')}"
-    if hw.get("mitsuba_variant"):
-        text += f"; {hw['mitsuba_variant']}, {hw.get('render_threads', '?')} render threads"
-    if hw.get("metric_threads"):
-        text += f"; metrics on {hw['metric_threads']} torch thread(s)"
-    elif hw.get("torch_threads"):
-        text += f", {hw['torch_threads']} torch threads"
-    return text
-
-
 def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings: EvalSettings | None = None,
              log: Callable[[str], None] | None = None):
     """Evaluate run directories, assets and image triplets (:mod:`evaluation.inputs`) into ``out``; returns the
     metrics table (pandas DataFrame). Plain paths in ``inputs`` are run directories."""
     import pandas as pd
 
-    from optimizer import atomic, backend
+    from camo_base import atomic
+    from optimizer import backend
 
     settings = settings or EvalSettings()
     say = log or ((lambda s: print(s, file=sys.stderr)) if settings.progress else (lambda s: None))
@@ -426,7 +348,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     backend.init(threads=settings.threads)
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
     if settings.observer_saliency and settings.observer_trials > 0:
-        from .observer import load_saliency_model
+        from evaluation.observer import load_saliency_model
 
         load_saliency_model(settings.observer_saliency)
 
@@ -452,7 +374,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
             base = {**ident, "seed": settings.seed, "spp": 0, "width": w, "height": h, "jitter": 0.0,
                     "camera_set": cam_key, "source": "triplets", **method_cols}
             for v in range(n):
-                from optimizer.imaging import srgb_to_linear
+                from camo_base.imaging import srgb_to_linear
 
                 lin_o = t.obj_linear[v] if t.obj_linear is not None else srgb_to_linear(t.obj8[v] / 255.0)
                 lin_b = t.bg_linear[v] if t.bg_linear is not None else srgb_to_linear(t.bg8[v] / 255.0)
@@ -511,20 +433,20 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         table.to_parquet(tmp, index=False)
     with atomic.atomic_path(out / "metrics.csv") as tmp:
         table.to_csv(tmp, index=False)
-    atomic.write_json(out / "renders.json", entries)
+    write_renders(out, entries)
     write_eval_config(out / "eval_config.toml", settings, names, skipped, weights, per_run, list(scenes.values()),
                       renderer, time.perf_counter() - t_all)
     if settings.observer_trials > 0:  # predicted Table I: the report's "simulated" section
-        from .observer import predict_eval_dir
+        from evaluation.observer import predict_eval_dir
 
         t_obs = time.perf_counter()
-        from .observer import ObserverConfig
+        from evaluation.observer import ObserverConfig
 
         predict_eval_dir(out, n=settings.observer_trials, seed=settings.seed,
                          config=ObserverConfig(start="random", saliency_model=settings.observer_saliency or ""))
         say(f"simulated observer: {settings.observer_trials} trials per view in {time.perf_counter() - t_obs:.1f} s")
     if settings.write_report:
-        from .report import write_report
+        from evaluation.report import write_report
 
         write_report([out], out)
     say(f"{len(jobs)} input(s), {renderer.background_renders} background render(s), {len(table)} rows")
@@ -541,8 +463,8 @@ def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], 
     import tomli_w
 
     from evaluation.metrics import METRICS, weights_sha256
-    from optimizer import atomic
-    from optimizer.run import versions
+    from camo_base import atomic
+    from optimizer.optimise.run import versions
 
     doc: dict[str, Any] = {
         "evaluate": {
@@ -584,26 +506,3 @@ def _toml_plain(obj: Any) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
-
-
-def read_eval_config(eval_dir: str | Path) -> dict[str, Any]:
-    import tomllib
-
-    p = Path(eval_dir) / "eval_config.toml"
-    if not p.is_file():
-        return {}
-    try:
-        return tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError):
-        return {}
-
-
-def renders_json(eval_dir: str | Path) -> list[dict[str, Any]]:
-    p = Path(eval_dir) / "renders.json"
-    if not p.is_file():
-        return []
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except ValueError as exc:
-        raise CamoError(f"{p}: not valid JSON ({exc})") from None
-    return data if isinstance(data, list) else []

@@ -2,11 +2,11 @@
 
 Three kinds of input, mixed freely in one evaluation (:class:`InputSpec`, resolved into :class:`Entry`):
 
-* ``run``: a ``camo optimize`` run directory (:mod:`optimizer.rundir`); scene, method and ablation from its
+* ``run``: a ``camo optimize`` run directory (:mod:`optimizer.assets.rundir`); scene, method and ablation from its
   ``config.toml`` (the method label can be overridden), seconds from its ``summary.json`` / ``log.jsonl``.
-* ``asset``: a glTF 2.0 / GLB or OBJ + MTL file (:mod:`optimizer.asset`) placed in ``scene`` -- a built-in scene
+* ``asset``: a glTF 2.0 / GLB or OBJ + MTL file (:mod:`optimizer.assets.asset`) placed in ``scene`` -- a built-in scene
   name (``gravel``, ``split:chair``), a scene pack ``.toml`` or a run directory (its resolved pack: the same
-  cameras as that run) -- by ``placement`` (``auto``/``scene``/``pack``, see :func:`optimizer.asset.place`).
+  cameras as that run) -- by ``placement`` (``auto``/``scene``/``pack``, see :func:`optimizer.assets.asset.place`).
   The method label is the user's; ``seconds`` (optional) is what the method cost.
 * ``triplets``: a folder of given images per view, scored with the same metrics and written as study stimuli:
   ``<view>_obj.png`` (with the object), ``<view>_bg.png`` (background), ``<view>_mask.png`` (object mask,
@@ -47,7 +47,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 KINDS = ("run", "asset", "triplets")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
@@ -165,8 +165,8 @@ def read_input_list(path: str | Path) -> list[InputSpec]:
 
 def scene_pack(scene: str, where: str):
     """The scene pack named by ``scene``: a run directory's resolved pack, a pack file or a built-in scene."""
-    from optimizer.rundir import is_run_dir, open_run
-    from optimizer.scenepack import resolve_scene
+    from optimizer.assets.rundir import is_run_dir, open_run
+    from optimizer.scenes.builtin_scenes import resolve_scene
 
     if not scene:
         raise CamoError(f"{where}: needs a scene (--scene NAME, pack .toml or run directory)")
@@ -196,8 +196,8 @@ def safe_name(text: str) -> str:
 
 def resolve(specs: Sequence[InputSpec]) -> list[Entry]:
     """Read every input (CamoError, one line, before anything is rendered or written)."""
-    from optimizer.asset import PLACEMENTS, load_asset, place
-    from optimizer.rundir import open_run
+    from optimizer.assets.asset import PLACEMENTS, load_asset, place
+    from optimizer.assets.rundir import open_run
 
     if not specs:
         raise CamoError("evaluate needs at least one input: RUN_DIR, --asset, --triplets or --inputs")
@@ -291,7 +291,7 @@ def _read_rgb8(path: Path, warnings: list[str]) -> tuple[np.ndarray, np.ndarray 
     """``(H, W, 3)`` uint8 sRGB (and the linear image for EXR input)."""
     from PIL import Image, UnidentifiedImageError
 
-    from optimizer.imaging import linear_to_srgb, load_exr, to_uint8
+    from camo_base.imaging import linear_to_srgb, load_exr, to_uint8
 
     if path.suffix.lower() == ".exr":
         try:
@@ -337,7 +337,7 @@ def _read_mask(path: Path) -> np.ndarray:
 
 
 def _read_depth(path: Path) -> np.ndarray:
-    from optimizer.imaging import load_exr
+    from camo_base.imaging import load_exr
 
     try:
         d = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else load_exr(path)

@@ -60,7 +60,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 
 @dataclass(frozen=True)
@@ -573,7 +573,7 @@ def predict_eval_dir(eval_dir: str | Path, n: int = 200, seed: int = 0, config: 
     and ``simulated_config.json`` there (atomically). Returns ``(per view, per trial)`` DataFrames."""
     import json
 
-    from optimizer import atomic
+    from camo_base import atomic
 
     root = Path(eval_dir)
     p = root / "renders.json"

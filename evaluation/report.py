@@ -30,9 +30,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from .evaluate import SECONDS_COLUMNS
+from evaluation.evaldir import SECONDS_COLUMNS
 
 #: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
 TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
@@ -103,7 +103,7 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
     """Concatenate the metrics tables of evaluation directories and drop duplicated rows."""
     import pandas as pd
 
-    from .evaluate import COLUMNS
+    from evaluation.evaldir import COLUMNS
 
     if not eval_dirs:
         raise CamoError("report needs at least one EVAL_DIR")
@@ -169,7 +169,7 @@ def protocol_title(proto: tuple) -> str:
 
 def _time_columns(df) -> list[tuple[str, str]]:
     """Seconds columns shown: the method / render ones, and one per metric that was computed."""
-    from .evaluate import METRIC_COLUMNS
+    from evaluation.evaldir import METRIC_COLUMNS
 
     names = dict(TABLE_METRICS)
     out = list(TIME_COLUMNS)
@@ -293,7 +293,7 @@ def _safe(name: str) -> str:
 
 def render_index(eval_dirs: Sequence[str | Path]) -> dict[tuple[str, str], dict[int, dict[str, Path]]]:
     """``{(eval dir, run): {view: {"image": path, "background": path}}}`` from the renders.json files."""
-    from .evaluate import renders_json
+    from evaluation.evaldir import renders_json
 
     out: dict[tuple[str, str], dict[int, dict[str, Path]]] = {}
     for d in eval_dirs:
@@ -326,7 +326,7 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from optimizer import atomic
+    from camo_base import atomic
 
     index = render_index(eval_dirs)
     made = []
@@ -415,7 +415,7 @@ def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[
     import matplotlib.pyplot as plt
     from matplotlib import ticker
 
-    from optimizer import atomic
+    from camo_base import atomic
 
     d = df.loc[df["region"] == region]
     metrics = [m for m in PLOT_METRICS if m in d.columns and d[m].notna().any()]
@@ -483,9 +483,9 @@ def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[li
 
     A grid writes one evaluation per cell, usually all with the same settings: those share one line
     (``named`` folder names shown, then "and N more")."""
-    from .evaluate import read_eval_config
+    from evaluation.evaldir import read_eval_config
 
-    from .evaluate import hardware_text
+    from evaluation.evaldir import hardware_text
 
     groups: dict[tuple[str, str], list[str]] = {}
     skipped: dict[str, str] = {}
@@ -623,7 +623,7 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
     predictions)."""
     import json
 
-    from .observer import predicted_table
+    from evaluation.observer import predicted_table
 
     views, trials = load_simulated(eval_dirs)
     if views is None or views.empty:
@@ -706,7 +706,7 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
 
 def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
     """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
-    from optimizer import atomic
+    from camo_base import atomic
 
     out = Path(out)
     if out.exists() and not out.is_dir():

@@ -2,12 +2,12 @@
 
 Three steps, each usable on its own:
 
-* Inputs are read by their owners: a run directory by :mod:`optimizer.rundir` (:func:`load_run` ->
-  :class:`optimizer.rundir.RunDir`: resolved scene pack, appearance config, method, ablation, seconds; its
-  result as an :class:`optimizer.asset.Asset`), an external glTF/GLB or OBJ asset by :mod:`optimizer.asset`
-  (placed in a scene pack). Both render through :meth:`optimizer.asset.Asset.mesh`.
+* Inputs are read by their owners: a run directory by :mod:`optimizer.assets.rundir` (:func:`load_run` ->
+  :class:`optimizer.assets.rundir.RunDir`: resolved scene pack, appearance config, method, ablation, seconds; its
+  result as an :class:`optimizer.assets.asset.Asset`), an external glTF/GLB or OBJ asset by :mod:`optimizer.assets.asset`
+  (placed in a scene pack). Both render through :meth:`optimizer.assets.asset.Asset.mesh`.
 * :func:`evaluation_cameras` moves each of the pack's training cameras by an independent uniform offset of up
-  to ``+-jitter`` units per axis at radius 4 (scaled with the radius; :func:`optimizer.cameras.jitter`),
+  to ``+-jitter`` units per axis at radius 4 (scaled with the radius; :func:`optimizer.scenes.cameras.jitter`),
   seeded. No evaluation camera equals a training camera (checked, not assumed). The cameras depend only on
   the pack's rig, the resolution, ``jitter`` and ``seed``, so every run of one scene is evaluated on
   identical views.
@@ -16,7 +16,7 @@ Three steps, each usable on its own:
   the object's visible mask (coverage >= 0.5, occlusion aware) and the background depth, with the effect
   planner's ``purpose="evaluate"`` path tracer.
 
-Roughness: assets hold the roughness *as rendered*; :meth:`optimizer.asset.Asset.values` inverts the
+Roughness: assets hold the roughness *as rendered*; :meth:`optimizer.assets.asset.Asset.values` inverts the
 renderer's affine map once before the BSDF applies it again, so the BSDF renders exactly the saved roughness.
 
 Variance: the background and the with-object render of a view use the same sampler seed (common random
@@ -38,35 +38,35 @@ from pathlib import Path
 
 import numpy as np
 
-from optimizer.asset import Asset
-from optimizer.cameras import Camera
-from optimizer.errors import CamoError
-from optimizer.rundir import RunDir, open_run
+from optimizer.assets.asset import Asset
+from optimizer.scenes.cameras import Camera
+from camo_base.errors import CamoError
+from optimizer.assets.rundir import RunDir, open_run
 
 #: The paper's evaluation jitter: up to +-0.25 units per axis at radius 4.
 DEFAULT_JITTER = 0.25
 
 
 # --------------------------------------------------------------------------------------------------------------
-# run directories and assets (read by optimizer.rundir / optimizer.asset; thin names kept for callers)
+# run directories and assets (read by optimizer.assets.rundir / optimizer.assets.asset; thin names kept for callers)
 # --------------------------------------------------------------------------------------------------------------
 
-#: What evaluation knows about one run directory (:class:`optimizer.rundir.RunDir`).
+#: What evaluation knows about one run directory (:class:`optimizer.assets.rundir.RunDir`).
 RunInfo = RunDir
 
 
 def load_run(path: str | Path) -> RunDir:
-    """Read a run directory's config (:func:`optimizer.rundir.open_run`); CamoError for anything missing."""
+    """Read a run directory's config (:func:`optimizer.assets.rundir.open_run`); CamoError for anything missing."""
     return open_run(path)
 
 
 def load_result(run: RunDir) -> Asset:
-    """The run's result as evaluation renders it (:meth:`optimizer.rundir.RunDir.asset`)."""
+    """The run's result as evaluation renders it (:meth:`optimizer.assets.rundir.RunDir.asset`)."""
     return run.asset()
 
 
 def object_mesh_of(run: RunDir | None, asset: Asset):
-    """A fresh ``mi.Mesh`` of a result or asset with its BSDF (:meth:`optimizer.asset.Asset.mesh`)."""
+    """A fresh ``mi.Mesh`` of a result or asset with its BSDF (:meth:`optimizer.assets.asset.Asset.mesh`)."""
     return asset.mesh()
 
 
@@ -106,7 +106,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
     Every training camera's jitter is drawn in the same order whatever ``views`` is, so a smaller evaluation
     is a subset of a larger one.
     """
-    from optimizer.cameras import cameras, jitter as jitter_cams
+    from optimizer.scenes.cameras import cameras, jitter as jitter_cams
 
     if not (isinstance(jitter, (int, float)) and math.isfinite(jitter)) or jitter <= 0:
         raise CamoError(f"--jitter must be > 0 (evaluation never uses the training cameras), got {jitter}")
@@ -143,7 +143,7 @@ def evaluation_plan(pack, env):
     shallower path tracer for an opaque result would bias the comparison), so the plan does not depend on
     the particular result: it is deep enough for the most demanding material any method may produce.
     """
-    from optimizer.planner import plan
+    from optimizer.rendering.planner import plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=1.0))
     return plan(worst, env, set(), "evaluate")
@@ -185,8 +185,8 @@ class ViewRenderer:
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def background(self, pack, env, cams: list[Camera], integrator: dict) -> Background:
-        from optimizer import scene as scn
-        from optimizer.render import coverage_and_depth, render_shaded
+        from optimizer.rendering import scene as scn
+        from optimizer.rendering.render import coverage_and_depth, render_shaded
 
         key = self._key(pack, cams, integrator)
         if key not in self.cache:
@@ -199,8 +199,8 @@ class ViewRenderer:
         return self.cache[key]
 
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict) -> ObjectRenders:
-        from optimizer import scene as scn
-        from optimizer.render import coverage_and_depth, render_shaded
+        from optimizer.rendering import scene as scn
+        from optimizer.rendering.render import coverage_and_depth, render_shaded
 
         t = time.perf_counter()
         mesh = mesh_fn()

@@ -21,7 +21,7 @@ import os
 import re
 from typing import Iterable, Mapping, Sequence
 
-from .errors import CamoError
+from camo_base.errors import CamoError
 
 MIN_LLVM = 16
 MAX_LLVM = 22
@@ -162,6 +162,17 @@ def default_threads() -> int:
 
 
 _STATE: BackendInfo | None = None
+_ON_INIT: list = []
+
+
+def on_init(hook) -> None:
+    """Call ``hook(info)`` once a variant is set (now, if :func:`init` already ran). The rendering stage registers
+    its projective integrators this way, so this module imports nothing above it."""
+    if hook in _ON_INIT:
+        return
+    _ON_INIT.append(hook)
+    if _STATE is not None:
+        hook(_STATE)
 
 
 def init(variant: str | None = None, threads: int | None = None) -> BackendInfo:
@@ -202,10 +213,8 @@ def init(variant: str | None = None, threads: int | None = None) -> BackendInfo:
         gpu = _cuda_device_name()
     _STATE = BackendInfo(variant=variant, llvm=llvm, threads=threads, gpu=gpu)
     set_threads(threads)
-    if "_ad_" in variant:
-        from . import projective
-
-        projective.register()  # camo_prb_projective / camo_direct_projective (training integrators)
+    for hook in _ON_INIT:
+        hook(_STATE)
     return _STATE
 
 

@@ -17,7 +17,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any, Mapping
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 log = logging.getLogger("study_site")
 
@@ -67,11 +67,11 @@ def create_app(config: Mapping[str, Any] | None = None):
     from sqlalchemy.exc import OperationalError
     from werkzeug.exceptions import HTTPException
 
-    from . import admin, views
-    from .config import age_brackets, read_secret_file, resolve
-    from .db import Database
-    from .security import RateLimiter, csrf_token
-    from .stimuli import StimulusSet
+    from study_site import admin, views
+    from study_site.config import age_brackets, read_secret_file, resolve
+    from study_site.db import Database
+    from study_site.security import RateLimiter, csrf_token
+    from study_site.stimuli import StimulusSet
 
     cfg = resolve(config)
     app = Flask(__name__, instance_relative_config=True)

@@ -14,8 +14,8 @@ from datetime import timedelta
 from flask import Blueprint, Response, abort, current_app, redirect, render_template, request, session, url_for
 from sqlalchemy import func, select
 
-from .db import Participant, PlanItem, Trial, utcnow
-from .security import check_csrf
+from study_site.db import Participant, PlanItem, Trial, utcnow
+from study_site.security import check_csrf
 
 bp = Blueprint("admin", __name__, url_prefix="/admin")
 
@@ -135,7 +135,7 @@ def export(name: str):
         abort(code, description="admin token required (Authorization: Bearer TOKEN)" if code == 401 else "wrong admin token")
     if name not in ("trials", "participants"):
         abort(404)
-    from .analysis import load_tables
+    from study_site.analysis import load_tables
 
     trials, participants = load_tables(current_app.extensions["camo_study"].db.engine)
     df = trials if name == "trials" else participants

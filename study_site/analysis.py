@@ -49,8 +49,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from optimizer.atomic import atomic_path, write_text
-from optimizer.errors import CamoError
+from camo_base.atomic import atomic_path, write_text
+from camo_base.errors import CamoError
 
 Z95 = 1.959963984540054
 
@@ -142,7 +142,7 @@ def bootstrap_confusion(
 def _engine(db):
     from sqlalchemy.engine import Engine
 
-    from .db import make_engine
+    from study_site.db import make_engine
 
     if isinstance(db, Engine):
         return db
@@ -170,7 +170,7 @@ def load_tables(db) -> tuple[pd.DataFrame, pd.DataFrame]:
     """
     from sqlalchemy import inspect, select
 
-    from .db import Participant, Trial
+    from study_site.db import Participant, Trial
 
     engine = _engine(db)
     try:
@@ -226,7 +226,7 @@ def location_baselines(trials: pd.DataFrame, formal: pd.DataFrame, stimuli_dir) 
     """Per method (and ``all``): hit rate of a click at the image centre and at the participant's last
     practice object's position (centroid, as a fraction of the image), over the trials in ``formal``;
     next to the formal stimuli's mean object area share."""
-    from .stimuli import StimulusSet
+    from study_site.stimuli import StimulusSet
 
     ss = StimulusSet(stimuli_dir)
     last_practice: dict[Any, tuple[float, float]] = {}

@@ -22,8 +22,8 @@ from datetime import datetime, timedelta
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session
 
-from .db import Participant, PlanItem
-from .stimuli import Stimulus, StimulusSet
+from study_site.db import Participant, PlanItem
+from study_site.stimuli import Stimulus, StimulusSet
 
 
 def cell_counts(s: Session, now: datetime, hold_s: float, exclude_participant: int | None = None) -> dict:

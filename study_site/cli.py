@@ -2,7 +2,7 @@
 
 ``register(subparsers)`` adds the ``study`` group to an argparse parser; each
 subcommand stores its handler as ``func`` (``args.func(args) -> int``). Handlers
-raise :class:`optimizer.errors.CamoError` for bad input. Standalone use:
+raise :class:`camo_base.errors.CamoError` for bad input. Standalone use:
 ``python -m study_site.cli study serve ...``.
 """
 
@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -160,7 +160,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def cmd_simulate(args) -> int:
-    from .simulate import parse_observer, simulate
+    from study_site.simulate import parse_observer, simulate
 
     cfg = parse_observer(args.observer)
     res = simulate(args.url, args.participants, args.concurrency, args.seed, args.max_seconds, cfg, args.ramp,
@@ -173,7 +173,7 @@ def cmd_simulate(args) -> int:
     for e in res["errors"]:
         print(f"error: {e}", file=sys.stderr)
     if args.json:
-        from optimizer.atomic import write_json
+        from camo_base.atomic import write_json
 
         write_json(args.json, res)
     if res["n_errors"] or res["completed"] < res["participants"]:
@@ -183,7 +183,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_power(args) -> int:
-    from .power import cells_from_pilot, cells_from_predicted, parse_participants, write_power
+    from study_site.power import cells_from_pilot, cells_from_predicted, parse_participants, write_power
 
     if not args.predicted and not args.db:
         raise CamoError("power needs --predicted EVAL_DIR ... or --db PILOT_DB")
@@ -196,7 +196,7 @@ def cmd_power(args) -> int:
         cells, source = cells_from_pilot(args.db), "pilot study"
     res = write_power(cells, args.out, ns, reps=args.reps, alpha=args.alpha, target=args.target, seed=args.seed,
                       source=source)
-    from .power import TESTS
+    from study_site.power import TESTS
 
     for r in res["needed"].itertuples():
         n = f"{int(r.participants)}" if r.participants == r.participants else f"> {r.max_n}"
@@ -214,7 +214,7 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
 
 
 def cmd_build_stimuli(args) -> int:
-    from .stimuli import build_stimuli, summarize
+    from study_site.stimuli import build_stimuli, summarize
 
     scenes = [x for x in args.practice_scenes.split(",") if x.strip()]
     if args.synthetic_practice < 0 or args.synthetic_practice > 200:
@@ -223,7 +223,7 @@ def cmd_build_stimuli(args) -> int:
         manifest = build_stimuli(args.eval_dirs, args.out, practice_dirs=args.practice, force=args.force,
                                  practice_scenes=scenes, synthetic_practice_n=args.synthetic_practice)
     else:
-        from .render_stimuli import render_stimuli
+        from study_site.render_stimuli import render_stimuli
 
         manifest = render_stimuli(
             args.eval_dirs, args.out, practice_dirs=args.practice, practice_scenes=scenes, size=args.size,
@@ -251,9 +251,9 @@ def cmd_make_key(args) -> int:
 
 
 def cmd_serve(args) -> int:
-    from . import create_app
-    from .analysis import resolve_db_url
-    from .config import from_env
+    from study_site import create_app
+    from study_site.analysis import resolve_db_url
+    from study_site.config import from_env
 
     if not 0 < args.port < 65536:
         raise CamoError(f"--port must be 1-65535, not {args.port}")
@@ -323,7 +323,7 @@ def serve_app(app, host: str, port: int, threads: int = 8, connections: int = 10
 
 
 def cmd_report(args) -> int:
-    from .analysis import write_report
+    from study_site.analysis import write_report
 
     if args.bootstrap < 0:
         raise CamoError("--bootstrap must be >= 0")

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 DEFAULTS: dict[str, Any] = {
     # where things are

@@ -33,7 +33,7 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 DEFAULT_PARTICIPANTS = (10, 20, 30, 40, 60, 80, 100, 150, 200, 300)
 TESTS = {"p_fisher_holm": "confusion rate (Fisher, Holm)", "p_logrank_holm": "time to find (log-rank, Holm)"}
@@ -42,7 +42,7 @@ TESTS = {"p_fisher_holm": "confusion rate (Fisher, Holm)", "p_logrank_holm": "ti
 def cells_from_predicted(eval_dirs: Sequence[str | Path]) -> pd.DataFrame:
     """Per simulated trial ``scene, method, found, timed_out, rt_s, time_limit_s`` from evaluations'
     ``simulated_trials.parquet`` (``method`` = the study's condition label: ``method`` or ``method+ablation``)."""
-    from .stimuli import condition_label
+    from study_site.stimuli import condition_label
 
     frames = []
     for d in eval_dirs:
@@ -61,7 +61,7 @@ def cells_from_predicted(eval_dirs: Sequence[str | Path]) -> pd.DataFrame:
 
 def cells_from_pilot(db) -> pd.DataFrame:
     """The analysed formal trials of a pilot study database (URL or SQLite path)."""
-    from .analysis import formal_trials, load_tables
+    from study_site.analysis import formal_trials, load_tables
 
     trials, _ = load_tables(db)
     f = formal_trials(trials)
@@ -101,7 +101,7 @@ def power_curve(cells: pd.DataFrame, participants: Sequence[int] = DEFAULT_PARTI
                 alpha: float = 0.05, seed: int = 0) -> pd.DataFrame:
     """Power per ``N`` participants, method pair and test (columns ``n_participants, method_a, method_b, test,
     power, reps``)."""
-    from .analysis import pairwise_tests
+    from study_site.analysis import pairwise_tests
 
     if cells["method"].nunique() < 2:
         raise CamoError("power needs at least two methods")
@@ -145,7 +145,7 @@ def plot_power(curve: pd.DataFrame, path: Path, target: float, title: str) -> No
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from optimizer.atomic import atomic_path
+    from camo_base.atomic import atomic_path
 
     fig, axes = plt.subplots(1, len(TESTS), figsize=(6 * len(TESTS), 4.2), dpi=120, squeeze=False)
     for ax, (test, name) in zip(axes[0], TESTS.items()):
@@ -172,7 +172,7 @@ def write_power(cells: pd.DataFrame, out: str | Path, participants: Sequence[int
                 reps: int = 200, alpha: float = 0.05, target: float = 0.8, seed: int = 0,
                 source: str = "") -> dict[str, Any]:
     """Run :func:`power_curve` and write ``power.csv``, ``power_needed.csv``, ``power.md``, ``power.png``."""
-    from optimizer.atomic import atomic_path, write_text
+    from camo_base.atomic import atomic_path, write_text
 
     if not 0 < target < 1:
         raise CamoError("--target must be in (0, 1)")

@@ -38,9 +38,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from .stimuli import StimulusWriter, check_no_leak, practice_split, synthetic_practice
+from study_site.stimuli import StimulusWriter, check_no_leak, practice_split, synthetic_practice
 
 DEFAULT_SIZE = 512
 DEFAULT_OBJECT_FRAC = (0.10, 0.30)
@@ -77,7 +77,7 @@ def place_camera(cam, centre, object_size: float, draw: dict[str, float], size: 
     """A camera at ``cam.origin`` with field of view and target such that an object of nominal extent
     ``object_size`` at ``centre`` spans ``draw['object_frac']`` of the frame with its centre at NDC
     ``(draw['px'], draw['py'])``; returns ``(Camera, fov_deg, target)``."""
-    from optimizer.cameras import Camera
+    from optimizer.scenes.cameras import Camera
 
     origin = np.asarray(cam.origin, float)
     c = np.asarray(centre, float)
@@ -175,18 +175,10 @@ def render_stimuli(
 ) -> dict[str, Any]:
     """Render a stimulus set (see the module docstring); returns the manifest."""
     from evaluation.evaluate import srgb8
-    from evaluation.views import (
-        DEFAULT_JITTER,
-        ViewRenderer,
-        evaluation_cameras,
-        evaluation_plan,
-        load_result,
-        load_run,
-        object_mesh_of,
-    )
+    from evaluation.views import DEFAULT_JITTER, ViewRenderer, evaluation_cameras, evaluation_plan, load_result, load_run, object_mesh_of
     from optimizer import backend
-    from optimizer.cameras import object_centre
-    from optimizer.environments import get_environment
+    from optimizer.scenes.cameras import object_centre
+    from optimizer.scenes.environments import get_environment
 
     log = log or (lambda msg: print(msg, file=sys.stderr))
     if not eval_dirs:
@@ -272,7 +264,7 @@ def render_stimuli(
 
 
 def _save_background(out: Path, scene: str, view: int, rgb: np.ndarray) -> None:
-    from .stimuli import _save_png
+    from study_site.stimuli import _save_png
 
     name = hashlib.sha256(f"{scene}:{view}".encode()).hexdigest()[:16]
     path = out / "backgrounds" / f"{name}.png"

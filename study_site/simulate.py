@@ -37,7 +37,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 CSRF_RE = re.compile(r'name="csrf_token" value="([^"]+)"')
 COOKIE = "camo_study"

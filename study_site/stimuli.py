@@ -48,13 +48,13 @@ from typing import Any
 
 import numpy as np
 
-from optimizer.atomic import atomic_path, write_json
-from optimizer.errors import CamoError
+from camo_base.atomic import atomic_path, write_json
+from camo_base.errors import CamoError
+from evaluation.evaldir import read_renders
 
 MANIFEST_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 SYNTHETIC_SCENE = "practice_synthetic"
-REQUIRED_KEYS = ("run", "scene", "method", "view", "image", "mask")
 OUTLINE_RGB = (255, 40, 200)  # magenta: rarely present in natural backgrounds
 
 
@@ -208,30 +208,6 @@ def load_mask(path: Path) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # building a stimulus set
 # ---------------------------------------------------------------------------
-
-
-def _read_renders(eval_dir: Path) -> list[dict[str, Any]]:
-    rj = eval_dir / "renders.json"
-    if not eval_dir.is_dir():
-        raise CamoError(f"{eval_dir}: not a directory")
-    if not rj.is_file():
-        raise CamoError(f"{eval_dir}: no renders.json (is this an evaluation directory from `camo evaluate`?)")
-    try:
-        entries = json.loads(rj.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise CamoError(f"{rj}: not valid JSON ({exc})") from None
-    if not isinstance(entries, list):
-        raise CamoError(f"{rj}: expected a JSON list of render entries")
-    for i, e in enumerate(entries):
-        if not isinstance(e, dict):
-            raise CamoError(f"{rj}: entry {i} is not an object")
-        missing = [k for k in REQUIRED_KEYS if e.get(k) in (None, "")]
-        if missing:
-            raise CamoError(f"{rj}: entry {i} lacks {', '.join(missing)}")
-        for k, limit in (("run", 256), ("scene", 256), ("object", 256), ("method", 120), ("ablation", 120), ("view", 64)):
-            if len(str(e.get(k) or "")) > limit:
-                raise CamoError(f"{rj}: entry {i}: {k} is longer than {limit} characters")
-    return entries
 
 
 def _load_rgb(path: Path) -> np.ndarray:
@@ -414,7 +390,7 @@ def build_stimuli(
     sources += [(Path(d), True) for d in (practice_dirs or [])]
     plan: list[tuple[Path, dict[str, Any], bool]] = []
     for d, practice in sources:
-        for e in _read_renders(d):
+        for e in read_renders(d):
             plan.append((d, e, practice))
     formal_scenes = {str(e["scene"]) for _, e, p in plan if not p}
     named = practice_split(formal_scenes, {str(e["scene"]) for _, e, p in plan if p}, practice_scenes)

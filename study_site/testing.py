@@ -81,7 +81,7 @@ def _smooth_noise(rng, w: int, h: int) -> np.ndarray:
 
 def mask_rects(stimuli_dir: str | Path) -> dict[str, tuple[int, int, int, int]]:
     """``{stimulus id: (x0, y0, x1, y1)}`` bounding boxes of the masks of a built stimulus set."""
-    from .stimuli import StimulusSet
+    from study_site.stimuli import StimulusSet
 
     ss = StimulusSet(stimuli_dir)
     out = {}

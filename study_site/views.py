@@ -31,10 +31,10 @@ from flask import (
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 
-from .assign import create_plan
-from .config import age_brackets
-from .db import Participant, PlanItem, Trial, lock_for_assignment, utcnow
-from .security import TOKEN_RE, check_csrf, hmac_id, valid_id
+from study_site.assign import create_plan
+from study_site.config import age_brackets
+from study_site.db import Participant, PlanItem, Trial, lock_for_assignment, utcnow
+from study_site.security import TOKEN_RE, check_csrf, hmac_id, valid_id
 
 bp = Blueprint("study", __name__)
 

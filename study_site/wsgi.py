@@ -3,7 +3,7 @@
 variables (at least ``CAMO_STUDY_STIMULI_DIR``, ``CAMO_STUDY_DATABASE_URL`` and the participant-id key,
 ``CAMO_STUDY_ID_HMAC_KEY_FILE`` from ``camo study make-key FILE`` or ``CAMO_STUDY_ID_HMAC_KEY``)."""
 
-from . import create_app
-from .config import from_env
+from study_site import create_app
+from study_site.config import from_env
 
 app = create_app(from_env())

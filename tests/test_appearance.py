@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from optimizer.appearance import AppearanceConfig, Geometry, bilinear_taps, displacement_per_uv_vertex, initial_values
-from optimizer.pose import clip_offset, euler_xyz_deg, model_matrix, rot_z, scaling, translation
-from optimizer.scenepack import MaterialSpec, ObjectSpec
+from optimizer.rendering.appearance import AppearanceConfig, Geometry, bilinear_taps, displacement_per_uv_vertex, initial_values
+from optimizer.scenes.pose import clip_offset, euler_xyz_deg, model_matrix, rot_z, scaling, translation
+from optimizer.scenes.scenepack import MaterialSpec, ObjectSpec
 
 
 def test_model_matrix_is_eq3():
@@ -45,8 +45,8 @@ def test_bilinear_taps_match_hand_values():
 
 @pytest.fixture(scope="module")
 def prepared(tmp_path_factory):
-    from optimizer.mesh import prepare_mesh
-    from optimizer.primitives import make_primitive
+    from optimizer.scenes.mesh import prepare_mesh
+    from optimizer.scenes.primitives import make_primitive
 
     return prepare_mesh(make_primitive("vase"), target_vertices=600, cache_dir=tmp_path_factory.mktemp("cache"))
 
@@ -95,7 +95,7 @@ def test_dr_positions_match_numpy_and_have_pose_gradients(prepared, mi_backend):
 
 def test_adam_drops_and_counts_nonfinite_gradients(mi_backend):
     mi, dr = mi_backend
-    from optimizer.adam import Adam
+    from optimizer.optimise.adam import Adam
 
     opt = Adam({"x": 0.1})
     opt.add("x", mi.Float([0.5, 0.5, 0.5]))
@@ -109,7 +109,7 @@ def test_adam_drops_and_counts_nonfinite_gradients(mi_backend):
 
 def test_adam_state_round_trip(mi_backend):
     mi, dr = mi_backend
-    from optimizer.adam import Adam
+    from optimizer.optimise.adam import Adam
 
     def run(n, resume_at=None):
         opt = Adam({"x": 0.05})

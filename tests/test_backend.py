@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from optimizer import backend
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 
 def _touch(p):

@@ -1,4 +1,4 @@
-"""Baselines (optimizer.baselines): texel projection and visibility, the Owens 2014 models, GANmouflage
+"""Baselines (optimizer.optimise.baselines): texel projection and visibility, the Owens 2014 models, GANmouflage
 training, and the run directory of every method through ``camo optimize --method NAME``.
 
 Scenes are tiny (4 views, 32-40 px, ~1,500 vertices, 64^2 maps)."""
@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from optimizer.cli import main
+from camo.cli import main
 
 # Two LLVM threads, not one: with a DrJit thread count of 1, loading an EXR texture (mi.Bitmap, hence
 # mi.load_file of a run's scene.xml) deadlocks in Mitsuba 3.9 / DrJit 1.5.
@@ -25,11 +25,11 @@ OCC_HALF = (0.1, 0.35, 0.5)
 
 
 def tiny_setup(env=None, resolution=(40, 40)):
-    from optimizer.run import RunConfig
-    from optimizer.appearance import AppearanceConfig
-    from optimizer.baselines import common
-    from optimizer.scenepack import resolve_scene
-    from optimizer.stage1 import Stage1Config
+    from optimizer.optimise.run import RunConfig
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.optimise.baselines import common
+    from optimizer.scenes.builtin_scenes import resolve_scene
+    from optimizer.optimise.stage1 import Stage1Config
 
     pack = resolve_scene("gravel")
     pack.object = dataclasses.replace(pack.object, target_vertices=1500)
@@ -47,7 +47,7 @@ def st(mi_backend):
 
 @pytest.fixture(scope="module")
 def occluded(mi_backend):
-    from optimizer.environments import ENVIRONMENTS, Environment, box, plain_diffuse
+    from optimizer.scenes.environments import ENVIRONMENTS, Environment, box, plain_diffuse
 
     _, gravel, emitters, _, _ = ENVIRONMENTS["gravel"]
 
@@ -72,12 +72,12 @@ def per_view_constant_images(st, colours):
 
 def test_projection_matches_mitsuba_camera_rays(mi_backend):
     """A pixel-centre ray's hit point projects back onto that pixel centre (non-square image)."""
-    from optimizer import scene as scn
-    from optimizer.baselines import projection
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.render import camera_rays
-    from optimizer.scenepack import resolve_scene
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering import projection
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.render import camera_rays
+    from optimizer.scenes.builtin_scenes import resolve_scene
 
     pack = resolve_scene("gravel")
     sc = scn.build_scene(get_environment(pack.environment).build())
@@ -93,7 +93,7 @@ def test_projection_matches_mitsuba_camera_rays(mi_backend):
 
 
 def test_rasterised_texels_sit_at_their_uv_on_the_surface(st):
-    from optimizer.baselines import projection
+    from optimizer.rendering import projection
 
     g = st.geometry
     surf = st.texel_surface()
@@ -112,7 +112,8 @@ def test_rasterised_texels_sit_at_their_uv_on_the_surface(st):
 
 def test_mean_of_a_constant_background_is_that_colour(st):
     """Synthetic constant background: every texel (seen, unseen after fill, and the padding) gets it."""
-    from optimizer.baselines import common, owens2014, projection
+    from optimizer.optimise.baselines import common, owens2014
+    from optimizer.rendering import projection
 
     surf = st.texel_surface()
     obs = st.observe(surf, 0.01)
@@ -131,7 +132,7 @@ def test_mean_of_a_constant_background_is_that_colour(st):
 
 
 def test_random_and_greedy_only_use_colours_of_views_that_see_the_texel(st):
-    from optimizer.baselines import owens2014
+    from optimizer.optimise.baselines import owens2014
 
     surf = st.texel_surface()
     obs = st.observe(surf, 0.01)
@@ -156,7 +157,7 @@ def test_random_and_greedy_only_use_colours_of_views_that_see_the_texel(st):
 
 def test_greedy_is_owens_set_cover():
     """Hand-made case: stable texels first, the view covering most still-open texels is taken first."""
-    from optimizer.baselines.owens2014 import greedy_assignment
+    from optimizer.optimise.baselines.owens2014 import greedy_assignment
 
     vis = np.array([[1, 1, 1, 0, 0, 1],
                     [0, 1, 1, 1, 1, 0],
@@ -172,7 +173,7 @@ def test_greedy_is_owens_set_cover():
 
 
 def test_bake_fills_unseen_texels_and_pads_the_atlas():
-    from optimizer.baselines.projection import TexelSurface, bake
+    from optimizer.rendering.projection import TexelSurface, bake
 
     R = 8
     idx = np.array([0, 1, 2, 9, 10, 11])  # two rows of a small chart
@@ -202,7 +203,8 @@ def _segment_hits_box(o, p, centre, half):
 
 
 def test_occluded_texels_are_never_coloured_from_the_blocked_view(occluded):
-    from optimizer.baselines import owens2014, projection
+    from optimizer.optimise.baselines import owens2014
+    from optimizer.rendering import projection
 
     s, surf, obs = occluded
     cam = s.cams[0]
@@ -236,7 +238,7 @@ def test_occluded_texels_are_never_coloured_from_the_blocked_view(occluded):
 def test_ganmouflage_generator_loss_goes_down(st, embedder):
     import torch
 
-    from optimizer.baselines.ganmouflage import GanmouflageConfig, Trainer
+    from optimizer.optimise.baselines.ganmouflage import GanmouflageConfig, Trainer
 
     cfg = GanmouflageConfig(iterations=30, hidden_1=64, hidden_2=32, crop_size=64, encoder_channels=(8, 16, 16),
                             disc_channels=16, lr_warmup=3, threads=1, embedder=embedder)
@@ -261,7 +263,7 @@ def test_ganmouflage_embedders_follow_the_authors_decoder():
     U(+-sqrt(9/3)) with zero bias, then sin. The fast preset uses the latter, the paper preset the former."""
     import torch
 
-    from optimizer.baselines.ganmouflage import GanmouflageConfig, build_networks, positional_encoding
+    from optimizer.optimise.baselines.ganmouflage import GanmouflageConfig, build_networks, positional_encoding
 
     assert GanmouflageConfig.paper().embedder == "fixed_sincos" and GanmouflageConfig().embedder == "cips_learnable"
     x = torch.tensor([[0.25, -0.5, 0.125]])
@@ -281,7 +283,7 @@ def test_ganmouflage_embedders_follow_the_authors_decoder():
 def test_filter_bank_perceptual_loss_is_zero_for_equal_images_and_grows_with_difference():
     import torch
 
-    from optimizer.baselines.ganmouflage import FilterBankFeatures
+    from optimizer.optimise.baselines.ganmouflage import FilterBankFeatures
 
     g = torch.Generator().manual_seed(0)
     a = torch.rand(1, 3, 32, 32, generator=g)
@@ -343,7 +345,7 @@ def test_run_directory_loads_back(method, tmp_path, mi_backend):
 def test_random_albedo_comes_from_the_backgrounds(st):
     """End to end: every on-chart texel of the `random` map equals (global white level) a background colour
     seen by one view at that texel's projection."""
-    from optimizer.baselines import common, owens2014
+    from optimizer.optimise.baselines import common, owens2014
 
     s = st
     vals, _, info = owens2014.compute(s, "random")

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from optimizer.cli import main
+from camo.cli import main
 
 
 def test_doctor_reports_backend(capsys):
@@ -33,7 +33,7 @@ def test_scenes_render_writes_every_view(tmp_path, scene, mi_backend):
     for v in range(2):
         for suffix in ("bg.png", "obj.png", "mask.png", "bg.exr", "obj.exr", "depth.exr"):
             assert (out / f"view_{v:02d}_{suffix}").is_file()
-    from optimizer.imaging import load_exr, load_png
+    from camo_base.imaging import load_exr, load_png
 
     mask = load_png(out / "view_00_mask.png")
     assert 0.02 < mask.mean() < 0.6  # the object is in the frame, not everywhere
@@ -53,7 +53,7 @@ def test_plan_prints_reasons(capsys):
 
 def test_closed_stdout_is_not_a_traceback():
     """`camo scenes list | head -0`: the reader is gone before camo writes; exit 141 like a shell pipeline, no traceback."""
-    proc = subprocess.Popen([sys.executable, "-m", "optimizer.cli", "scenes", "list"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "camo.cli", "scenes", "list"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
     proc.stdout.close()
     err = proc.stderr.read().decode()

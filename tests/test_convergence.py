@@ -10,9 +10,9 @@ import tomllib
 import numpy as np
 import pytest
 
-from optimizer.cli import main
-from optimizer.schedule import PRESETS, lr_scale, progress
-from optimizer.warmstart import least_squares_albedo
+from camo.cli import main
+from optimizer.optimise.schedule import PRESETS, lr_scale, progress
+from optimizer.optimise.warmstart import least_squares_albedo
 
 TINY = ["--views", "3", "--resolution", "32", "--map-resolution", "48", "--displacement-resolution", "16",
         "--target-vertices", "800", "--spp", "2", "--target-spp", "16", "--quiet", "--threads", "1"]
@@ -85,7 +85,7 @@ def test_adam_scale_multiplies_the_step(mi_backend):
     import drjit as dr
     import mitsuba as mi
 
-    from optimizer.adam import Adam
+    from optimizer.optimise.adam import Adam
 
     for scale in (1.0, 0.25, 0.0):
         opt = Adam({"x": 0.1})
@@ -100,7 +100,7 @@ def test_adam_scale_multiplies_the_step(mi_backend):
 def test_soft_threshold_is_the_l1_proximal_step(mi_backend):
     import mitsuba as mi
 
-    from optimizer.schedule import soft_threshold
+    from optimizer.optimise.schedule import soft_threshold
 
     out = soft_threshold(mi.TensorXf(np.array([[0.3], [-0.02], [0.0], [-0.7]], np.float32)), 0.05)
     np.testing.assert_allclose(np.asarray(out).ravel(), [0.25, 0.0, 0.0, -0.65], atol=1e-7)
@@ -230,14 +230,14 @@ def test_warm_start_from_black_and_nan_targets_stays_finite_and_in_range(mi_back
     """Hard case: background targets that are black in one view and NaN/Inf in another (a corrupt render).
     The warm-started albedo is finite and in [0, 1] everywhere; black targets pull the albedo to 0 where only
     they see the surface; nothing seen at all (every target poisoned) leaves the initial albedo."""
-    from optimizer.appearance import AppearanceConfig
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.placement import prepare_object
-    from optimizer.planner import plan
-    from optimizer.scenepack import parse_pack
-    from optimizer.stage1 import Stage1, Stage1Config
-    from optimizer.warmstart import warm_start_albedo
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import plan
+    from optimizer.scenes.scenepack import parse_pack
+    from optimizer.optimise.stage1 import Stage1, Stage1Config
+    from optimizer.optimise.warmstart import warm_start_albedo
 
     pack = parse_pack({"object": {"primitive": "utility_box", "target_vertices": 400},
                        "environment": {"builtin": "gravel"}, "cameras": {"views": 2},

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from optimizer import cli
-from optimizer.cli import main
-from optimizer.data import fetch as fetch_mod
-from optimizer.data.manifest import PLACEHOLDER, load_manifest
+from camo import cli
+from camo.cli import main
+from optimizer.scenes.data import fetch as fetch_mod
+from optimizer.scenes.data.manifest import PLACEHOLDER, load_manifest
 
 REPO = Path(__file__).resolve().parents[1]
 MANIFESTS = REPO / "data_manifests"
@@ -103,9 +103,9 @@ def sha(b: bytes) -> str:
 
 @pytest.fixture(autouse=True)
 def data_plugin(monkeypatch):
-    """`camo data` is a plugin module; register it here too until optimizer.cli.PLUGINS lists it."""
-    if "optimizer.data" not in cli.PLUGINS:
-        monkeypatch.setattr(cli, "PLUGINS", (*cli.PLUGINS, "optimizer.data"))
+    """`camo data` is a plugin module; register it here too until camo.cli.PLUGINS lists it."""
+    if "optimizer.scenes.data" not in cli.PLUGINS:
+        monkeypatch.setattr(cli, "PLUGINS", (*cli.PLUGINS, "optimizer.scenes.data"))
 
 
 # ------------------------------------------------------------------------------------------ server
@@ -427,8 +427,8 @@ def test_verify_reports_ok_missing_mismatch_unpinned(server, capsys, tmp_path, m
 
 
 def test_pack_from_zip_obj_is_a_valid_scene_pack(server, capsys, tmp_path):
-    from optimizer.mesh import load_mesh
-    from optimizer.scenepack import load_pack
+    from optimizer.scenes.mesh import load_mesh
+    from optimizer.scenes.scenepack import load_pack
 
     dest = tmp_path / "d"
     assert fetch(capsys, server, EXAMPLE, dest)[0] == 0
@@ -553,7 +553,7 @@ homepage = "https://example.invalid/camo-tests"
 
 
 def test_pin_text_edits_lines_or_rewrites():
-    from optimizer.data.manifest import pin_text
+    from optimizer.scenes.data.manifest import pin_text
 
     block = ('[[asset]]\nname = "a"  # keep me\nkind = "hdri"\nurl = "https://x.invalid/a.hdr"\nlicence = "CC0-1.0"\n'
              'sha256 = "TO-BE-PINNED"  # placeholder\nsize = "TO-BE-PINNED"\n'

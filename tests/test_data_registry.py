@@ -26,13 +26,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from optimizer.cli import main
-from optimizer.data import fetch as fetch_mod
-from optimizer.data import registry as reg
-from optimizer.data.manifest import load_manifest
-from optimizer.errors import CamoError
-from optimizer.imaging import load_exr
-from optimizer.panorama import repair_negative_radiance, solid_angles
+from camo.cli import main
+from optimizer.scenes.data import fetch as fetch_mod
+from optimizer.scenes.data import registry as reg
+from optimizer.scenes.data.manifest import load_manifest
+from camo_base.errors import CamoError
+from camo_base.imaging import load_exr
+from optimizer.scenes.panorama import repair_negative_radiance, solid_angles
 
 REPO = Path(__file__).resolve().parents[1]
 MANIFESTS = REPO / "data_manifests"
@@ -297,7 +297,7 @@ def test_repair_refuses_nan_and_inf(bad):
 
 def test_negative_panorama_is_still_refused_when_loaded_as_is(tmp_path):
     """The repair happens when a registry entry says so; a pack pointing at a negative EXR is still refused."""
-    from optimizer.environments import panorama_environment
+    from optimizer.scenes.environments import panorama_environment
 
     path = tmp_path / "neg.exr"
     path.write_bytes(_exr_half(_pano()))
@@ -318,7 +318,7 @@ def test_exr_writer_round_trips_bit_exactly(tmp_path):
 
 
 def test_obj_y_up_becomes_z_up_and_loads():
-    from optimizer.mesh import load_mesh
+    from optimizer.scenes.mesh import load_mesh
 
     out = reg.obj_y_up_to_z_up(Y_UP_OBJ.encode(), "t").decode()
     assert "mtllib" not in out and "usemtl" not in out
@@ -467,7 +467,7 @@ def test_bad_registry_entries_get_one_line_errors(fixtures, capsys, tmp_path, ol
 
 
 def test_pack_from_registry_assets(server, fixtures, capsys, tmp_path):
-    from optimizer.scenepack import load_pack
+    from optimizer.scenes.scenepack import load_pack
 
     man = _manifest(tmp_path, fixtures)
     dest = tmp_path / "d"
@@ -524,7 +524,7 @@ def _fake_data(root: Path) -> None:
 
 
 def test_real_packs_validate_and_name_manifest_files(tmp_path):
-    from optimizer.scenepack import load_pack
+    from optimizer.scenes.scenepack import load_pack
 
     _fake_data(tmp_path)
     (tmp_path / "packs").mkdir()
@@ -546,7 +546,7 @@ def test_real_packs_validate_and_name_manifest_files(tmp_path):
 
 
 def test_doctor_lists_real_packs(tmp_path, capsys):
-    from optimizer.doctor import real_packs
+    from camo.doctor import real_packs
 
     (tmp_path / "packs").mkdir()
     shutil.copytree(PACKS, tmp_path / "packs" / "real", ignore=shutil.ignore_patterns("*.py", "__pycache__"))
@@ -558,8 +558,8 @@ def test_doctor_lists_real_packs(tmp_path, capsys):
 
 
 def test_real_grid_parses_into_eight_pairs():
-    from optimizer.doctor import real_packs
-    from optimizer.grid.spec import load_grid
+    from camo.doctor import real_packs
+    from camo.grid.spec import load_grid
 
     if not all(ok for _, ok, _ in real_packs()):
         pytest.skip("the real data is not fetched into data/real (camo data fetch ...); the grid checks its packs exist")
@@ -602,8 +602,8 @@ def test_real_hdri_and_real_mesh_prepare_optimise_evaluate(tmp_path):
 
     import pandas as pd
 
-    from optimizer.placement import prepare_object
-    from optimizer.scenepack import load_pack
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.scenes.scenepack import load_pack
 
     data = _real_data()
     pack_path = tmp_path / "sky-duck.toml"

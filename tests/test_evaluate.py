@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from optimizer.cli import main
+from camo.cli import main
 
 TINY = ["--iterations", "2", "--views", "4", "--resolution", "32", "--map-resolution", "32",
         "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "8", "--quiet",
@@ -53,7 +53,7 @@ def eval_dir_big(runs, tmp_path_factory):
 
 
 def srgb8(linear):
-    from optimizer.imaging import linear_to_srgb, to_uint8
+    from camo_base.imaging import linear_to_srgb, to_uint8
 
     return to_uint8(linear_to_srgb(linear))
 
@@ -67,8 +67,8 @@ def png(path):
 
 
 def test_evaluation_cameras_are_novel_bounded_and_shared(runs, eval_dir):
-    from optimizer.cameras import cameras
-    from optimizer.errors import CamoError
+    from optimizer.scenes.cameras import cameras
+    from camo_base.errors import CamoError
     from evaluation.views import evaluation_cameras, load_run
 
     ra, rb = load_run(runs[0]), load_run(runs[1])
@@ -181,11 +181,11 @@ def test_background_rendered_once_and_shared(eval_dir):
 def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     """maps + result.ply through object_bsdf reproduce renders.npz (roughness is not applied twice)."""
     mi, _ = mi_backend
-    from optimizer.appearance import object_bsdf
-    from optimizer import scene as scn
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.render import render_shaded
+    from optimizer.rendering.appearance import object_bsdf
+    from optimizer.rendering import scene as scn
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.render import render_shaded
     from evaluation.views import load_result, load_run, object_mesh_of
 
     run = load_run(runs[0])
@@ -231,9 +231,9 @@ def test_renders_json_in_the_study_format(eval_dir):
         assert e["mask"] == f"renders/{e['run']}/view_{e['view']:02d}_mask.png"
         depth = np.load(eval_dir / e["depth"])
         assert depth.shape == (32, 32) and depth.dtype == np.float32 and (depth > 0).any()
-    from study_site.stimuli import _read_renders
+    from evaluation.evaldir import read_renders
 
-    assert len(_read_renders(eval_dir)) == 8
+    assert len(read_renders(eval_dir)) == 8
 
 
 # --- reports ------------------------------------------------------------------------------------------------
@@ -384,10 +384,10 @@ def test_hidden_object_gives_no_crop_scores():
 
 
 def test_read_ply_round_trips_export(tmp_path):
-    from optimizer.asset import map_values_from_rendered
-    from optimizer.export import write_ply
-    from optimizer.rundir import read_ply
-    from optimizer.scene import effective_roughness
+    from optimizer.assets.asset import map_values_from_rendered
+    from optimizer.assets.export import write_ply
+    from optimizer.assets.rundir import read_ply
+    from optimizer.rendering.scene import effective_roughness
 
     rng = np.random.default_rng(1)
     v = rng.normal(size=(30, 3)).astype(np.float32)

@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from optimizer.cli import main
+from camo.cli import main
 
 TINY = ["--iterations", "2", "--views", "4", "--resolution", "32", "--map-resolution", "32",
         "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "8", "--quiet",
@@ -122,8 +122,8 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
     there, and the unquantised run moved by 0.02-0.15 dB per view between machines (CI, 2026-11-23), the size of
     the seed-to-seed noise. That effect is only bounded loosely here (< 0.5 dB per view), where a decoding error
     (sRGB read as linear, a flipped V) costs several dB."""
-    from optimizer.asset import load_asset
-    from optimizer.export import save_maps
+    from optimizer.assets.asset import load_asset
+    from optimizer.assets.export import save_maps
 
     quant = tmp_path / "gravel_quantised"
     shutil.copytree(run, quant)
@@ -153,8 +153,8 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
 
 
 def test_run_asset_reads_the_same_mesh_and_maps_as_the_run(run):
-    from optimizer.asset import load_asset, place
-    from optimizer.rundir import open_run
+    from optimizer.assets.asset import load_asset, place
+    from optimizer.assets.rundir import open_run
 
     r = open_run(run)
     a = r.asset()
@@ -170,7 +170,7 @@ def test_run_asset_reads_the_same_mesh_and_maps_as_the_run(run):
             tol = 0.5 / 255 * 12.92 if k == "albedo" else 0.5 / 255 + 1e-6
             np.testing.assert_allclose(b.maps[k].reshape(a.maps[k].shape), a.maps[k], atol=tol, err_msg=f"{f} {k}")
     # the maps as optimised: roughness inverted once (what object_bsdf takes)
-    from optimizer.scene import effective_roughness
+    from optimizer.rendering.scene import effective_roughness
 
     np.testing.assert_allclose(effective_roughness(a.values()["roughness"]), a.maps["roughness"], atol=1e-6)
 
@@ -179,9 +179,9 @@ def test_run_asset_reads_the_same_mesh_and_maps_as_the_run(run):
 
 
 def test_trimesh_glb_is_placed_by_the_scenes_pose(tmp_path):
-    from optimizer.asset import load_asset, place
-    from optimizer.imaging import srgb_to_linear
-    from optimizer.scenepack import resolve_scene
+    from optimizer.assets.asset import load_asset, place
+    from camo_base.imaging import srgb_to_linear
+    from optimizer.scenes.builtin_scenes import resolve_scene
 
     glb = textured_box_glb(tmp_path / "box.glb")
     a = load_asset(glb)
@@ -203,8 +203,8 @@ def test_trimesh_glb_is_placed_by_the_scenes_pose(tmp_path):
 
 
 def test_gltf_reader_node_transform_factors_and_extensions(tmp_path):
-    from optimizer import export
-    from optimizer.asset import load_asset
+    from optimizer.assets import export
+    from optimizer.assets.asset import load_asset
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
     f = np.array([[0, 1, 2]])
@@ -236,8 +236,8 @@ def _write(path: Path, data: bytes) -> Path:
 
 
 def test_obj_mtl_pbr_keys_and_transmission_fallbacks(tmp_path):
-    from optimizer.asset import load_asset
-    from optimizer.imaging import srgb_to_linear
+    from optimizer.assets.asset import load_asset
+    from camo_base.imaging import srgb_to_linear
 
     Image.fromarray(np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 255]]], np.uint8)).save(
         tmp_path / "kd.png")
@@ -297,9 +297,9 @@ def test_triplet_folder_is_scored_like_renders_and_usable_as_stimuli(tmp_path):
     np.testing.assert_array_equal(np.asarray(Image.open(out / e["image"])), objs[1])
     np.testing.assert_array_equal(np.asarray(Image.open(out / e["mask"])) > 0, masks[1])
     assert np.load(out / e["depth"]).max() == 4.0
-    from study_site.stimuli import _read_renders
+    from evaluation.evaldir import read_renders
 
-    assert len(_read_renders(out)) == 3
+    assert len(read_renders(out)) == 3
     md = (out / "report.md").read_text()
     assert "given images, 48x48 px" not in md  # one protocol only: no protocol suffix
     assert re.search(r"\| 2D inpainting \|.*\| - \| - \| - \| 3\.5 \| - \|", md), md
@@ -400,7 +400,7 @@ def test_pareto_front():
 
 
 def test_unsupported_asset_features_are_one_line_errors(run, tmp_path, capsys):
-    from optimizer import export
+    from optimizer.assets import export
 
     js0, bin0 = export.read_glb(run / "result.glb")
 
@@ -461,8 +461,8 @@ def test_unsupported_asset_features_are_one_line_errors(run, tmp_path, capsys):
 
 
 def test_unused_second_uv_set_and_ignored_maps_are_stated_fallbacks(run, tmp_path):
-    from optimizer import export
-    from optimizer.asset import load_asset
+    from optimizer.assets import export
+    from optimizer.assets.asset import load_asset
 
     js, bin_ = export.read_glb(run / "result.glb")
     js["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_1"] = 2
@@ -479,7 +479,7 @@ def test_run_seconds_of_older_run_directories_come_from_log_jsonl(run, tmp_path)
     logged, else seconds); what a run does not record is NaN (Table II shows '-')."""
     import shutil
 
-    from optimizer.rundir import open_run
+    from optimizer.assets.rundir import open_run
 
     old = tmp_path / "old_run"
     shutil.copytree(run, old)
@@ -503,7 +503,7 @@ def test_gltf_text_file_interleaved_normalized_uvs_rotation_and_image_file(tmp_p
     sampler, no metallicRoughness texture (factors only)."""
     import base64
 
-    from optimizer.asset import load_asset
+    from optimizer.assets.asset import load_asset
 
     pos = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1]], np.float32)
     uv16 = np.array([[0, 0], [65535, 0], [0, 65535]], np.uint16)
@@ -537,12 +537,12 @@ def test_gltf_text_file_interleaved_normalized_uvs_rotation_and_image_file(tmp_p
     np.testing.assert_allclose(a.vertices, np.stack([yup[:, 0], -yup[:, 2], yup[:, 1]], 1), atol=1e-6)
     np.testing.assert_allclose(a.uvs, [[0, 0], [1, 0], [0, 1]], atol=1e-6)
     assert a.faces.tolist() == [[0, 1, 2]] and a.wrap == "repeat"
-    from optimizer.imaging import srgb_to_linear
+    from camo_base.imaging import srgb_to_linear
 
     np.testing.assert_allclose(a.maps["albedo"][0, 0], srgb_to_linear(np.full(3, 128 / 255)), atol=1e-6)
     assert float(a.maps["roughness"]) == pytest.approx(0.4) and float(a.maps["metallic"]) == 0.0
     (tmp_path / "base.png").unlink()
-    from optimizer.errors import CamoError
+    from camo_base.errors import CamoError
 
     with pytest.raises(CamoError, match="not found"):
         load_asset(tmp_path / "t.gltf")

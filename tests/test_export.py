@@ -14,9 +14,9 @@ import struct
 import numpy as np
 import pytest
 
-from optimizer import export, scene_xml
-from optimizer.errors import CamoError
-from optimizer.imaging import linear_to_srgb, save_exr
+from optimizer.assets import export, scene_xml
+from camo_base.errors import CamoError
+from camo_base.imaging import linear_to_srgb, save_exr
 
 ETA = 1.45
 
@@ -48,7 +48,7 @@ def asset():
 
 
 def _rendered_roughness(r):
-    from optimizer.scene import effective_roughness
+    from optimizer.rendering.scene import effective_roughness
 
     return effective_roughness(r).astype(np.float32)
 
@@ -57,7 +57,7 @@ def _rendered_roughness(r):
 
 
 def _panorama_env(tmp_path):
-    from optimizer import environments as E
+    from optimizer.scenes import environments as E
 
     rng = np.random.default_rng(3)
     pano = rng.uniform(0.2, 2.0, (32, 64, 3)).astype(np.float32)
@@ -69,10 +69,10 @@ def _panorama_env(tmp_path):
 @pytest.mark.parametrize("env_name", ["room", "gravel", "panorama"])
 def test_scene_xml_renders_like_the_dict_scene(mi_backend, asset, tmp_path, env_name):
     mi, _ = mi_backend
-    from optimizer import environments as E
-    from optimizer import scene as scn
-    from optimizer.cameras import Camera
-    from optimizer.render import coverage_and_depth, render_shaded
+    from optimizer.scenes import environments as E
+    from optimizer.rendering import scene as scn
+    from optimizer.scenes.cameras import Camera
+    from optimizer.rendering.render import coverage_and_depth, render_shaded
 
     build = _panorama_env(tmp_path) if env_name == "panorama" else E.ENVIRONMENTS[env_name][1]
     v, f, uv, maps = asset
@@ -158,7 +158,7 @@ def test_scene_xml_keeps_to_uv_translation_and_tensor_data(mi_backend, tmp_path)
 
 
 def test_identical_textures_are_written_once(mi_backend, tmp_path):
-    from optimizer import environments as E
+    from optimizer.scenes import environments as E
 
     scene_xml.write_scene_xml(tmp_path / "scene.xml", E.ENVIRONMENTS["room"][1](), None, None, [], None)
     names = sorted(p.name for p in (tmp_path / "textures").glob("*.exr"))
@@ -166,12 +166,12 @@ def test_identical_textures_are_written_once(mi_backend, tmp_path):
 
 
 def test_instantiated_mitsuba_objects_raise_camo_error(mi_backend, tmp_path):
-    from optimizer.environments import xml_environment
+    from optimizer.scenes.environments import xml_environment
 
     user = tmp_path / "user.xml"
     user.write_text('<scene version="3.0.0"><shape type="sphere"/>'
                     '<emitter type="constant"/></scene>')
-    from optimizer import environments as E
+    from optimizer.scenes import environments as E
 
     elements = {**E.ENVIRONMENTS["gravel"][1](), **xml_environment(user).build()}
     with pytest.raises(CamoError, match="shape_0.*instantiated Mitsuba"):
@@ -280,7 +280,7 @@ def test_glb_loads_in_trimesh_with_srgb_base_color(asset, tmp_path):
 
 def test_glb_normals_match_mitsuba(mi_backend, asset):
     mi, _ = mi_backend
-    from optimizer import scene as scn
+    from optimizer.rendering import scene as scn
 
     v, f, uv, _ = asset
     mesh = scn.object_mesh(v, f, uv, {"type": "diffuse"})
@@ -357,9 +357,9 @@ def _affine_uv(vertices, uvs):
 def red_quadrant_render(mi_backend):
     """Mitsuba render of the quad with a red top-left image quadrant; per pixel: world xy, hit, red."""
     mi, dr = mi_backend
-    from optimizer import scene as scn
-    from optimizer.cameras import Camera
-    from optimizer.render import camera_rays, render_shaded
+    from optimizer.rendering import scene as scn
+    from optimizer.scenes.cameras import Camera
+    from optimizer.rendering.render import camera_rays, render_shaded
 
     h, w = 8, 8
     albedo = np.full((h, w, 3), 0.3, np.float32)

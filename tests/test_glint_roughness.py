@@ -17,7 +17,7 @@ def test_fibonacci_hemisphere_is_unit_and_upper(bench_module):
 
 
 def test_brightest_direction_finds_the_sun_disc_centre(bench_module, mi_backend):
-    from optimizer.environments import sun_direction, sunsky
+    from optimizer.scenes.environments import sun_direction, sunsky
 
     gr = bench_module("glint_roughness")
     found, lum = gr.brightest_direction({"sky": sunsky(30.0, 100.0, turbidity=3.0)}, n=1_000_000)

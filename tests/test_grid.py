@@ -18,10 +18,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from optimizer import cli
-from optimizer.grid.cell import read_attempts
-from optimizer.grid.executors import available_cores
-from optimizer.grid.spec import load_grid
+from camo import cli
+from camo.grid.cell import read_attempts
+from camo.grid.executors import available_cores
+from camo.grid.spec import load_grid
 
 TINY_OPTIMIZE = """
 [optimize]
@@ -52,9 +52,9 @@ ablations = ["none", "pose"]
 
 @pytest.fixture(autouse=True)
 def grid_plugin(monkeypatch):
-    """`camo grid` through optimizer.cli.main, whether or not PLUGINS lists it yet."""
-    if "optimizer.grid" not in cli.PLUGINS:
-        monkeypatch.setattr(cli, "PLUGINS", (*cli.PLUGINS, "optimizer.grid"))
+    """`camo grid` through camo.cli.main, whether or not PLUGINS lists it yet."""
+    if "camo.grid" not in cli.PLUGINS:
+        monkeypatch.setattr(cli, "PLUGINS", (*cli.PLUGINS, "camo.grid"))
 
 
 def camo(*argv) -> int:
@@ -132,7 +132,7 @@ def test_bad_cli_input(tmp_path, capsys):
 
 
 def test_one_driver_per_output_folder(tmp_path, capsys):
-    from optimizer.grid.runner import _driver_lock
+    from camo.grid.runner import _driver_lock
 
     grid = write(tmp_path / "grid.toml", TINY)
     with _driver_lock(tmp_path / "out"):
@@ -144,7 +144,7 @@ def test_one_driver_per_output_folder(tmp_path, capsys):
 
 def test_a_running_cell_is_left_alone(tmp_path, capsys):
     """A cell whose lock another process holds (say a worker orphaned by a killed driver) is not run again."""
-    from optimizer.grid.cell import _CellLock, run_cell
+    from camo.grid.cell import _CellLock, run_cell
 
     grid = write(tmp_path / "grid.toml", 'scenes = ["gravel"]\nmethods = ["mean"]\n' + TINY_OPTIMIZE)
     (cell,) = load_grid(grid).cells
@@ -370,7 +370,7 @@ def test_failed_and_crashed_cells_are_recorded_and_do_not_stop_the_others(tmp_pa
 
 def test_ray_executor_on_a_local_loopback_ray(tmp_path, capsys):
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'camo-toolkit[cluster]')")
-    from optimizer.grid.executors import RayExecutor
+    from camo.grid.executors import RayExecutor
 
     grid = write(tmp_path / "grid.toml", 'scenes = ["gravel"]\nmethods = ["mean"]\n' + TINY_OPTIMIZE)
     out = tmp_path / "out"
@@ -425,8 +425,8 @@ def test_sigint_in_a_subprocess_then_resume(tmp_path, executor):
         pytest.importorskip("ray", reason="ray is not installed (pip install 'camo-toolkit[cluster]')")
     grid = write(tmp_path / "grid.toml", TINY)
     out = tmp_path / "out"
-    script = ("import sys, optimizer.cli as c\n"
-              "c.PLUGINS = c.PLUGINS if 'optimizer.grid' in c.PLUGINS else (*c.PLUGINS, 'optimizer.grid')\n"
+    script = ("import sys, camo.cli as c\n"
+              "c.PLUGINS = c.PLUGINS if 'camo.grid' in c.PLUGINS else (*c.PLUGINS, 'camo.grid')\n"
               "if __name__ == '__main__':\n    sys.exit(c.main(sys.argv[1:]))\n")
     (tmp_path / "camo_main.py").write_text(script)
     cmd = [sys.executable, str(tmp_path / "camo_main.py"), "grid", "run", str(grid), "--out", str(out), "--quiet",

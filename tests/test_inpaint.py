@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import skimage.data
 
-from optimizer.errors import CamoError
-from optimizer.inpaint import DEFAULT_INPAINTER, INPAINTERS, get_inpainter
-from optimizer.inpainting.patch import PatchInpainter, log_depth, telea_fill
+from camo_base.errors import CamoError
+from optimizer.optimise.inpaint import DEFAULT_INPAINTER, INPAINTERS, get_inpainter
+from optimizer.optimise.inpainting.patch import PatchInpainter, log_depth, telea_fill
 
 H = W = 256
 
@@ -78,7 +78,7 @@ def test_bad_patch_options_are_camoerror():
 
 
 def test_import_is_light():
-    code = "import sys, optimizer.inpaint; print('torch' in sys.modules, 'diffusers' in sys.modules)"
+    code = "import sys, optimizer.optimise.inpaint; print('torch' in sys.modules, 'diffusers' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "False"]
 
@@ -312,7 +312,7 @@ def test_tiny_image_falls_back_to_smooth_fill(patch):
 
 
 def test_renoise_mix_limits_and_scales():
-    from optimizer.inpainting.patch import renoise_mix
+    from optimizer.optimise.inpainting.patch import renoise_mix
 
     rng = np.random.default_rng(0)
     img = rng.random((40, 40, 3), dtype=np.float32)

@@ -15,18 +15,14 @@ import pytest
 pytest.importorskip("diffusers")
 pytest.importorskip("transformers")
 
-from optimizer.errors import CamoError  # noqa: E402
-from optimizer.inpaint import diffusers_status, get_inpainter  # noqa: E402
-from optimizer.inpainting.diffusers_backend import (  # noqa: E402
-    DiffusersInpainter,
-    depth_control_image,
-    pipeline_size,
-)
+from camo_base.errors import CamoError  # noqa: E402
+from optimizer.optimise.inpaint import diffusers_status, get_inpainter  # noqa: E402
+from optimizer.optimise.inpainting.diffusers_backend import DiffusersInpainter, depth_control_image, pipeline_size
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    from optimizer.inpainting._tiny import build_tiny_sdxl_controlnet_inpaint
+    from optimizer.optimise.inpainting._tiny import build_tiny_sdxl_controlnet_inpaint
 
     root = tmp_path_factory.mktemp("tiny_sdxl")
     sdxl, cn = build_tiny_sdxl_controlnet_inpaint(root)
@@ -98,7 +94,7 @@ def test_pipeline_size_and_depth_control_image():
 
 
 def test_mask_resize_is_conservative():
-    from optimizer.inpainting.diffusers_backend import _resize_mask
+    from optimizer.optimise.inpainting.diffusers_backend import _resize_mask
 
     m = np.zeros((50, 70), bool)
     m[17, 33] = True  # one object pixel must never vanish
@@ -135,7 +131,7 @@ def test_missing_and_broken_folders_are_one_line_camoerrors(tiny, tmp_path, monk
     f.write_text("x")
     assert "not a folder" in _camo_error(sdxl_path=str(f), controlnet_path=str(cn))
     # nothing given and nothing in the offline cache (a repo id no cache holds, so a real cached SDXL is never loaded)
-    import optimizer.inpainting.diffusers_backend as backend
+    import optimizer.optimise.inpainting.diffusers_backend as backend
 
     monkeypatch.setattr(backend, "DEFAULT_SDXL_REPO", "camo-tests/no-such-sdxl-inpainting")
     msg = _camo_error(sdxl_path=None, controlnet_path=None)
@@ -168,7 +164,7 @@ def test_depth_conditioning_reaches_the_pipeline(inpainter):
 
 def test_plain_4_channel_unet_layout(tmp_path):
     """An SDXL base UNet (4 input channels, inpainting by latent blending) loads and runs too."""
-    from optimizer.inpainting._tiny import build_tiny_sdxl_controlnet_inpaint
+    from optimizer.optimise.inpainting._tiny import build_tiny_sdxl_controlnet_inpaint
 
     sdxl, cn = build_tiny_sdxl_controlnet_inpaint(tmp_path, unet_in_channels=4)
     inp = get_inpainter("diffusers", sdxl_path=str(sdxl), controlnet_path=str(cn), resolution=64, num_inference_steps=2)

@@ -1,4 +1,4 @@
-"""Tests of optimizer/loss.py: Eq. 9 (luminance-gated chromaticity loss) and MSE, Dr.Jit vs NumPy."""
+"""Tests of optimizer/optimise/loss.py: Eq. 9 (luminance-gated chromaticity loss) and MSE, Dr.Jit vs NumPy."""
 
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from optimizer import backend
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 backend.init()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-from optimizer import loss as L  # noqa: E402
+from optimizer.optimise import loss as L  # noqa: E402
 
 W709 = np.array([0.2126, 0.7152, 0.0722])
 

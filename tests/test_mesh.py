@@ -14,9 +14,9 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from optimizer import mesh as M
-from optimizer import primitives
-from optimizer.errors import CamoError
+from optimizer.scenes import mesh as M
+from optimizer.scenes import primitives
+from camo_base.errors import CamoError
 
 # --------------------------------------------------------------------------- helpers
 
@@ -584,7 +584,7 @@ def test_gltf_is_turned_z_up(tmp_path):
     """glTF is +Y up by specification: a tall box exported to GLB comes back tall along z."""
     import trimesh
 
-    from optimizer.mesh import load_mesh
+    from optimizer.scenes.mesh import load_mesh
 
     box = trimesh.creation.box([0.2, 1.0, 0.3])  # tallest along y, as a glTF author would model "up"
     box.export(tmp_path / "tall.glb")

@@ -20,26 +20,8 @@ from scipy import linalg, ndimage, signal
 from skimage import data
 from skimage.metrics import structural_similarity
 
-from evaluation.metrics import (
-    METRICS,
-    MIN_SIZE,
-    WEIGHT_FREE,
-    apply_crop,
-    compute_metrics,
-    crop_side,
-    feature_statistics,
-    frechet_distance,
-    haarpsi,
-    lpips_proxy,
-    metric_unavailable,
-    object_crop_box,
-    psnr,
-    sifid_proxy,
-    ssim,
-    to_batch,
-    weights_sha256,
-)
-from optimizer.errors import CamoError
+from evaluation.metrics import METRICS, MIN_SIZE, WEIGHT_FREE, apply_crop, compute_metrics, crop_side, feature_statistics, frechet_distance, haarpsi, lpips_proxy, metric_unavailable, object_crop_box, psnr, sifid_proxy, ssim, to_batch, weights_sha256
+from camo_base.errors import CamoError
 
 
 def _rng(seed: int = 0) -> np.random.Generator:

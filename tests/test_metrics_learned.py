@@ -16,7 +16,7 @@ from evaluation.metrics import compute_metrics, load_dreamsim, load_lpips, load_
 from evaluation.metrics import metric_unavailable, weights_sha256
 from evaluation.metrics import weights as weights_mod
 from evaluation.metrics.lpips import LPIPS_CHANNELS, LPIPS_SCALE, LPIPS_SHIFT
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 ALEX_CONVS = {0: (64, 3, 11, 4, 2), 3: (192, 64, 5, 1, 2), 6: (384, 192, 3, 1, 1), 8: (256, 384, 3, 1, 1),
               10: (256, 256, 3, 1, 1)}

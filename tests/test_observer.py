@@ -8,9 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from evaluation.observer import (ObserverConfig, make_cells, predict_stimulus, predicted_table, simulate_search,
-                                 srgb_to_lab)
-from optimizer.errors import CamoError
+from evaluation.observer import ObserverConfig, make_cells, predict_stimulus, predicted_table, simulate_search, srgb_to_lab
+from camo_base.errors import CamoError
 
 N = 256
 

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from optimizer.cli import main
+from camo.cli import main
 
 TINY = ["--views", "4", "--resolution", "32", "--map-resolution", "64", "--displacement-resolution", "32",
         "--target-vertices", "1500", "--spp", "4", "--target-spp", "32", "--quiet", "--stages", "1",
@@ -126,8 +126,8 @@ def test_corrupt_checkpoint_is_one_line_error(tmp_path, capsys):
 
 
 def test_parse_init():
-    from optimizer.errors import CamoError
-    from optimizer.optimize_cli import parse_init
+    from camo_base.errors import CamoError
+    from camo.optimize_cli import parse_init
 
     assert parse_init("") == {}
     assert parse_init("roughness=0.5, albedo=0.25") == {"roughness": 0.5, "albedo": (0.25, 0.25, 0.25)}
@@ -140,8 +140,8 @@ def test_parse_init():
 
 
 def test_built_in_scenes_start_rough_user_packs_at_the_paper_values(tmp_path):
-    from optimizer import builtin_scenes
-    from optimizer.scenepack import MaterialSpec, parse_pack
+    from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.scenepack import MaterialSpec, parse_pack
 
     rough = MaterialSpec(albedo=(0.5, 0.5, 0.5), metallic=0.0, roughness=0.5, transmittance=0.5, eta=1.5)
     for name in [*builtin_scenes.names(), "room:vase", "meadow:chair"]:

@@ -7,9 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from optimizer import builtin_scenes
-from optimizer.environments import ENVIRONMENTS, Environment
-from optimizer.planner import plan
+from optimizer.scenes import builtin_scenes
+from optimizer.scenes.environments import ENVIRONMENTS, Environment
+from optimizer.rendering.planner import plan
 
 
 def env_of(name: str) -> Environment:
@@ -72,7 +72,7 @@ def test_rendering_uses_path_tracing(purpose):
 
 
 def test_training_integrator_gives_silhouettes_a_per_view_budget():
-    from optimizer.planner import full_plan, silhouette_samples, training_integrator
+    from optimizer.rendering.planner import full_plan, silhouette_samples, training_integrator
 
     pack = builtin_scenes.get("meadow")
     p = plan(pack, env_of("meadow"), ALL)
@@ -94,7 +94,7 @@ def test_mitsuba_honours_the_silhouette_sample_count(mi_backend):
     """Rendered with spp=0, the primal pass takes the sampler's 4 spp (same image as spp=4) and the
     silhouette pass launches the budget (2 * (16 + 12) * 4 = 224 samples), not width*height*spp."""
     mi, dr = mi_backend
-    from optimizer.planner import training_integrator
+    from optimizer.rendering.planner import training_integrator
 
     def scene(integ):
         return mi.load_dict({
@@ -107,7 +107,7 @@ def test_mitsuba_honours_the_silhouette_sample_count(mi_backend):
             "ball": {"type": "obj", "filename": str(_sphere_obj()), "bsdf": {"type": "diffuse"}},
         })
 
-    from optimizer.planner import Plan
+    from optimizer.rendering.planner import Plan
 
     base = {"type": "prb_projective", "max_depth": 3, "rr_depth": 3, "sppi": 0}
     integ, spp = training_integrator(Plan(base, False, 3, "", []), 4, (16, 12))
@@ -172,7 +172,7 @@ def test_smooth_start_under_a_compact_light_is_flagged():
 
 
 def _pano(tmp_path, spot: float):
-    from optimizer.imaging import save_exr
+    from camo_base.imaging import save_exr
 
     pano = np.random.default_rng(0).uniform(0.5, 2.0, (64, 128, 3)).astype(np.float32)
     pano[10:12, 40:42] = spot
@@ -182,7 +182,7 @@ def _pano(tmp_path, spot: float):
 
 
 def test_a_sun_baked_into_a_panorama_is_flagged_like_the_sun(tmp_path, mi_backend):
-    from optimizer.environments import panorama_environment, xml_environment
+    from optimizer.scenes.environments import panorama_environment, xml_environment
 
     pack = builtin_scenes.get("panorama")
     pack.material = dataclasses.replace(pack.material, roughness=0.0)  # the paper's start

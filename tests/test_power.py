@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from optimizer.errors import CamoError
-from study_site.power import (parse_participants, participants_needed, power_curve, simulate_study, write_power)
+from camo_base.errors import CamoError
+from study_site.power import parse_participants, participants_needed, power_curve, simulate_study, write_power
 
 
 def cells(confusion: dict[str, float], scenes=("s1", "s2"), n=400, rt_found=2.0, limit=40.0, seed=0):

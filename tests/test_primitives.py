@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from optimizer import primitives
-from optimizer.errors import CamoError
+from optimizer.scenes import primitives
+from camo_base.errors import CamoError
 
 NAMES = sorted(primitives.PRIMITIVES)
 

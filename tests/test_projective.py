@@ -1,4 +1,4 @@
-"""The budgeted projective integrators (optimizer/projective.py): N primary-silhouette samples per view give
+"""The budgeted projective integrators (optimizer/rendering/projective.py): N primary-silhouette samples per view give
 the same gradient as Mitsuba's ``W * H * sppp`` samples, checked against finite differences.
 
 Scene: a square area light (a 2-triangle mesh) in front of a black background, seen by a 32^2 camera
@@ -82,7 +82,7 @@ def _fd(mi, dr, obj: Path, ramp, rfilter: str, h: float = 0.05) -> float:
                                           ("prb_projective", "gaussian")])
 def test_budgeted_silhouette_gradient_matches_finite_differences_and_mitsuba(mi_backend, tmp_path, base, rfilter):
     mi, dr = mi_backend
-    from optimizer.projective import NAMES
+    from optimizer.rendering.projective import NAMES
 
     obj = _square_obj(tmp_path)
     ramp = _ramp(mi)
@@ -109,7 +109,7 @@ def test_budgeted_silhouette_gradient_matches_finite_differences_and_mitsuba(mi_
 def test_silhouette_pass_launches_the_budget(mi_backend, tmp_path):
     """The silhouette kernels run N samples, not the film's (W + 2 * border) * (H + 2 * border) * sppp."""
     mi, dr = mi_backend
-    from optimizer.projective import NAMES
+    from optimizer.rendering.projective import NAMES
 
     obj = _square_obj(tmp_path)
     ramp = _ramp(mi)
@@ -127,7 +127,7 @@ def test_silhouette_pass_launches_the_budget(mi_backend, tmp_path):
 
 
 def test_equivalent_spp():
-    from optimizer.projective import equivalent_spp
+    from optimizer.rendering.projective import equivalent_spp
 
     assert equivalent_spp(36, 36, 36 * 36 * 4) == pytest.approx(4.0)  # N = Mitsuba's count: its own weight
     assert equivalent_spp(132, 132, 1024) == pytest.approx(1024 / 132**2)
@@ -140,7 +140,7 @@ def test_silhouette_view_subset_is_the_weighted_sum_of_the_chosen_views(mi_backe
     constant emitter the whole gradient is the silhouette term, so the subset's gradient must equal the
     weighted sum of the per-view gradients (same seeds: same samples)."""
     mi, dr = mi_backend
-    from optimizer.projective import NAMES, silhouette_view_weights
+    from optimizer.rendering.projective import NAMES, silhouette_view_weights
 
     obj = _square_obj(tmp_path)
     ramp = _ramp(mi)

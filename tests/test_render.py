@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optimizer import scene as scn
-from optimizer.cameras import Camera
-from optimizer.environments import ENVIRONMENTS
-from optimizer.render import coverage_and_depth, render_shaded, render_views, split_batch
+from optimizer.rendering import scene as scn
+from optimizer.scenes.cameras import Camera
+from optimizer.scenes.environments import ENVIRONMENTS
+from optimizer.rendering.render import coverage_and_depth, render_shaded, render_views, split_batch
 
 
 def _box_obj():
@@ -89,7 +89,7 @@ def test_background_equals_full_render_away_from_object(mi_backend):
     bsdf = scn.principled((0.5, 0.5, 0.5), 0.0, 0.0, 0.0)
     vr = render_views(build, _obj_fn(m, bsdf), CAMS, {"type": "path", "max_depth": 3}, spp=16, seed=5)
     assert vr.background.shape == (2, 32, 40, 3) and vr.mask.shape == (2, 32, 40)
-    from optimizer.stage1 import influence_domain
+    from optimizer.optimise.stage1 import influence_domain
 
     for v in range(2):
         dom = influence_domain(vr.background[v], vr.with_object[v], vr.coverage[v], 0.05, 3) > 0

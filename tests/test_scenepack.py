@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from optimizer.cli import main
-from optimizer.errors import CamoError
-from optimizer.scenepack import load_pack, parse_pack
+from camo.cli import main
+from camo_base.errors import CamoError
+from optimizer.scenes.scenepack import load_pack, parse_pack
 
 GOOD = """
 name = "yard"

@@ -14,13 +14,13 @@ def test_step_gradient_equals_per_view_reapplication(mi_backend):
     import drjit as dr
     import mitsuba as mi
 
-    from optimizer import builtin_scenes
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.placement import prepare_object
-    from optimizer.planner import plan
-    from optimizer.run import appearance_for
-    from optimizer.stage1 import Stage1, Stage1Config
+    from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import plan
+    from optimizer.optimise.run import appearance_for
+    from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     pack = builtin_scenes.get("gravel")
     pack.cameras = dataclasses.replace(pack.cameras, views=3)

@@ -8,20 +8,20 @@ import dataclasses
 import numpy as np
 import pytest
 
-from optimizer.cli import main
+from camo.cli import main
 
 
 @pytest.fixture(scope="module")
 def stage2(mi_backend, tmp_path_factory):
-    from optimizer import builtin_scenes
-    from optimizer.appearance import AppearanceConfig
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.inpaint import get_inpainter
-    from optimizer.placement import prepare_object
-    from optimizer.planner import plan
-    from optimizer.stage1 import Stage1Config
-    from optimizer.stage2 import Stage2, Stage2Config
+    from optimizer.scenes import builtin_scenes
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.optimise.inpaint import get_inpainter
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import plan
+    from optimizer.optimise.stage1 import Stage1Config
+    from optimizer.optimise.stage2 import Stage2, Stage2Config
 
     pack = builtin_scenes.get("gravel")
     pack.cameras = dataclasses.replace(pack.cameras, views=3)
@@ -49,8 +49,8 @@ def test_pseudo_gt_changes_only_masked_pixels(stage2):
 def test_depth_is_aligned_and_in_scene_units(stage2, mi_backend):
     """Behind the object's pixels lies the ground, farther than the object itself; elsewhere depth is the
     distance to the ground plane z = 0 along the pixel's ray."""
-    from optimizer import scene as scn
-    from optimizer.render import coverage_and_depth
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.render import coverage_and_depth
 
     cam = stage2.cams[0]
     obj = stage2._object()
@@ -68,9 +68,9 @@ def test_depth_is_aligned_and_in_scene_units(stage2, mi_backend):
 
 def test_refinement_lowers_mse_to_pseudo_gt(stage2, mi_backend):
     from optimizer import backend
-    from optimizer.result import Result, render_result
-    from optimizer.stage1 import Stage1
-    from optimizer.stage2 import gamma_encode_np
+    from optimizer.assets.result import Result, render_result
+    from optimizer.optimise.stage1 import Stage1
+    from optimizer.optimise.stage2 import gamma_encode_np
 
     def mse():
         res = Result(stage2.pack, stage2.env, stage2.cams, stage2.geometry, stage2.current_values(), stage2.app,
@@ -102,7 +102,7 @@ def test_gamma_encoding_keeps_the_gradient_of_overexposed_pixels(mi_backend):
     import drjit as dr
     import mitsuba as mi
 
-    from optimizer.stage2 import gamma_encode_dr
+    from optimizer.optimise.stage2 import gamma_encode_dr
 
     x = mi.Float([0.0, 0.25, 1.0, 4.0])
     dr.enable_grad(x)
@@ -120,15 +120,15 @@ def test_fixed_displacement_keeps_stage1_geometry_and_drops_projective_sampling(
     """--stage2-fixed-displacement: Stage 2 trains the BSDF maps only; Stage 1's displacement stays applied
     (the mesh is displaced, not the base mesh) and unchanged, and with no geometry moving the planner
     switches to prb with one batch sensor."""
-    from optimizer import builtin_scenes
-    from optimizer.appearance import AppearanceConfig, initial_values, world_positions
-    from optimizer.cameras import cameras
-    from optimizer.environments import get_environment
-    from optimizer.inpaint import get_inpainter
-    from optimizer.placement import prepare_object
-    from optimizer.planner import plan
-    from optimizer.stage1 import Stage1Config
-    from optimizer.stage2 import Stage2, Stage2Config
+    from optimizer.scenes import builtin_scenes
+    from optimizer.rendering.appearance import AppearanceConfig, initial_values, world_positions
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
+    from optimizer.optimise.inpaint import get_inpainter
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import plan
+    from optimizer.optimise.stage1 import Stage1Config
+    from optimizer.optimise.stage2 import Stage2, Stage2Config
 
     pack = builtin_scenes.get("gravel")
     pack.cameras = dataclasses.replace(pack.cameras, views=2)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from optimizer.cli import main
+from camo.cli import main
 
 TINY = ["--views", "2", "--resolution", "24", "--map-resolution", "32", "--displacement-resolution", "16",
         "--target-vertices", "400", "--spp", "2", "--target-spp", "8", "--threads", "1", "--quiet",
@@ -111,7 +111,7 @@ def test_sigkill_after_the_first_checkpoint_then_resume_is_bit_exact(reference, 
     log record per iteration (records written after the checkpoint but before the kill are replaced).
     """
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "optimizer.cli", "optimize", "gravel", "--out", str(out), *TINY, *FULL]
+    cmd = [sys.executable, "-m", "camo.cli", "optimize", "gravel", "--out", str(out), *TINY, *FULL]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=dict(os.environ))
     deadline = time.monotonic() + 300
     try:
@@ -154,7 +154,7 @@ def test_small_iteration_count_then_resume_to_the_full_count(reference, tmp_path
     ``--iterations`` (2), then ``--resume`` with the full count (4).
 
     Expected: either the numbers of the uninterrupted 4-iteration run, or -- if a finished Stage 1 cannot be
-    extended -- a one-line error (exit 2) that leaves the run directory untouched. BUG (optimizer/run.py):
+    extended -- a one-line error (exit 2) that leaves the run directory untouched. BUG (optimizer/optimise/run.py):
     the first run's Stage 2 checkpoint makes the resume skip Stage 1 silently; it exits 0 with the 2-iteration
     Stage 1 result, while config.toml now records ``iterations = 4``.
     """
@@ -176,7 +176,7 @@ def test_resume_after_a_torn_last_log_line(reference, tmp_path):
     ``--resume``.
 
     Expected: the resume succeeds and rewrites the log from the checkpoint (the torn record was never
-    covered by a checkpoint), ending with the uninterrupted run's numbers. BUG (optimizer/run.py
+    covered by a checkpoint), ending with the uninterrupted run's numbers. BUG (optimizer/optimise/run.py
     ``_read_log``): ``json.loads`` of the torn line raises JSONDecodeError -- a traceback, exit 1.
     """
     out = tmp_path / "torn"
@@ -256,7 +256,7 @@ def test_corrupt_mesh_is_one_line_error_and_keeps_earlier_results(kind, guarded,
 
 
 def _exr(path: Path, img: np.ndarray) -> Path:
-    from optimizer.imaging import save_exr
+    from camo_base.imaging import save_exr
 
     save_exr(path, img.astype(np.float32))
     return path
@@ -363,7 +363,7 @@ def test_corrupt_checkpoint_is_one_line_error_and_keeps_the_run(kind, reference,
     NaN parameters or a non-numeric iteration count.
 
     Expected: exit 2, one stderr line, every file of the run directory (including the checkpoint) unchanged.
-    BUG (optimizer/run.py, adam.py, stage1.py): only unreadable archives are caught; a missing key
+    BUG (optimizer/optimise/run.py, adam.py, stage1.py): only unreadable archives are caught; a missing key
     (KeyError), a wrong shape (ValueError after config.toml and log.jsonl were rewritten) and a bad
     iteration (ValueError) are tracebacks, and NaN parameters are accepted silently (exit 0).
     """

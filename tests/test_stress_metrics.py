@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evaluation.metrics import METRICS, MIN_SIZE, RANGE_TOL, compute_metrics, frechet_distance
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 ALEX_CONVS = {0: (64, 3, 11), 3: (192, 64, 5), 6: (384, 192, 3), 8: (256, 384, 3), 10: (256, 256, 3)}
 LPIPS_ALEX_CHANNELS = (64, 192, 384, 256, 256)

@@ -26,15 +26,15 @@ backend.init()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-from optimizer import loss as L  # noqa: E402
-from optimizer.appearance import AppearanceConfig, clamp_projections, initial_values  # noqa: E402
-from optimizer.cameras import cameras  # noqa: E402
-from optimizer.environments import Environment, get_environment, plain_diffuse  # noqa: E402
-from optimizer.mesh import prepare_mesh  # noqa: E402
-from optimizer.planner import plan  # noqa: E402
-from optimizer.primitives import make_primitive  # noqa: E402
-from optimizer.scenepack import EnvironmentSpec, parse_pack  # noqa: E402
-from optimizer.stage1 import Stage1, Stage1Config  # noqa: E402
+from optimizer.optimise import loss as L  # noqa: E402
+from optimizer.rendering.appearance import AppearanceConfig, clamp_projections, initial_values  # noqa: E402
+from optimizer.scenes.cameras import cameras  # noqa: E402
+from optimizer.scenes.environments import Environment, get_environment, plain_diffuse  # noqa: E402
+from optimizer.scenes.mesh import prepare_mesh  # noqa: E402
+from optimizer.rendering.planner import plan  # noqa: E402
+from optimizer.scenes.primitives import make_primitive  # noqa: E402
+from optimizer.scenes.scenepack import EnvironmentSpec, parse_pack  # noqa: E402
+from optimizer.optimise.stage1 import Stage1, Stage1Config  # noqa: E402
 
 W709 = np.array(L.REC709)
 #: chroma per channel of a non-negative colour is <= 1 / W_c, so E_c|x~_o - x~_b| <= mean_c(1 / W_c)
@@ -731,7 +731,7 @@ def test_mesh_preparation_is_exactly_scale_invariant(tmp_path):
     """Hard case: the same icosphere at 1, 1e-4 and 1e4 (after normalisation the vertices differ by 1 ulp).
 
     Expected: the prepared meshes are the same mesh (same faces, vertices and UVs up to round-off), so
-    the optimiser cannot tell the input's units apart. BUG (optimizer/mesh.py ``_split_to_count``):
+    the optimiser cannot tell the input's units apart. BUG (optimizer/scenes/mesh.py ``_split_to_count``):
     longest-edge refinement sorts edges by float length and cuts the list at the vertex budget; an
     icosphere has many equal-length edges, so 1-ulp differences decide which are split and the three
     inputs get three different tessellations (553 / 541 / 540 UV vertices, vertices up to 0.08 apart).

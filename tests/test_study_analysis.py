@@ -8,15 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from study_site.analysis import (
-    bootstrap_confusion,
-    durations,
-    holm,
-    pairwise_tests,
-    table_i,
-    two_proportion_z,
-    wilson_ci,
-)
+from study_site.analysis import bootstrap_confusion, durations, holm, pairwise_tests, table_i, two_proportion_z, wilson_ci
 
 
 def _trials(rows):

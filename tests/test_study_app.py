@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 from study_site import create_app
 from study_site.cli import register
 from study_site.stimuli import StimulusSet, build_stimuli, outline_overlay

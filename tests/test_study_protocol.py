@@ -12,7 +12,7 @@ import re
 import numpy as np
 import pytest
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 from study_site import create_app
 from study_site.cli import register
 from study_site.stimuli import StimulusSet, build_stimuli, location_baselines
@@ -234,7 +234,7 @@ def test_leaking_practice_is_refused(tmp_path):
 
 
 def test_cli_leak_refusal_is_one_line_exit_2(tmp_path, capsys):
-    from optimizer.cli import main
+    from camo.cli import main
 
     make_fake_eval_dir(tmp_path / "formal", scenes=("s1",), methods=("m",), views=1, size=(40, 30))
     rc = main(["study", "build-stimuli", str(tmp_path / "formal"), "--out", str(tmp_path / "o"), "--copy",
@@ -249,7 +249,7 @@ def test_cli_leak_refusal_is_one_line_exit_2(tmp_path, capsys):
 
 
 def test_place_camera_puts_the_object_where_drawn():
-    from optimizer.cameras import Camera
+    from optimizer.scenes.cameras import Camera
     from study_site.render_stimuli import draw_placement, place_camera, project_ndc
 
     rng = np.random.default_rng(0)
@@ -320,7 +320,7 @@ def test_copy_mode_summary_reports_centre_bias(tmp_path):
 
 
 def test_id_key_outside_the_database(stim_dir, tmp_path, capsys):
-    from optimizer.cli import main
+    from camo.cli import main
 
     cfg = {"STIMULI_DIR": str(stim_dir), "DATABASE_URL": f"sqlite:///{tmp_path / 'k.sqlite'}"}
     with pytest.raises(CamoError, match=r"camo study make-key"):

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from optimizer.cli import main
-from optimizer.errors import CamoError
+from camo.cli import main
+from camo_base.errors import CamoError
 
 TINY = ["--method", "mean", "--iterations", "1", "--views", "2", "--resolution", "32", "--map-resolution", "32",
         "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "4",

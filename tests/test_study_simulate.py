@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 from study_site import create_app
 from study_site.simulate import check_loopback, parse_observer, simulate
 from study_site.stimuli import build_stimuli

@@ -19,18 +19,18 @@ Minimum image sizes are in :data:`MIN_SIZE`; crops come from :func:`object_crop_
 (side ``32 * ceil(d / 32) + 32``). No weights are ever downloaded (:mod:`.weights` says where they are found).
 """
 
-from ._common import MIN_SIZE, RANGE_TOL, to_batch
-from .crop import apply_crop, crop_side, object_crop_box
-from .dreamsim import dreamsim_distance, load_dreamsim
-from .frechet import feature_statistics, frechet_distance
-from .haarpsi import haarpsi, lpips_proxy
-from .lpips import LPIPSNet, load_lpips, lpips
-from .psnr import psnr
-from .registry import METRICS, WEIGHT_FREE, MetricSpec, compute_metrics, metric_unavailable
-from .sifid import SIFID_VARIANT, SIFID_VARIANTS, load_sifid_inception, sifid
-from .sifid_proxy import sifid_proxy
-from .ssim import ssim, ssim_map
-from .weights import weights_sha256
+from evaluation.metrics._common import MIN_SIZE, RANGE_TOL, to_batch
+from evaluation.metrics.crop import apply_crop, crop_side, object_crop_box
+from evaluation.metrics.dreamsim import dreamsim_distance, load_dreamsim
+from evaluation.metrics.frechet import feature_statistics, frechet_distance
+from evaluation.metrics.haarpsi import haarpsi, lpips_proxy
+from evaluation.metrics.lpips import LPIPSNet, load_lpips, lpips
+from evaluation.metrics.psnr import psnr
+from evaluation.metrics.registry import METRICS, WEIGHT_FREE, MetricSpec, compute_metrics, metric_unavailable
+from evaluation.metrics.sifid import SIFID_VARIANT, SIFID_VARIANTS, load_sifid_inception, sifid
+from evaluation.metrics.sifid_proxy import sifid_proxy
+from evaluation.metrics.ssim import ssim, ssim_map
+from evaluation.metrics.weights import weights_sha256
 
 __all__ = [
     "METRICS", "MIN_SIZE", "RANGE_TOL", "SIFID_VARIANT", "SIFID_VARIANTS", "WEIGHT_FREE", "LPIPSNet", "MetricSpec",

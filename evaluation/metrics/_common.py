@@ -5,9 +5,9 @@ is kept as it is). :func:`to_batch` also accepts NumPy images ``(H, W, 3)`` / ``
 (divided by 255).
 
 Range policy (HDR input): values in ``[-RANGE_TOL, data_range + RANGE_TOL]`` are clamped to
-``[0, data_range]`` (float round-off of :func:`optimizer.imaging.linear_to_srgb`); anything further outside,
-NaN or infinity raises :class:`~optimizer.errors.CamoError`. Linear HDR radiance is never clipped silently:
-encode it first with ``optimizer.imaging.linear_to_srgb`` (which tone-clips to ``[0, 1]``).
+``[0, data_range]`` (float round-off of :func:`camo_base.imaging.linear_to_srgb`); anything further outside,
+NaN or infinity raises :class:`~camo_base.errors.CamoError`. Linear HDR radiance is never clipped silently:
+encode it first with ``camo_base.imaging.linear_to_srgb`` (which tone-clips to ``[0, 1]``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Callable, Iterator, TypeVar, Union
 import numpy as np
 import torch
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 ImageLike = Union[torch.Tensor, np.ndarray]
 
@@ -125,7 +125,7 @@ def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torc
     if lo < -RANGE_TOL or hi > data_range + RANGE_TOL:
         raise CamoError(
             f"{name}: values in [{lo:.4g}, {hi:.4g}] are outside [0, {data_range:g}]; metrics take sRGB-encoded "
-            "images (encode HDR/linear radiance with optimizer.imaging.linear_to_srgb, which tone-clips)"
+            "images (encode HDR/linear radiance with camo_base.imaging.linear_to_srgb, which tone-clips)"
         )
     if lo < 0.0 or hi > data_range:
         t = t.clamp(0.0, data_range)

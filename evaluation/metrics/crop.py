@@ -8,7 +8,7 @@ from typing import Union
 import numpy as np
 import torch
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 CROP_MULTIPLE = 32
 CROP_MARGIN = 32

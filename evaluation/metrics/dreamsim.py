@@ -19,10 +19,10 @@ from typing import Any, Iterator, Optional, Union
 import torch
 import torch.nn.functional as F
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from ._common import ImageLike, prepare_pair
-from .weights import weights_sha256
+from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics.weights import weights_sha256
 
 PathLike = Union[str, os.PathLike]
 

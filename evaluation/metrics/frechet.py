@@ -7,7 +7,7 @@ from typing import Union
 import numpy as np
 import torch
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 ArrayLike = Union[np.ndarray, torch.Tensor]
 

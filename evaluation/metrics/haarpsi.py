@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from ._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
 
 #: Constants of the paper, fitted on natural images in the 0..255 scale.
 HAARPSI_C = 30.0

@@ -3,7 +3,7 @@
 Weights: a torchvision-format trunk state dict (``features.N.weight`` / ``.bias``; the ``classifier.*`` keys are
 ignored), e.g. ``alexnet-owt-7be5be79.pth`` / ``vgg16-397923af.pth``, plus the LPIPS v0.1 linear layers
 ``alex.pth`` / ``vgg.pth`` (keys ``lin{0..4}.model.1.weight``). See :mod:`evaluation.metrics.weights` for where
-they are looked up. Nothing is downloaded; missing weights raise :class:`~optimizer.errors.CamoError`.
+they are looked up. Nothing is downloaded; missing weights raise :class:`~camo_base.errors.CamoError`.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ from typing import Optional, Union
 import torch
 import torch.nn as nn
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from ._common import ImageLike, prepare_pair
-from .weights import find_lpips_lin_weights, find_trunk_weights, load_state_dict, take, weights_sha256
+from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights, load_state_dict, take, weights_sha256
 
 PathLike = Union[str, os.PathLike]
 

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ._common import ImageLike, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, metric_thread_policy, prepare_pair
 
 #: Elements per step of the fast path: x, y and their difference (3 x 128 kB) stay in the L2 cache.
 FAST_CHUNK = 32768

@@ -20,17 +20,17 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 
 import torch
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from ._common import ImageLike, prepare_pair
-from .dreamsim import DREAMSIM_TYPE, dreamsim_distance, load_dreamsim
-from .haarpsi import lpips_proxy
-from .lpips import LPIPS_VERSION, load_lpips, lpips
-from .psnr import psnr
-from .sifid import SIFID_VARIANT, load_sifid_inception, sifid
-from .sifid_proxy import SIFID_PROXY_VARIANT, sifid_proxy
-from .ssim import ssim
-from .weights import find_lpips_lin_weights, find_trunk_weights
+from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics.dreamsim import DREAMSIM_TYPE, dreamsim_distance, load_dreamsim
+from evaluation.metrics.haarpsi import lpips_proxy
+from evaluation.metrics.lpips import LPIPS_VERSION, load_lpips, lpips
+from evaluation.metrics.psnr import psnr
+from evaluation.metrics.sifid import SIFID_VARIANT, load_sifid_inception, sifid
+from evaluation.metrics.sifid_proxy import SIFID_PROXY_VARIANT, sifid_proxy
+from evaluation.metrics.ssim import ssim
+from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights
 
 
 @dataclass(frozen=True)

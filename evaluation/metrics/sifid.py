@@ -20,11 +20,11 @@ from typing import Optional, Union
 import torch
 import torch.nn as nn
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
-from ._common import ImageLike, prepare_pair
-from .frechet import frechet_of_feature_maps
-from .weights import find_trunk_weights, load_state_dict, take, weights_sha256
+from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics.frechet import frechet_of_feature_maps
+from evaluation.metrics.weights import find_trunk_weights, load_state_dict, take, weights_sha256
 
 PathLike = Union[str, os.PathLike]
 

@@ -22,8 +22,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ._common import ImageLike, chunks, metric_thread_policy, prepare_pair
-from .frechet import frechet_of_feature_maps
+from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics.frechet import frechet_of_feature_maps
 
 SIFID_PROXY_SCALES = (1.0, 2.0, 4.0)
 SIFID_PROXY_ORIENTATIONS_DEG = (0.0, 45.0, 90.0, 135.0)

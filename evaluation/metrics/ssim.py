@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
 
 #: Window of Wang et al.: Gaussian, sigma 1.5, truncated at 3.5 sigma -> 11 taps (scikit-image's choice).
 SSIM_SIGMA = 1.5

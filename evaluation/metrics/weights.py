@@ -22,7 +22,7 @@ from typing import Mapping, Optional, Union
 
 import torch
 
-from optimizer.errors import CamoError
+from camo_base.errors import CamoError
 
 PathLike = Union[str, os.PathLike]
 

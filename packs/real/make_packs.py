@@ -31,8 +31,8 @@ MATERIAL = "\n# Start rough (as the built-in scenes): a compact light mirrored b
 
 def main() -> int:
     sys.path.insert(0, str(REPO))
-    from optimizer.cli import main as camo
-    from optimizer.data.manifest import load_manifest
+    from camo.cli import main as camo
+    from optimizer.scenes.data.manifest import load_manifest
 
     hdris = [a.name for a in load_manifest(HDRIS).assets]
     objects = [a.name for a in load_manifest(OBJECTS).assets]

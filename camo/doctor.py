@@ -1,0 +1,129 @@
+"""``camo doctor``: can the toolkit run here, and which optional local weights are found.
+
+Weights are never downloaded; the lookup rules are those of the metrics
+(:mod:`evaluation.metrics.weights`: ``$TORCH_HOME/hub/checkpoints`` and the
+``lpips`` / ``torchmetrics`` wheels) and of the Stage 2 diffusers backend
+(``CAMO_SDXL_PATH`` / ``CAMO_CONTROLNET_PATH``). Exit 0 when the renderer works
+(weights are optional: every learned metric has a weight-free proxy and Stage 2
+has an offline inpainter).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+
+from camo_base.errors import CamoError
+
+
+def _line(label: str, value: str) -> None:
+    print(f"{label:<22} {value}")
+
+
+def _renderer() -> bool:
+    from optimizer import backend
+
+    try:
+        info = backend.init()
+        import drjit as dr
+        import mitsuba as mi
+
+        _line("mitsuba", f"{mi.__version__} (variant {info.variant})")
+        _line("drjit", dr.__version__)
+        _line("libLLVM", f"{info.llvm.path} (LLVM {info.llvm.version})" if info.llvm else "not used (CUDA)")
+        _line("threads", str(info.threads))
+        _line("gpu", info.gpu or "none (CPU rendering)")
+        sc = mi.load_dict({"type": "scene", "integrator": {"type": "path"}, "s": {"type": "sphere"},
+                           "e": {"type": "constant"},
+                           "cam": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 8}}})
+        img = mi.render(sc, spp=1)
+        ok = bool(dr.all(dr.isfinite(img.array)))
+        _line("test render", "ok" if ok else "NON-FINITE pixels")
+        return ok
+    except CamoError as exc:
+        _line("renderer", f"NOT AVAILABLE: {exc}")
+    except Exception as exc:  # report, never crash the doctor
+        _line("renderer", f"NOT AVAILABLE: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+    return False
+
+
+def _weights() -> list[tuple[str, str]]:
+    from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights
+
+    rows = []
+    for kind, what in (("alex", "LPIPS AlexNet trunk"), ("vgg", "LPIPS VGG16 trunk"), ("inception", "SIFID Inception v3")):
+        try:
+            rows.append((kind, f"{find_trunk_weights(kind)}  [{what}]"))
+        except CamoError:
+            rows.append((kind, f"not found  [{what}; the metric is skipped, its weight-free proxy is reported]"))
+    for net in ("alex", "vgg"):
+        try:
+            rows.append((f"lpips-lin-{net}", str(find_lpips_lin_weights(net))))
+        except CamoError:
+            rows.append((f"lpips-lin-{net}", "not found  [install the 'lpips' extra: pip install '.[lpips]']"))
+    try:
+        import dreamsim  # noqa: F401
+
+        rows.append(("dreamsim", "package installed; give --dreamsim-weights to use it"))
+    except ImportError:
+        rows.append(("dreamsim", "not installed  [optional extra: pip install '.[dreamsim]']"))
+    try:
+        from optimizer.optimise.inpaint import diffusers_status
+
+        rows.append(("sdxl+controlnet", diffusers_status(os.environ.get("CAMO_SDXL_PATH"), os.environ.get("CAMO_CONTROLNET_PATH"))))
+    except ImportError as exc:
+        rows.append(("sdxl+controlnet", f"unavailable ({exc})"))
+    return rows
+
+
+def real_packs(root=None) -> list[tuple[str, bool, str]]:
+    """``(pack, present, detail)`` for each real scene pack in ``packs/real/`` (present = every file it names is
+    there). ``root`` is the repository (default: the one this package is in). Nothing is loaded or rendered."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
+    rows = []
+    for pack in sorted((root / "packs" / "real").glob("*.toml")):
+        try:
+            data = tomllib.loads(pack.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            rows.append((pack.stem, False, f"unreadable: {exc}"))
+            continue
+        files = [v for sec, key in (("object", "mesh"), ("environment", "panorama"), ("environment", "xml"))
+                 if isinstance(v := data.get(sec, {}).get(key), str)]
+        missing = [f for f in files if not (pack.parent / f).is_file()]
+        rows.append((pack.stem, not missing, f"missing {', '.join(Path(m).name for m in missing)}" if missing else "ok"))
+    return rows
+
+
+def _real_packs_report() -> None:
+    rows = real_packs()
+    if not rows:
+        return
+    have = [r for r in rows if r[1]]
+    print(f"real scene packs (packs/real): {len(have)} of {len(rows)} present"
+          + ("" if len(have) == len(rows) else
+             "; the rest need: camo data fetch data_manifests/pmndrs_hdris.toml --dest data/real && "
+             "camo data fetch data_manifests/registry_objects.toml --dest data/real"))
+    if have:
+        names = ", ".join(r[0] for r in have)
+        print(f"  present: {names}")
+
+
+def run_doctor() -> int:
+    ok = _renderer()
+    try:
+        import torch
+
+        _line("torch", f"{torch.__version__} (cuda: {'yes' if torch.cuda.is_available() else 'no'})")
+    except Exception as exc:
+        ok = False
+        _line("torch", f"NOT AVAILABLE: {exc}")
+    _line("python", f"{platform.python_version()} on {platform.machine()}")
+    print("optional local weights (never downloaded):")
+    for label, status in _weights():
+        _line(f"  {label}", status)
+    _real_packs_report()
+    print("status:", "ok" if ok else "the renderer cannot run; see above")
+    return 0 if ok else 1

@@ -1,0 +1,162 @@
+"""The evaluation directory (output of ``camo evaluate``): its one owner.
+
+Column names of ``metrics.parquet`` / ``metrics.csv`` (:data:`COLUMNS`), ``renders.json`` (written by
+:func:`write_renders`; read by :func:`read_renders`, strict, for stimuli, and :func:`renders_json`, lenient, for
+reports), ``eval_config.toml`` (:func:`read_eval_config`) and the hardware line the seconds were measured on
+(:func:`hardware`, :func:`hardware_text`). :mod:`evaluation.evaluate` writes the directory, :mod:`evaluation.report`
+and :mod:`study_site.stimuli` read it; none of them parses these files itself. Layout: CONTRIBUTING.md.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from camo_base import atomic
+from camo_base.errors import CamoError
+
+#: The metric columns, one per metric of :data:`evaluation.metrics.METRICS` (NaN where not computed).
+METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim")
+#: Variant strings of the metrics that have one ("" where not computed).
+VARIANT_COLUMNS = ("lpips_variant", "lpips_proxy_variant", "sifid_variant", "sifid_proxy_variant", "dreamsim_variant")
+#: SHA-256 of the weight files behind each learned metric ("" where not computed).
+SHA_COLUMNS = ("lpips_weights_sha256", "sifid_weights_sha256", "dreamsim_weights_sha256")
+#: Columns that identify a row (input, view, region and the evaluation protocol). ``source``: ``run`` (a run
+#: directory), ``asset`` (a glTF/OBJ file placed in a scene) or ``triplets`` (given images; ``spp`` and ``jitter``
+#: are 0 and ``camera_set`` is ``images:<hash>``: nothing was rendered).
+KEY_COLUMNS = ("run", "scene", "object", "method", "ablation", "view", "seed", "region", "spp", "width", "height",
+               "jitter", "camera_set", "source")
+#: Seconds of the method (repeated on each row of an input): ``seconds_setup`` / ``seconds_stage1`` /
+#: ``seconds_stage2`` from a run directory (:meth:`optimizer.assets.rundir.RunDir.seconds`), ``seconds_method`` their sum
+#: or the user's ``seconds`` for an asset or triplets (NaN when unknown).
+METHOD_SECONDS_COLUMNS = ("seconds_setup", "seconds_stage1", "seconds_stage2", "seconds_method")
+#: Seconds of each metric on this row's image pair (NaN where not computed).
+METRIC_SECONDS_COLUMNS = tuple(f"seconds_{m}" for m in METRIC_COLUMNS)
+#: Every column of metrics.parquet / metrics.csv, in order. ``seconds_render``: evaluation rendering of this view
+#: (with-object render + its share of the scene's background render; NaN for triplets), ``seconds_metrics``: all
+#: metrics of the row.
+COLUMNS = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels",
+           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, "seconds_render", "seconds_metrics",
+           *METRIC_SECONDS_COLUMNS, *METHOD_SECONDS_COLUMNS)
+SECONDS_COLUMNS = tuple(c for c in COLUMNS if c.startswith("seconds_"))
+REGIONS = ("full", "crop")
+IMAGE_ENCODING = "srgb8"  # linear -> sRGB (IEC 61966-2-1, clipped to [0, 1]) -> 8 bit, as in the PNGs
+
+#: Keys every ``renders.json`` entry must have (non-empty) to become a stimulus.
+RENDER_KEYS = ("run", "scene", "method", "view", "image", "mask")
+
+
+def hardware() -> dict[str, Any]:
+    """Where the seconds were measured: CPU model, logical cores (and those this process may use), GPU, threads."""
+    import os
+    import platform
+
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    out: dict[str, Any] = {"cpu": model, "cpu_cores": os.cpu_count() or 0}
+    try:
+        out["cpu_cores_usable"] = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        out["cpu_cores_usable"] = out["cpu_cores"]
+    gpu = "none"
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            gpu = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+        from evaluation.metrics._common import metric_threads
+
+        out["torch_threads"] = torch.get_num_threads()
+        out["metric_threads"] = metric_threads()
+    except Exception:  # torch missing or broken CUDA: the hardware line just says less
+        pass
+    out["gpu"] = gpu
+    try:
+        from optimizer import backend
+
+        info = backend.info()
+        if info:
+            out["mitsuba_variant"], out["render_threads"] = info.variant, int(info.threads)
+    except Exception:
+        pass
+    return out
+
+
+def hardware_text(hw: dict[str, Any]) -> str:
+    """One line, e.g. ``AMD EPYC, 2 CPU cores (2 usable), GPU none; llvm_ad_rgb, 2 render threads``."""
+    if not hw:
+        return "not recorded"
+    text = f"{hw.get('cpu', '?')}, {hw.get('cpu_cores', '?')} CPU cores ({hw.get('cpu_cores_usable', '?')} usable), " \
+           f"GPU {hw.get('gpu', '?')}"
+    if hw.get("mitsuba_variant"):
+        text += f"; {hw['mitsuba_variant']}, {hw.get('render_threads', '?')} render threads"
+    if hw.get("metric_threads"):
+        text += f"; metrics on {hw['metric_threads']} torch thread(s)"
+    elif hw.get("torch_threads"):
+        text += f", {hw['torch_threads']} torch threads"
+    return text
+
+
+def read_eval_config(eval_dir: str | Path) -> dict[str, Any]:
+    import tomllib
+
+    p = Path(eval_dir) / "eval_config.toml"
+    if not p.is_file():
+        return {}
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return {}
+
+
+def renders_json(eval_dir: str | Path) -> list[dict[str, Any]]:
+    p = Path(eval_dir) / "renders.json"
+    if not p.is_file():
+        return []
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except ValueError as exc:
+        raise CamoError(f"{p}: not valid JSON ({exc})") from None
+    return data if isinstance(data, list) else []
+
+
+def write_renders(out: str | Path, entries: list[dict[str, Any]]) -> Path:
+    """Write ``out/renders.json`` atomically: ``[{run, scene, object, method, ablation, view, image, background,
+    mask, depth}]`` with paths relative to ``out``."""
+    p = Path(out) / "renders.json"
+    atomic.write_json(p, entries)
+    return p
+
+
+def read_renders(eval_dir: str | Path) -> list[dict[str, Any]]:
+    """``renders.json`` of an evaluation directory, checked: a list of objects each with :data:`RENDER_KEYS`
+    (non-empty) and names of sane length. Missing or malformed: a one-line :class:`CamoError`."""
+    eval_dir = Path(eval_dir)
+    rj = eval_dir / "renders.json"
+    if not eval_dir.is_dir():
+        raise CamoError(f"{eval_dir}: not a directory")
+    if not rj.is_file():
+        raise CamoError(f"{eval_dir}: no renders.json (is this an evaluation directory from `camo evaluate`?)")
+    try:
+        entries = json.loads(rj.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise CamoError(f"{rj}: not valid JSON ({exc})") from None
+    if not isinstance(entries, list):
+        raise CamoError(f"{rj}: expected a JSON list of render entries")
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict):
+            raise CamoError(f"{rj}: entry {i} is not an object")
+        missing = [k for k in RENDER_KEYS if e.get(k) in (None, "")]
+        if missing:
+            raise CamoError(f"{rj}: entry {i} lacks {', '.join(missing)}")
+        for k, limit in (("run", 256), ("scene", 256), ("object", 256), ("method", 120), ("ablation", 120), ("view", 64)):
+            if len(str(e.get(k) or "")) > limit:
+                raise CamoError(f"{rj}: entry {i}: {k} is longer than {limit} characters")
+    return entries

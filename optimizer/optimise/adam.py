@@ -1,0 +1,125 @@
+"""Adam on Dr.Jit arrays, with per-parameter learning rates, gradient sanitising and a checkpointable state.
+
+Dr.Jit's optimiser keeps its moments in an opaque state; ours is three arrays
+per parameter (value, first and second moment) plus a step count, so a run
+resumed from a checkpoint continues bit-for-bit. Non-finite gradient entries
+never reach a parameter: they are zeroed and counted before the update (one
+NaN would otherwise poison the moments for good, and ``dr.clip`` propagates NaN
+in Dr.Jit 1.5).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+
+class Adam:
+    def __init__(self, lrs: dict[str, float], beta_1: float = 0.9, beta_2: float = 0.999, eps: float = 1e-8):
+        self.lrs = dict(lrs)
+        self.b1, self.b2, self.eps = beta_1, beta_2, eps
+        self.values: dict[str, Any] = {}
+        self.m: dict[str, Any] = {}
+        self.v: dict[str, Any] = {}
+        self.t = 0
+
+    def add(self, name: str, value) -> None:
+        """Register a Dr.Jit array (a copy is made and gradients are enabled on it)."""
+        import drjit as dr
+
+        x = type(value)(value)
+        dr.enable_grad(x)
+        self.values[name] = x
+        self.m[name] = dr.zeros(type(value), dr.shape(value))
+        self.v[name] = dr.zeros(type(value), dr.shape(value))
+
+    def __getitem__(self, name: str):
+        return self.values[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.values
+
+    def sanitise_grads(self) -> int:
+        """Zero non-finite gradient entries; return how many there were."""
+        import drjit as dr
+
+        bad = 0
+        for x in self.values.values():
+            g = dr.grad(x)
+            ok = dr.isfinite(g)
+            n = int((~np.asarray(ok, dtype=bool)).sum())
+            if n:
+                bad += n
+                dr.set_grad(x, dr.select(ok, g, 0.0))
+        return bad
+
+    def step(self, project: dict[str, Callable] | None = None, scale: float = 1.0) -> None:
+        """One Adam update of every parameter from its gradient; then ``project[name](x)`` (e.g. a clamp).
+
+        ``scale`` multiplies every learning rate for this step (a schedule, :func:`optimizer.optimise.schedule.lr_scale`);
+        the moments are updated as usual."""
+        import drjit as dr
+
+        if not (scale >= 0.0 and scale < float("inf")):
+            raise ValueError(f"learning-rate scale must be finite and >= 0, got {scale}")
+        self.t += 1
+        c1 = 1.0 - self.b1**self.t
+        c2 = 1.0 - self.b2**self.t
+        for name, x in self.values.items():
+            g = dr.detach(dr.grad(x))
+            m = self.b1 * self.m[name] + (1.0 - self.b1) * g
+            v = self.b2 * self.v[name] + (1.0 - self.b2) * dr.square(g)
+            new = dr.detach(x) - (scale * self.lrs[name]) * (m / c1) / (dr.sqrt(v / c2) + self.eps)
+            if project and name in project:
+                new = project[name](new)
+            new = type(x)(new)
+            dr.enable_grad(new)
+            self.values[name], self.m[name], self.v[name] = new, m, v
+            dr.schedule(new, m, v)
+        dr.eval()
+
+    def state(self) -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {"adam_t": np.array(self.t)}
+        for name in self.values:
+            out[f"value/{name}"] = np.asarray(dr_numpy(self.values[name]))
+            out[f"m/{name}"] = np.asarray(dr_numpy(self.m[name]))
+            out[f"v/{name}"] = np.asarray(dr_numpy(self.v[name]))
+        return out
+
+    def check_state(self, state: dict[str, np.ndarray]) -> None:
+        """Raise :class:`CamoError` unless ``state`` fits these parameters (keys, shapes, finite values)."""
+        from camo_base.errors import CamoError
+
+        t = state.get("adam_t")
+        if t is None or t.shape != () or not np.issubdtype(t.dtype, np.integer):
+            raise CamoError("checkpoint is corrupt: no integer optimiser step count")
+        for name, x in self.values.items():
+            want = tuple(dr_numpy(x).shape)
+            for key in ("value", "m", "v"):
+                arr = state.get(f"{key}/{name}")
+                if arr is None:
+                    raise CamoError(f"checkpoint is corrupt or from another configuration: no {key}/{name}")
+                if tuple(arr.shape) != want:
+                    raise CamoError(f"checkpoint does not match this configuration: {key}/{name} has shape "
+                                    f"{tuple(arr.shape)}, expected {want}")
+                if not np.isfinite(arr).all():
+                    raise CamoError(f"checkpoint is corrupt: {key}/{name} has NaN or infinite values")
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        import drjit as dr
+
+        self.check_state(state)
+        self.t = int(state["adam_t"])
+        for name, x in list(self.values.items()):
+            kind = type(x)
+            for store, key in ((self.values, "value"), (self.m, "m"), (self.v, "v")):
+                arr = state[f"{key}/{name}"]
+                store[name] = kind(arr) if dr.is_tensor_v(x) else kind(arr.ravel())
+            dr.enable_grad(self.values[name])
+
+
+def dr_numpy(x) -> np.ndarray:
+    import drjit as dr
+
+    return np.array(dr.detach(x), copy=True)

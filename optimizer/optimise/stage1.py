@@ -1,0 +1,414 @@
+"""Stage 1, background matching (paper Sec. III-C, Eq. 8-11).
+
+For every iteration and view: map the parameters to the scene (vertex
+positions through pose + displacement, BSDF maps), render with gradients,
+compare to the background render of that view with the luminance-gated loss
+(Eq. 9) inside the loss domain, back-propagate; then add L_disp (Eq. 5),
+sanitise the gradients and take one Adam step.
+
+The loss domain defaults to the object's visible mask united with its shadow
+(the pixels where the object changes the image in an initial high-spp render),
+dilated by ``domain_dilate`` of the image size: the shadow on the ground gives
+the object away, so it must count. ``domain = "frame"`` uses the whole image.
+
+Beyond the paper (``--preset fast``, the default; ``--preset paper`` turns both off):
+
+* the albedo starts from the least-squares match to the background (:mod:`optimizer.optimise.warmstart`) instead of
+  grey 0.5, computed once after the targets are rendered;
+* a proximal L1 step on the displacement after each Adam step (``AppearanceConfig.displacement_shrink``);
+* optionally, a cosine decay of every learning rate over the stage's progress (:mod:`optimizer.optimise.schedule`);
+  ``time_budget`` (seconds of iterations) ends the stage early; progress is then the larger of the iteration
+  and the time fraction.
+
+Determinism: the primal and adjoint seeds differ and change per iteration and
+view; one machine and one seed give the same numbers (resume included; a run ended
+by ``time_budget`` depends on the machine's speed by design).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from optimizer.rendering import scene as scn
+from optimizer.optimise.adam import Adam, dr_numpy
+from optimizer.rendering.appearance import MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf, pose_record, world_positions
+from optimizer.scenes.cameras import Camera
+from optimizer.scenes.environments import Environment
+from camo_base.imaging import REC709_LUMA
+from optimizer.optimise.loss import gated_loss_terms, mse_loss
+from optimizer.rendering.planner import Plan, training_integrator
+from optimizer.rendering.render import coverage_and_depth, render_shaded, uses_batch
+from optimizer.scenes.scenepack import ScenePack
+from optimizer.optimise.schedule import lr_scale, progress, soft_threshold
+
+
+@dataclasses.dataclass
+class Stage1Config:
+    iterations: int = 50  # paper
+    spp: int = 4
+    target_spp: int = 64  # background targets and the domain estimate
+    seed: int = 0
+    loss: str = "gated"  # or "mse" (paper Fig. 7)
+    alpha: float = 1.0
+    eps: float = 1e-2
+    domain: str = "object+shadow"  # or "frame"
+    domain_dilate: float = 0.04  # fraction of the image's larger side
+    shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
+    silhouette_every: int = 4  # projective: the silhouette term on a random 1/N of the views per step, weighted
+    # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/schedule.PRESETS: the
+    # default "fast" turns on the warm start and the cosine schedule)
+    warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
+    lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
+    lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
+    time_budget: float | None = None  # seconds of iterations for this stage (None: iterations decide)
+
+
+@dataclasses.dataclass
+class Targets:
+    background: np.ndarray  # (V, H, W, 3) linear
+    coverage: np.ndarray  # (V, H, W)
+    domain: np.ndarray  # (V, H, W) float32 weights in {0, 1}
+    depth: np.ndarray  # (V, H, W)
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation of ``(H, W)`` by a disc of ``radius`` pixels."""
+    if radius <= 0:
+        return mask.copy()
+    from scipy.ndimage import binary_dilation
+
+    yy, xx = np.mgrid[-radius: radius + 1, -radius: radius + 1]
+    return binary_dilation(mask, structure=(xx**2 + yy**2) <= radius**2)
+
+
+def influence_domain(bg: np.ndarray, obj: np.ndarray, coverage: np.ndarray, threshold: float, dilate_px: int) -> np.ndarray:
+    """Object mask united with the pixels the object visibly changes (its shadow), dilated; ``(H, W)`` float32."""
+    yb, yo = bg @ REC709_LUMA, obj @ REC709_LUMA
+    changed = np.abs(yo - yb) > threshold * np.maximum(yb, 1e-3)
+    # Isolated noisy pixels are not a shadow: keep changed pixels with changed neighbours.
+    from scipy.ndimage import uniform_filter
+
+    changed &= uniform_filter(changed.astype(np.float32), 3) > 0.5
+    return dilate((coverage > 0) | changed, dilate_px).astype(np.float32)
+
+
+def target_seed(seed: int) -> int:
+    """Sampler seed of the background targets, the initial render and the warm start's renders (common random
+    numbers: paths that miss the object give the same radiance in all of them)."""
+    return seed * 7919 + 1
+
+
+def shading_integrator(plan: Plan) -> dict:
+    """The plain path tracer matching a training plan's depth (targets, final renders)."""
+    return {"type": "path", "max_depth": plan.max_depth, "rr_depth": plan.max_depth}
+
+
+class Stage1:
+    """One Stage 1 optimisation; :meth:`step` runs one iteration."""
+
+    STAGE = 1
+
+    def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
+                 cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None,
+                 initial: dict[str, np.ndarray] | None = None, targets: Targets | None = None):
+        """``initial`` overrides the paper's initial values (e.g. a Stage 1 result for Stage 2);
+        ``targets`` reuses background renders and the loss domain of an earlier stage."""
+        import drjit as dr
+        import mitsuba as mi
+
+        self.pack, self.env, self.cams, self.plan, self.cfg, self.app = pack, env, cams, plan, cfg, app
+        self.geometry = Geometry.build(prepared, pack.object, app)
+        self.values = {k: v.copy() for k, v in (initial or initial_values(app, pack.material)).items()}
+        self.project = clamp_projections(app, pack.object.size)
+        self.iteration = 0
+        self.elapsed = 0.0  # seconds of this stage's iterations so far (the schedule's clock)
+        self.total_iterations = cfg.iterations  # the schedule's length (Stage 2 sets its own)
+        self.time_budget = cfg.time_budget
+        self.history: list[dict[str, Any]] = []
+        if targets is None:
+            log("rendering background targets and the loss domain")
+        self.targets = targets if targets is not None else self._targets()
+        self.warm_start_info = None
+        if cfg.warm_start and initial is None:
+            from optimizer.optimise.warmstart import warm_start_albedo
+
+            self.values, self.warm_start_info = warm_start_albedo(
+                self.values, self.geometry, app, env, cams, self.shading_integrator(), self.targets.background,
+                self.targets.coverage, cfg.target_spp, target_seed(cfg.seed), log)
+        self.opt = Adam(app.learning_rates())
+        for name in app.trainable():
+            v = self.values[name]
+            self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
+        self.scene = self._training_scene()
+        self.params = mi.traverse(self.scene)
+        self._keys = self._param_keys()
+        self._bg = [mi.TensorXf(self.targets.background[v]) for v in range(len(cams))]
+        self._w = [self.targets.domain[v] for v in range(len(cams))] if cfg.domain != "frame" else [None] * len(cams)
+        dr.eval()
+
+    # --- set-up -------------------------------------------------------------
+    def _object(self):
+        g = self.geometry
+        return scn.object_mesh(world_positions(g, self.values, self.app), g.faces, g.uvs, object_bsdf(self.values, self.app))
+
+    def shading_integrator(self) -> dict:
+        """A path tracer consistent with the training integrator (same depth) for targets and final renders."""
+        return shading_integrator(self.plan)
+
+    def _targets(self) -> Targets:
+        cfg = self.cfg
+        integ = self.shading_integrator()
+        seed = target_seed(cfg.seed)
+        bg = render_shaded(self.env.build(), None, self.cams, integ, cfg.target_spp, seed)
+        obj_mesh = self._object()
+        init = render_shaded(self.env.build(), obj_mesh, self.cams, integ, cfg.target_spp, seed)
+        sc_obj = scn.build_scene(self.env.build(), obj_mesh)
+        sc_bg = scn.build_scene(self.env.build())
+        cov, depth, dom = [], [], []
+        px = max(1, round(cfg.domain_dilate * max(self.cams[0].width, self.cams[0].height)))
+        for i, c in enumerate(self.cams):
+            cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
+            _, d = coverage_and_depth(sc_bg, c)
+            cov.append(cv)
+            depth.append(d)
+            dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
+        self.initial_render = init
+        return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth))
+
+    def _training_scene(self):
+        if uses_batch(self.plan.integrator):
+            sensors = [scn.batch(self.cams, self.cfg.spp)]
+        else:
+            sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
+        self.scene_integrator, self.render_spp = training_integrator(
+            self.plan, self.cfg.spp, (self.cams[0].width, self.cams[0].height))
+        return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.scene_integrator))
+
+    def _param_keys(self) -> dict[str, str]:
+        keys = {}
+        names = list(self.params.keys())
+
+        def find(suffix: str) -> str | None:
+            hits = [k for k in names if k.startswith(scn.OBJECT_ID + ".") and k.endswith(suffix)]
+            return hits[0] if hits else None
+
+        keys["positions"] = find("vertex_positions")
+        if self.app.bsdf:
+            keys["albedo"] = find("base_color.data")
+            keys["metallic"] = find("metallic.data")
+            keys["roughness"] = find("roughness.data")
+            keys["transmittance"] = find("spec_trans.data")
+        else:
+            keys["albedo"] = find("reflectance.data")
+        missing = [k for k, v in keys.items() if v is None]
+        if missing:
+            raise RuntimeError(f"scene parameters not found for {missing}; have {names}")
+        return keys
+
+    # --- one iteration ------------------------------------------------------
+    def _mapped(self) -> dict[str, Any]:
+        """Scene parameter key -> its value computed from the optimised variables (with their AD graph)."""
+        import mitsuba as mi
+
+        opt, keys, g, v = self.opt, self._keys, self.geometry, self.values
+        out: dict[str, Any] = {}
+        if {"displacement", "translation", "rotation"} & set(opt.values):
+            # Trainable parts carry their AD graph; fixed parts (an earlier stage's pose) are constants.
+            d = opt["displacement"] if "displacement" in opt else (mi.TensorXf(v["displacement"]) if self.app.displacement else None)
+            dt = opt["translation"] if "translation" in opt else mi.Float(v["translation"])
+            th = opt["rotation"] if "rotation" in opt else mi.Float(v["rotation"])
+            out[keys["positions"]] = g.positions_dr(d, dt, th)
+        for name in MAPS:
+            if name in opt and name in keys:
+                value = opt[name]
+                if name == "roughness":
+                    value = scn.effective_roughness(value)
+                out[keys[name]] = value
+        return out
+
+    def _apply(self) -> None:
+        """Push the current parameters (with their AD graph) into the scene."""
+        for key, value in self._mapped().items():
+            self.params[key] = value
+        self.params.update()
+
+    def views_for_step(self) -> list[int]:
+        """The views whose loss this iteration averages (Stage 1: all of them, Eq. 10)."""
+        return list(range(len(self.cams)))
+
+    def _choose_silhouette_views(self, views: list[int]) -> None:
+        """Budgeted projective integrators (optimizer/rendering/projective.py) compute the primary-silhouette term on a
+        random ``1 / silhouette_every`` of this step's views, weighted ``V / k`` so its expectation is the sum
+        over all views. The term's variance is ~1e-4 of the continuous term's, and skipping it saves the
+        silhouette precomputation and the tracing of its two passes (~1/3 of a step at 1 spp)."""
+        integ = self.scene.integrator()
+        if not hasattr(integ, "silhouette_views"):
+            return
+        from optimizer.rendering.projective import silhouette_view_weights
+
+        sensors = self.scene.sensors()
+        integ.silhouette_views = silhouette_view_weights([sensors[v].id() for v in views], self.cfg.silhouette_every,
+                                                         self.iteration, self.cfg.seed)
+
+    def _seeds(self, view: int) -> tuple[int, int]:
+        base = (self.cfg.seed * 1_000_003 + self.iteration * 4099 + view * 131) & 0x7FFFFFFF
+        return base, (base ^ 0x5BD1E995) & 0x7FFFFFFF
+
+    def _batch_loss(self, img, views: list[int]):
+        """Eq. 10 on a batch film ``(H, V*W, 3)`` in one expression: each view's domain weights are
+        normalised to sum 1/V, so the weighted mean over the whole film is the mean over views of the
+        per-view losses. (Slicing the film per view costs a gather per view in the backward pass.)"""
+        import mitsuba as mi
+
+        key = tuple(views)
+        if getattr(self, "_batch_key", None) != key:
+            H, W = self.cams[0].height, self.cams[0].width
+            weight = np.zeros((H, W * len(self.cams)), np.float64)
+            for v in views:
+                w = np.ones((H, W)) if self._w[v] is None else self._w[v].astype(np.float64)
+                weight[:, v * W:(v + 1) * W] = w / max(w.sum(), 1e-12) / len(views)
+            self._batch_bg = mi.TensorXf(np.concatenate(list(self.targets.background), axis=1))
+            self._batch_w = weight.astype(np.float32)
+            self._batch_key = key
+        cfg = self.cfg
+        if cfg.loss == "mse":
+            return mse_loss(img, self._batch_bg, self._batch_w), None
+        t = gated_loss_terms(img, self._batch_bg, self._batch_w, cfg.alpha, cfg.eps)
+        return t.total, t
+
+    def _view_loss(self, img, view: int):
+        cfg = self.cfg
+        if cfg.loss == "mse":
+            return mse_loss(img, self._bg[view], self._w[view]), None
+        t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps)
+        return t.total, t
+
+    def step(self) -> dict[str, Any]:
+        import drjit as dr
+        import mitsuba as mi
+
+        t0 = time.perf_counter()
+        views = self.views_for_step()
+        V = len(views)
+        # Loss terms stay Dr.Jit values (detached) and are read back once, after all views: a
+        # read-back per view would stall the pipeline.
+        photo, lum, chroma = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
+        has_terms = False
+        if uses_batch(self.plan.integrator):
+            self._apply()
+            s, sg = self._seeds(0)
+            img = mi.render(self.scene, self.params, spp=self.render_spp, seed=s, seed_grad=sg)
+            total, terms = self._batch_loss(img, views)
+            if terms is not None:
+                has_terms = True
+                lum, chroma = dr.detach(terms.luminance), dr.detach(terms.chroma)
+            photo = dr.detach(total)
+            dr.backward(total)
+        else:
+            # One backward per iteration: the parameter mapping (displacement sampling, pose, roughness
+            # remap) is applied once, every view is rendered from the same scene state and the mean of the
+            # view losses (Eq. 10) is differentiated in one pass. Dr.Jit calls each view's render op
+            # (``render_backward``) in that traversal and sums their gradients at the mapped parameters,
+            # which flow back through the mapping once. This is the gradient of re-applying the mapping
+            # before every view (tests/test_stage1_gradients.py) at one BVH build and one mapping per
+            # iteration instead of one per view, bit-reproducible on one thread. All V views' loss graphs are
+            # held until the backward (a few H x W x 3 tensors per view).
+            self._apply()
+            self._choose_silhouette_views(views)
+            total = mi.Float(0.0)
+            for v in views:
+                s, sg = self._seeds(v)
+                img = mi.render(self.scene, self.params, sensor=v, spp=self.render_spp, seed=s, seed_grad=sg)
+                lv, terms = self._view_loss(img, v)
+                total += lv / V
+                if terms is not None:
+                    has_terms = True
+                    lum += dr.detach(terms.luminance) / V
+                    chroma += dr.detach(terms.chroma) / V
+            photo = dr.detach(total)
+            dr.schedule(photo, lum, chroma)
+            if dr.grad_enabled(total):
+                dr.backward(total)
+        photo, lum, chroma = float(photo[0]), float(lum[0]), float(chroma[0])
+        disp = 0.0
+        if "displacement" in self.opt:
+            l_disp = self.app.displacement_weight * dr.mean(dr.abs(self.opt["displacement"].array))
+            dr.backward(l_disp)
+            disp = float(l_disp[0])
+        nonfinite = self.opt.sanitise_grads()
+        scale = self.lr_scale()
+        self.opt.step(self.project, scale)
+        if "displacement" in self.opt and self.app.displacement_shrink > 0:
+            self._shrink_displacement(scale)
+        self.iteration += 1
+        seconds = time.perf_counter() - t0
+        self.elapsed += seconds
+        rec = {
+            "iteration": self.iteration,
+            "stage": self.STAGE,
+            "loss": photo + disp,
+            "loss_photo": photo,
+            "loss_disp": disp,
+            "seconds": seconds,
+            "nonfinite_grads": nonfinite,
+            "lr_scale": scale,
+        }
+        if has_terms:
+            rec.update(loss_luminance=lum, loss_chroma=chroma)
+        self.history.append(rec)
+        return rec
+
+    def _shrink_displacement(self, scale: float) -> None:
+        """Proximal L1 step on the normalised displacement: ``d <- sign(d) max(|d| - k lr_t, 0)``, k =
+        ``displacement_shrink``. A texel whose photometric gradient keeps one sign moves by ~lr_t per Adam step
+        and keeps (1 - k) of it; one pushed back and forth by gradient noise returns to 0."""
+        import drjit as dr
+
+        k = self.app.displacement_shrink * scale * self.opt.lrs["displacement"]
+        new = soft_threshold(self.opt["displacement"], k)
+        dr.enable_grad(new)
+        self.opt.values["displacement"] = new
+        dr.eval(new)
+
+    def lr_scale(self) -> float:
+        """This step's learning-rate multiplier (:func:`optimizer.optimise.schedule.lr_scale` at the stage's progress)."""
+        p = progress(self.iteration, self.total_iterations, self.elapsed, self.time_budget)
+        return lr_scale(p, self.cfg.lr_schedule, self.cfg.lr_floor)
+
+    def done(self) -> bool:
+        """All iterations taken, or the stage's time budget spent."""
+        if self.iteration >= self.total_iterations:
+            return True
+        return bool(self.time_budget) and self.elapsed >= self.time_budget
+
+    # --- results --------------------------------------------------------------
+    def current_values(self) -> dict[str, np.ndarray]:
+        out = dict(self.values)
+        for name in self.opt.values:
+            arr = dr_numpy(self.opt[name])
+            out[name] = arr.reshape(self.values[name].shape)
+        return out
+
+    def pose(self) -> dict[str, Any]:
+        return pose_record(self.pack.object, self.current_values())
+
+    def world_positions(self) -> np.ndarray:
+        return world_positions(self.geometry, self.current_values(), self.app)
+
+    def checkpoint_state(self) -> dict[str, np.ndarray]:
+        st = self.opt.state()
+        st["iteration"] = np.array(self.iteration)
+        return st
+
+    def load_checkpoint_state(self, st: dict[str, np.ndarray]) -> None:
+        from camo_base.errors import CamoError
+
+        it = st.get("iteration")
+        if it is None or it.shape != () or not np.issubdtype(it.dtype, np.integer) or int(it) < 0:
+            raise CamoError("checkpoint is corrupt: no valid iteration count")
+        self.opt.load_state(st)
+        self.iteration = int(it)
