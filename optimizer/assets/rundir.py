@@ -211,10 +211,14 @@ class RunDir:
         """What the run cost, in seconds: ``setup`` (``summary.json`` ``seconds_setup``), ``stage1`` and ``stage2``
         (``summary.json`` ``seconds_stage1`` / ``seconds_stage2``: wall clock of the stage, Stage 1 with its warm
         start; runs written before those keys existed: the sum of ``log.jsonl``'s per-iteration ``seconds_total``,
-        else ``seconds``, of that stage) and ``total`` (setup + both stages). NaN for what the run does not record."""
+        else ``seconds``, of that stage) and ``total`` (setup + both stages). A baseline's run (``summary.json`` with
+        ``seconds_method`` and no stage keys) has no stages: ``total`` is setup + ``seconds_method``. NaN for what the
+        run does not record."""
         s = self.summary()
-        log = self.log()
         out = {"setup": _num(s.get("seconds_setup"))}
+        if "seconds_method" in s and not any(f"seconds_stage{st}" in s for st in (1, 2)):
+            return {**out, "stage1": math.nan, "stage2": math.nan, "total": out["setup"] + _num(s["seconds_method"])}
+        log = self.log()
         for st in (1, 2):
             key = f"seconds_stage{st}"
             if key in s:
