@@ -649,3 +649,26 @@ def test_unpinned_registry_entry_is_refused_then_pinned(server, fixtures, capsys
     sun = next(a for a in pinned["asset"] if a["name"] == "sun")
     exp = _expected(fixtures)["sun.exr"]
     assert sun["sha256"] == sha(exp) and sun["size"] == len(exp) and (dest / "sun.exr").read_bytes() == exp
+
+
+def test_real_cross_grid_crosses_every_hdri_with_every_object():
+    """grids/real_cross.toml: the 8 HDRIs x 8 objects of the pairs, each pack holding the HDRI and mesh its name
+    says (packs/real/cross/<hdri>-<object>.toml, from make_packs.py; read as TOML: CI has no data/real)."""
+    doc = tomllib.loads((REPO / "grids" / "real_cross.toml").read_text())
+    assert len(doc["scenes"]) == 64 and len(set(doc["scenes"])) == 64
+    assert set(doc["methods"]) == {"ours", "mean"}
+    pairs = {}
+    for s in doc["scenes"]:
+        path = (REPO / "grids" / s).resolve()
+        hdri, obj = path.stem.split("-")
+        pack = tomllib.loads(path.read_text())
+        pano = (path.parent / pack["environment"]["panorama"]).resolve()
+        mesh = (path.parent / pack["object"]["mesh"]).resolve()
+        assert pano == REPO / "data" / "real" / f"pmndrs_{hdri}.exr", s
+        assert mesh.parent == REPO / "data" / "real" and mesh.stem.endswith(obj), s
+        assert pack["material"]["roughness"] == 0.5 and pack["environment"]["ground"] is True
+        pairs[(hdri, obj)] = pack["object"]
+    assert len({h for h, _ in pairs}) == 8 and len({o for _, o in pairs}) == 8 and len(pairs) == 64
+    # an object keeps its size and rotation in every scene (as in its grids/real.toml pair)
+    for h, o in pairs:
+        assert pairs[(h, o)] == pairs[("sky", o)], (h, o)

@@ -6,7 +6,8 @@
 
 Packs: ``hdri_<name>.toml`` (each HDRI with the built-in panorama's default object, a utility box),
 ``object_<name>.toml`` (each object on the built-in meadow) and ``<hdri>-<object>.toml`` (the pairs of
-``grids/real.toml``). Every pack starts at roughness 0.5 (the built-in scenes' start: each of these
+``grids/real.toml``) and ``cross/<hdri>-<object>.toml`` (every HDRI of the pairs with every object of the pairs,
+8 x 8, for ``grids/real_cross.toml``). Every pack starts at roughness 0.5 (the built-in scenes' start: each of these
 environments has a compact light, a sun or lamps, that a smooth start mirrors as glints).
 """
 
@@ -45,6 +46,12 @@ def main() -> int:
     for h, o in PAIRS:
         jobs.append((HERE / f"{h}-{o}.toml", [str(HDRIS), f"pmndrs_{h}", "--with", f"{OBJECTS}:{o}",
                                               "--name", f"real-{h}-{o}"]))
+    cross = HERE / "cross"
+    cross.mkdir(exist_ok=True)
+    for h, _ in PAIRS:
+        for _, o in PAIRS:
+            jobs.append((cross / f"{h}-{o}.toml", [str(HDRIS), f"pmndrs_{h}", "--with", f"{OBJECTS}:{o}",
+                                                  "--name", f"real-{h}-{o}"]))
     for out, args in jobs:
         rc = camo(["data", "pack", *args, "--dest", str(DATA), "--out", str(out), "--overwrite"])
         if rc != 0:
