@@ -60,6 +60,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from camo_base import seeds
 from camo_base.errors import CamoError
 
 
@@ -553,7 +554,7 @@ def predict_entries(entries: Sequence[dict[str, Any]], root: Path, n: int = 200,
             raise CamoError(f"{mask_p}: mask size differs from its image")
         if not mask.any():
             continue
-        p = predict_stimulus(img, mask, n, seed + 7919 * k, cfg)
+        p = predict_stimulus(img, mask, n, seeds.seed("observer", seed, stimulus=k), cfg)
         ident = {c: e.get(c, "") for c in ("run", "scene", "object", "method", "ablation")}
         ident["ablation"] = str(ident["ablation"] or "none")
         rows.append({**ident, "view": int(e.get("view", 0)), "width": img.shape[1], "height": img.shape[0], "n": n,

@@ -40,6 +40,7 @@ import numpy as np
 
 from optimizer.assets.asset import Asset
 from optimizer.scenes.cameras import Camera
+from camo_base import seeds
 from camo_base.errors import CamoError
 from optimizer.assets.rundir import RunDir, open_run
 
@@ -117,7 +118,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
         raise CamoError(f"--views must be >= 1, got {views}")
     radius = rig_radius(pack, training)
     repeats = max(1, math.ceil(views / n_train))
-    moved = jitter_cams(training, float(jitter), radius, int(seed), repeats=repeats)
+    moved = jitter_cams(training, float(jitter), radius, seeds.seed("evaluation_cameras", int(seed)), repeats=repeats)
     if views <= n_train:
         idx = sorted({int(round(i * n_train / views)) % n_train for i in range(views)})
     else:
@@ -152,7 +153,7 @@ def evaluation_plan(pack, env):
 def render_seed(seed: int) -> int:
     """Sampler seed of every evaluation render for evaluation seed ``seed`` (same for all runs and for
     the background and with-object images: common random numbers)."""
-    return (int(seed) * 7919 + 104729) & 0x7FFFFFFF
+    return seeds.seed("evaluation_render", int(seed))
 
 
 @dataclasses.dataclass

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from camo_base import atomic, imaging
+from camo_base import atomic, imaging, seeds
 from optimizer.assets import export, scene_xml
 from optimizer.rendering import scene as scn
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, object_bsdf, pose_record, rendered_maps, world_positions
@@ -73,7 +73,8 @@ def render_result(res: Result, seed: int = 12345) -> np.ndarray:
 
 
 def final_render_seed(seed: int) -> int:
-    return seed * 7919 + 12345
+    """Sampler seed of the final render for run seed ``seed`` (stream ``final_render`` of :mod:`camo_base.seeds`)."""
+    return seeds.seed("final_render", seed)
 
 
 def write_result(out: Path, res: Result, history: list[dict[str, Any]] | None = None, seed: int = 0) -> np.ndarray:

@@ -38,6 +38,7 @@ from optimizer.optimise.adam import Adam, dr_numpy
 from optimizer.rendering.appearance import MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf, pose_record, world_positions
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
+from camo_base import seeds
 from camo_base.imaging import REC709_LUMA
 from optimizer.optimise.loss import gated_loss_terms, mse_loss
 from optimizer.rendering.planner import Plan, training_integrator
@@ -98,8 +99,9 @@ def influence_domain(bg: np.ndarray, obj: np.ndarray, coverage: np.ndarray, thre
 
 def target_seed(seed: int) -> int:
     """Sampler seed of the background targets, the initial render and the warm start's renders (common random
-    numbers: paths that miss the object give the same radiance in all of them)."""
-    return seed * 7919 + 1
+    numbers: paths that miss the object give the same radiance in all of them): stream ``targets`` of
+    :mod:`camo_base.seeds`."""
+    return seeds.seed("targets", seed)
 
 
 def shading_integrator(plan: Plan) -> dict:
@@ -255,8 +257,10 @@ class Stage1:
                                                          self.iteration, self.cfg.seed)
 
     def _seeds(self, view: int) -> tuple[int, int]:
-        base = (self.cfg.seed * 1_000_003 + self.iteration * 4099 + view * 131) & 0x7FFFFFFF
-        return base, (base ^ 0x5BD1E995) & 0x7FFFFFFF
+        """Primal and adjoint sampler seeds of this iteration's render of ``view`` (streams ``step`` and
+        ``step_grad`` of :mod:`camo_base.seeds`)."""
+        s, it = self.cfg.seed, self.iteration
+        return seeds.seed("step", s, iteration=it, view=view), seeds.seed("step_grad", s, iteration=it, view=view)
 
     def _batch_loss(self, img, views: list[int]):
         """Eq. 10 on a batch film ``(H, V*W, 3)`` in one expression: each view's domain weights are

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from camo_base import seeds
 from optimizer.optimise.stage1 import Stage1
 
 GAMMA = 2.2
@@ -90,12 +91,13 @@ class Stage2(Stage1):
 
         res = Result(self.pack, self.env, [self.cams[view]], self.geometry, self.current_values(), self.app,
                      self.shading_integrator(), self.s2.preview_spp, None)
-        current = render_result(res, seed=self.cfg.seed * 31 + self.iteration)[0]
+        current = render_result(res, seed=seeds.seed("stage2_render", self.cfg.seed, iteration=self.iteration))[0]
         self.inputs_np[view] = gamma_encode_np(current)
         mask = self.targets.coverage[view] >= 0.5
         t0 = time.perf_counter()
         out = self.inpainter.inpaint(gamma_encode_np(current), mask, gamma_encode_np(self.targets.background[view]),
-                                     self.targets.depth[view], self.s2.strength, self.cfg.seed * 977 + self.iteration)
+                                     self.targets.depth[view], self.s2.strength,
+                                     seeds.seed("stage2_inpaint", self.cfg.seed, iteration=self.iteration))
         self.inpaint_seconds.append(time.perf_counter() - t0)
         out = np.clip(np.asarray(out, dtype=np.float32), 0.0, 1.0)
         self.pseudo_np[view] = out

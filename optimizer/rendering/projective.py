@@ -48,11 +48,11 @@ def silhouette_view_weights(sensor_ids: list[str], every: int, iteration: int, s
     all views (None). Deterministic in ``(seed, iteration)``."""
     if every <= 1 or len(sensor_ids) <= 1:
         return None
-    import numpy as np
+    from camo_base import seeds
 
     n = len(sensor_ids)
     k = max(1, -(-n // every))
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(iteration), 0x51])
+    rng = seeds.generator("silhouette_views", int(seed), iteration=int(iteration))
     chosen = rng.choice(n, size=k, replace=False)
     return {sensor_ids[i]: n / k for i in sorted(chosen)}
 

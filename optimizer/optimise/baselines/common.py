@@ -52,7 +52,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from camo_base import atomic
+from camo_base import atomic, seeds
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, initial_values, object_bsdf
 from optimizer.scenes.cameras import Camera
 from camo_base.errors import CamoError
@@ -139,7 +139,7 @@ class Setup:
             g = self.geometry
             mesh = scn.object_mesh(self.positions, g.faces, g.uvs, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}})
             self._white = render_shaded(self.env.build(), mesh, self.cams, self.integrator, self.stage1.target_spp,
-                                        self.stage1.seed * 7919 + 3)
+                                        seeds.seed("baseline_white", self.stage1.seed))
         return self._white
 
     def white_level(self) -> np.ndarray:

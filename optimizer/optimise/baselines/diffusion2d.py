@@ -10,7 +10,7 @@ target camouflage textures purely in image space across the training views"):
    ControlNet from local weights, the paper's model) fills ``M_i`` in the
    sRGB-encoded background render, conditioned on the background depth,
    ``strength = 1`` (synthesised from scratch; the pixels behind the object are
-   never read), seed ``seed + i``;
+   never read), seed: stream ``diffusion2d`` of :mod:`camo_base.seeds` (``seed + i``);
 3. "projected iteratively onto the 3D model": views are taken in their orbit
    order 0, 1, ..., V-1; each view colours the texels visible in it (same
    projection and visibility test as the Owens baselines) that no earlier view
@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from camo_base import imaging
+from camo_base import imaging, seeds
 from optimizer.optimise.baselines.common import BaselineOptions, Setup, observed_albedo, painted_values
 from optimizer.optimise.baselines.owens2014 import fill_in_order
 from optimizer.rendering.projection import bake
@@ -55,7 +55,7 @@ def inpaint_views(setup: Setup, opts: Diffusion2DOptions) -> tuple[np.ndarray, l
         t0 = time.perf_counter()
         bg = imaging.linear_to_srgb(t.background[v])
         mask = t.coverage[v] > opts.mask_threshold
-        res = inp.inpaint(bg, mask, bg, t.depth[v], strength=opts.strength, seed=setup.stage1.seed + v)
+        res = inp.inpaint(bg, mask, bg, t.depth[v], strength=opts.strength, seed=seeds.seed("diffusion2d", setup.stage1.seed, view=v))
         out.append(imaging.srgb_to_linear(res))
         secs.append(time.perf_counter() - t0)
         setup.say(f"diffusion2d: inpainted view {v + 1}/{len(setup.cams)} ({secs[-1]:.1f} s)")

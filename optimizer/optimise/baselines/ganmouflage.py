@@ -127,7 +127,7 @@ from typing import Any
 
 import numpy as np
 
-from camo_base import imaging
+from camo_base import imaging, seeds
 from optimizer.scenes.cameras import Camera
 from optimizer.rendering import projection
 from optimizer.optimise.baselines.common import Setup, painted_values, to_albedo
@@ -694,7 +694,7 @@ class Trainer:
 
 def compute(setup: Setup, cfg: GanmouflageConfig | None = None, progress: bool = True):
     cfg = cfg or GanmouflageConfig()
-    seed = setup.stage1.seed
+    seed = seeds.seed("baseline", setup.stage1.seed)
     setup.say(f"ganmouflage: preparing the texture field's inputs ({cfg.preset} preset)")
     tr = Trainer(setup, cfg, seed)
     from tqdm import tqdm
