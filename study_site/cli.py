@@ -28,9 +28,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     b = sub.add_parser(
         "build-stimuli",
         help="render a stimulus set from evaluation directories",
-        description="Render every evaluated run again at study size with the object at a random, recorded "
-        "position and size in the frame (see study_site/render_stimuli.py for the distribution); practice "
-        "stimuli never share a scene with formal ones.",
+        description="Render every evaluated run directory and asset again at study size with the object at a "
+        "random, recorded position and size in the frame (see study_site/render_stimuli.py for the distribution); "
+        "practice stimuli never share a scene with formal ones. 2D triplets cannot be rendered again: an "
+        "evaluation holding them needs --copy.",
     )
     b.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate` (has renders.json)")
     b.add_argument("--out", required=True, metavar="STIMULI_DIR", help="new stimulus-set directory")
@@ -69,7 +70,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument(
         "--copy",
         action="store_true",
-        help="copy the evaluation renders as they are instead (object at the frame centre; for tests)",
+        help="copy the evaluation renders as they are instead (object where the evaluation had it: at the frame "
+        "centre); needed for evaluations holding 2D triplets",
     )
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)

@@ -1,8 +1,9 @@
 """Study stimuli rendered for the study, not for metrics (``camo study build-stimuli``, default mode).
 
 Evaluation renders (``camo evaluate``) come from orbit cameras aimed at the object, so the object always
-sits at the frame centre and the images are as small as the training resolution. Here every evaluated run
-is rendered again at the study size (``size`` x ``size``, default 512 px, independent of the training
+sits at the frame centre and the images are as small as the training resolution. Here every evaluated input
+-- a run directory, or an asset (glTF/GLB, OBJ) placed in its scene as the evaluation placed it, both read
+again through :func:`evaluation.inputs.resolve` -- is rendered again at the study size (``size`` x ``size``, default 512 px, independent of the training
 resolution) from the same evaluation camera *positions* (``evaluation.views.evaluation_cameras`` with the
 evaluation's seed and jitter), but each camera is turned and zoomed so that the object lands at a random,
 recorded place and size in the frame.
@@ -25,7 +26,10 @@ actual placement is *measured* on the rendered mask and recorded in the manifest
 ``fov``, ``target``). Background-only and with-object images use the same camera and sampler seed
 (``evaluation.views.ViewRenderer``: common random numbers).
 
-Views whose mask is empty (object hidden, e.g. occluded) are skipped with a warning.
+Views whose mask is empty (object hidden, e.g. occluded) are skipped with a warning. A triplet folder (given
+2D images) has no scene to render from new cameras, so an evaluation holding one needs ``--copy``
+(:func:`study_site.stimuli.build_stimuli`: every input copied as evaluated); mixing copied triplets with
+re-rendered inputs would compare methods on different framings, so it is refused with one line.
 """
 
 from __future__ import annotations
@@ -131,9 +135,12 @@ def project_ndc(cam, point) -> tuple[float, float]:
 # ------------------------------------------------------------------------------------------------------------
 
 
-def runs_of_eval_dir(eval_dir: str | Path) -> tuple[list[Path], dict[str, Any]]:
-    """Run directories an evaluation used (from its ``eval_config.toml``) and its ``[evaluate]`` settings."""
-    from evaluation.evaluate import read_eval_config
+def inputs_of_eval_dir(eval_dir: str | Path) -> tuple[list[Any], dict[str, Any]]:
+    """The inputs an evaluation scored (its ``eval_config.toml`` ``[[runs]]``: run directories and assets, with the
+    labels, scene and placement it used) as :class:`evaluation.inputs.InputSpec` to read again, and its
+    ``[evaluate]`` settings. A triplet folder is a one-line CamoError: it holds only given 2D images."""
+    from evaluation.evaldir import read_eval_config
+    from evaluation.inputs import InputSpec
 
     d = Path(eval_dir)
     if not d.is_dir():
@@ -141,15 +148,33 @@ def runs_of_eval_dir(eval_dir: str | Path) -> tuple[list[Path], dict[str, Any]]:
     cfg = read_eval_config(d)
     if not cfg:
         raise CamoError(f"{d}: no readable eval_config.toml (is this an evaluation directory from `camo evaluate`?)")
-    runs = cfg.get("runs") or []
-    paths = [Path(str(r.get("path", ""))) for r in runs if isinstance(r, dict)]
-    if not paths:
+    records = [r for r in cfg.get("runs") or [] if isinstance(r, dict)]
+    if not records:
         raise CamoError(f"{d / 'eval_config.toml'}: lists no runs")
-    missing = [str(p) for p in paths if not p.is_dir()]
-    if missing:
-        raise CamoError(f"{d}: run directory {missing[0]} is gone (stimuli are re-rendered from the runs; --copy "
-                        "uses the evaluation's renders instead)")
-    return paths, dict(cfg.get("evaluate") or {})
+    specs = []
+    for r in records:
+        kind, path = str(r.get("kind", "run")), Path(str(r.get("path", "")))
+        name = str(r.get("name") or path.name)
+        gone = "is gone (stimuli are re-rendered from it; --copy uses the evaluation's renders instead)"
+        if kind == "triplets":
+            raise CamoError(f"{d}: input {name!r} is given 2D images (triplets), with no scene to render again at the "
+                            "study's size and a drawn framing; build with --copy (every input as evaluated, object "
+                            "where the images have it) or leave this evaluation directory out")
+        if kind == "run":
+            if not path.is_dir():
+                raise CamoError(f"{d}: run directory {path} {gone}")
+            specs.append(InputSpec("run", str(path), method=r.get("method"), name=name))
+        elif kind == "asset":
+            scene = str(r.get("scene_source") or r.get("scene") or "")
+            if not path.is_file():
+                raise CamoError(f"{d}: asset {path} {gone}")
+            if Path(scene).is_absolute() and not Path(scene).exists():
+                raise CamoError(f"{d}: scene {scene} of asset {name!r} {gone}")
+            specs.append(InputSpec("asset", str(path), method=r.get("method"), scene=scene, name=name,
+                                   placement=str(r.get("placement") or "auto"), object=r.get("object")))
+        else:
+            raise CamoError(f"{d / 'eval_config.toml'}: input {name!r} has unknown kind {kind!r}")
+    return specs, dict(cfg.get("evaluate") or {})
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -175,7 +200,8 @@ def render_stimuli(
 ) -> dict[str, Any]:
     """Render a stimulus set (see the module docstring); returns the manifest."""
     from evaluation.evaluate import srgb8
-    from evaluation.views import DEFAULT_JITTER, ViewRenderer, evaluation_cameras, evaluation_plan, load_result, load_run, object_mesh_of
+    from evaluation.inputs import resolve
+    from evaluation.views import DEFAULT_JITTER, ViewRenderer, evaluation_cameras, evaluation_plan
     from optimizer import backend
     from optimizer.scenes.cameras import object_centre
     from optimizer.scenes.environments import get_environment
@@ -196,52 +222,51 @@ def render_stimuli(
         raise CamoError(f"--margin must be 0-0.2, not {margin}")
     writer = StimulusWriter(out_dir, force)
 
-    # every input is read and checked before anything is rendered
-    jobs: list[tuple[Any, bool, dict[str, Any]]] = []  # (run, practice, evaluation settings)
+    # every input (run directory or asset, :class:`evaluation.inputs.Entry`) is read and checked before anything
+    # is rendered
+    jobs: list[tuple[Any, bool, dict[str, Any]]] = []  # (input, practice, evaluation settings)
     for d, practice in [(Path(x), False) for x in eval_dirs] + [(Path(x), True) for x in (practice_dirs or [])]:
-        paths, ev = runs_of_eval_dir(d)
-        for p in paths:
-            jobs.append((load_run(p), practice, ev))
-    formal_scenes = {r.scene for r, p, _ in jobs if not p}
-    named = practice_split(formal_scenes, {r.scene for r, p, _ in jobs if p}, practice_scenes)
-    jobs = [(r, p or r.scene in named, ev) for r, p, ev in jobs]
-    check_no_leak({r.scene for r, p, _ in jobs if not p}, {r.scene for r, p, _ in jobs if p}, "build-stimuli")
+        specs, ev = inputs_of_eval_dir(d)
+        jobs += [(e, practice, ev) for e in resolve(specs)]
+    formal_scenes = {e.scene for e, p, _ in jobs if not p}
+    named = practice_split(formal_scenes, {e.scene for e, p, _ in jobs if p}, practice_scenes)
+    jobs = [(e, p or e.scene in named, ev) for e, p, ev in jobs]
+    check_no_leak({e.scene for e, p, _ in jobs if not p}, {e.scene for e, p, _ in jobs if p}, "build-stimuli")
 
     backend.init(threads=threads)
     renderer = ViewRenderer(spp, seed)
     skipped = 0
-    for run, practice, ev in jobs:
-        env = get_environment(run.pack.environment)
-        plan = evaluation_plan(run.pack, env)
+    for e, practice, ev in jobs:
+        env = get_environment(e.pack.environment)
+        plan = evaluation_plan(e.pack, env)
         jitter = float(ev.get("jitter", DEFAULT_JITTER))
         ev_seed = int(ev.get("seed", 0))
-        base = evaluation_cameras(run.pack, views, jitter, ev_seed, (size, size)).cams
-        centre = object_centre(run.pack)
-        obj_size = float(run.pack.object.size)
+        base = evaluation_cameras(e.pack, views, jitter, ev_seed, (size, size)).cams
+        centre = object_centre(e.pack)
+        obj_size = float(e.pack.object.size)
         cams, draws = [], []
         for v, cam in enumerate(base):
-            draw = draw_placement(f"{run.scene}:{v}", seed, object_frac, margin)
+            draw = draw_placement(f"{e.scene}:{v}", seed, object_frac, margin)
             new, fov, target = place_camera(cam, centre, obj_size, draw, size)
             cams.append(new)
             draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
                           "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
-        assets = load_result(run)
-        log(f"rendering {run.name} ({run.scene}, {run.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
+        log(f"rendering {e.name} ({e.kind}, {e.scene}, {e.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
             + (" [practice]" if practice else ""))
-        bg = renderer.background(run.pack, env, cams, plan.integrator)
-        objr = renderer.with_object(env, lambda: object_mesh_of(run, assets), cams, plan.integrator)
+        bg = renderer.background(e.pack, env, cams, plan.integrator)
+        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator)
         for v in range(len(cams)):
             mask = objr.mask[v]
             if not mask.any():
                 skipped += 1
-                log(f"warning: object not visible in {run.name} view {v}; skipped")
+                log(f"warning: object not visible in {e.name} view {v}; skipped")
                 continue
-            meta = {"run": run.name, "scene": run.scene, "object": run.object, "method": run.method,
-                    "ablation": run.ablation_label, "view": str(v), "source_run": str(run.path.resolve()),
-                    "spp": spp, "seed": seed, **draws[v]}
+            meta = {"run": e.name, "scene": e.scene, "object": e.object, "method": e.method,
+                    "ablation": e.ablation, "view": str(v), "source_kind": e.kind,
+                    "source_run": str(e.path.resolve()), "spp": spp, "seed": seed, **draws[v]}
             writer.add(srgb8(objr.image[v]), mask, meta, practice)
             # the background of the same camera and seed is kept next to the set (not served)
-            _save_background(writer.out, run.scene, v, srgb8(bg.image[v]))
+            _save_background(writer.out, e.scene, v, srgb8(bg.image[v]))
     if not any(s["practice"] for s in writer.stimuli) and synthetic_practice_n > 0:
         for rgb, mask, meta in synthetic_practice(synthetic_practice_n, (size, size), seed):
             writer.add(rgb, mask, meta, True)

@@ -497,6 +497,32 @@ def test_run_seconds_of_older_run_directories_come_from_log_jsonl(run, tmp_path)
     assert math.isnan(s["setup"]) and math.isnan(s["total"]) and s["stage1"] > 0
 
 
+def test_baseline_runs_get_their_method_seconds(run, tmp_path):
+    """A baseline's run directory (summary.json: seconds_setup and seconds_method, no stages, an empty log.jsonl)
+    next to ours: Table II's Method s is its setup + seconds_method, its stage columns '-', and the
+    quality-vs-seconds plot has it (no 'without seconds' note)."""
+    base = tmp_path / "gravel_mean"
+    assert main(["optimize", "gravel", "--method", "mean", "--out", str(base), "--views", "4", "--resolution", "32",
+                 "--map-resolution", "32", "--target-vertices", "1500", "--target-spp", "8", "--quiet"]) == 0
+    summary = json.loads((base / "summary.json").read_text())
+    assert "seconds_stage1" not in summary and summary["seconds_method"] > 0
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(run), str(base), "--out", str(out), *EVAL]) == 0
+    df = pd.read_parquet(out / "metrics.parquet")
+    row = df[df["run"] == base.name].iloc[0]
+    method_s = summary["seconds_setup"] + summary["seconds_method"]
+    assert row["seconds_method"] == pytest.approx(method_s, rel=1e-12) and math.isnan(row["seconds_stage1"])
+    md = (out / "report.md").read_text()
+    table = md.split("## Table II — object crop")[1].split("##")[0]
+    header = next(ln for ln in table.splitlines() if ln.startswith("| Model"))
+    cols = [c.strip() for c in header.strip("|").split("|")]
+    line = next(ln for ln in table.splitlines() if ln.startswith("| Mean"))
+    cells = dict(zip(cols, [c.strip() for c in line.strip("|").split("|")]))
+    assert (cells["Stage 1 s"], cells["Stage 2 s"]) == ("-", "-")
+    assert cells["Method s"] == f"{method_s:.3g}" and cells["Setup s"] == f"{summary['seconds_setup']:.3g}"
+    assert "plots/quality_vs_seconds.png" in md and "without seconds, not plotted" not in md
+
+
 def test_gltf_text_file_interleaved_normalized_uvs_rotation_and_image_file(tmp_path):
     """A .gltf (JSON) with a data-URI buffer: interleaved POSITION + TEXCOORD_0 (normalized uint16, byteStride),
     uint16 indices, a node rotated 90 degrees about glTF's y, an external PNG base colour with the default REPEAT

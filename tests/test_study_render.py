@@ -76,3 +76,58 @@ def test_leaking_practice_refused_before_rendering(built, tmp_path):
     assert not (tmp_path / "o").exists()
     with pytest.raises(CamoError, match="--size must be 32-4096"):
         render_stimuli([ev], tmp_path / "o", size=8)
+
+
+def test_an_asset_is_rendered_again_on_the_runs_framings(built, tmp_path):
+    """An evaluation of an asset (the run's own result.glb, placed in the run's scene) builds without --copy: the
+    asset is rendered on the same drawn framings as the run, and since it is the run's result its masks and images
+    are the run's (the GLB's 8-bit maps of a one-colour result: a few 8-bit levels at most)."""
+    root, _, _, _ = built
+    run = root / "gravel_mean"
+    ev, st = tmp_path / "ev", tmp_path / "st"
+    assert main(["evaluate", str(run), "--asset", str(run / "result.glb"), "--scene", str(run), "--method", "theirs",
+                 "--out", str(ev), "--views", "2", "--spp", "2", "--resolution", "32", "--metrics", "psnr",
+                 "--quiet", "--threads", "1"]) == 0
+    assert main(["study", "build-stimuli", str(ev), "--out", str(st), "--size", "64", "--views", "3", "--spp", "4",
+                 "--synthetic-practice", "0", "--threads", "1"]) == 0
+    man = json.loads((st / "manifest.json").read_text())
+    assert man["mode"] == "render" and {s["method"] for s in man["stimuli"]} == {"mean", "theirs"}
+    theirs = [s for s in man["stimuli"] if s["method"] == "theirs"]
+    ours = {s["view"]: s for s in man["stimuli"] if s["method"] == "mean"}
+    assert len(theirs) == len(ours) >= 2
+    for s in theirs:
+        o = ours[s["view"]]
+        assert s["source_kind"] == "asset" and s["source_run"] == str((run / "result.glb").resolve())
+        assert (s["draw_px"], s["draw_py"], s["fov"]) == (o["draw_px"], o["draw_py"], o["fov"])
+        mask_a, mask_o = (np.asarray(Image.open(st / "masks" / f"{x['id']}.png")) > 127 for x in (s, o))
+        assert (mask_a == mask_o).mean() > 0.999 and s["bbox"] == o["bbox"]
+        img_a, img_o = (np.asarray(Image.open(st / "images" / f"{x['id']}.png")).astype(int) for x in (s, o))
+        assert np.abs(img_a - img_o).max() <= 3, np.abs(img_a - img_o).max()  # measured: 1 (8-bit albedo)
+
+
+def test_triplets_need_copy_with_one_line(built, tmp_path, capsys):
+    """Given 2D images cannot be rendered on a new framing: build-stimuli says so in one line (exit 2, nothing
+    written) and builds them with --copy, the given images unchanged."""
+    import shutil
+
+    _, ev, _, _ = built
+    tri = tmp_path / "tri"
+    tri.mkdir()
+    src = next((ev / "renders").iterdir())
+    for v in (0, 1):
+        for kind in ("obj", "bg", "mask"):
+            shutil.copy(src / f"view_{v:02d}_{kind}.png", tri / f"v{v}_{kind}.png")
+    ev2, st = tmp_path / "ev", tmp_path / "st"
+    assert main(["evaluate", "--triplets", str(tri), "--scene", "gravel", "--method", "2D", "--out", str(ev2),
+                 "--metrics", "psnr", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["study", "build-stimuli", str(ev2), "--out", str(st), "--size", "64"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("camo: error:") and "triplets" in err[0] and "--copy" in err[0], err
+    assert not st.exists()
+    assert main(["study", "build-stimuli", str(ev2), "--out", str(st), "--copy", "--synthetic-practice", "0"]) == 0
+    man = json.loads((st / "manifest.json").read_text())
+    assert man["mode"] == "copy" and len(man["stimuli"]) == 2
+    for s in man["stimuli"]:
+        given = np.asarray(Image.open(tri / f"v{s['view']}_obj.png").convert("RGB"))
+        np.testing.assert_array_equal(np.asarray(Image.open(st / "images" / f"{s['id']}.png")), given)
