@@ -28,7 +28,6 @@ import http.client
 import json
 import os
 import random
-import re
 import signal
 import socket
 import statistics
@@ -37,96 +36,40 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.parse
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from study_site.simulate import CSRF_RE, Deadline, SiteClient  # noqa: E402
+
 HOST = "127.0.0.1"  # loopback only
-CSRF_RE = re.compile(r'name="csrf_token" value="([^"]+)"')
-COOKIE = "camo_study"
-
-
-class Deadline(Exception):
-    pass
 
 
 class _SkipCrash(Exception):
     pass
 
 
-class Client:
-    """One simulated participant: its own cookie and keep-alive connection; retries until answered."""
+class Client(SiteClient):
+    """One simulated participant with fake searches: retries (study_site.simulate.SiteClient) until answered."""
+
+    max_backoff_s = 1.0
 
     def __init__(self, port: int, pid: str, deadline: float, stats: "Stats", think=(0.0, 0.03), limit_s=5.0):
-        self.port, self.pid, self.deadline, self.stats, self.think = port, pid, deadline, stats, think
-        self.limit_s = limit_s
-        self.conn: http.client.HTTPConnection | None = None
-        self.cookie = ""
-        self.csrf = ""
+        super().__init__(HOST, port, deadline, stats)
+        self.pid, self.think, self.limit_s = pid, think, limit_s
         self.acked: dict[int, str] = {}  # trial index -> client_trial_id acknowledged
 
-    def _conn(self):
-        if self.conn is None:
-            self.conn = http.client.HTTPConnection(HOST, self.port, timeout=30)
-        return self.conn
-
-    def request(self, method, path, body=None, headers=None, retry=True):
-        """(status, headers, body, seconds) of the first answer that is not a transport error/5xx/429."""
-        delay = 0.05
-        while True:
-            if time.monotonic() > self.deadline:
-                raise Deadline()
-            h = {"Cookie": f"{COOKIE}={self.cookie}"} if self.cookie else {}
-            h.update(headers or {})
-            t0 = time.perf_counter()
-            try:
-                c = self._conn()
-                c.request(method, path, body=body, headers=h)
-                r = c.getresponse()
-                data = r.read()
-                dt = time.perf_counter() - t0
-                for k, v in r.getheaders():
-                    if k.lower() == "set-cookie" and v.startswith(COOKIE + "="):
-                        self.cookie = v.split(";", 1)[0].split("=", 1)[1]
-                if r.status in (429, 500, 502, 503, 504) and retry:
-                    self.stats.count(f"http_{r.status}")
-                else:
-                    return r.status, r, data, dt
-            except (OSError, http.client.HTTPException):
-                self.stats.count("transport_errors")
-                if self.conn is not None:
-                    self.conn.close()
-                self.conn = None
-                if not retry:
-                    raise
-            time.sleep(delay * (1 + random.random()))
-            delay = min(delay * 2, 1.0)
-
-    def form(self, path, fields):
-        body = urllib.parse.urlencode(dict(fields, csrf_token=self.csrf))
-        st, _, _, _ = self.request("POST", path, body, {"Content-Type": "application/x-www-form-urlencoded"})
-        if st != 302:
-            raise RuntimeError(f"{self.pid}: POST {path} -> {st}")
-
-    def api(self, path, obj):
-        body = json.dumps(obj)
-        st, _, data, dt = self.request(
-            "POST", path, body, {"Content-Type": "application/json", "X-CSRF-Token": self.csrf}
-        )
-        return st, (json.loads(data) if data[:1] == b"{" else {}), dt
-
     def session(self, images: bool, rng: random.Random):
-        st, r, _, _ = self.request("GET", f"/?PROLIFIC_PID={self.pid}&STUDY_ID=bench&SESSION_ID=s{self.pid}")
+        st, _, _ = self.request("GET", f"/?PROLIFIC_PID={self.pid}&STUDY_ID=bench&SESSION_ID=s{self.pid}")
         if st != 302:
             raise RuntimeError(f"{self.pid}: landing -> {st}")
-        st, _, html, _ = self.request("GET", "/consent")
+        st, html, _ = self.request("GET", "/consent")
         self.csrf = CSRF_RE.search(html.decode()).group(1)
         self.form("/consent", {"consent": "yes"})
         self.form("/about-you", {"age": rng.choice(["18-24", "25-34", "prefer_not", ""])})
         self.form("/instructions", {})
-        st, _, data, _ = self.request("GET", "/api/state")
+        st, data, _ = self.request("GET", "/api/state")
         state = json.loads(data)
         if images:
             for t in state["trials"]:
@@ -135,7 +78,7 @@ class Client:
         for t in state["trials"]:
             st, j, dt0 = self.api("/api/start", {"trial_index": t["index"]})
             if st != 200:
-                self.stats.count("unexpected_start_answers")
+                self.stats.add("unexpected_start_answers")
                 raise RuntimeError(f"{self.pid}: start {t['index']} -> {st} {j}")
             self.stats.start_latency(dt0)
             t_shown = time.monotonic() - j["elapsed_ms"] / 1000.0
@@ -149,7 +92,7 @@ class Client:
                 body.update(x=rng.randrange(t["w"]), y=rng.randrange(t["h"]))
             st, j, dt = self.api("/api/trial", body)
             if st != 200 or j.get("stored_client_trial_id") != body["client_trial_id"]:
-                self.stats.count("unexpected_trial_answers")
+                self.stats.add("unexpected_trial_answers")
                 raise RuntimeError(f"{self.pid}: trial {t['index']} -> {st} {j}")
             self.stats.trial_latency(dt)
             self.acked[t["index"]] = body["client_trial_id"]
@@ -161,11 +104,11 @@ class Client:
                 st3, j3, _ = self.api("/api/trial", dict(body, client_trial_id=body["client_trial_id"] + "b"))
                 if not (st2 == st3 == 200 and j2["duplicate"] and j3["duplicate"]
                         and j3["stored_client_trial_id"] == body["client_trial_id"]):
-                    self.stats.count("idempotency_failures")
+                    self.stats.add("idempotency_failures")
         st, j, _ = self.api("/api/complete", {})
         if st != 200:
             raise RuntimeError(f"{self.pid}: complete -> {st} {j}")
-        self.stats.count("completed")
+        self.stats.add("completed")
 
 
 class Stats:
@@ -176,7 +119,7 @@ class Stats:
         self.counts: dict[str, int] = {}
         self.acks = 0
 
-    def count(self, key, n=1):
+    def add(self, key, n=1):
         with self.lock:
             self.counts[key] = self.counts.get(key, 0) + n
 
@@ -238,7 +181,7 @@ def run_phase(name, port, n, images, deadline, stats, seed, think, limit_s, on_p
         try:
             c.session(images, random.Random(seed * 100003 + k))
         except Deadline:
-            stats.count("deadline_hit")
+            stats.add("deadline_hit")
         except Exception as exc:  # noqa: BLE001 - recorded and reported
             errors.append(f"{c.pid}: {exc}")
 

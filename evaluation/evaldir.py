@@ -9,11 +9,11 @@ and :mod:`study_site.stimuli` read it; none of them parses these files itself. L
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from camo_base import atomic
+from camo_base.documents import read_json
 from camo_base.errors import CamoError
 
 #: The metric columns, one per metric of :data:`evaluation.metrics.METRICS` (NaN where not computed).
@@ -120,10 +120,7 @@ def renders_json(eval_dir: str | Path) -> list[dict[str, Any]]:
     p = Path(eval_dir) / "renders.json"
     if not p.is_file():
         return []
-    try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except ValueError as exc:
-        raise CamoError(f"{p}: not valid JSON ({exc})") from None
+    data = read_json(p, "render list")
     return data if isinstance(data, list) else []
 
 
@@ -144,12 +141,7 @@ def read_renders(eval_dir: str | Path) -> list[dict[str, Any]]:
         raise CamoError(f"{eval_dir}: not a directory")
     if not rj.is_file():
         raise CamoError(f"{eval_dir}: no renders.json (is this an evaluation directory from `camo evaluate`?)")
-    try:
-        entries = json.loads(rj.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise CamoError(f"{rj}: not valid JSON ({exc})") from None
-    if not isinstance(entries, list):
-        raise CamoError(f"{rj}: expected a JSON list of render entries")
+    entries = read_json(rj, "render list", list)
     for i, e in enumerate(entries):
         if not isinstance(e, dict):
             raise CamoError(f"{rj}: entry {i} is not an object")

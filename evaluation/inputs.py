@@ -41,12 +41,12 @@ import dataclasses
 import hashlib
 import math
 import re
-import tomllib
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
+from camo_base.documents import read_toml
 from camo_base.errors import CamoError
 
 KINDS = ("run", "asset", "triplets")
@@ -124,12 +124,7 @@ def finite_seconds(v: Any, where: str) -> float | None:
 def read_input_list(path: str | Path) -> list[InputSpec]:
     """The inputs of a TOML list (see the module docstring)."""
     p = Path(path)
-    if not p.is_file():
-        raise CamoError(f"--inputs: file not found: {p}")
-    try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise CamoError(f"--inputs {p}: not valid TOML ({exc})") from None
+    doc = read_toml(p, "--inputs list")
     unknown = sorted(set(doc) - set(KINDS))
     if unknown:
         raise CamoError(f"--inputs {p}: unknown table(s) {', '.join(unknown)}; use [[run]], [[asset]], [[triplets]]")

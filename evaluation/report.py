@@ -704,6 +704,22 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
     return md, ht
 
 
+def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
+                   alt: str | None = None) -> tuple[list[str], list[str]]:
+    """Markdown and HTML lines of a report section of PNG figures ``[(caption, path under out)]``: Markdown links
+    the files, HTML embeds them (``alt``: the images' alt text, default their captions). No figures: no section."""
+    if not figures:
+        return [], []
+    md, ht = [f"## {title}", ""], [f"<h2>{html.escape(title)}</h2>"]
+    for caption, path in figures:
+        text = alt if alt is not None else caption
+        md += [f"**{caption}**", "", f"![{text}]({path.relative_to(out).as_posix()})", ""]
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        ht += [f"<figure><img src=\"data:image/png;base64,{data}\" alt=\"{html.escape(text)}\">"
+               f"<figcaption>{html.escape(caption)}</figcaption></figure>"]
+    return md, ht
+
+
 def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
     """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
     from camo_base import atomic
@@ -783,24 +799,10 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     sim_md, sim_ht = simulated_section(df, eval_dirs)
     md += sim_md
     ht += sim_ht
-    if plots:
-        md += ["## Quality vs seconds", ""]
-        ht += ["<h2>Quality vs seconds</h2>"]
-        for caption, path in plots:
-            rel = path.relative_to(out).as_posix()
-            md += [f"**{caption}**", "", f"![quality vs seconds]({rel})", ""]
-            data = base64.b64encode(path.read_bytes()).decode("ascii")
-            ht += [f"<figure><img src=\"data:image/png;base64,{data}\" alt=\"quality vs seconds\">"
-                   f"<figcaption>{html.escape(caption)}</figcaption></figure>"]
-    if grids:
-        md += ["## Image grids", ""]
-        ht += ["<h2>Image grids</h2>"]
-        for caption, path in grids:
-            rel = path.relative_to(out).as_posix()
-            md += [f"**{caption}**", "", f"![{caption}]({rel})", ""]
-            data = base64.b64encode(path.read_bytes()).decode("ascii")
-            ht += [f"<figure><img src=\"data:image/png;base64,{data}\" alt=\"{html.escape(caption)}\">"
-                   f"<figcaption>{html.escape(caption)}</figcaption></figure>"]
+    for f_md, f_ht in (figure_section("Quality vs seconds", plots, out, "quality vs seconds"),
+                       figure_section("Image grids", grids, out)):
+        md += f_md
+        ht += f_ht
     style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
              "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
              "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")

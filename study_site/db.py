@@ -99,6 +99,10 @@ class PlanItem(Base):
     starts: Mapped[int] = mapped_column(Integer, default=0)  # how often it was shown (reloads count)
 
 
+#: What a plan item shows, copied into its trial when it is answered (the trial row stands alone in the analysis).
+SHOWN_COLUMNS = ("practice", "stimulus_id", "run", "scene", "object", "method", "ablation", "view")
+
+
 class Trial(Base):
     __tablename__ = "trials"
     __table_args__ = (UniqueConstraint("participant_id", "trial_index", name="uq_trial_participant_index"),)

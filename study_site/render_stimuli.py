@@ -3,10 +3,10 @@
 Evaluation renders (``camo evaluate``) come from orbit cameras aimed at the object, so the object always
 sits at the frame centre and the images are as small as the training resolution. Here every evaluated input
 -- a run directory, or an asset (glTF/GLB, OBJ) placed in its scene as the evaluation placed it, both read
-again through :func:`evaluation.inputs.resolve` -- is rendered again at the study size (``size`` x ``size``, default 512 px, independent of the training
-resolution) from the same evaluation camera *positions* (``evaluation.views.evaluation_cameras`` with the
-evaluation's seed and jitter), but each camera is turned and zoomed so that the object lands at a random,
-recorded place and size in the frame.
+again through :func:`evaluation.inputs.resolve` -- is rendered again at the study size (``size`` x ``size``,
+default 512 px, independent of the training resolution) from the same evaluation camera *positions*
+(``evaluation.views.evaluation_cameras`` with the evaluation's seed and jitter), but each camera is turned and
+zoomed so that the object lands at a random, recorded place and size in the frame.
 
 Distribution (per scene and view, the same for every method of that scene, so methods are compared on
 identical framings and share one background render):

@@ -117,14 +117,17 @@ class ObserverCache:
             return c
 
 
-class Participant:
-    """One simulated participant: its own cookie and keep-alive connection."""
+class SiteClient:
+    """A browser of the study site: its own session cookie, CSRF token and keep-alive connection.
 
-    def __init__(self, host: str, port: int, pid: str, seed: int, deadline: float, stats: SimStats,
-                 cache: ObserverCache):
-        self.host, self.port, self.pid, self.deadline, self.stats, self.cache = host, port, pid, deadline, stats, cache
-        self.rng = np.random.default_rng(seed)
-        self.seed = seed
+    ``stats.add(key)`` counts what was retried (``http_<status>``, ``transport_errors``); the backoff doubles from
+    50 ms up to :attr:`max_backoff_s`, randomised, until ``deadline`` (``time.monotonic()``) raises
+    :class:`Deadline`. Used by :class:`Participant` and ``bench/bench_study_load.py``."""
+
+    max_backoff_s = 2.0
+
+    def __init__(self, host: str, port: int, deadline: float, stats):
+        self.host, self.port, self.deadline, self.stats = host, port, deadline, stats
         self.conn: http.client.HTTPConnection | None = None
         self.cookie = ""
         self.csrf = ""
@@ -156,7 +159,7 @@ class Participant:
                     self.conn.close()
                 self.conn = None
             time.sleep(delay * (1 + random.random()))
-            delay = min(delay * 2, 2.0)
+            delay = min(delay * 2, self.max_backoff_s)
 
     def form(self, path: str, fields: dict[str, str]) -> None:
         body = urllib.parse.urlencode(dict(fields, csrf_token=self.csrf))
@@ -172,6 +175,16 @@ class Participant:
         except ValueError:
             j = {}
         return st, j, dt
+
+
+class Participant(SiteClient):
+    """One simulated participant: the simulated observer searching each stimulus, with its own random stream."""
+
+    def __init__(self, host: str, port: int, pid: str, seed: int, deadline: float, stats: SimStats,
+                 cache: ObserverCache):
+        super().__init__(host, port, deadline, stats)
+        self.pid, self.seed, self.cache = pid, seed, cache
+        self.rng = np.random.default_rng(seed)
 
     def run(self) -> list[dict[str, Any]]:
         """The whole session; returns what the observer did in each trial."""

@@ -33,7 +33,7 @@ from sqlalchemy.exc import IntegrityError
 
 from study_site.assign import create_plan
 from study_site.config import age_brackets
-from study_site.db import Participant, PlanItem, Trial, lock_for_assignment, utcnow
+from study_site.db import SHOWN_COLUMNS, Participant, PlanItem, Trial, lock_for_assignment, utcnow
 from study_site.security import TOKEN_RE, check_csrf, hmac_id, valid_id
 
 bp = Blueprint("study", __name__)
@@ -534,14 +534,7 @@ def api_trial():
         participant_id=p.id,
         trial_index=idx,
         client_trial_id=data["client_trial_id"],
-        practice=item.practice,
-        stimulus_id=item.stimulus_id,
-        run=item.run,
-        scene=item.scene,
-        object=item.object,
-        method=item.method,
-        ablation=item.ablation,
-        view=item.view,
+        **{c: getattr(item, c) for c in SHOWN_COLUMNS},
         hit=hit,
         timed_out=data["timed_out"] or late,
         click_x=x,

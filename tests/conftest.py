@@ -37,6 +37,91 @@ def _restore_thread_count():
         backend.set_threads(backend.default_threads())
 
 
+@pytest.fixture()
+def cli(capsys):
+    """``cli(*argv) -> (exit code, stdout, stderr)``: the ``camo`` command line run in-process."""
+    from camo.cli import main
+
+    def run(*argv) -> tuple[int, str, str]:
+        capsys.readouterr()
+        rc = main(list(argv))
+        out, err = capsys.readouterr()
+        return rc, out, err
+
+    return run
+
+
+@pytest.fixture()
+def loopback_http(monkeypatch):
+    """``serve(handler_class) -> "http://127.0.0.1:PORT/"``: a threading HTTP server on an ephemeral loopback port,
+    stopped after the test. Nothing leaves this machine: proxies are cleared, and ``camo data``'s downloads
+    (``optimizer.scenes.data.fetch._open``) fail the test for any host but 127.0.0.1 (timeouts capped at 5 s)."""
+    import http.server
+    import threading
+    import urllib.parse
+
+    from optimizer.scenes.data import fetch as fetch_mod
+
+    for var in ("http_proxy", "https_proxy", "HTTP_PROXY", "HTTPS_PROXY", "all_proxy", "ALL_PROXY"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("no_proxy", "127.0.0.1")
+    real_open = fetch_mod._open
+
+    def guarded_open(url, headers, timeout):
+        assert urllib.parse.urlsplit(url).hostname == "127.0.0.1", f"test tried to reach {url}"
+        return real_open(url, headers, min(timeout, 5.0))
+
+    monkeypatch.setattr(fetch_mod, "_open", guarded_open)
+    servers = []
+
+    def serve(handler) -> str:
+        httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        httpd.daemon_threads = True
+        thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        thread.start()
+        servers.append((httpd, thread))
+        return f"http://127.0.0.1:{httpd.server_address[1]}/"
+
+    yield serve
+    for httpd, thread in servers:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join(timeout=5)
+
+
+@pytest.fixture(scope="session")
+def tiny_metric_weights(tmp_path_factory) -> dict[str, str]:
+    """Random (He-initialised, seed 0) weight files in the real key layouts, written once per session: an AlexNet
+    trunk and LPIPS v0.1 linear layers (``lpips_dir``/``alexnet-test.pth`` and ``alex.pth``, also as
+    ``lpips_trunk`` / ``lpips_lin``) and an Inception v3 stem (``sifid``). The keys ``lpips_trunk``, ``lpips_lin``
+    and ``sifid`` are what :func:`evaluation.metrics.compute_metrics` takes as weights."""
+    import torch
+
+    d = tmp_path_factory.mktemp("tiny_metric_weights")
+    lp = d / "lpips"
+    lp.mkdir()
+    g = torch.Generator().manual_seed(0)
+    trunk = {}
+    alex_convs = {0: (64, 3, 11), 3: (192, 64, 5), 6: (384, 192, 3), 8: (256, 384, 3), 10: (256, 256, 3)}
+    for i, (o, c, k) in alex_convs.items():
+        trunk[f"features.{i}.weight"] = torch.randn(o, c, k, k, generator=g) * (2.0 / (c * k * k)) ** 0.5
+        trunk[f"features.{i}.bias"] = 0.05 * torch.randn(o, generator=g)
+    lin = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) * 0.1
+           for k, c in enumerate((64, 192, 384, 256, 256))}
+    inc = {}
+    for name, cin, cout in (("Conv2d_1a_3x3", 3, 32), ("Conv2d_2a_3x3", 32, 32), ("Conv2d_2b_3x3", 32, 64)):
+        inc[f"{name}.conv.weight"] = torch.randn(cout, cin, 3, 3, generator=g) * (2.0 / (cin * 9)) ** 0.5
+        inc[f"{name}.bn.weight"] = 1 + 0.1 * torch.randn(cout, generator=g)
+        inc[f"{name}.bn.bias"] = 0.1 * torch.randn(cout, generator=g)
+        inc[f"{name}.bn.running_mean"] = 0.1 * torch.randn(cout, generator=g)
+        inc[f"{name}.bn.running_var"] = 0.5 + torch.rand(cout, generator=g)
+    torch.save(trunk, lp / "alexnet-test.pth")
+    torch.save(lin, lp / "alex.pth")
+    torch.save(inc, d / "inception_v3_google-test.pth")
+    return {"lpips_dir": str(lp), "lpips_trunk": str(lp / "alexnet-test.pth"), "lpips_lin": str(lp / "alex.pth"),
+            "sifid": str(d / "inception_v3_google-test.pth")}
+
+
 @pytest.fixture(scope="session")
 def bench_module():
     """``bench_module("grid_figures")`` imports ``bench/grid_figures.py`` (bench/ is not a package)."""

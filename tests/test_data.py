@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 
 from camo import cli
-from camo.cli import main
 from optimizer.scenes.data import fetch as fetch_mod
 from optimizer.scenes.data.manifest import PLACEHOLDER, load_manifest
 
@@ -185,45 +184,14 @@ def _handler(state: _State):
 
 
 @pytest.fixture()
-def server(monkeypatch):
-    files = make_fixtures()
-    state = _State(files)
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _handler(state))
-    httpd.daemon_threads = True
-    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    thread.start()
-    port = httpd.server_address[1]
-    state.base = f"http://127.0.0.1:{port}/"
-
-    # Never leave this machine's loopback: no proxies, and any other host fails the test.
-    for var in ("http_proxy", "https_proxy", "HTTP_PROXY", "HTTPS_PROXY", "all_proxy", "ALL_PROXY"):
-        monkeypatch.delenv(var, raising=False)
-    monkeypatch.setenv("no_proxy", "127.0.0.1")
-    real_open = fetch_mod._open
-
-    def guarded_open(url, headers, timeout):
-        host = urllib.parse.urlsplit(url).hostname
-        assert host == "127.0.0.1", f"test tried to reach {url}"
-        return real_open(url, headers, min(timeout, 5.0))
-
-    monkeypatch.setattr(fetch_mod, "_open", guarded_open)
-    try:
-        yield state
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
-        thread.join(timeout=5)
+def server(loopback_http):
+    state = _State(make_fixtures())
+    state.base = loopback_http(_handler(state))
+    return state
 
 
-def run(capsys, *argv) -> tuple[int, str, str]:
-    capsys.readouterr()
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def fetch(capsys, server, manifest, dest, *extra) -> tuple[int, str, str]:
-    return run(capsys, "data", "fetch", str(manifest), "--dest", str(dest), "--base-url", server.base,
+def fetch(cli, server, manifest, dest, *extra) -> tuple[int, str, str]:
+    return cli("data", "fetch", str(manifest), "--dest", str(dest), "--base-url", server.base,
                "--backoff", "0.01", "--timeout", "5", "--quiet", *extra)
 
 
@@ -274,7 +242,7 @@ def test_example_manifest_pins_the_fixtures():
 
 
 @pytest.mark.parametrize("name", ["polyhaven_hdris.toml", "bitterli_scenes.toml", "navi_objaverse_objects.toml"])
-def test_real_manifests_parse_and_are_refused_unpinned(name, capsys, tmp_path, monkeypatch):
+def test_real_manifests_parse_and_are_refused_unpinned(name, cli, tmp_path, monkeypatch):
     def no_network(*a, **k):
         raise AssertionError("no network access expected")
 
@@ -285,14 +253,14 @@ def test_real_manifests_parse_and_are_refused_unpinned(name, capsys, tmp_path, m
         assert a.url.startswith("https://")
         assert a.licence and a.source["dataset"] and a.source["homepage"].startswith("https://")
         assert not a.pinned  # nobody could download them here: they must say so
-    rc, out, err = run(capsys, "data", "fetch", str(MANIFESTS / name), "--dest", str(tmp_path / "d"))
+    rc, out, err = cli("data", "fetch", str(MANIFESTS / name), "--dest", str(tmp_path / "d"))
     assert rc == 2 and err.count("\n") == 1 and "not pinned" in err and "--pin" in err
     assert not (tmp_path / "d").exists() or not any((tmp_path / "d").iterdir())
 
 
-def test_fetch_verifies_unpacks_then_skips(server, capsys, tmp_path):
+def test_fetch_verifies_unpacks_then_skips(server, cli, tmp_path):
     dest = tmp_path / "d"
-    rc, out, err = fetch(capsys, server, EXAMPLE, dest)
+    rc, out, err = fetch(cli, server, EXAMPLE, dest)
     assert rc == 0, err
     files = server.files
     assert (dest / "sky.hdr").read_bytes() == files["sky.hdr"]
@@ -303,21 +271,21 @@ def test_fetch_verifies_unpacks_then_skips(server, capsys, tmp_path):
     assert sorted(e["path"] for e in server.log) == ["chair.zip", "room.tar", "sky.hdr"]
 
     n = len(server.log)
-    rc, out, err = fetch(capsys, server, EXAMPLE, dest)
+    rc, out, err = fetch(cli, server, EXAMPLE, dest)
     assert rc == 0 and len(server.log) == n  # nothing downloaded again
     assert out.count("present, checksum ok") == 3
 
-    rc, out, err = run(capsys, "data", "verify", str(EXAMPLE), "--dest", str(dest))
+    rc, out, err = cli("data", "verify", str(EXAMPLE), "--dest", str(dest))
     assert rc == 0 and "3 ok, 0 missing, 0 mismatch, 0 unpinned" in out
 
 
-def test_corrupted_download_is_refused(server, capsys, tmp_path, manifest):
+def test_corrupted_download_is_refused(server, cli, tmp_path, manifest):
     dest = tmp_path / "d"
-    assert fetch(capsys, server, manifest, dest, "--only", "sky")[0] == 0
+    assert fetch(cli, server, manifest, dest, "--only", "sky")[0] == 0
     sky = dest / "sky.hdr"
     before = (sky.stat().st_ino, sky.stat().st_mtime_ns)
 
-    rc, out, err = fetch(capsys, server, manifest, dest, "--only", "sky", "corrupt")
+    rc, out, err = fetch(cli, server, manifest, dest, "--only", "sky", "corrupt")
     assert rc == 2
     assert err.count("\n") == 1 and err.startswith("camo: error: corrupt: sha256 mismatch")
     assert not (dest / "corrupt.hdr").exists()
@@ -325,18 +293,18 @@ def test_corrupted_download_is_refused(server, capsys, tmp_path, manifest):
     assert (sky.stat().st_ino, sky.stat().st_mtime_ns) == before and sky.read_bytes() == server.files["sky.hdr"]
 
 
-def test_interrupted_download_resumes_from_partial_file(server, capsys, tmp_path):
+def test_interrupted_download_resumes_from_partial_file(server, cli, tmp_path):
     dest = tmp_path / "d"
     size = len(server.files["sky.hdr"])
     server.drop_once.add("sky.hdr")
-    rc, out, err = fetch(capsys, server, EXAMPLE, dest, "--only", "sky", "--retries", "0")
+    rc, out, err = fetch(cli, server, EXAMPLE, dest, "--only", "sky", "--retries", "0")
     assert rc == 2 and err.count("\n") == 1 and "run again to resume" in err
     part = dest / ".partial" / "sky.hdr.part"
     kept = part.stat().st_size
     assert 0 < kept < size and not (dest / "sky.hdr").exists()
     assert server.log[-1]["sent"] == kept
 
-    rc, out, err = fetch(capsys, server, EXAMPLE, dest, "--only", "sky")
+    rc, out, err = fetch(cli, server, EXAMPLE, dest, "--only", "sky")
     assert rc == 0, err
     second = server.log[-1]
     assert second["range"] == f"bytes={kept}-" and second["status"] == 206
@@ -344,10 +312,10 @@ def test_interrupted_download_resumes_from_partial_file(server, capsys, tmp_path
     assert (dest / "sky.hdr").read_bytes() == server.files["sky.hdr"] and not part.exists()
 
 
-def test_dropped_connection_is_retried_within_one_run(server, capsys, tmp_path):
+def test_dropped_connection_is_retried_within_one_run(server, cli, tmp_path):
     dest = tmp_path / "d"
     server.drop_once.add("sky.hdr")
-    rc, out, err = fetch(capsys, server, EXAMPLE, dest, "--only", "sky")
+    rc, out, err = fetch(cli, server, EXAMPLE, dest, "--only", "sky")
     assert rc == 0, err
     first, second = server.log
     assert first["range"] is None and second["range"] == f"bytes={first['sent']}-"
@@ -356,19 +324,19 @@ def test_dropped_connection_is_retried_within_one_run(server, capsys, tmp_path):
     assert (dest / "sky.hdr").read_bytes() == server.files["sky.hdr"]
 
 
-def test_server_error_is_retried(server, capsys, tmp_path):
+def test_server_error_is_retried(server, cli, tmp_path):
     server.fail_once.add("sky.hdr")
-    rc, out, err = fetch(capsys, server, EXAMPLE, tmp_path / "d", "--only", "sky")
+    rc, out, err = fetch(cli, server, EXAMPLE, tmp_path / "d", "--only", "sky")
     assert rc == 0, err
     assert [e["status"] for e in server.log] == [503, 200] and "HTTP 503" in out
     assert (tmp_path / "d" / "sky.hdr").read_bytes() == server.files["sky.hdr"]
 
 
-def test_server_ignoring_range_restarts_and_ends_right(server, capsys, tmp_path):
+def test_server_ignoring_range_restarts_and_ends_right(server, cli, tmp_path):
     dest = tmp_path / "d"
     server.ignore_range = True
     server.drop_once.add("sky.hdr")
-    rc, out, err = fetch(capsys, server, EXAMPLE, dest, "--only", "sky")
+    rc, out, err = fetch(cli, server, EXAMPLE, dest, "--only", "sky")
     assert rc == 0, err
     first, second = server.log
     assert second["range"] is not None and second["status"] == 200  # asked to resume, got the whole file
@@ -376,14 +344,14 @@ def test_server_ignoring_range_restarts_and_ends_right(server, capsys, tmp_path)
     assert (dest / "sky.hdr").read_bytes() == server.files["sky.hdr"]
 
 
-def test_unpinned_refused_then_pinned_with_pin(server, capsys, tmp_path, manifest):
+def test_unpinned_refused_then_pinned_with_pin(server, cli, tmp_path, manifest):
     dest = tmp_path / "d"
     original = manifest.read_text()
-    rc, out, err = fetch(capsys, server, manifest, dest, "--only", "sky", "loose")
+    rc, out, err = fetch(cli, server, manifest, dest, "--only", "sky", "loose")
     assert rc == 2 and err.count("\n") == 1 and "loose" in err and "--pin" in err
     assert server.log == [] and not (dest / "sky.hdr").exists()
 
-    rc, out, err = fetch(capsys, server, manifest, dest, "--only", "sky", "loose", "--pin")
+    rc, out, err = fetch(cli, server, manifest, dest, "--only", "sky", "loose", "--pin")
     assert rc == 0, err
     assert (dest / "loose.hdr").read_bytes() == server.files["loose.hdr"]
     assert manifest.read_text() == original  # the input manifest is never modified
@@ -399,41 +367,41 @@ def test_unpinned_refused_then_pinned_with_pin(server, capsys, tmp_path, manifes
     assert next(a for a in data["asset"] if a["name"] == "corrupt")["size"] == 200000  # others untouched
 
     # a second --pin from the original refuses to overwrite the pinned file; the pinned manifest fetches as usual
-    rc, out, err = fetch(capsys, server, manifest, dest, "--only", "loose", "--pin")
+    rc, out, err = fetch(cli, server, manifest, dest, "--only", "loose", "--pin")
     assert rc == 2 and "already exists" in err
     n = len(server.log)
-    rc, out, err = fetch(capsys, server, pinned, dest, "--only", "sky", "loose")
+    rc, out, err = fetch(cli, server, pinned, dest, "--only", "sky", "loose")
     assert rc == 0 and len(server.log) == n
 
 
-def test_verify_reports_ok_missing_mismatch_unpinned(server, capsys, tmp_path, manifest):
+def test_verify_reports_ok_missing_mismatch_unpinned(server, cli, tmp_path, manifest):
     dest = tmp_path / "d"
-    assert fetch(capsys, server, manifest, dest, "--only", "sky", "chair", "room")[0] == 0
+    assert fetch(cli, server, manifest, dest, "--only", "sky", "chair", "room")[0] == 0
     (dest / "chair.zip").unlink()
     sky = dest / "sky.hdr"
     b = bytearray(sky.read_bytes())
     b[1000] ^= 0xFF
     sky.write_bytes(bytes(b))
-    rc, out, err = run(capsys, "data", "verify", str(manifest), "--dest", str(dest))
+    rc, out, err = cli("data", "verify", str(manifest), "--dest", str(dest))
     assert rc == 1
     status = {ln.split()[0]: ln.split()[2] for ln in out.splitlines()[2:] if ln and not ln[0].isdigit()}
     assert status == {"sky": "mismatch", "chair": "missing", "room": "ok", "corrupt": "missing", "loose": "unpinned"}
     assert "1 ok, 2 missing, 1 mismatch, 1 unpinned" in out
 
     # a fetch repairs it: the bad file is moved aside, never kept at the final path
-    assert fetch(capsys, server, EXAMPLE, dest)[0] == 0
+    assert fetch(cli, server, EXAMPLE, dest)[0] == 0
     assert (dest / ".rejected" / "sky.hdr").read_bytes() == bytes(b)
-    assert run(capsys, "data", "verify", str(EXAMPLE), "--dest", str(dest))[0] == 0
+    assert cli("data", "verify", str(EXAMPLE), "--dest", str(dest))[0] == 0
 
 
-def test_pack_from_zip_obj_is_a_valid_scene_pack(server, capsys, tmp_path):
+def test_pack_from_zip_obj_is_a_valid_scene_pack(server, cli, tmp_path):
     from optimizer.scenes.mesh import load_mesh
     from optimizer.scenes.scenepack import load_pack
 
     dest = tmp_path / "d"
-    assert fetch(capsys, server, EXAMPLE, dest)[0] == 0
+    assert fetch(cli, server, EXAMPLE, dest)[0] == 0
     out = tmp_path / "packs" / "chair.toml"
-    rc, o, err = run(capsys, "data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out))
+    rc, o, err = cli("data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out))
     assert rc == 0, err
     pack = load_pack(out)
     assert Path(pack.object.mesh) == (dest / "chair" / "chair" / "chair.obj").resolve()
@@ -443,9 +411,9 @@ def test_pack_from_zip_obj_is_a_valid_scene_pack(server, capsys, tmp_path):
     assert mesh.vertices.shape == (8, 3) and mesh.faces.shape == (12, 3)
 
     # combined with the HDRI of the same manifest, and refusing to overwrite without --overwrite
-    rc, o, err = run(capsys, "data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out), "--with", "sky")
+    rc, o, err = cli("data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out), "--with", "sky")
     assert rc == 2 and "--overwrite" in err
-    rc, o, err = run(capsys, "data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out),
+    rc, o, err = cli("data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out),
                      "--with", f"{EXAMPLE}:sky", "--overwrite")
     assert rc == 0, err
     pack = load_pack(out)
@@ -454,26 +422,26 @@ def test_pack_from_zip_obj_is_a_valid_scene_pack(server, capsys, tmp_path):
     # the --with asset fetched into another folder (and named through another manifest file)
     other = tmp_path / "other.toml"
     other.write_text(EXAMPLE.read_text())
-    rc, o, err = run(capsys, "data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out),
+    rc, o, err = cli("data", "pack", str(EXAMPLE), "chair", "--dest", str(dest), "--out", str(out),
                      "--with", f"{other}:sky", "--with-dest", str(tmp_path / "elsewhere"), "--overwrite")
     assert rc == 2 and "not fetched into" in err and "elsewhere" in err
 
     # a Mitsuba scene from a tar archive, with a built-in object
     out2 = tmp_path / "packs" / "room.toml"
-    rc, o, err = run(capsys, "data", "pack", str(EXAMPLE), "room", "--dest", str(dest), "--out", str(out2))
+    rc, o, err = cli("data", "pack", str(EXAMPLE), "room", "--dest", str(dest), "--out", str(out2))
     assert rc == 0, err
     pack = load_pack(out2)
     assert Path(pack.environment.xml).name == "scene.xml" and pack.object.primitive == "utility_box"
 
 
-def test_pack_needs_a_fetched_asset(capsys, tmp_path):
-    rc, out, err = run(capsys, "data", "pack", str(EXAMPLE), "chair", "--dest", str(tmp_path), "--out",
+def test_pack_needs_a_fetched_asset(cli, tmp_path):
+    rc, out, err = cli("data", "pack", str(EXAMPLE), "chair", "--dest", str(tmp_path), "--out",
                        str(tmp_path / "p.toml"))
     assert rc == 2 and "not fetched" in err and not (tmp_path / "p.toml").exists()
 
 
 @pytest.mark.parametrize("fname,archive,member", [("evil.zip", "zip", "ok/a.obj"), ("abs.tar", "tar", "tmp/x.obj")])
-def test_unsafe_archives_are_refused(server, capsys, tmp_path, fname, archive, member):
+def test_unsafe_archives_are_refused(server, cli, tmp_path, fname, archive, member):
     data = server.files[fname]
     p = tmp_path / "evil.toml"
     p.write_text(f"""
@@ -491,7 +459,7 @@ dataset = "camo test fixtures"
 homepage = "https://example.invalid/camo-tests"
 """)
     dest = tmp_path / "inner" / "d"
-    rc, out, err = fetch(capsys, server, p, dest)
+    rc, out, err = fetch(cli, server, p, dest)
     assert rc == 2 and err.count("\n") == 1 and "unsafe archive member" in err
     assert not (dest / "evil").exists() and not (tmp_path / "inner" / "escaped.obj").exists()
     assert not Path("/tmp/camo-abs-escape.obj").exists()
@@ -505,27 +473,27 @@ homepage = "https://example.invalid/camo-tests"
     (lambda t: t.replace('sha256 = "', 'sha256 = "XYZ', 1), "64 lowercase hex"),
     (lambda t: t + "\n[[asset]\n", "not valid TOML"),
 ])
-def test_bad_manifests_get_one_line_errors(capsys, tmp_path, edit, message):
+def test_bad_manifests_get_one_line_errors(cli, tmp_path, edit, message):
     p = tmp_path / "bad.toml"
     p.write_text(edit(EXAMPLE.read_text()))
-    rc, out, err = run(capsys, "data", "verify", str(p), "--dest", str(tmp_path))
+    rc, out, err = cli("data", "verify", str(p), "--dest", str(tmp_path))
     assert rc == 2 and err.count("\n") == 1 and message in err, err
 
 
-def test_http_404_is_one_line(server, capsys, tmp_path):
+def test_http_404_is_one_line(server, cli, tmp_path):
     p = tmp_path / "m.toml"
     p.write_text(EXAMPLE.read_text().replace('url = "sky.hdr"', 'url = "nope.hdr"'))
-    rc, out, err = fetch(capsys, server, p, tmp_path / "d", "--only", "sky")
+    rc, out, err = fetch(cli, server, p, tmp_path / "d", "--only", "sky")
     assert rc == 2 and err.count("\n") == 1 and "HTTP 404" in err
     assert len(server.log) == 1  # 404 is not retried
 
 
-def test_data_list(capsys):
-    rc, out, err = run(capsys, "data", "list", str(MANIFESTS / "polyhaven_hdris.toml"))
+def test_data_list(cli):
+    rc, out, err = cli("data", "list", str(MANIFESTS / "polyhaven_hdris.toml"))
     assert rc == 0 and "CC0-1.0" in out and "dl.polyhaven.org" in out
 
 
-def test_entries_sharing_one_archive_download_it_once(server, capsys, tmp_path):
+def test_entries_sharing_one_archive_download_it_once(server, cli, tmp_path):
     data = server.files["chair.zip"]
     entry = """
 [[asset]]
@@ -544,7 +512,7 @@ homepage = "https://example.invalid/camo-tests"
 """
     p = tmp_path / "shared.toml"
     p.write_text("".join(entry.format(name=n, sha=sha(data), size=len(data)) for n in ("one", "two")))
-    rc, out, err = fetch(capsys, server, p, tmp_path / "d")
+    rc, out, err = fetch(cli, server, p, tmp_path / "d")
     assert rc == 0, err
     assert [e["path"] for e in server.log] == ["chair.zip"]
     for n in ("one", "two"):

@@ -17,7 +17,6 @@ import io
 import os
 import shutil
 import tarfile
-import threading
 import tomllib
 import urllib.parse
 import zipfile
@@ -121,7 +120,7 @@ class _Server:
 
 
 @pytest.fixture()
-def server(fixtures, monkeypatch):
+def server(fixtures, monkeypatch, loopback_http):
     files = {
         "npm/@camo/fixture-assets/-/fixture-assets-1.0.0.tgz": fixtures["good"],
         "npm/@camo/evil-assets/-/evil-assets-1.0.0.tgz": fixtures["evil"],
@@ -147,29 +146,11 @@ def server(fixtures, monkeypatch):
             self.end_headers()
             self.wfile.write(data)
 
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    httpd.daemon_threads = True
-    thread = threading.Thread(target=httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
-    thread.start()
-    base = f"http://127.0.0.1:{httpd.server_address[1]}/"
-    state.npm, state.pypi = base + "npm/", base + "pypi/"
-    for var in ("http_proxy", "https_proxy", "HTTP_PROXY", "HTTPS_PROXY", "all_proxy", "ALL_PROXY",
-                "CAMO_NPM_REGISTRY", "CAMO_PYPI_FILES"):
+    for var in ("CAMO_NPM_REGISTRY", "CAMO_PYPI_FILES"):
         monkeypatch.delenv(var, raising=False)
-    monkeypatch.setenv("no_proxy", "127.0.0.1")
-    real_open = fetch_mod._open
-
-    def guarded_open(url, headers, timeout):
-        assert urllib.parse.urlsplit(url).hostname == "127.0.0.1", f"test tried to reach {url}"
-        return real_open(url, headers, min(timeout, 5.0))
-
-    monkeypatch.setattr(fetch_mod, "_open", guarded_open)
-    try:
-        yield state
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
-        thread.join(timeout=5)
+    base = loopback_http(Handler)
+    state.npm, state.pypi = base + "npm/", base + "pypi/"
+    return state
 
 
 def _expected(fixtures) -> dict[str, bytes]:
@@ -252,15 +233,8 @@ homepage = "https://example.invalid/camo-tests"
     return p
 
 
-def run(capsys, *argv) -> tuple[int, str, str]:
-    capsys.readouterr()
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def fetch(capsys, server, manifest, dest, *extra):
-    return run(capsys, "data", "fetch", str(manifest), "--dest", str(dest), "--npm-registry", server.npm,
+def fetch(cli, server, manifest, dest, *extra):
+    return cli("data", "fetch", str(manifest), "--dest", str(dest), "--npm-registry", server.npm,
                "--pypi-files", server.pypi, "--quiet", "--backoff", "0.01", "--timeout", "5", *extra)
 
 
@@ -347,10 +321,10 @@ def test_js_data_uri_decoder():
 # ------------------------------------------------------------------------------------------ fetching
 
 
-def test_fetch_from_a_local_registry_lands_verified_files_then_skips(server, fixtures, capsys, tmp_path):
+def test_fetch_from_a_local_registry_lands_verified_files_then_skips(server, fixtures, cli, tmp_path):
     man = _manifest(tmp_path, fixtures)
     dest = tmp_path / "d"
-    rc, out, err = fetch(capsys, server, man, dest)
+    rc, out, err = fetch(cli, server, man, dest)
     assert rc == 0, err
     exp = _expected(fixtures)
     for name in ("sun.exr", "tetra.obj", "tetra_whl.obj"):
@@ -366,22 +340,22 @@ def test_fetch_from_a_local_registry_lands_verified_files_then_skips(server, fix
     # present and matching: nothing downloaded, nothing read again
     shutil.rmtree(dest / ".registry")
     n = len(server.log)
-    rc, out, err = fetch(capsys, server, man, dest)
+    rc, out, err = fetch(cli, server, man, dest)
     assert rc == 0 and len(server.log) == n and out.count("present, checksum ok") == 3
 
     # a landed file damaged by hand is re-landed from the (re-downloaded) archive
     (dest / "tetra.obj").write_text("v 0 0 0\n")
-    rc, out, err = fetch(capsys, server, man, dest)
+    rc, out, err = fetch(cli, server, man, dest)
     assert rc == 0, err
     assert (dest / "tetra.obj").read_bytes() == exp["tetra.obj"]
-    rc, out, err = run(capsys, "data", "verify", str(man), "--dest", str(dest))
+    rc, out, err = cli("data", "verify", str(man), "--dest", str(dest))
     assert rc == 0 and "3 ok, 0 missing, 0 mismatch, 0 unpinned" in out
 
 
-def test_a_cached_archive_is_used_without_network(server, fixtures, capsys, tmp_path, monkeypatch):
+def test_a_cached_archive_is_used_without_network(server, fixtures, cli, tmp_path, monkeypatch):
     man = _manifest(tmp_path, fixtures)
     dest = tmp_path / "d"
-    assert fetch(capsys, server, man, dest)[0] == 0
+    assert fetch(cli, server, man, dest)[0] == 0
     for f in ("sun.exr", "tetra.obj", "tetra_whl.obj"):
         (dest / f).unlink()
 
@@ -389,61 +363,61 @@ def test_a_cached_archive_is_used_without_network(server, fixtures, capsys, tmp_
         raise AssertionError("no network access expected")
 
     monkeypatch.setattr(fetch_mod, "_open", no_network)
-    rc, out, err = run(capsys, "data", "fetch", str(man), "--dest", str(dest), "--quiet")
+    rc, out, err = cli("data", "fetch", str(man), "--dest", str(dest), "--quiet")
     assert rc == 0, err
     assert (dest / "sun.exr").is_file() and (dest / "tetra_whl.obj").is_file()
 
 
-def test_corrupt_download_is_refused_and_nothing_lands(server, fixtures, capsys, tmp_path):
+def test_corrupt_download_is_refused_and_nothing_lands(server, fixtures, cli, tmp_path):
     # the registry serves other bytes than the published integrity names
     man = _manifest(tmp_path, fixtures, package="@camo/corrupt-assets")
     dest = tmp_path / "d"
-    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun")
+    rc, out, err = fetch(cli, server, man, dest, "--only", "sun")
     assert rc == 2 and err.count("\n") == 1 and "integrity mismatch" in err
     assert not (dest / "sun.exr").exists()
     assert (dest / ".rejected" / "npm+camo+corrupt-assets-1.0.0.tgz").read_bytes() == fixtures["corrupt"]
     assert not (dest / ".registry" / "npm+camo+corrupt-assets-1.0.0.tgz").exists()
 
 
-def test_wrong_integrity_pin_is_refused(server, fixtures, capsys, tmp_path):
+def test_wrong_integrity_pin_is_refused(server, fixtures, cli, tmp_path):
     man = _manifest(tmp_path, fixtures, integrity=sri512(b"some other tarball"))
-    rc, out, err = fetch(capsys, server, man, tmp_path / "d", "--only", "sun")
+    rc, out, err = fetch(cli, server, man, tmp_path / "d", "--only", "sun")
     assert rc == 2 and err.count("\n") == 1 and "integrity mismatch" in err
     assert not (tmp_path / "d" / "sun.exr").exists()
 
 
-def test_wrong_landed_checksum_keeps_the_earlier_file(server, fixtures, capsys, tmp_path):
+def test_wrong_landed_checksum_keeps_the_earlier_file(server, fixtures, cli, tmp_path):
     dest = tmp_path / "d"
-    assert fetch(capsys, server, _manifest(tmp_path, fixtures), dest, "--only", "sun")[0] == 0
+    assert fetch(cli, server, _manifest(tmp_path, fixtures), dest, "--only", "sun")[0] == 0
     before = (dest / "sun.exr").read_bytes()
     (dest / "sun.exr").write_bytes(before[:-1] + b"\x01")  # damaged, so it must be re-landed ...
     damaged = (dest / "sun.exr").read_bytes()
     man = _manifest(tmp_path, fixtures, sun_sha="0" * 64)  # ... but the pin is wrong
-    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun")
+    rc, out, err = fetch(cli, server, man, dest, "--only", "sun")
     assert rc == 2 and err.count("\n") == 1 and "nothing landed" in err
     assert (dest / "sun.exr").read_bytes() == damaged  # untouched
     assert not list(dest.glob("*.tmp*"))
 
 
-def test_path_traversal_in_the_archive_refuses_it(server, fixtures, capsys, tmp_path):
+def test_path_traversal_in_the_archive_refuses_it(server, fixtures, cli, tmp_path):
     man = _manifest(tmp_path, fixtures, package="@camo/evil-assets")
     dest = tmp_path / "inner" / "d"
-    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun")
+    rc, out, err = fetch(cli, server, man, dest, "--only", "sun")
     assert rc == 2 and err.count("\n") == 1 and "unsafe archive member" in err
     assert not (dest / "sun.exr").exists() and not (tmp_path / "escaped.txt").exists()
     assert not (tmp_path / "inner" / "escaped.txt").exists()
 
 
-def test_a_link_member_is_refused(server, fixtures, capsys, tmp_path):
+def test_a_link_member_is_refused(server, fixtures, cli, tmp_path):
     man = _manifest(tmp_path, fixtures, package="@camo/linked-assets")
-    rc, out, err = fetch(capsys, server, man, tmp_path / "d", "--only", "tetra")
+    rc, out, err = fetch(cli, server, man, tmp_path / "d", "--only", "tetra")
     assert rc == 2 and err.count("\n") == 1 and "link or special file" in err
     assert not (tmp_path / "d" / "tetra.obj").exists()
 
 
-def test_a_missing_member_is_one_line(server, fixtures, capsys, tmp_path):
+def test_a_missing_member_is_one_line(server, fixtures, cli, tmp_path):
     man = _manifest(tmp_path, fixtures, member="package/hdri/nope.exr.js")
-    rc, out, err = fetch(capsys, server, man, tmp_path / "d", "--only", "sun")
+    rc, out, err = fetch(cli, server, man, tmp_path / "d", "--only", "sun")
     assert rc == 2 and err.count("\n") == 1 and "is not in @camo/fixture-assets@1.0.0" in err
 
 
@@ -457,23 +431,23 @@ def test_a_missing_member_is_one_line(server, fixtures, capsys, tmp_path):
     ('url = "https://files.pythonhosted.org/', 'url = "https://example.invalid/', "must start with"),
     ('filename = "tetra_whl.obj"', 'filename = "tetra.obj"', "both land as"),
 ])
-def test_bad_registry_entries_get_one_line_errors(fixtures, capsys, tmp_path, old, new, message):
+def test_bad_registry_entries_get_one_line_errors(fixtures, cli, tmp_path, old, new, message):
     p = _manifest(tmp_path, fixtures)
     text = p.read_text()
     assert old in text
     p.write_text(text.replace(old, new, 1))
-    rc, out, err = run(capsys, "data", "verify", str(p), "--dest", str(tmp_path))
+    rc, out, err = cli("data", "verify", str(p), "--dest", str(tmp_path))
     assert rc == 2 and err.count("\n") == 1 and message in err, err
 
 
-def test_pack_from_registry_assets(server, fixtures, capsys, tmp_path):
+def test_pack_from_registry_assets(server, fixtures, cli, tmp_path):
     from optimizer.scenes.scenepack import load_pack
 
     man = _manifest(tmp_path, fixtures)
     dest = tmp_path / "d"
-    assert fetch(capsys, server, man, dest)[0] == 0
+    assert fetch(cli, server, man, dest)[0] == 0
     out = tmp_path / "packs" / "p.toml"
-    rc, o, err = run(capsys, "data", "pack", str(man), "sun", "--dest", str(dest), "--out", str(out),
+    rc, o, err = cli("data", "pack", str(man), "sun", "--dest", str(dest), "--out", str(out),
                      "--with", "tetra")
     assert rc == 0, err
     pack = load_pack(out)
@@ -500,12 +474,12 @@ def test_real_registry_manifests_are_pinned_and_licensed():
     assert {a.package for a in objects.assets} == {"pybullet"}
 
 
-def test_real_registry_manifests_fetch_nothing_without_network_when_data_is_absent(capsys, tmp_path, monkeypatch):
+def test_real_registry_manifests_fetch_nothing_without_network_when_data_is_absent(cli, tmp_path, monkeypatch):
     def no_network(*a, **k):
         raise OSError("network is unreachable (test)")
 
     monkeypatch.setattr(fetch_mod, "_open", no_network)
-    rc, out, err = run(capsys, "data", "fetch", str(MANIFESTS / "registry_objects.toml"), "--dest", str(tmp_path),
+    rc, out, err = cli("data", "fetch", str(MANIFESTS / "registry_objects.toml"), "--dest", str(tmp_path),
                        "--only", "duck", "--retries", "0", "--quiet")
     assert rc == 2 and err.count("\n") == 1 and "download failed" in err
     assert not (tmp_path / "pybullet_duck.obj").exists()
@@ -545,7 +519,7 @@ def test_real_packs_validate_and_name_manifest_files(tmp_path):
             assert pack.object.size == a.pack["size"] and 0.5 <= pack.object.size <= 1.0
 
 
-def test_doctor_lists_real_packs(tmp_path, capsys):
+def test_doctor_lists_real_packs(tmp_path, cli):
     from camo.doctor import real_packs
 
     (tmp_path / "packs").mkdir()
@@ -631,7 +605,7 @@ def test_real_hdri_and_real_mesh_prepare_optimise_evaluate(tmp_path):
     assert ((df["ssim"] > 0) & (df["ssim"] <= 1)).all()
 
 
-def test_unpinned_registry_entry_is_refused_then_pinned(server, fixtures, capsys, tmp_path):
+def test_unpinned_registry_entry_is_refused_then_pinned(server, fixtures, cli, tmp_path):
     man = _manifest(tmp_path, fixtures, sun_sha="PIN")
     text = man.read_text()
     i = text.index('name = "sun"')
@@ -641,9 +615,9 @@ def test_unpinned_registry_entry_is_refused_then_pinned(server, fixtures, capsys
                           'size = "TO-BE-PINNED"' if ln.startswith("size") else ln for ln in block.split("\n"))
     man.write_text(text[:i] + new_block + text[block_end:])
     dest = tmp_path / "d"
-    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun")
+    rc, out, err = fetch(cli, server, man, dest, "--only", "sun")
     assert rc == 2 and "not pinned" in err and server.log == []
-    rc, out, err = fetch(capsys, server, man, dest, "--only", "sun", "--pin")
+    rc, out, err = fetch(cli, server, man, dest, "--only", "sun", "--pin")
     assert rc == 0, err
     pinned = tomllib.loads(man.with_name("registry.pinned.toml").read_text())
     sun = next(a for a in pinned["asset"] if a["name"] == "sun")

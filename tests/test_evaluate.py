@@ -314,36 +314,10 @@ def test_bad_input_is_one_line_exit_2_and_keeps_outputs(runs, eval_dir, tmp_path
 # --- learned metrics (random weights in the real layouts; nothing is downloaded) -----------------------------
 
 
-def _fake_weights(d: Path) -> tuple[Path, Path]:
-    import torch
-
-    from evaluation.metrics.lpips import _ALEX_CONVS, LPIPS_CHANNELS
-
-    g = torch.Generator().manual_seed(0)
-    lp = d / "lpips"
-    lp.mkdir()
-    trunk = {}
-    for i, (o, c, k, _, _) in _ALEX_CONVS.items():
-        trunk[f"features.{i}.weight"] = torch.randn(o, c, k, k, generator=g) * (2.0 / (c * k * k)) ** 0.5
-        trunk[f"features.{i}.bias"] = 0.05 * torch.randn(o, generator=g)
-    torch.save(trunk, lp / "alexnet-test.pth")
-    torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) * 0.1
-                for k, c in enumerate(LPIPS_CHANNELS["alex"])}, lp / "alex.pth")
-    inc = {}
-    for name, cin, cout in (("Conv2d_1a_3x3", 3, 32), ("Conv2d_2a_3x3", 32, 32), ("Conv2d_2b_3x3", 32, 64)):
-        inc[f"{name}.conv.weight"] = torch.randn(cout, cin, 3, 3, generator=g) * (2.0 / (cin * 9)) ** 0.5
-        inc[f"{name}.bn.weight"] = 1 + 0.1 * torch.randn(cout, generator=g)
-        inc[f"{name}.bn.bias"] = 0.1 * torch.randn(cout, generator=g)
-        inc[f"{name}.bn.running_mean"] = 0.1 * torch.randn(cout, generator=g)
-        inc[f"{name}.bn.running_var"] = 0.5 + torch.rand(cout, generator=g)
-    torch.save(inc, d / "inception_v3_google-test.pth")
-    return lp, d / "inception_v3_google-test.pth"
-
-
-def test_learned_metrics_with_given_weights(runs, tmp_path):
+def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights):
     from evaluation.metrics import load_lpips, load_sifid_inception, lpips, sifid, weights_sha256
 
-    lp, inc = _fake_weights(tmp_path)
+    lp, inc = Path(tiny_metric_weights["lpips_dir"]), Path(tiny_metric_weights["sifid"])
     out = tmp_path / "learned"
     assert main(["evaluate", str(runs[0]), "--out", str(out), "--spp", "2", "--views", "1", "--quiet",
                  "--lpips-weights", str(lp), "--inception-weights", str(inc)]) == 0

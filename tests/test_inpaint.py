@@ -33,6 +33,16 @@ def square_mask(y0, y1, x0, x1, shape=(H, W)) -> np.ndarray:
     return m
 
 
+def grey_square_scene(name: str, tint, lo: int, hi: int, size: int = H, depth: float = 5.0):
+    """``(img, mask, bg, depth)``, as ``inpaint`` takes them: a ``texture(name, tint, size)`` background with a grey
+    (0.5) square object over rows and columns ``lo:hi``, everything at the constant ``depth``."""
+    bg = texture(name, tint, size=size)
+    mask = square_mask(lo, hi, lo, hi, (size, size))
+    img = bg.copy()
+    img[mask] = 0.5
+    return img, mask, bg, np.full((size, size), depth, np.float32)
+
+
 def laplacian_var(img: np.ndarray, region: np.ndarray) -> float:
     lap = cv2.Laplacian(img.mean(axis=-1).astype(np.float32), cv2.CV_32F)
     return float(lap[region].var())
@@ -117,11 +127,7 @@ def test_mask_on_image_border_and_odd_size(patch):
 
 
 def test_deterministic_for_fixed_seed(patch):
-    bg = texture("gravel", (1.0, 0.9, 0.8), size=128)
-    mask = square_mask(44, 84, 44, 84, (128, 128))
-    img = bg.copy()
-    img[mask] = 0.5
-    depth = np.full((128, 128), 4.0, np.float32)
+    img, mask, bg, depth = grey_square_scene("gravel", (1.0, 0.9, 0.8), 44, 84, size=128, depth=4.0)
     a = patch.inpaint(img, mask, bg, depth, 1.0, seed=7)
     b = get_inpainter("patch").inpaint(img.copy(), mask.copy(), bg.copy(), depth.copy(), 1.0, seed=7)
     c = patch.inpaint(img, mask, bg, depth, 1.0, seed=8)
@@ -164,11 +170,7 @@ def test_bad_inputs_are_one_line_camoerrors(patch, kwargs, match):
 
 @pytest.mark.parametrize("name, tint", [("grass", (0.6, 1.0, 0.5)), ("gravel", (1.0, 0.9, 0.8))])
 def test_fill_has_texture_not_blur(patch, name, tint):
-    bg = texture(name, tint)
-    mask = square_mask(108, 148, 108, 148)
-    img = bg.copy()
-    img[mask] = 0.5
-    depth = np.full((H, W), 5.0, np.float32)
+    img, mask, bg, depth = grey_square_scene(name, tint, 108, 148)
     t0 = time.perf_counter()
     out = patch.inpaint(img, mask, bg, depth, strength=1.0, seed=0)
     seconds = time.perf_counter() - t0
@@ -187,11 +189,7 @@ def test_fill_has_texture_not_blur(patch, name, tint):
 
 
 def test_fill_never_reads_background_inside_mask(patch):
-    bg = texture("grass", (0.6, 1.0, 0.5), size=128)
-    mask = square_mask(40, 80, 40, 80, (128, 128))
-    img = bg.copy()
-    img[mask] = 0.5
-    depth = np.full((128, 128), 5.0, np.float32)
+    img, mask, bg, depth = grey_square_scene("grass", (0.6, 1.0, 0.5), 40, 80, size=128)
     a = patch.inpaint(img, mask, bg, depth, 1.0, 0)
     bg2 = bg.copy()
     bg2[mask] = 1.0  # what is behind the object must not matter

@@ -1,7 +1,8 @@
 """Stress tests of the image metrics (evaluation.metrics): degenerate images, range policy, rank deficiency.
 
 Every metric of the registry runs: the weight-free ones as they are, ``lpips`` and ``sifid`` with tiny
-random weights written here in the torchvision key layout (as tests/test_metrics_learned.py builds them),
+random weights in the torchvision key layout (tests/conftest.py ``tiny_metric_weights``, as
+tests/test_metrics_learned.py builds them),
 ``dreamsim`` only when its optional package and a local weights folder exist (never here: skipped).
 
 Extends tests/test_metrics.py (which checks constant 40 px images for the weight-free metrics, sizes below
@@ -15,16 +16,11 @@ import math
 
 import numpy as np
 import pytest
-import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evaluation.metrics import METRICS, MIN_SIZE, RANGE_TOL, compute_metrics, frechet_distance
 from camo_base.errors import CamoError
-
-ALEX_CONVS = {0: (64, 3, 11), 3: (192, 64, 5), 6: (384, 192, 3), 8: (256, 384, 3), 10: (256, 256, 3)}
-LPIPS_ALEX_CHANNELS = (64, 192, 384, 256, 256)
-INCEPTION_STEM = (("Conv2d_1a_3x3", 3, 32), ("Conv2d_2a_3x3", 32, 32), ("Conv2d_2b_3x3", 32, 64))
 
 #: the value each metric gives an image compared with itself
 IDEAL = {"psnr": math.inf, "ssim": 1.0, "lpips": 0.0, "lpips_proxy": 0.0, "sifid": 0.0, "sifid_proxy": 0.0}
@@ -34,28 +30,9 @@ RANGES = {"psnr": (0.0, math.inf), "ssim": (-1.0, 1.0), "lpips": (0.0, math.inf)
 
 
 @pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    """Tiny random (He-initialised) AlexNet trunk, LPIPS v0.1 linear layers and Inception v3 stem files."""
-    d = tmp_path_factory.mktemp("stress_weights")
-    g = torch.Generator().manual_seed(0)
-    trunk = {}
-    for i, (o, c, k) in ALEX_CONVS.items():
-        trunk[f"features.{i}.weight"] = torch.randn(o, c, k, k, generator=g) * (2.0 / (c * k * k)) ** 0.5
-        trunk[f"features.{i}.bias"] = 0.05 * torch.randn(o, generator=g)
-    lin = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) * 0.1
-           for k, c in enumerate(LPIPS_ALEX_CHANNELS)}
-    inc = {}
-    for name, cin, cout in INCEPTION_STEM:
-        inc[f"{name}.conv.weight"] = torch.randn(cout, cin, 3, 3, generator=g) * (2.0 / (cin * 9)) ** 0.5
-        inc[f"{name}.bn.weight"] = 1 + 0.1 * torch.randn(cout, generator=g)
-        inc[f"{name}.bn.bias"] = 0.1 * torch.randn(cout, generator=g)
-        inc[f"{name}.bn.running_mean"] = 0.1 * torch.randn(cout, generator=g)
-        inc[f"{name}.bn.running_var"] = 0.5 + torch.rand(cout, generator=g)
-    torch.save(trunk, d / "alexnet-stress.pth")
-    torch.save(lin, d / "alex.pth")
-    torch.save(inc, d / "inception_v3_google-stress.pth")
-    return {"lpips_trunk": str(d / "alexnet-stress.pth"), "lpips_lin": str(d / "alex.pth"),
-            "sifid": str(d / "inception_v3_google-stress.pth")}
+def weights(tiny_metric_weights):
+    """Tiny random AlexNet trunk, LPIPS v0.1 linear layers and Inception v3 stem files (tests/conftest.py)."""
+    return {k: tiny_metric_weights[k] for k in ("lpips_trunk", "lpips_lin", "sifid")}
 
 
 ALL = [n for n in METRICS if n != "dreamsim"]

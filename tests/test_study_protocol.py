@@ -111,6 +111,16 @@ def test_reload_keeps_the_deadline(stim_dir, tmp_path):
     assert c.post("/api/start", json={"trial_index": 2}).status_code == 400  # no CSRF token
 
 
+def _click_object_after(app, c, h, idx, server_s, rt_ms, cid):
+    """Start trial ``idx``, move its server clock ``server_s`` back, then click the object's centre with the page's
+    ``rt_ms``: ``(answer JSON, the body sent)``."""
+    c.post("/api/start", json={"trial_index": idx}, headers=h)
+    _age(app, idx, server_s)
+    x, y = _centre_of_object(app, c, idx)
+    body = {"trial_index": idx, "client_trial_id": cid, "timed_out": False, "rt_ms": rt_ms, "x": x, "y": y}
+    return c.post("/api/trial", json=body, headers=h).get_json(), body
+
+
 def test_late_and_too_fast_answers(stim_dir, tmp_path):
     app = _app(stim_dir, tmp_path, DEADLINE_GRACE_S=2.0, RT_FLOOR_MS=300)
     c = app.test_client()
@@ -125,18 +135,10 @@ def test_late_and_too_fast_answers(stim_dir, tmp_path):
     j = c.post("/api/trial", json=body, headers=h).get_json()
     assert j["hit"] is True and j["too_fast"] is True and j["late"] is False
     # a click on the object at 7.9 s with a 6 s limit (the page's clock): a timeout, not "Found it"
-    c.post("/api/start", json={"trial_index": 1}, headers=h)
-    _age(app, 1, 8)
-    x1, y1 = _centre_of_object(app, c, 1)
-    body = {"trial_index": 1, "client_trial_id": "late000001", "timed_out": False, "rt_ms": 7900, "x": x1, "y": y1}
-    j = c.post("/api/trial", json=body, headers=h).get_json()
+    j, late1 = _click_object_after(app, c, h, 1, server_s=8, rt_ms=7900, cid="late000001")
     assert j["timed_out"] is True and j["hit"] is False and j["late"] is True
     # the page claims 3 s, but the server saw 9 s: past limit + grace -> a timeout as well
-    c.post("/api/start", json={"trial_index": 2}, headers=h)
-    _age(app, 2, 9)
-    x, y = _centre_of_object(app, c, 2)
-    body = {"trial_index": 2, "client_trial_id": "late000002", "timed_out": False, "rt_ms": 3000, "x": x, "y": y}
-    j = c.post("/api/trial", json=body, headers=h).get_json()
+    j, body = _click_object_after(app, c, h, 2, server_s=9, rt_ms=3000, cid="late000002")
     assert j["timed_out"] is True and j["late"] is True and j["hit"] is False
     # a timeout 3 ms in: refused (page clock), also when the page says 6 s but the server saw 0.1 s
     c.post("/api/start", json={"trial_index": 3}, headers=h)
@@ -153,7 +155,7 @@ def test_late_and_too_fast_answers(stim_dir, tmp_path):
     rows = _rows(app)
     assert bool(rows.loc[0, "too_fast"]) and bool(rows.loc[0, "hit"]) and rows.loc[0, "rt_ms"] == 0
     assert bool(rows.loc[1, "late"]) and bool(rows.loc[1, "timed_out"]) and not bool(rows.loc[1, "hit"])
-    assert rows.loc[1, "rt_ms"] == 7900 and rows.loc[1, "click_x"] == x1  # the click is kept for the record
+    assert rows.loc[1, "rt_ms"] == 7900 and rows.loc[1, "click_x"] == late1["x"]  # the click is kept for the record
     assert 8000 <= rows.loc[1, "server_rt_ms"] < 12000
     assert 3 not in rows.index
 

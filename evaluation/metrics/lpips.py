@@ -18,7 +18,8 @@ import torch.nn as nn
 from camo_base.errors import CamoError
 
 from evaluation.metrics._common import ImageLike, prepare_pair
-from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights, load_state_dict, take, weights_sha256
+from evaluation.metrics.weights import (cached_model, file_key, find_lpips_lin_weights, find_trunk_weights,
+                                        load_state_dict, take, weights_sha256)
 
 PathLike = Union[str, os.PathLike]
 
@@ -112,14 +113,6 @@ class LPIPSNet(nn.Module):
         return total
 
 
-_CACHE: dict[tuple, LPIPSNet] = {}
-
-
-def _file_key(p: Path) -> tuple:
-    st = p.stat()
-    return (str(p.resolve()), st.st_size, st.st_mtime_ns)
-
-
 def load_lpips(net: str = "alex", trunk: Optional[PathLike] = None, lin: Optional[PathLike] = None) -> LPIPSNet:
     """Build an LPIPS v0.1 network from local files (cached per file path, size and mtime).
 
@@ -140,9 +133,11 @@ def load_lpips(net: str = "alex", trunk: Optional[PathLike] = None, lin: Optiona
         raise CamoError(f"LPIPS net must be 'alex' or 'vgg', got {net!r}")
     trunk_path = find_trunk_weights(net, trunk)
     lin_path = find_lpips_lin_weights(net, lin)
-    key = (net, _file_key(trunk_path), _file_key(lin_path))
-    if key in _CACHE:
-        return _CACHE[key]
+    return cached_model(("lpips", net, file_key(trunk_path), file_key(lin_path)),
+                        lambda: _build_lpips(net, trunk_path, lin_path))
+
+
+def _build_lpips(net: str, trunk_path: Path, lin_path: Path) -> LPIPSNet:
     model = LPIPSNet(net)
     sd = load_state_dict(trunk_path, f"{net} trunk")
     what = f"{net} trunk"
@@ -155,10 +150,8 @@ def load_lpips(net: str = "alex", trunk: Optional[PathLike] = None, lin: Optiona
     for k, layer in enumerate(model.lins):
         shape = tuple(layer.weight.shape)
         layer.weight.data.copy_(take(lsd, f"lin{k}.model.1.weight", shape, f"LPIPS {net} linear-layer", lin_path))
-    model.eval().requires_grad_(False)
     model.weights_sha256 = {"trunk": weights_sha256(trunk_path), "lin": weights_sha256(lin_path)}
     model.weight_paths = {"trunk": str(trunk_path), "lin": str(lin_path)}
-    _CACHE[key] = model
     return model
 
 

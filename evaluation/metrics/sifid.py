@@ -15,6 +15,7 @@ The SHA-256 of the file is recorded with every score (``model.weights_sha256``).
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Optional, Union
 
 import torch
@@ -24,7 +25,8 @@ from camo_base.errors import CamoError
 
 from evaluation.metrics._common import ImageLike, prepare_pair
 from evaluation.metrics.frechet import frechet_of_feature_maps
-from evaluation.metrics.weights import find_trunk_weights, load_state_dict, take, weights_sha256
+from evaluation.metrics.weights import (cached_model, file_key, find_trunk_weights, load_state_dict, take,
+                                        weights_sha256)
 
 PathLike = Union[str, os.PathLike]
 
@@ -80,9 +82,6 @@ class InceptionStem(nn.Module):
         return self.pool(z)
 
 
-_CACHE: dict[tuple, InceptionStem] = {}
-
-
 def load_sifid_inception(weights: Optional[PathLike] = None, variant: str = SIFID_VARIANT) -> InceptionStem:
     """Build the SIFID feature extractor from a local Inception v3 state dict (cached per file and variant).
 
@@ -97,10 +96,10 @@ def load_sifid_inception(weights: Optional[PathLike] = None, variant: str = SIFI
     if variant not in SIFID_VARIANTS:
         raise CamoError(f"unknown SIFID variant {variant!r}; expected one of {sorted(SIFID_VARIANTS)}")
     path = find_trunk_weights("inception", weights)
-    st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, variant)
-    if key in _CACHE:
-        return _CACHE[key]
+    return cached_model(("sifid", variant, file_key(path)), lambda: _build_inception(path, variant))
+
+
+def _build_inception(path: Path, variant: str) -> InceptionStem:
     sd = load_state_dict(path, "Inception v3")
     model = InceptionStem(variant)
     for name, cin, cout, _, _ in _STEM:
@@ -108,10 +107,8 @@ def load_sifid_inception(weights: Optional[PathLike] = None, variant: str = SIFI
         block.conv.weight.data.copy_(take(sd, f"{name}.conv.weight", (cout, cin, 3, 3), "Inception v3", path))
         for part in ("weight", "bias", "running_mean", "running_var"):
             getattr(block.bn, part).data.copy_(take(sd, f"{name}.bn.{part}", (cout,), "Inception v3", path))
-    model.eval().requires_grad_(False)
     model.weights_sha256 = weights_sha256(path)
     model.weight_path = str(path)
-    _CACHE[key] = model
     return model
 
 

@@ -18,7 +18,7 @@ import hashlib
 import importlib.util
 import os
 from pathlib import Path
-from typing import Mapping, Optional, Union
+from typing import Callable, Mapping, Optional, TypeVar, Union
 
 import torch
 
@@ -41,6 +41,24 @@ LPIPS_LIN_V01_SHA256 = {
 }
 
 _SHA_CACHE: dict[tuple[str, int, int], str] = {}
+_MODELS: dict[tuple, torch.nn.Module] = {}
+M = TypeVar("M", bound=torch.nn.Module)
+
+
+def file_key(path: PathLike) -> tuple[str, int, int]:
+    """``(resolved path, size, mtime)`` of a file: what a cache of anything read from it is keyed by, so that an
+    edited or replaced file is read again."""
+    p = Path(path).expanduser()
+    st = p.stat()
+    return (str(p.resolve()), st.st_size, st.st_mtime_ns)
+
+
+def cached_model(key: tuple, build: Callable[[], M]) -> M:
+    """The network ``build()`` returns, frozen (eval mode, no gradients) and built once per ``key`` (name the
+    weight files in it with :func:`file_key`)."""
+    if key not in _MODELS:
+        _MODELS[key] = build().eval().requires_grad_(False)
+    return _MODELS[key]
 
 
 def torch_checkpoints_dir() -> Path:
@@ -117,8 +135,7 @@ def weights_sha256(path: PathLike) -> str:
         return h.hexdigest()
     if not p.is_file():
         raise CamoError(f"weights not found: {p}")
-    st = p.stat()
-    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
+    key = file_key(p)
     if key not in _SHA_CACHE:
         h = hashlib.sha256()
         with open(p, "rb") as fh:

@@ -122,6 +122,19 @@ def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
     return c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
 
 
+def _finite_rgb(pano: np.ndarray) -> np.ndarray:
+    """The first three channels of a panorama as float32 ``(H, W, 3)``; CamoError for another shape, NaN or inf."""
+    from camo_base.errors import CamoError
+
+    a = np.asarray(pano, dtype=np.float32)
+    if a.ndim != 3 or a.shape[2] < 3:
+        raise CamoError(f"panorama must be (H, W, 3), got shape {a.shape}")
+    a = a[..., :3]
+    if not np.isfinite(a).all():
+        raise CamoError("panorama contains NaN or infinite values; refusing to repair it")
+    return a
+
+
 def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndarray, dict[str, float]]:
     """Remove the negative lobes of a linear panorama ``(H, W, 3)`` without adding energy.
 
@@ -140,15 +153,9 @@ def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndar
     at 0 would have added), ``power_change_fraction`` (after / before - 1) and ``residual_fraction``.
     NaN or infinite values are refused with a :class:`~camo_base.errors.CamoError`, never repaired.
     """
-    from camo_base.errors import CamoError
     from camo_base.imaging import REC709_LUMA
 
-    a = np.asarray(pano, dtype=np.float32)
-    if a.ndim != 3 or a.shape[2] < 3:
-        raise CamoError(f"panorama must be (H, W, 3), got shape {a.shape}")
-    a = a[..., :3]
-    if not np.isfinite(a).all():
-        raise CamoError("panorama contains NaN or infinite values; refusing to repair it")
+    a = _finite_rgb(pano)
     x = a.astype(np.float64)
     w = solid_angles(a.shape[0], a.shape[1])
     e = x * w[..., None]  # energy per pixel: the redistribution conserves this, not the pixel sum
@@ -195,15 +202,9 @@ def clamp_negative_radiance(pano: np.ndarray) -> tuple[np.ndarray, dict[str, flo
     ``energy_removed_fraction`` (of ``power_before``), and the most negative value ``min_value``.
     NaN or infinite values are refused (a :class:`~camo_base.errors.CamoError`), not repaired.
     """
-    from camo_base.errors import CamoError
     from camo_base.imaging import REC709_LUMA
 
-    a = np.asarray(pano, dtype=np.float32)
-    if a.ndim != 3 or a.shape[2] < 3:
-        raise CamoError(f"panorama must be (H, W, 3), got shape {a.shape}")
-    a = a[..., :3]
-    if not np.isfinite(a).all():
-        raise CamoError("panorama contains NaN or infinite values; refusing to repair it")
+    a = _finite_rgb(pano)
     neg = np.minimum(a, 0.0).astype(np.float64)
     w = solid_angles(a.shape[0], a.shape[1])
     luma = np.asarray(REC709_LUMA, np.float64)

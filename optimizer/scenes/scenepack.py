@@ -42,10 +42,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
+from camo_base.documents import read_toml
 from camo_base.errors import CamoError
 
 
@@ -304,10 +304,4 @@ def _check_cameras_outside_object(pack: ScenePack) -> None:
 def load_pack(path: str | Path) -> ScenePack:
     """Read and validate a scene pack TOML file."""
     path = Path(path)
-    if not path.is_file():
-        raise CamoError(f"scene pack not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise CamoError(f"scene pack {path} is not valid TOML: {exc}") from None
-    return parse_pack(data, base_dir=path.parent, source=str(path))
+    return parse_pack(read_toml(path, "scene pack"), base_dir=path.parent, source=str(path))

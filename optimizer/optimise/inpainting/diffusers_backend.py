@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
-import json
 import logging
 import math
 import os
@@ -48,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from camo_base.documents import read_json
 from camo_base.errors import CamoError
 from optimizer.optimise.inpainting.base import Inpainter
 
@@ -103,12 +103,7 @@ def check_sdxl_folder(folder: Path) -> dict:
     index = folder / "model_index.json"
     if not index.is_file():
         raise CamoError(f"SDXL inpainting folder {folder} has no model_index.json (not a diffusers pipeline folder)")
-    try:
-        meta = json.loads(index.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise CamoError(f"SDXL inpainting folder {folder}: unreadable model_index.json ({_one_line(exc, 120)})") from None
-    if not isinstance(meta, dict):
-        raise CamoError(f"SDXL inpainting folder {folder}: model_index.json is not an object")
+    meta = read_json(index, "SDXL inpainting model_index.json", dict)
     for part in _PIPE_PARTS:
         if not (folder / part / "config.json").is_file() or not _has_weights(folder / part):
             raise CamoError(f"SDXL inpainting folder {folder}: {part}/ is missing its config.json or weights")

@@ -64,6 +64,7 @@ import urllib.parse
 from pathlib import Path
 from typing import Any
 
+from camo_base.documents import read_toml
 from camo_base.errors import CamoError
 
 PLACEHOLDER = "TO-BE-PINNED"
@@ -198,6 +199,27 @@ def _parse_url(where: str, url: str, base_url: str | None) -> str:
     return url
 
 
+def _source_and_pack(where: str, raw: dict, kind: str) -> tuple[dict[str, str], dict[str, Any]]:
+    """An entry's ``[asset.source]`` (strings, with ``dataset`` and ``homepage``) and ``[asset.pack]`` (only the
+    keys and tables a pack of a ``kind`` asset takes)."""
+    src = raw["source"]
+    if not isinstance(src, dict) or "dataset" not in src or "homepage" not in src:
+        raise CamoError(f"{where}: [asset.source] must be a table with `dataset` and `homepage`")
+    source = {k: _str(f"{where}: source.{k}", v) for k, v in src.items()}
+    pack = raw.get("pack", {})
+    if not isinstance(pack, dict):
+        raise CamoError(f"{where}: [asset.pack] must be a table")
+    allowed = set(_PACK_KEYS[kind]) | set(_PACK_TABLES)
+    badp = set(pack) - allowed
+    if badp:
+        raise CamoError(f"{where}: unknown key(s) in [asset.pack] for a {kind}: {', '.join(sorted(badp))} "
+                        f"(allowed: {', '.join(sorted(allowed))})")
+    for t in _PACK_TABLES:
+        if t in pack and not isinstance(pack[t], dict):
+            raise CamoError(f"{where}: [asset.pack.{t}] must be a table")
+    return source, pack
+
+
 def _parse_asset(i: int, raw: Any, base_url: str | None, mpath: Path) -> Asset:
     where = f"{mpath.name}: asset[{i}]"
     if not isinstance(raw, dict):
@@ -235,25 +257,11 @@ def _parse_asset(i: int, raw: Any, base_url: str | None, mpath: Path) -> Asset:
     elif isinstance(size, bool) or not isinstance(size, int) or size < 0:
         raise CamoError(f"{where}: size must be a byte count (integer >= 0) or {PLACEHOLDER!r}, got {size!r}")
 
-    src = raw["source"]
-    if not isinstance(src, dict) or "dataset" not in src or "homepage" not in src:
-        raise CamoError(f"{where}: [asset.source] must be a table with `dataset` and `homepage`")
-    source = {k: _str(f"{where}: source.{k}", v) for k, v in src.items()}
+    source, pack = _source_and_pack(where, raw, kind)
 
     archive = raw.get("archive")
     member = raw.get("member")
     extract = raw.get("extract")
-    pack = raw.get("pack", {})
-    if not isinstance(pack, dict):
-        raise CamoError(f"{where}: [asset.pack] must be a table")
-    allowed = set(_PACK_KEYS[kind]) | set(_PACK_TABLES)
-    badp = set(pack) - allowed
-    if badp:
-        raise CamoError(f"{where}: unknown key(s) in [asset.pack] for a {kind}: {', '.join(sorted(badp))} "
-                        f"(allowed: {', '.join(sorted(allowed))})")
-    for t in _PACK_TABLES:
-        if t in pack and not isinstance(pack[t], dict):
-            raise CamoError(f"{where}: [asset.pack.{t}] must be a table")
     if kind == "scene":
         if "xml" not in pack:
             raise CamoError(f"{where}: a scene needs [asset.pack] xml = the Mitsuba scene's path inside the archive")
@@ -398,18 +406,7 @@ def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
     sha = _pin_value(where, raw, "sha256")
     size = _pin_value(where, raw, "size")
     member_sha = _pin_value(where, raw, "member_sha256") if "member_sha256" in raw else None
-    src = raw["source"]
-    if not isinstance(src, dict) or "dataset" not in src or "homepage" not in src:
-        raise CamoError(f"{where}: [asset.source] must be a table with `dataset` and `homepage`")
-    source = {k: _str(f"{where}: source.{k}", v) for k, v in src.items()}
-    pack = raw.get("pack", {})
-    if not isinstance(pack, dict):
-        raise CamoError(f"{where}: [asset.pack] must be a table")
-    allowed_pack = set(_PACK_KEYS[kind]) | set(_PACK_TABLES)
-    badp = set(pack) - allowed_pack
-    if badp:
-        raise CamoError(f"{where}: unknown key(s) in [asset.pack] for a {kind}: {', '.join(sorted(badp))} "
-                        f"(allowed: {', '.join(sorted(allowed_pack))})")
+    source, pack = _source_and_pack(where, raw, kind)
     opt = {k: _str(f"{where}: {k}", raw[k]) for k in ("author", "licence_url", "notes") if k in raw}
     return Asset(name=name, kind=kind, url=url, licence=_str(f"{where}: licence", raw["licence"]), sha256=sha,
                  size=size, source=source, filename=filename, member=member, pack=dict(pack), registry=registry,
@@ -467,13 +464,7 @@ def parse_manifest(data: dict[str, Any], path: Path, base_url: str | None = None
 
 def load_manifest(path: str | Path, base_url: str | None = None) -> Manifest:
     path = Path(path)
-    if not path.is_file():
-        raise CamoError(f"manifest not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise CamoError(f"manifest {path} is not valid TOML: {exc}") from None
-    return parse_manifest(data, path, base_url)
+    return parse_manifest(read_toml(path, "manifest"), path, base_url)
 
 
 # ----------------------------------------------------------------------------------------- pinning
