@@ -41,6 +41,8 @@ DEMO = ["--views", "8", "--resolution", "96", "--target-vertices", "10000", "--m
 PAPER_SIZES = ["--views", "16", "--resolution", "128", "--target-vertices", "30000", "--map-resolution", "800",
                "--displacement-resolution", "256", "--spp", "4", "--target-spp", "64"]
 BASELINES = ("mean", "random", "greedy")
+#: Size flags only `ours` reads: a baseline refuses them (``camo optimize --method mean --spp 4`` is an error).
+OURS_ONLY = ("--displacement-resolution", "--spp")
 METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
 MARKS = (20.0, 60.0, 180.0)
 
@@ -67,6 +69,9 @@ def variant_flags(variant: str) -> tuple[str, list[str]]:
 
 def run_variant(camo: str, scene: str, variant: str, sizes: list[str], out: Path, every: int) -> tuple[Path, float]:
     name, flags = variant_flags(variant)
+    if name in BASELINES:
+        pairs = list(zip(sizes[::2], sizes[1::2]))
+        sizes = [x for flag, value in pairs if flag not in OURS_ONLY for x in (flag, value)]
     cmd = [camo, "optimize", scene, "--out", str(out), *sizes, "--overwrite", "--quiet", *flags]
     if name not in BASELINES:
         cmd += ["--snapshot-every", str(every)]

@@ -1,25 +1,63 @@
-"""``camo optimize``: argument parsing for an optimisation run (the work is in :mod:`optimizer.optimise.run`)."""
+"""``camo optimize``: its flags fill a run spec (:class:`optimizer.optimise.spec.RunSpec`); the work is in
+:func:`optimizer.optimise.run.run`.
+
+Every option but those of :data:`EXECUTION` sets one field of the spec (:data:`OPTION_FIELDS`; a method may take an
+option for its own options instead: ``--iterations`` is GANmouflage's training iterations, see
+``optimizer.optimise.spec.Method.option_names``). An option the chosen method does not read is an error (one line,
+exit 2), never ignored. Options default to "absent" (None); what an absent option means is the spec's default, the
+preset's or the pack's value.
+"""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
-
-import math
+from typing import Any
 
 from camo_base.errors import CamoError
 
 #: Iteration cap of a stage under --time-budget when no iteration count is given (the budget ends it first).
 UNCAPPED = 100_000
 
+#: Every ``--method`` name (optimizer.optimise.spec.METHOD_NAMES; a literal so that ``camo --help`` stays light).
 METHODS = ("ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage", "ganmouflage-paper")
+
+#: Options that say where and how a run executes, not what it is: never part of the spec.
+EXECUTION = ("scene", "out", "resume", "overwrite", "quiet", "threads")
+
+#: The run spec field each other option sets (its ``dest``, ``-`` as ``_``). ``init`` sets the pack's material,
+#: ``no_planner`` and ``stage2_fixed_displacement`` set the negation of their field.
+OPTION_FIELDS: dict[str, str] = {
+    "method": "method", "seed": "seed", "preset": "preset",
+    "resolution": "pack.render.resolution", "views": "pack.cameras.views",
+    "target_vertices": "pack.object.target_vertices", "init": "pack.material",
+    "spp": "spp.train", "target_spp": "spp.target",
+    "iterations": "stage1.iterations", "loss": "stage1.loss", "domain": "stage1.domain",
+    "silhouette_every": "stage1.silhouette_every", "warm_start": "stage1.warm_start",
+    "lr_schedule": "stage1.lr_schedule",
+    "stage2_iterations": "stage2.iterations", "stage2_backend": "stage2.backend", "stage2_strength": "stage2.strength",
+    "stage2_fixed_displacement": "stage2.displacement", "sdxl_path": "stage2.sdxl_path",
+    "controlnet_path": "stage2.controlnet_path",
+    "lr_maps": "appearance.lr_maps", "lr_displacement": "appearance.lr_displacement",
+    "map_resolution": "appearance.map_resolution", "displacement_resolution": "appearance.displacement_resolution",
+    "displacement_bound": "appearance.displacement_bound",
+    "stages": "stages", "ablate": "ablate", "time_budget": "time_budget", "checkpoint_every": "checkpoint_every",
+    "snapshot_every": "snapshot_every", "no_planner": "planner", "shadow_gradients": "shadow_gradients",
+}
+
+#: What an absent option means, for the options whose absence is a fixed value (not the pack's or the preset's):
+#: the run spec's defaults, written as the option would be. ``camo grid`` drops an option set to this value from a
+#: cell's key (the same work); tests/test_optimize_cli.py checks it against the spec.
+ABSENT: dict[str, Any] = {"seed": 0, "preset": "fast", "loss": "gated", "ablate": "", "init": "", "stages": "1,2",
+                          "checkpoint_every": 10, "snapshot_every": 0, "method": "ours"}
 
 
 def register(sub) -> None:
     p = sub.add_parser("optimize", help="optimise an object's appearance to hide it in a scene")
     p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
     p.add_argument("--out", required=True, help="run directory (must be new or empty unless --resume/--overwrite)")
-    p.add_argument("--method", default="ours", help=f"method: {', '.join(METHODS)}")
-    p.add_argument("--preset", choices=("fast", "paper"), default="fast",
+    p.add_argument("--method", help=f"method: {', '.join(METHODS)} (default ours)")
+    p.add_argument("--preset", choices=("fast", "paper"),
                    help="fast (default): least-squares albedo warm start, transmittance start 0.75, proximal L1 step on "
                         "the displacement, 20 + 4 iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
                         "50 + 20 iterations, silhouette term on every view). Explicit flags override either")
@@ -31,25 +69,27 @@ def register(sub) -> None:
     p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (both presets: constant)")
     p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
-    p.add_argument("--snapshot-every", type=int, default=0, metavar="N",
+    p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
     p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 20)")
     p.add_argument("--resolution", type=int, help="render width = height in pixels (default: the pack's)")
-    p.add_argument("--spp", type=int, help="samples per pixel per training render (default 4)")
-    p.add_argument("--target-spp", type=int, help="samples per pixel of background targets and final renders (default 64)")
+    p.add_argument("--spp", type=int, help="samples per pixel of each training render (default 4; the run spec's spp.train)")
+    p.add_argument("--target-spp", type=int, help="samples per pixel of the background targets, the loss domain, the warm "
+                   "start and the final render (default 64; spp.target)")
     p.add_argument("--views", type=int, help="number of orbit views (default: the pack's, 16)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--ablate", default="", help="comma list: pose,displacement,bsdf,transmittance,inpainting")
-    p.add_argument("--init", default="", metavar="KEY=VALUE,...",
+    p.add_argument("--seed", type=int, help="the run seed (default 0): every random stream derives from it "
+                   "(camo_base.seeds)")
+    p.add_argument("--ablate", help="comma list: pose,displacement,bsdf,transmittance,inpainting")
+    p.add_argument("--init", metavar="KEY=VALUE,...",
                    help="initial material values, overriding the scene pack's [material]: albedo (grey, or R/G/B), "
                         "metallic, roughness, transmittance in [0, 1] (paper: 0.5, 0, 0, 0.5)")
-    p.add_argument("--loss", choices=("gated", "mse"), default="gated", help="luminance-gated (Eq. 9) or plain MSE")
+    p.add_argument("--loss", choices=("gated", "mse"), help="luminance-gated (Eq. 9, default) or plain MSE")
     p.add_argument("--map-resolution", type=int, help="BSDF map resolution (paper: 800)")
     p.add_argument("--displacement-resolution", type=int, help="displacement map resolution (default 256)")
     p.add_argument("--displacement-bound", type=float, help="displacement amplitude bound, fraction of object size (default 0.02)")
     p.add_argument("--target-vertices", type=int, help="remeshing target (paper: ~30,000)")
     p.add_argument("--domain", choices=("object+shadow", "frame"), help="loss pixel domain (default object+shadow)")
-    p.add_argument("--stages", default="1,2", help="stages to run: 1 (background matching), 2 (synthesis); default 1,2")
+    p.add_argument("--stages", help="stages to run: 1 (background matching), 2 (synthesis); default 1,2")
     p.add_argument("--stage2-iterations", type=int, help="Stage 2 iterations (paper: 20, fast: 4)")
     p.add_argument("--stage2-backend", choices=("patch", "diffusers"), help="Stage 2 inpainter (default: patch, offline)")
     p.add_argument("--stage2-strength", type=float, help="Stage 2 noise strength t_start in (0, 1] (default 0.5)")
@@ -61,7 +101,7 @@ def register(sub) -> None:
     p.add_argument("--silhouette-every", type=int,
                    help="projective training: the silhouette gradient on a random 1/N of the views per step, "
                         "weighted N (default 4; 1 = every view)")
-    p.add_argument("--checkpoint-every", type=int, default=10)
+    p.add_argument("--checkpoint-every", type=int, metavar="N", help="checkpoint every N iterations (default 10)")
     p.add_argument("--no-planner", action="store_true", help="always full path tracing (max_depth 12, projective on)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
     p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
@@ -69,12 +109,6 @@ def register(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing run directory's files")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_optimize)
-
-
-def _positive(name: str, value, minimum=1):
-    if value is not None and value < minimum:
-        raise CamoError(f"--{name} must be >= {minimum}, got {value}")
-    return value
 
 
 def parse_init(text: str) -> dict:
@@ -99,109 +133,154 @@ def parse_init(text: str) -> dict:
     return out
 
 
-def config_from_args(args):
-    from camo.cli import load_scene_arg, parse_ablate
-    from optimizer.rendering.appearance import AppearanceConfig
-    from optimizer.optimise.run import RunConfig, appearance_for
-    from optimizer.optimise.stage1 import Stage1Config
-    from optimizer.optimise.stage2 import Stage2Config
+def option_field(method, dest: str) -> str:
+    """The run spec field option ``dest`` sets for ``method`` (an :class:`optimizer.optimise.spec.Method`)."""
+    return dict(method.option_names).get(dest) or OPTION_FIELDS[dest]
 
-    if args.method not in METHODS:
-        raise CamoError(f"unknown --method {args.method!r}; choose one of: {', '.join(METHODS)}")
-    for name in ("iterations", "spp", "target_spp", "map_resolution", "displacement_resolution", "checkpoint_every",
-                 "stage2_iterations", "silhouette_every"):
-        _positive(name.replace("_", "-"), getattr(args, name))
-    _positive("target-vertices", args.target_vertices, 100)
-    if args.displacement_bound is not None and not (0.0 <= args.displacement_bound <= 0.5):
-        raise CamoError(f"--displacement-bound must be in [0, 0.5], got {args.displacement_bound}")
-    pack = load_scene_arg(args.scene, args)
-    if args.target_vertices:
+
+def flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def given_options(args) -> dict[str, Any]:
+    """The spec options given on the command line, ``{dest: value}`` (absent: None, or False for a flag)."""
+    out = {}
+    for d in OPTION_FIELDS:
+        v = getattr(args, d, None)
+        if v is not None and v is not False:  # (not `in (None, False)`: 0 == False, and --iterations 0 is given)
+            out[d] = v
+    return out
+
+
+def option_applies(method_name: str, dest: str) -> bool:
+    """Whether ``method_name`` reads what option ``dest`` sets (execution options apply to every method)."""
+    from optimizer.optimise.spec import resolve_method
+
+    if dest not in OPTION_FIELDS:
+        return True
+    method, _ = resolve_method(method_name)
+    return method.reads_path(option_field(method, dest))
+
+
+def check_options_apply(method_name: str, dests) -> None:
+    """CamoError (one line) naming the first option in ``dests`` that ``method_name`` does not read."""
+    from optimizer.optimise.spec import resolve_method
+
+    method, _ = resolve_method(method_name)
+    for d in dests:
+        if d not in OPTION_FIELDS:
+            continue
+        field = option_field(method, d)
+        if not method.reads_path(field):
+            takes = sorted(flag(x) for x in OPTION_FIELDS if method.reads_path(option_field(method, x)))
+            raise CamoError(f"{flag(d)} does not apply to --method {method_name} (it sets {field}, which "
+                            f"{method.name} does not use); {method_name} takes {', '.join(takes)}")
+
+
+def field_names(method) -> dict[str, str]:
+    """``{spec field: --flag}`` for messages about a spec built from flags."""
+    out = {option_field(method, d): flag(d) for d in OPTION_FIELDS}
+    out["planner"] = "--no-planner"
+    out["stage2.displacement"] = "--stage2-fixed-displacement"
+    return out
+
+
+#: Options whose value is not the field's value as given (read and converted by :func:`spec_from_args` itself).
+_SPECIAL = ("method", "preset", "resolution", "views", "target_vertices", "init", "ablate", "stages", "warm_start",
+            "no_planner", "stage2_fixed_displacement")
+
+
+def spec_from_args(args):
+    """The run spec of ``camo optimize`` arguments; CamoError (one line) for bad input or an option the method does
+    not use. Applies the preset (``optimizer.optimise.schedule.PRESETS``) and the option interplay (``--init``,
+    ``--ablate``, ``--time-budget``) the way ``camo optimize`` always has."""
+    from camo.cli import load_scene_arg, parse_ablate
+    from optimizer.optimise.run import appearance_for
+    from optimizer.optimise.schedule import PRESETS
+    from optimizer.optimise.spec import RunSpec, SppSettings, resolve_method
+    from optimizer.optimise.stage1 import Stage1Settings
+    from optimizer.optimise.stage2 import Stage2Settings
+    from optimizer.rendering.appearance import AppearanceConfig
+
+    method_name = args.method or ABSENT["method"]
+    method, make_options = resolve_method(method_name)
+    given = given_options(args)
+    check_options_apply(method_name, given)
+    # the pack's own [render] spp is not a run's: --spp is spp.train only
+    pack = load_scene_arg(args.scene, argparse.Namespace(resolution=args.resolution, views=args.views))
+    if args.target_vertices is not None:
         pack.object = dataclasses.replace(pack.object, target_vertices=args.target_vertices)
-    ablate = parse_ablate(args.ablate)
-    init = parse_init(args.init)
+    ablate = parse_ablate(args.ablate or "")
+    init = parse_init(args.init or "")
     for key, part in (("transmittance", "transmittance"), ("transmittance", "bsdf"), ("metallic", "bsdf"), ("roughness", "bsdf")):
         if key in init and part in ablate:
             raise CamoError(f"--init {key} conflicts with --ablate {part} (the ablation fixes it)")
-    from optimizer.optimise.schedule import PRESETS
-
-    preset = PRESETS[args.preset]
+    preset_name = args.preset or ABSENT["preset"]
+    preset = PRESETS[preset_name]
     # the preset's starting material (every method: a baseline's loss domain and targets stay those of `ours`;
     # painted baselines set their own maps)
     start = {k: v for k, v in preset["material"].items() if k not in init}
     if init or start:
         pack.material = dataclasses.replace(pack.material, **start, **init)
-    app = appearance_for(ablate, dataclasses.replace(AppearanceConfig(), **preset["appearance"]))
-    for name in ("lr_maps", "lr_displacement"):
-        value = getattr(args, name)
-        if value is not None:
-            if not (math.isfinite(value) and 0.0 < value <= 10.0):
-                raise CamoError(f"--{name.replace('_', '-')} must be in (0, 10], got {value}")
-            app = dataclasses.replace(app, **{name: value})
-    if args.time_budget is not None and not (math.isfinite(args.time_budget) and args.time_budget > 0):
-        raise CamoError(f"--time-budget must be a positive number of seconds, got {args.time_budget}")
-    if args.snapshot_every < 0:
-        raise CamoError(f"--snapshot-every must be >= 0, got {args.snapshot_every}")
-    if args.map_resolution:
-        app = dataclasses.replace(app, map_resolution=args.map_resolution)
-    if args.displacement_resolution:
-        app = dataclasses.replace(app, displacement_resolution=args.displacement_resolution)
-    if args.displacement_bound is not None:
-        app = dataclasses.replace(app, displacement_bound=args.displacement_bound)
     if "transmittance" in ablate or "bsdf" in ablate:
         pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    s1 = Stage1Config(seed=args.seed, loss=args.loss, **preset["stage1"])
+    # every other option sets its field as given: group them by table
+    tables: dict[str, dict[str, Any]] = {"": {}, "spp": {}, "stage1": {}, "stage2": {}, "appearance": {}, "options": {}}
+    for d, value in given.items():
+        if d not in _SPECIAL:
+            head, _, rest = option_field(method, d).partition(".")
+            if rest:
+                tables[head][rest] = value
+            else:
+                tables[""][head] = value
+    app = appearance_for(ablate, dataclasses.replace(AppearanceConfig(), **preset["appearance"]))
+    app = dataclasses.replace(app, **tables["appearance"])
+    s1 = dataclasses.replace(Stage1Settings(**preset["stage1"]), **tables["stage1"])
+    s2 = dataclasses.replace(Stage2Settings(**preset["stage2"]), **tables["stage2"],
+                             displacement=not args.stage2_fixed_displacement)
     if args.time_budget and args.iterations is None:
         s1 = dataclasses.replace(s1, iterations=UNCAPPED)
+    if args.time_budget and args.stage2_iterations is None:
+        s2 = dataclasses.replace(s2, iterations=UNCAPPED)
     if args.warm_start:
         s1 = dataclasses.replace(s1, warm_start=args.warm_start == "on")
     elif "albedo" in init:  # an explicit starting albedo is kept (the warm start would replace it)
         s1 = dataclasses.replace(s1, warm_start=False)
-    if args.lr_schedule:
-        s1 = dataclasses.replace(s1, lr_schedule=args.lr_schedule)
-    for name in ("iterations", "spp", "target_spp", "domain", "silhouette_every"):
-        if getattr(args, name) is not None:
-            s1 = dataclasses.replace(s1, **{name: getattr(args, name)})
-    try:
-        stages = tuple(sorted({int(x) for x in args.stages.split(",") if x.strip()}))
-    except ValueError:
-        raise CamoError(f"--stages must be a comma list of 1 and 2, got {args.stages!r}") from None
-    if not stages or set(stages) - {1, 2} or 1 not in stages:
-        raise CamoError(f"--stages must include 1 and may include 2, got {args.stages!r}")
+    stages = (1, 2)
+    if args.stages is not None:
+        try:
+            stages = tuple(sorted({int(x) for x in args.stages.split(",") if x.strip()}))
+        except ValueError:
+            raise CamoError(f"--stages must be a comma list of 1 and 2, got {args.stages!r}") from None
+        if not stages or set(stages) - {1, 2} or 1 not in stages:
+            raise CamoError(f"--stages must include 1 and may include 2, got {args.stages!r}")
     if "inpainting" in ablate:
         stages = (1,)
-    s2 = Stage2Config(**preset["stage2"])
-    if args.time_budget and args.stage2_iterations is None:
-        s2 = dataclasses.replace(s2, iterations=UNCAPPED)
-    if args.stage2_iterations:
-        s2 = dataclasses.replace(s2, iterations=args.stage2_iterations)
-    if args.stage2_backend:
-        s2 = dataclasses.replace(s2, backend=args.stage2_backend)
-    if args.stage2_strength is not None:
-        if not (0.0 < args.stage2_strength <= 1.0):
-            raise CamoError(f"--stage2-strength must be in (0, 1], got {args.stage2_strength}")
-        s2 = dataclasses.replace(s2, strength=args.stage2_strength)
-    s2 = dataclasses.replace(s2, sdxl_path=args.sdxl_path, controlnet_path=args.controlnet_path,
-                             displacement=not args.stage2_fixed_displacement)
-    if 2 in stages and s2.backend == "diffusers" and not (args.sdxl_path and args.controlnet_path):
-        raise CamoError("--stage2-backend diffusers needs --sdxl-path and --controlnet-path (local folders; nothing is downloaded)")
-    cfg = RunConfig(scene=args.scene, method=args.method, stages=stages, ablate=tuple(sorted(ablate)),
-                    checkpoint_every=args.checkpoint_every, planner=not args.no_planner,
-                    shadow_gradients=args.shadow_gradients, threads=args.threads, preset=args.preset,
-                    time_budget=args.time_budget, snapshot_every=args.snapshot_every,
-                    rough_start=args.preset == "fast" and "roughness" not in init,
-                    stage1=s1, stage2=s2, appearance=app)
-    return pack, cfg
+    options = make_options()
+    for path, value in tables["options"].items():
+        options = _set_option(options, path.split("."), value)
+    spec = RunSpec(scene=args.scene, pack=pack, method=method_name, preset=preset_name, stages=stages,
+                   ablate=tuple(ablate), planner=not args.no_planner, shadow_gradients=bool(args.shadow_gradients),
+                   rough_start=preset_name == "fast" and "roughness" not in init, spp=SppSettings(**tables["spp"]),
+                   stage1=s1, stage2=s2, appearance=app, options=options, **tables[""])
+    # what the method does not read goes back to its default (the preset's values for `ours` among them): the spec
+    # records only what the method reads; every option given was checked above to be read
+    return spec.normalised().validate(field_names(method))
+
+
+def _set_option(options, path: list[str], value):
+    """``options`` with the field at ``path`` (``["backend_options", "sdxl_path"]``: a key of a dict field) set."""
+    if len(path) == 1:
+        return dataclasses.replace(options, **{path[0]: value})
+    d = dict(getattr(options, path[0]) or {})
+    d[path[1]] = value
+    return dataclasses.replace(options, **{path[0]: d})
 
 
 def run_optimize(args) -> int:
-    from optimizer.optimise.run import optimize
+    from optimizer.optimise.run import run
 
-    pack, cfg = config_from_args(args)
-    if args.method != "ours":
-        from optimizer.optimise.baselines import run_from_args
-
-        print(f"wrote {run_from_args(args, pack, cfg)}")
-        return 0
-    out = optimize(pack, cfg, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
+    spec = spec_from_args(args)
+    out = run(spec, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, threads=args.threads)
     print(f"wrote {out}")
     return 0

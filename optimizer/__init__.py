@@ -5,4 +5,4 @@ stimuli -> study -> analysis. This package covers the first four steps;
 ``evaluation`` and ``study_site`` cover the rest.
 """
 
-__version__ = "0.1.0"
+from camo_base import __version__  # noqa: F401 - the toolkit's version, owned by camo_base

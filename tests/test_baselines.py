@@ -25,19 +25,18 @@ OCC_HALF = (0.1, 0.35, 0.5)
 
 
 def tiny_setup(env=None, resolution=(40, 40)):
-    from optimizer.optimise.run import RunConfig
-    from optimizer.rendering.appearance import AppearanceConfig
     from optimizer.optimise.baselines import common
+    from optimizer.optimise.spec import RunSpec, SppSettings
+    from optimizer.rendering.appearance import AppearanceConfig
     from optimizer.scenes.builtin_scenes import resolve_scene
-    from optimizer.optimise.stage1 import Stage1Config
 
     pack = resolve_scene("gravel")
     pack.object = dataclasses.replace(pack.object, target_vertices=1500)
     pack.cameras = dataclasses.replace(pack.cameras, views=4)
     pack.render = dataclasses.replace(pack.render, resolution=resolution)
-    cfg = RunConfig(scene="gravel", stage1=Stage1Config(target_spp=16), appearance=AppearanceConfig(map_resolution=64),
-                    threads=1)
-    return common.setup(pack, cfg, env=env)
+    spec = RunSpec(scene="gravel", pack=pack, method="mean", spp=SppSettings(target=16),
+                   appearance=AppearanceConfig(map_resolution=64))
+    return common.setup(spec.validate(), env=env)
 
 
 @pytest.fixture(scope="module")
@@ -313,7 +312,9 @@ def test_run_directory_loads_back(method, tmp_path, mi_backend):
                  "renders.npz"):
         assert (out / name).is_file(), name
     cfg = tomllib.loads((out / "config.toml").read_text())
-    assert cfg["run"]["method"] == method and cfg["baseline"]["method"] == method
+    assert cfg["method"] == method and cfg["baseline"]["method"] == method
+    assert cfg["spp"] == {"target": 16} and "stage2" not in cfg and set(cfg["stage1"]) == {
+        "loss", "alpha", "eps", "domain", "domain_dilate", "shadow_threshold"}  # what a baseline reads, only
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == method and np.isfinite(summary["final_loss_high_spp"])
     log = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]

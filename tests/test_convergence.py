@@ -142,7 +142,7 @@ def _config(run):
 
 
 def test_presets_are_recorded(runs):
-    fast, paper = _config(runs["fast"])["run"], _config(runs["paper"])["run"]
+    fast, paper = _config(runs["fast"]), _config(runs["paper"])
     assert fast["preset"] == "fast" and paper["preset"] == "paper"
     assert fast["stage1"]["warm_start"] is True and fast["stage1"]["lr_schedule"] == PRESETS["fast"]["stage1"]["lr_schedule"]
     assert paper["stage1"]["warm_start"] is False and paper["stage1"]["lr_schedule"] == "constant"
@@ -178,7 +178,7 @@ def test_snapshots_have_increasing_seconds_and_the_final_values(runs):
     albedo = np.load(runs["fast"] / "maps" / "albedo.npy")
     np.testing.assert_allclose(last["albedo"], albedo, atol=1e-6)
     log = [json.loads(x) for x in (runs["fast"] / "log.jsonl").read_text().splitlines()]
-    sched = _config(runs["fast"])["run"]["stage1"]["lr_schedule"]
+    sched = _config(runs["fast"])["stage1"]["lr_schedule"]
     planned = {1: 3, 2: 1}
     for r in log:  # the step's multiplier is the schedule at the stage's progress before the step
         assert r["lr_scale"] == pytest.approx(lr_scale(progress(r["iteration"] - 1, planned[r["stage"]]), sched))
@@ -192,7 +192,7 @@ def test_time_budget_ends_the_run(tmp_path):
     log = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
     assert [(r["stage"], r["iteration"]) for r in log] == [(1, 1), (2, 1)]
     assert all(r["lr_scale"] == pytest.approx(1.0) for r in log)  # each stage's first step is at progress 0
-    assert _config(out)["run"]["time_budget"] == 0.01
+    assert _config(out)["time_budget"] == 0.01
     assert (out / "result.glb").is_file()
 
 
@@ -212,16 +212,22 @@ def test_bad_schedule_flags_are_one_line_errors(tmp_path, capsys, flags, message
 
 def test_user_pack_under_the_sun_starts_rough_in_the_fast_preset(tmp_path, capsys):
     """A user pack (paper material, roughness 0) around the sunlit meadow: the fast preset starts at the
-    planner's glint-safe roughness and says so; --init roughness=0 and --preset paper keep 0."""
+    planner's glint-safe roughness and says so; --init roughness=0 and --preset paper keep 0. config.toml records the
+    spec (the pack as given, rough_start) and the roughness the run started from ([plan] start_roughness)."""
     pack = tmp_path / "user.toml"
     pack.write_text('name = "user"\n[object]\nprimitive = "vase"\n[environment]\nbuiltin = "meadow"\n')
     common = [*TINY, "--iterations", "1", "--stages", "1"]
     assert main(["optimize", str(pack), "--out", str(tmp_path / "a"), *common]) == 0
-    assert _config(tmp_path / "a")["pack"]["material"]["roughness"] == 0.5
+    a = _config(tmp_path / "a")
+    assert a["pack"]["material"]["roughness"] == 0.0 and a["rough_start"] is True
+    assert a["plan"]["start_roughness"] == 0.5
+    assert np.load(tmp_path / "a" / "maps" / "roughness.npy").min() > 0.035 + 0.965 * 0.5 - 0.011  # one step from 0.5
     assert main(["optimize", str(pack), "--out", str(tmp_path / "b"), *common, "--init", "roughness=0"]) == 0
-    assert _config(tmp_path / "b")["pack"]["material"]["roughness"] == 0.0
+    b = _config(tmp_path / "b")
+    assert b["pack"]["material"]["roughness"] == 0.0 and b["rough_start"] is False and "start_roughness" not in b["plan"]
     assert main(["optimize", str(pack), "--out", str(tmp_path / "c"), *common, "--preset", "paper"]) == 0
-    assert _config(tmp_path / "c")["pack"]["material"]["roughness"] == 0.0
+    c = _config(tmp_path / "c")
+    assert c["pack"]["material"]["roughness"] == 0.0 and c["rough_start"] is False and "start_roughness" not in c["plan"]
 
 
 # --- numerics: poisoned and degenerate inputs ----------------------------------------------------------------

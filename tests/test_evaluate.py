@@ -187,6 +187,7 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.render import render_shaded
     from evaluation.views import load_result, load_run, object_mesh_of
+    from camo_base import seeds
 
     run = load_run(runs[0])
     assets = load_result(run)
@@ -199,10 +200,12 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     integ = run.config["plan"]["integrator"]
     depth = integ.get("max_depth", 2)
     shading = {"type": "path", "max_depth": depth, "rr_depth": depth}
-    s1 = run.config["run"]["stage1"]
+    final_render = run.summary()["final_render"]  # the run's final render: spp.target, stream final_render
+    assert final_render["spp"] == run.config["spp"]["target"] and final_render["integrator"] == shading
+    assert final_render["seed"] == seeds.seed("final_render", run.config["seed"])
     env = get_environment(run.pack.environment)
-    img = render_shaded(env.build(), object_mesh_of(run, assets), cameras(run.pack), shading, s1["target_spp"],
-                        s1["seed"] * 7919 + 12345)
+    img = render_shaded(env.build(), object_mesh_of(run, assets), cameras(run.pack), shading, final_render["spp"],
+                        final_render["seed"])
     final = np.load(runs[0] / "renders.npz")["final"]
     cov = np.load(runs[0] / "renders.npz")["coverage"] > 0
 
@@ -215,7 +218,7 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     # applying the safe minimum twice gives a visibly different object
     wrong = dict(assets.values(), roughness=assets.maps["roughness"])
     mesh = scn.object_mesh(assets.vertices, assets.faces, assets.uvs, object_bsdf(wrong, run.app))
-    img2 = render_shaded(env.build(), mesh, cameras(run.pack), shading, s1["target_spp"], s1["seed"] * 7919 + 12345)
+    img2 = render_shaded(env.build(), mesh, cameras(run.pack), shading, final_render["spp"], final_render["seed"])
     assert changed(img2) > 0.3, changed(img2)
 
 

@@ -92,10 +92,15 @@ BAD_GRIDS = [
     ('scenes = ["gravel"]\n[optimize]\nseed = 3', "use `seeds = [...]`"),
     ('scenes = ["gravel"]\n[optimize]\nthreads = 3', "cores // workers"),
     ('scenes = ["gravel"]\n[optimize]\nout = "x"', "set by the grid"),
-    ('scenes = ["gravel"]\n[optimize]\niterations = "many"', "iterations must be an int"),
+    ('scenes = ["gravel"]\n[optimize]\niterations = "many"', "--iterations: invalid int value: 'many'"),
     ('scenes = ["gravel"]\n[optimize]\niterations = 0', "--iterations must be >= 1"),
     ('scenes = ["gravel"]\n[optimize]\nno-planner = 1', "is a flag"),
-    ('scenes = ["gravel"]\n[optimize]\ndomain = "everywhere"', "domain must be one of"),
+    ('scenes = ["gravel"]\n[optimize]\ndomain = "everywhere"', "--domain: invalid choice: 'everywhere'"),
+    ('scenes = ["gravel"]\n[optimize]\niter = 3', "unknown option 'iter'"),  # no argparse abbreviations
+    ('scenes = ["gravel"]\nmethods = ["mean"]\n[optimize]\nstage2-iterations = 3',
+     "[optimize] stage2-iterations applies to none of the methods (mean)"),
+    ('scenes = ["gravel"]\nmethods = ["ours", "mean"]\n[optimize.mean]\nspp = 3',
+     "[optimize.mean] --spp does not apply to --method mean"),
     ('scenes = ["gravel"]\n[optimize]\nstages = "3"', "--stages must include 1"),
     ('scenes = ["gravel"]\n[optimize.magic]\niterations = 3', "[optimize.magic]"),
     ('scenes = ["gravel"]\n[evaluate]\njitter = 0', "--jitter must be > 0"),
@@ -199,13 +204,17 @@ def test_cells_expand_and_keys_are_stable(tmp_path):
     assert {c.ablation for c in g.cells if c.method == "ours"} == {"none", "pose", "displacement,pose"}
     assert len({c.key for c in g.cells}) == len(g.cells) and len({c.name for c in g.cells}) == len(g.cells)
     gan = next(c for c in g.cells if c.method == "ganmouflage")
-    ours = next(c for c in g.cells if c.method == "ours")
-    assert dict(gan.optimize)["iterations"] == 7 and dict(ours.optimize)["iterations"] == 3
+    ours = next(c for c in g.cells if c.method == "ours" and c.ablation == "pose" and c.seed == 1)
+    mean = next(c for c in g.cells if c.method == "mean")
+    # each cell holds its run spec: the shared options where the method uses them, its own table's on top
+    assert gan.spec["options"]["iterations"] == 7 and "iterations" not in gan.spec["stage1"]
+    assert ours.spec["stage1"]["iterations"] == 3 and ours.spec["appearance"]["map_resolution"] == 64
+    assert ours.spec["seed"] == 1 and ours.spec["ablate"] == ["pose"] and ours.spec["appearance"]["pose"] is False
+    assert mean.spec["appearance"] == {"map_resolution": 64, "eta": 1.5} and "iterations" not in mean.spec["stage1"]
+    assert ours.run_spec().to_dict() == ours.spec  # what the worker runs is the stored spec
     yard = next(c for c in g.cells if c.scene_label == "packs/yard.toml")
     assert yard.scene == str(pack.resolve()) and yard.name.startswith("yard__")
-    argv = ours.optimize_command(tmp_path / "cell", 3, "resume")
-    assert argv[:2] == ["optimize", ours.scene] and argv[-3:] == ["--threads", "3", "--resume"]
-    assert "--iterations=3" in argv and "--map-resolution=64" in argv
+    assert yard.spec["scene"] == str(pack.resolve()) and yard.spec["pack"]["object"]["primitive"] == "duck"
     keys = {(c.scene_label, c.method, c.ablation, c.seed): c.key for c in g.cells}
 
     def keys_of(text):
@@ -238,6 +247,97 @@ def test_cells_expand_and_keys_are_stable(tmp_path):
     pack.write_text(pack.read_text().replace("duck", "teapot"))
     k3 = keys_of(base)
     assert all((k3[k] == v) == (k[0] != "packs/yard.toml") for k, v in keys.items())
+
+
+#: Cell keys computed by camo before cells held run specs (git 380cf23) for OLD_KEYS_GRID: they must not change, or
+#: every finished cell of a grid folder written then would run again.
+OLD_KEYS_GRID = """
+name = "tiny"
+scenes = ["gravel", "split:chair"]
+methods = ["ours", "mean", "ganmouflage", "diffusion2d"]
+ablations = ["none", "pose"]
+seeds = [0, 3]
+[optimize]
+iterations = 2
+views = 4
+resolution = 32
+spp = 2
+target-spp = 8
+stages = "1"
+target-vertices = 1500
+map-resolution = 32
+displacement-resolution = 16
+checkpoint-every = 1
+loss = "gated"
+no-planner = false
+[optimize.ganmouflage]
+iterations = 7
+[optimize.diffusion2d]
+stage2-backend = "patch"
+[evaluate]
+views = 4
+spp = 8
+metrics = ["psnr", "ssim"]
+"""
+OLD_KEYS = {
+    "gravel__ours__s0": "374ae9f32a7bd238", "gravel__ours__s3": "03719b115022cca2",
+    "gravel__ours-wo-pose__s0": "abb5fe21d9129a2f", "gravel__ours-wo-pose__s3": "d20a8da84202df56",
+    "gravel__mean__s0": "dcaa3bde2966805d", "gravel__mean__s3": "ccc0608e08ed49a6",
+    "gravel__ganmouflage__s0": "06559ee012e5c228", "gravel__ganmouflage__s3": "ff042d03b48d2abf",
+    "gravel__diffusion2d__s0": "4c0a4164a8cd1b57", "gravel__diffusion2d__s3": "7940da6ac148fdfa",
+    "split_chair__ours__s0": "3a47ea8be92383e9", "split_chair__ours__s3": "5c1993d36dbfe8b0",
+    "split_chair__ours-wo-pose__s0": "e7999cd0ea14834d", "split_chair__ours-wo-pose__s3": "243205ed4e1318ec",
+    "split_chair__mean__s0": "3ceb420de34db17d", "split_chair__mean__s3": "84fc613fabe1a3fd",
+    "split_chair__ganmouflage__s0": "6aec72dd20a615d7", "split_chair__ganmouflage__s3": "539bc3359619d972",
+    "split_chair__diffusion2d__s0": "1c5b55f9a36353df", "split_chair__diffusion2d__s3": "a02bc681d203e07f",
+}
+
+
+def test_cell_keys_are_those_of_grids_written_before_run_specs(tmp_path):
+    g = load_grid(write(tmp_path / "g.toml", OLD_KEYS_GRID))
+    assert {c.name: c.key for c in g.cells} == OLD_KEYS
+    diff = next(c for c in g.cells if c.name == "gravel__diffusion2d__s0")
+    assert diff.spec["options"]["backend"] == "patch" and diff.spec["spp"] == {"target": 8}
+
+
+def test_grid_output_written_before_run_specs_says_how_to_convert_and_converts(tmp_path, capsys):
+    """An output folder whose grid.json / cell.json hold command lines (camo before run specs): `grid status` is a
+    one-line error saying how to convert it; `grid run` with its grid file converts it and keeps the finished cell
+    (same key: DONE found, not run again)."""
+    grid = write(tmp_path / "grid.toml", OLD_KEYS_GRID.replace('scenes = ["gravel", "split:chair"]', 'scenes = ["gravel"]')
+                 .replace('methods = ["ours", "mean", "ganmouflage", "diffusion2d"]', 'methods = ["ours", "mean"]')
+                 .replace('ablations = ["none", "pose"]', "").replace("seeds = [0, 3]", "seeds = [0]")
+                 .replace("[optimize.ganmouflage]\niterations = 7\n", "")
+                 .replace('[optimize.diffusion2d]\nstage2-backend = "patch"\n', ""))
+    old_mean = {"key": "dcaa3bde2966805d", "name": "gravel__mean__s0", "scene": "gravel", "scene_label": "gravel",
+                "method": "mean", "ablation": "none", "seed": 0,
+                "optimize": {"checkpoint_every": 1, "displacement_resolution": 16, "iterations": 2, "map_resolution": 32,
+                             "resolution": 32, "spp": 2, "stages": "1", "target_spp": 8, "target_vertices": 1500,
+                             "views": 4},
+                "evaluate": {"metrics": "psnr,ssim", "spp": 8, "views": 4},
+                "optimize_argv": ["--checkpoint-every=1", "--displacement-resolution=16", "--iterations=2",
+                                  "--map-resolution=32", "--resolution=32", "--spp=2", "--stages=1", "--target-spp=8",
+                                  "--target-vertices=1500", "--views=4"],
+                "evaluate_argv": ["--metrics=psnr,ssim", "--spp=8", "--views=4"]}
+    old_ours = dict(old_mean, key=OLD_KEYS["gravel__ours__s0"], name="gravel__ours__s0", method="ours")
+    out = tmp_path / "out"
+    cells = []
+    for old in (old_ours, old_mean):
+        cd = out / "cells" / old["key"]
+        cd.mkdir(parents=True)
+        (cd / "cell.json").write_text(json.dumps(old))
+        (cd / "DONE").write_text(json.dumps({"key": old["key"], "config": old, "finished_at": "then",
+                                             "seconds_optimize": 1.0, "seconds_evaluate": 1.0}))
+        cells.append(cd)
+    (out / "grid.json").write_text(json.dumps({"name": "tiny", "path": str(grid), "cells": [old_ours, old_mean]}))
+    assert camo("grid", "status", out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "camo grid run GRID --out DIR" in err[0] and "before cells held run specs" in err[0]
+    assert camo("grid", "run", grid, "--out", out) == 0
+    assert "2 done, 0 failed, 0 partial, 0 pending; 0 to run" in capsys.readouterr().err  # found under their keys
+    assert not any((cd / "run").exists() for cd in cells)
+    assert all("spec" in json.loads((cd / "cell.json").read_text()) for cd in cells)
+    assert camo("grid", "status", out) == 0 and "2 done" in capsys.readouterr().out
 
 
 def test_dry_run_lists_cells_and_writes_nothing(tmp_path, capsys):
@@ -276,7 +376,13 @@ def test_run_interrupt_resume_merge_and_report(tmp_path, monkeypatch, capsys):
     assert "1 done, 0 failed" in capsys.readouterr().out
 
     # 2. cell 2 left with a checkpoint after its first iteration (as if killed there)
-    assert camo(*c2.optimize_command(d2, 1, "restart"), "--iterations", "1") == 0
+    import dataclasses
+
+    from optimizer.optimise.run import run
+
+    spec = c2.run_spec()
+    run(dataclasses.replace(spec, stage1=dataclasses.replace(spec.stage1, iterations=1)), c2.run_dir(d2),
+        overwrite=True, progress=False, threads=1)
     assert (c2.run_dir(d2) / "checkpoint.npz").is_file() and not (d2 / "DONE").exists()
 
     # 3. run again: cell 1 untouched, cell 2 resumed from its checkpoint, cell 3 run; then merged and reported
@@ -461,4 +567,4 @@ def test_shipped_grid_files_load(name, cells, methods):
         assert {c.scene_label.split(":")[0] for c in grid.cells} == {"meadow", "gravel", "split", "room", "occluded",
                                                                        "panorama"}
     gm = [c for c in grid.cells if c.method == "ganmouflage"]
-    assert all(dict(c.optimize)["iterations"] in (300, 2000) for c in gm)
+    assert all(c.spec["options"]["iterations"] in (300, 2000) for c in gm)

@@ -45,14 +45,14 @@ def test_run_directory_contents(run_dir):
     import tomllib
 
     cfg = tomllib.loads((run_dir / "config.toml").read_text())
-    assert cfg["run"]["stage1"]["seed"] == 0 and "mitsuba" in cfg["versions"]
+    assert cfg["seed"] == 0 and "mitsuba" in cfg["versions"] and cfg["spec_version"] == 2
     assert cfg["plan"]["integrator"]["type"] == "prb_projective"
     # the training renders' integrator: 4 spp continuous, 2 * (32 + 32) * 4 silhouette samples per view,
     # rendered with spp=0
     assert cfg["plan"]["training_integrator"] == dict(cfg["plan"]["integrator"], type="camo_prb_projective", sppc=4,
                                                       sppp=1, sppi=0, silhouette_samples=512)
     assert cfg["plan"]["render_spp"] == 0
-    assert cfg["run"]["stage1"]["silhouette_every"] == 4  # silhouettes on a random quarter of the views per step
+    assert cfg["stage1"]["silhouette_every"] == 4  # silhouettes on a random quarter of the views per step
 
 
 def test_loss_decreases(run_dir):
@@ -181,3 +181,285 @@ def test_init_sets_the_starting_maps_and_is_recorded(tmp_path, capsys):
     assert optimize(tmp_path / "bad2", 1, "--init", "metallic=0.2", "--ablate", "bsdf") == 2
     assert "conflicts" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+
+
+# --- the run spec: flags fill it, config.toml is it, a flag the method does not use is an error -------------------
+
+
+def spec_of(*argv):
+    from camo.cli import build_parser
+    from camo.optimize_cli import spec_from_args
+
+    return spec_from_args(build_parser().parse_args(["optimize", *argv]))
+
+
+PROVENANCE = ("versions", "plan", "fingerprint", "baseline")
+
+
+def test_config_toml_is_the_spec_and_holds_each_spp_once(run_dir):
+    import tomllib
+
+    from optimizer.optimise.spec import RunSpec
+
+    cfg = tomllib.loads((run_dir / "config.toml").read_text())
+    spec = spec_of("gravel", "--out", str(run_dir), "--iterations", "10", *TINY, "--checkpoint-every", "5")
+    assert {k: v for k, v in cfg.items() if k not in PROVENANCE} == spec.to_dict()
+    assert RunSpec.from_dict({k: v for k, v in cfg.items() if k not in PROVENANCE}) == spec
+    # each spp once: --spp is the training spp only (the pack's own spp is not recorded), --target-spp the targets'
+    assert cfg["spp"] == {"train": 4, "target": 32, "stage2_preview": 16}
+    assert "spp" not in cfg["pack"]["render"] and spec.pack.render.spp == 16
+    s = json.loads((run_dir / "summary.json").read_text())
+    assert s["final_render"]["spp"] == 32 and s["method"] == "ours"
+    assert cfg["fingerprint"]["value"] == spec.fingerprint()
+
+
+@pytest.mark.parametrize("method", ["ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage",
+                                    "ganmouflage-paper"])
+def test_spec_round_trips_through_toml(method, tmp_path):
+    import tomllib
+
+    import tomli_w
+
+    from optimizer.optimise.spec import RunSpec
+
+    extra = {"ours": ["--iterations", "7", "--stage2-strength", "0.3", "--ablate", "pose", "--init", "roughness=0.2"],
+             "ganmouflage": ["--iterations", "5"], "diffusion2d": ["--stage2-backend", "patch"]}.get(method, [])
+    pack = tmp_path / "p.toml"
+    pack.write_text('name = "p"\n[object]\nprimitive = "vase"\n[environment]\nbuiltin = "meadow"\n[render]\nspp = 3\n')
+    spec = spec_of(str(pack), "--out", "x", "--method", method, "--seed", "5", "--target-spp", "9", "--views", "3",
+                   *extra)
+    text = tomli_w.dumps(spec.to_dict())
+    back = RunSpec.from_dict(tomllib.loads(text))
+    assert back == spec and back.to_dict() == spec.to_dict() and back.normalised() == spec
+    assert back.seed == 5 and back.spp.target == 9 and back.pack.cameras.views == 3
+    assert back.method == ("ganmouflage" if method.startswith("ganmouflage") else method)
+    if method == "ours":
+        assert back.stage1.iterations == 7 and back.stage2.strength == 0.3 and back.ablate == ("pose",)
+        assert back.appearance.pose is False and back.pack.material.roughness == 0.2
+        assert back.stage1_config().seed == 5 and back.stage1_config().spp == 4 and back.stage2_config().preview_spp == 16
+    else:  # a baseline's spec holds only what it reads
+        d = spec.to_dict()
+        assert "stage2" not in d and "stages" not in d and "train" not in d["spp"] and "iterations" not in d["stage1"]
+    if method == "ganmouflage":
+        assert back.options.iterations == 5
+    if method == "ganmouflage-paper":
+        assert back.options.preset == "paper" and back.options.iterations == 8000
+
+
+@pytest.mark.parametrize("method, flags", [
+    ("mean", ["--stage2-iterations", "3"]),
+    ("mean", ["--spp", "2"]),
+    ("random", ["--iterations", "3"]),
+    ("transparent", ["--ablate", "pose"]),
+    ("greedy", ["--stages", "1"]),
+    ("diffusion2d", ["--checkpoint-every", "2"]),
+    ("ganmouflage", ["--stage2-strength", "0.5"]),
+    ("ganmouflage", ["--no-planner", "--lr-maps", "0.1"]),
+    ("transparent", ["--sdxl-path", "/nowhere"]),
+])
+def test_a_flag_the_method_does_not_use_is_a_one_line_error(method, flags, tmp_path, capsys):
+    out = tmp_path / "r"
+    assert main(["optimize", "gravel", "--method", method, "--out", str(out), *flags]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    bad = next(f for f in flags if f.startswith("--") and f != "--no-planner")
+    assert len(err) == 1 and err[0].startswith(f"camo: error: {bad} does not apply to --method {method}"), err
+    assert not out.exists()
+
+
+def test_flags_the_method_uses_are_taken():
+    """--iterations is GANmouflage's training iterations (its own option), --stage2-backend diffusion2d's
+    inpainter; ours keeps both for its stages."""
+    gan = spec_of("gravel", "--out", "x", "--method", "ganmouflage", "--iterations", "11")
+    assert gan.options.iterations == 11 and gan.stage1.iterations == 50  # (its default: a baseline has no Stage 1)
+    diff = spec_of("gravel", "--out", "x", "--method", "diffusion2d", "--stage2-backend", "diffusers",
+                   "--sdxl-path", "/a", "--controlnet-path", "/b")
+    assert diff.options.backend == "diffusers" and diff.options.backend_options == {"sdxl_path": "/a",
+                                                                                   "controlnet_path": "/b"}
+    ours = spec_of("gravel", "--out", "x", "--iterations", "11", "--stage2-backend", "patch")
+    assert ours.stage1.iterations == 11 and ours.stage2.backend == "patch" and ours.options is None
+
+
+def test_absent_options_mean_the_spec_defaults():
+    """camo.optimize_cli.ABSENT (what camo grid drops from cell keys) is what an absent option gives."""
+    from camo.optimize_cli import ABSENT
+
+    explicit = []
+    for dest, value in ABSENT.items():
+        explicit += [f"--{dest.replace('_', '-')}", str(value)] if value != "" else [f"--{dest.replace('_', '-')}="]
+    assert spec_of("gravel", "--out", "x", *explicit) == spec_of("gravel", "--out", "x")
+
+
+def test_spec_from_a_dict_refuses_what_the_method_does_not_use():
+    from camo_base.errors import CamoError
+    from optimizer.optimise.spec import RunSpec
+
+    d = spec_of("gravel", "--out", "x", "--method", "mean").to_dict()
+    with pytest.raises(CamoError, match="method mean does not use stage2.iterations"):
+        RunSpec.from_dict({**d, "stage2": {"iterations": 3}})
+    with pytest.raises(CamoError, match="unknown field"):
+        RunSpec.from_dict({**d, "colour": 1})
+    with pytest.raises(CamoError, match=r"\[spp\] target must be an integer"):
+        RunSpec.from_dict({**d, "spp": {"target": "many"}})
+    with pytest.raises(CamoError, match="no spec_version"):
+        RunSpec.from_dict({k: v for k, v in d.items() if k != "spec_version"})
+    with pytest.raises(CamoError, match="pack.render. spp is not part of a run"):
+        RunSpec.from_dict({**d, "pack": {**d["pack"], "render": {"resolution": [8, 8], "spp": 4}}})
+    import dataclasses
+
+    from optimizer.optimise.stage2 import Stage2Settings
+
+    spec = RunSpec.from_dict(d)
+    with pytest.raises(CamoError, match="method mean does not use stage2.iterations"):
+        dataclasses.replace(spec, stage2=Stage2Settings(iterations=3)).validate()
+
+
+# --- run directories written before run specs -------------------------------------------------------------------
+
+#: config.toml as camo wrote it before run specs (layout 1; from a real run at git 380cf23, with the values of TINY
+#: and 10 iterations): a [run] table, the pack's spp set by --spp.
+V1_CONFIG = """
+[run]
+scene = "gravel"
+method = "ours"
+stages = [1]
+ablate = []
+checkpoint_every = 5
+planner = true
+shadow_gradients = false
+threads = 1
+preset = "fast"
+snapshot_every = 0
+rough_start = true
+
+[run.stage1]
+iterations = 10
+spp = 4
+target_spp = 32
+seed = 0
+loss = "gated"
+alpha = 1.0
+eps = 0.01
+domain = "object+shadow"
+domain_dilate = 0.04
+shadow_threshold = 0.05
+silhouette_every = 4
+warm_start = false
+lr_schedule = "constant"
+lr_floor = 0.1
+
+[run.stage2]
+iterations = 4
+strength = 0.5
+backend = "patch"
+prompt = "background"
+preview_spp = 16
+displacement = true
+
+[run.appearance]
+map_resolution = 64
+displacement_resolution = 32
+displacement_bound = 0.02
+translation_fraction = 0.05
+allow_dz = false
+pose = true
+displacement = true
+bsdf = true
+transmittance = true
+eta = 1.5
+lr_maps = 0.01
+lr_displacement = 0.05
+lr_translation = 0.002
+lr_rotation = 0.01
+displacement_weight = 1.0
+displacement_shrink = 0.5
+freeze_displacement = false
+
+[pack]
+name = "gravel"
+source = "builtin:gravel"
+
+[pack.object]
+primitive = "utility_box"
+size = 1.0
+rotation = [0.0, 0.0, -15.0]
+translation = [0.0, 0.0, 0.0]
+target_vertices = 1500
+
+[pack.environment]
+builtin = "gravel"
+capture_height = 1.6
+ground = true
+ground_extent = 30.0
+rotation = 0.0
+
+[pack.cameras]
+mode = "orbit"
+views = 4
+radius = 4.0
+elevation = 20.0
+fov = 30.0
+azimuth_offset = 0.0
+
+[pack.render]
+resolution = [32, 32]
+spp = 4
+
+[pack.material]
+albedo = [0.5, 0.5, 0.5]
+metallic = 0.0
+roughness = 0.5
+transmittance = 0.75
+eta = 1.5
+
+[versions]
+camo = "0.1.0"
+mitsuba = "3.9.1"
+
+[plan]
+render_spp = 0
+
+[plan.integrator]
+type = "prb_projective"
+max_depth = 6
+rr_depth = 6
+sppi = 0
+
+[fingerprint]
+value = "c23b18d7bb87ae7c"
+"""
+
+
+def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_path, capsys):
+    """A run directory whose config.toml has the old layout: rundir reads it (same pack, appearance, method as the
+    new layout gives), `camo evaluate` scores it exactly like the same result under a new config.toml, and
+    `--resume` says in one line that it cannot continue it."""
+    import dataclasses
+    import shutil
+
+    import pandas as pd
+
+    from optimizer.assets.rundir import open_run
+
+    old = tmp_path / "old_run"
+    shutil.copytree(run_dir, old)
+    (old / "config.toml").write_text(V1_CONFIG)
+    a, b = open_run(old), open_run(run_dir)
+    assert (a.method, a.ablation, a.app) == (b.method, b.ablation, b.app)
+    assert a.pack.render.spp == 4 and a.pack == dataclasses.replace(b.pack, render=dataclasses.replace(b.pack.render, spp=4))
+    assert (a.object, a.scene) == ("utility_box", "gravel")
+    flags = ["--views", "2", "--spp", "4", "--metrics", "psnr,ssim", "--quiet", "--threads", "2"]
+    assert main(["evaluate", str(old), "--out", str(tmp_path / "e_old"), *flags]) == 0
+    assert main(["evaluate", str(run_dir), "--out", str(tmp_path / "e_new"), *flags]) == 0
+    m_old = pd.read_parquet(tmp_path / "e_old" / "metrics.parquet")
+    m_new = pd.read_parquet(tmp_path / "e_new" / "metrics.parquet")
+    assert len(m_old) == len(m_new) == 2 * 2
+    np.testing.assert_array_equal(m_old["psnr"].to_numpy(), m_new["psnr"].to_numpy())
+    assert np.isfinite(m_old["psnr"]).all()
+    capsys.readouterr()
+    assert optimize(old, 12, "--resume") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "before run specs" in err[0] and "start a new run" in err[0]
+    # a baseline's old layout ([run] method, [baseline] table) names its method too
+    (old / "config.toml").write_text(V1_CONFIG.replace('method = "ours"', 'method = "mean"') +
+                                     '\n[baseline]\nmethod = "mean"\n')
+    assert open_run(old).method == "mean"

@@ -6,8 +6,9 @@
                                       [--skip-failed] [--dry-run] [--quiet]
     camo grid status DIR [--json]
 
-Every cell runs ``camo optimize`` then ``camo evaluate`` in a fresh worker process, into
-``DIR/cells/<key>/`` (key: hash of the cell's resolved config). Finished cells (``DONE``) are never redone,
+Every cell runs its run spec (filled from the grid's ``[optimize]`` options when the grid is loaded, as
+``camo optimize`` fills one from its flags) then ``camo evaluate`` in a fresh worker process, into
+``DIR/cells/<key>/`` (key: hash of the cell's resolved options). Finished cells (``DONE``) are never redone,
 partial ones are resumed from their checkpoint (or restarted), failed ones are recorded (``ERROR``,
 ``error.log``) and retried by the next run unless ``--skip-failed``. At the end the finished cells' metrics are
 merged into ``DIR/metrics.parquet`` / ``.csv`` and the Table II report is written to ``DIR/report/``.

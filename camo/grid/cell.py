@@ -1,8 +1,8 @@
-"""One grid cell: ``camo optimize`` then ``camo evaluate`` into ``DIR/cells/<key>/``, in a worker process.
+"""One grid cell: its run spec's optimisation, then ``camo evaluate``, into ``DIR/cells/<key>/``, in a worker process.
 
 Cell folder::
 
-    cell.json        the cell's resolved config (written before it first runs)
+    cell.json        the cell's resolved config, with its run spec (written before it first runs)
     attempts.jsonl   one JSON line per event: start (with mode fresh / resume / restart / evaluate), optimized,
                      done, failed -- the number of "start" lines is the number of times the cell was run
     log.txt          everything the cell's commands printed
@@ -13,9 +13,10 @@ Cell folder::
     ERROR, error.log the one-line error and its traceback when the cell failed (removed when it is retried)
     .lock            held by the worker running the cell (`camo grid status` shows it as running)
 
-A partial cell (started, no DONE) is continued with ``camo optimize --resume`` when its run directory has a
-checkpoint (method ``ours``; baselines have none), otherwise restarted with ``--overwrite``. The commands are
-run through the same parser and handlers as the ``camo`` command line.
+A partial cell (started, no DONE) is resumed when its run directory has a checkpoint (method ``ours``; baselines
+have none), otherwise restarted over its files. The optimisation runs the cell's run spec as stored
+(:func:`optimizer.optimise.run.run`, as ``camo optimize`` does after filling one); the evaluation runs through the
+same parser and handler as the ``camo evaluate`` command line.
 
 This module is imported by spawned worker processes: keep its imports light.
 """
@@ -41,7 +42,7 @@ DONE = "DONE"
 ERROR = "ERROR"
 ERROR_LOG = "error.log"
 CELL_LOCK = ".lock"
-CHECKPOINT = "checkpoint.npz"  # = optimizer.optimise.run.CHECKPOINT (not imported: that module pulls in the optimiser)
+CHECKPOINT = "checkpoint.npz"  # = optimizer.assets.rundir.CHECKPOINT (not imported: keep the workers' imports light)
 
 #: Test hook: a cell whose name contains this string kills its worker process (simulates a crash).
 CRASH_ENV = "CAMO_GRID_TEST_CRASH"
@@ -183,6 +184,19 @@ def _camo(argv: list[str]) -> None:
         raise CamoError(f"camo {argv[0]} exited with status {rc}")
 
 
+def optimize_cell(cell, cell_dir: Path, threads: int | None, mode: str = "fresh") -> Path:
+    """Run the cell's run spec into its run directory; ``mode``: fresh, resume (from its checkpoint) or restart
+    (over its files). CamoError for a bad spec or a failed resume."""
+    from optimizer.optimise.run import run
+
+    run_dir = cell.run_dir(cell_dir)
+    print(f"$ camo optimize {cell.scene} --out {run_dir} [the run spec of {CELL_JSON}: method {cell.spec.get('method')}, "
+          f"seed {cell.spec.get('seed', 0)}] --threads {threads or 'default'}"
+          f"{' --resume' if mode == 'resume' else ' --overwrite' if mode == 'restart' else ''}", flush=True)
+    return run(cell.run_spec(), run_dir, resume=mode == "resume", overwrite=mode == "restart", progress=False,
+               threads=threads)
+
+
 def _limit_threads(threads: int | None) -> None:
     if not threads:
         return
@@ -290,15 +304,14 @@ def _run(cell, cdir: Path, threads: int | None, t0: float) -> dict[str, Any]:
     try:
         if not optimized:
             t = time.perf_counter()
-            print(f"$ camo {' '.join(cell.optimize_command(cdir, threads, mode))}", flush=True)
             try:
-                _camo(cell.optimize_command(cdir, threads, mode))
+                optimize_cell(cell, cdir, threads, mode)
             except CamoError as exc:
                 if mode != "resume" or not any(s in str(exc) for s in ("checkpoint", "--resume")):
                     raise
                 print(f"resume failed ({exc}); restarting the run", flush=True)
                 _append(cdir / ATTEMPTS, {"event": "restart", "reason": _one_line(exc), "time": _now()})
-                _camo(cell.optimize_command(cdir, threads, "restart"))
+                optimize_cell(cell, cdir, threads, "restart")
             seconds_opt = time.perf_counter() - t
             atomic.write_json(cdir / OPTIMIZED, {"key": cell.key, "seconds": seconds_opt, "time": _now()})
             _append(cdir / ATTEMPTS, {"event": "optimized", "seconds": seconds_opt, "time": _now()})

@@ -2,7 +2,7 @@
 
 Output folder::
 
-    DIR/grid.toml, DIR/grid.json   the grid file as given and its resolved cells (keys, command lines)
+    DIR/grid.toml, DIR/grid.json   the grid file as given and its resolved cells (keys, run specs)
     DIR/cells/<key>/               one folder per cell (see camo.grid.cell)
     DIR/metrics.parquet, .csv      every finished cell's evaluation rows (evaluation.evaluate.COLUMNS) plus
                                    cell (key), run_seed (the optimisation seed) and label (the Table II row)
@@ -86,7 +86,11 @@ def _prepare_out(out: Path, grid: Grid) -> None:
     atomic.write_json(out / GRID_JSON, grid.to_dict())
     for c in grid.cells:
         cd = cell_dir(out, c)
-        if not (cd / CELL_JSON).is_file():
+        try:
+            same = json.loads((cd / CELL_JSON).read_text(encoding="utf-8")) == json.loads(json.dumps(c.to_dict()))
+        except (OSError, ValueError):
+            same = False
+        if not same:  # new, or written by an older camo (command lines instead of a run spec): same key, same work
             atomic.write_json(cd / CELL_JSON, c.to_dict())
 
 
@@ -223,6 +227,8 @@ def load_out(out: str | Path) -> tuple[dict[str, Any], list[Cell]]:
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
         cells = [Cell.from_dict(d) for d in doc["cells"]]
+    except CamoError as exc:
+        raise CamoError(f"{p}: {exc}") from None
     except (ValueError, KeyError, TypeError) as exc:
         raise CamoError(f"{p}: unreadable ({type(exc).__name__})") from None
     return doc, cells

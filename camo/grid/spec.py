@@ -10,15 +10,15 @@ Schema (every key but ``scenes`` is optional; unknown keys are errors)::
                                                # crossed with method "ours" only (default ["none"])
     seeds     = [0, 1, 2]                      # `camo optimize --seed` (default [0])
 
-    [optimize]                                 # any `camo optimize` option (long name, - or _)
-    iterations = 50
+    [optimize]                                 # any `camo optimize` option (long name, - or _): for every
+    iterations = 50                            # method that uses it (an option none of them uses is an error)
     resolution = 128
     views = 16
     stages = "1,2"                             # lists are joined with commas: stages = [1, 2]
     no-planner = false                         # flags are booleans
 
-    [optimize.ganmouflage]                     # per-method overrides (a table named after a method)
-    iterations = 2000
+    [optimize.ganmouflage]                     # per-method overrides (a table named after a method; an option
+    iterations = 2000                          # the method does not use is an error)
 
     [evaluate]                                 # any `camo evaluate` option
     views = 16
@@ -32,17 +32,26 @@ relative to the grid file. Options the grid sets itself are refused: ``out``, ``
 ``quiet``, ``threads`` (cores // workers), and the axes ``method``, ``ablate``, ``seed`` (use ``methods``,
 ``ablations``, ``seeds``).
 
-Each cell has a **key**: the first 16 hex digits of the SHA-256 of its resolved config (scene as written plus
-the pack file's SHA-256, method, ablation, seed, and the resolved optimise and evaluate options; not the
-thread count). A cell with the same key is the same work: a finished one is never redone.
+The ``[optimize]`` options fill each cell's **run spec** (:class:`optimizer.optimise.spec.RunSpec`) through the
+real ``camo optimize`` parser, once, when the grid is loaded; the cell stores the spec (``Cell.spec``, its
+``to_dict``) and its worker runs it as it is (:func:`optimizer.optimise.run.run`), no command line in between.
+
+Each cell has a **key**: the first 16 hex digits of the SHA-256 of its resolved options (scene as written plus
+the pack file's SHA-256, method, ablation, seed, and the optimise and evaluate options the grid file sets, each
+converted by its parser and left out when it equals its absent value; not the thread count). A cell with the same
+key is the same work: a finished one is never redone. The key is computed as it was before cells held run specs,
+so the keys of grid folders written then still match.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import io
 import hashlib
 import json
+import math
 import re
 import tomllib
 from pathlib import Path
@@ -83,31 +92,37 @@ class Cell:
     name: str  # run directory name (the `run` column of the metrics), unique within the grid
     scene: str  # the `camo optimize` SCENE argument (pack paths absolute)
     scene_label: str  # the scene as written in the grid (ENV:OBJECT combined)
-    method: str
+    method: str  # the method as the grid names it (ganmouflage-paper stays so; its spec says ganmouflage)
     ablation: str  # "none" or a sorted comma list
     seed: int
-    optimize: tuple[tuple[str, Any], ...]  # resolved options: (dest, value), sorted
-    evaluate: tuple[tuple[str, Any], ...]
-    optimize_argv: tuple[str, ...]  # option arguments only (no SCENE/--out/--threads/--resume)
-    evaluate_argv: tuple[str, ...]
+    spec: dict[str, Any]  # the run spec (RunSpec.to_dict()): what the cell's optimisation runs
+    evaluate: tuple[tuple[str, Any], ...]  # resolved `camo evaluate` options: (dest, value), sorted
+    evaluate_argv: tuple[str, ...]  # option arguments only (no RUN_DIR/--out/--threads)
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        d["optimize"] = dict(self.optimize)
         d["evaluate"] = dict(self.evaluate)
-        d["optimize_argv"] = list(self.optimize_argv)
         d["evaluate_argv"] = list(self.evaluate_argv)
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Cell":
+        if "spec" not in d and "optimize_argv" in d:
+            raise CamoError("this grid output was written by camo before cells held run specs (cells hold command "
+                            "lines); convert it by running `camo grid run GRID --out DIR` once with its grid file "
+                            "(finished cells keep their keys and are not run again)")
         return cls(key=d["key"], name=d["name"], scene=d["scene"], scene_label=d["scene_label"], method=d["method"],
-                   ablation=d["ablation"], seed=int(d["seed"]),
-                   optimize=tuple(sorted(d["optimize"].items())), evaluate=tuple(sorted(d["evaluate"].items())),
-                   optimize_argv=tuple(d["optimize_argv"]), evaluate_argv=tuple(d["evaluate_argv"]))
+                   ablation=d["ablation"], seed=int(d["seed"]), spec=dict(d["spec"]),
+                   evaluate=tuple(sorted(d["evaluate"].items())), evaluate_argv=tuple(d["evaluate_argv"]))
+
+    def run_spec(self):
+        """The cell's :class:`optimizer.optimise.spec.RunSpec` (CamoError when the stored spec is not valid)."""
+        from optimizer.optimise.spec import RunSpec
+
+        return RunSpec.from_dict(self.spec, where=f"cell {self.name}").validate()
 
     # ------------------------------------------------------------------------------------------------------
-    # the camo command lines of this cell
+    # where the cell's results go, and its evaluation command line
     # ------------------------------------------------------------------------------------------------------
 
     def run_dir(self, cell_dir: Path) -> Path:
@@ -115,21 +130,6 @@ class Cell:
 
     def eval_dir(self, cell_dir: Path) -> Path:
         return Path(cell_dir) / "eval" / self.name  # named after the cell: the report's settings list it
-
-    def optimize_command(self, cell_dir: Path, threads: int | None, mode: str = "fresh") -> list[str]:
-        """``camo optimize`` argv (without the program name); ``mode``: fresh, resume or restart."""
-        argv = ["optimize", self.scene, "--out", str(self.run_dir(cell_dir)), "--method", self.method,
-                "--seed", str(self.seed)]
-        if self.ablation != "none":
-            argv += ["--ablate", self.ablation]
-        argv += [*self.optimize_argv, "--quiet"]
-        if threads:
-            argv += ["--threads", str(threads)]
-        if mode == "resume":
-            argv.append("--resume")
-        elif mode == "restart":
-            argv.append("--overwrite")
-        return argv
 
     def evaluate_command(self, cell_dir: Path, threads: int | None) -> list[str]:
         argv = ["evaluate", str(self.run_dir(cell_dir)), "--out", str(self.eval_dir(cell_dir)),
@@ -151,7 +151,7 @@ class Grid:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# options of `camo optimize` / `camo evaluate`, read from their real parsers
+# options of `camo optimize` / `camo evaluate`, through their real parsers
 # --------------------------------------------------------------------------------------------------------------
 
 
@@ -170,14 +170,20 @@ def command_parser(command: str) -> argparse.ArgumentParser:
     return sub.choices[command]
 
 
-def _options(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
-    """``{dest: action}`` of the optional arguments that take a ``--long`` name."""
-    out = {}
-    for a in parser._actions:  # noqa: SLF001 - argparse has no public accessor
-        longs = [s for s in a.option_strings if s.startswith("--")]
-        if longs and not isinstance(a, argparse._HelpAction):  # noqa: SLF001
-            out[a.dest] = a
-    return out
+#: What the parsers need besides the options (a required positional or --out); never used to run anything.
+_BASE_ARGV = {"optimize": ["SCENE", "--out", "/nonexistent-camo-grid-cell"],
+              "evaluate": ["--out", "/nonexistent-camo-grid-cell"]}
+
+
+def parse_command(parser: argparse.ArgumentParser, argv: list[str], where: str) -> argparse.Namespace:
+    """``parser.parse_args(argv)`` with argparse's error (usage on stderr, exit 2) as one CamoError line."""
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            return parser.parse_args(argv)
+    except SystemExit:
+        lines = err.getvalue().strip().splitlines()
+        raise CamoError(f"{where}: {lines[-1] if lines else 'bad options'}") from None
 
 
 def _one_line(text: str) -> str:
@@ -186,25 +192,36 @@ def _one_line(text: str) -> str:
 
 def _option_args(section: str, table: dict[str, Any], parser: argparse.ArgumentParser, where: str
                  ) -> tuple[dict[str, Any], list[str]]:
-    """Validate one ``[optimize]`` / ``[evaluate]`` table: resolved ``{dest: value}`` and argv fragments."""
-    actions = _options(parser)
+    """Validate one ``[optimize]`` / ``[evaluate]`` table through the real parser: the resolved ``{dest: value}``
+    (options equal to their absent value left out: the same work, the same key) and argv fragments."""
+    absent: dict[str, Any] = {}
+    if section == "optimize":
+        from camo.optimize_cli import ABSENT
+
+        absent = ABSENT
     reserved = RESERVED[section]
-    values: dict[str, Any] = {}
+    known = vars(parse_command(parser, _BASE_ARGV[section], where))  # every option's dest
+    argv: list[str] = []
+    dests: list[str] = []
     for raw_key, value in table.items():
         dest = str(raw_key).replace("-", "_")
         if dest in reserved:
             raise CamoError(f"{where}: [{section}] {raw_key} is set by the grid: {reserved[dest]}")
-        action = actions.get(dest)
-        if action is None:
-            known = ", ".join(sorted(k.replace("_", "-") for k in actions if k not in reserved))
-            raise CamoError(f"{where}: [{section}] unknown option {raw_key!r}; `camo {section}` options: {known}")
-        if action.nargs == 0:  # store_true / store_false flags
-            if not isinstance(value, bool):
-                raise CamoError(f"{where}: [{section}] {raw_key} is a flag: write true or false, not {value!r}")
-            if value != action.default:
-                values[dest] = value
+        if dest not in known or dest == "func":  # (argparse would take --iter for --iterations: not here)
+            names = ", ".join(sorted(k.replace("_", "-") for k in known if k not in reserved and k != "func"))
+            raise CamoError(f"{where}: [{section}] unknown option {raw_key!r}; `camo {section}` options: {names}")
+        opt = "--" + dest.replace("_", "-")
+        is_flag = isinstance(parser.get_default(dest), bool)
+        if is_flag and not isinstance(value, bool):
+            raise CamoError(f"{where}: [{section}] {raw_key} is a flag: write true or false, not {value!r}")
+        if isinstance(value, bool):
+            if not is_flag:
+                raise CamoError(f"{where}: [{section}] {raw_key} must be a number, a string or a list, not {value!r}")
+            if value:
+                argv.append(opt)
+            dests.append(dest)
             continue
-        if isinstance(value, bool) or isinstance(value, dict) or value is None:
+        if isinstance(value, dict) or value is None:
             raise CamoError(f"{where}: [{section}] {raw_key} must be a number, a string or a list, not {value!r}")
         if isinstance(value, list):
             if not value or any(isinstance(v, (list, dict, bool)) for v in value):
@@ -215,31 +232,24 @@ def _option_args(section: str, table: dict[str, Any], parser: argparse.ArgumentP
             raise CamoError(f"{where}: [{section}] {raw_key} is NaN")
         else:
             text = str(value)
-        converted: Any = text
-        if action.type is not None:
-            try:
-                converted = action.type(text)
-            except (TypeError, ValueError):
-                tname = getattr(action.type, "__name__", "value")
-                raise CamoError(f"{where}: [{section}] {raw_key} must be {'an' if tname[0] in 'aeiou' else 'a'} "
-                                f"{tname}, got {value!r}") from None
-            if isinstance(converted, float) and (converted != converted or converted in (float("inf"), float("-inf"))):
-                raise CamoError(f"{where}: [{section}] {raw_key} must be finite, got {value!r}")
-        if action.choices is not None and converted not in action.choices:
-            raise CamoError(f"{where}: [{section}] {raw_key} must be one of {', '.join(map(str, action.choices))}, "
-                            f"got {value!r}")
-        if converted == action.default:  # the same work as leaving it out: the same cell key
+        argv.append(f"{opt}={text}")  # `=` keeps values such as "-1" from looking like options
+        dests.append(dest)
+    ns = parse_command(parser, [*_BASE_ARGV[section], *argv], f"{where}: [{section}]")
+    values: dict[str, Any] = {}
+    for dest in dests:
+        v = getattr(ns, dest)
+        if isinstance(v, float) and not math.isfinite(v):
+            raise CamoError(f"{where}: [{section}] {dest.replace('_', '-')} must be finite, got {v!r}")
+        if v == absent.get(dest, parser.get_default(dest)):  # the same work as leaving it out: the same cell key
             continue
-        values[dest] = converted
-    argv: list[str] = []
-    for dest in sorted(values):
-        action = actions[dest]
-        flag = max((s for s in action.option_strings if s.startswith("--")), key=len)
-        if action.nargs == 0:
-            argv.append(flag)
-        else:
-            argv.append(f"{flag}={values[dest]}")  # `=` keeps values such as "-1" from looking like options
-    return values, argv
+        values[dest] = v
+    out_argv = [("--" + d.replace("_", "-")) if values[d] is True else f"--{d.replace('_', '-')}={_text(values[d])}"
+                for d in sorted(values)]
+    return values, out_argv
+
+
+def _text(value: Any) -> str:
+    return ",".join(str(v) for v in value) if isinstance(value, list) else str(value)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -414,15 +424,30 @@ def load_grid(path: str | Path) -> Grid:
         if m not in METHODS:
             raise CamoError(f"{where}: [optimize.{m}]: a sub-table must be named after a method "
                             f"({', '.join(METHODS)})")
-    base_opt = {k: v for k, v in sections["optimize"].items() if not isinstance(v, dict)}
+    base_opt = {k.replace("-", "_"): v for k, v in sections["optimize"].items() if not isinstance(v, dict)}
     opt_parser, eval_parser = command_parser("optimize"), command_parser("evaluate")
     eval_values, eval_argv = _option_args("evaluate", sections["evaluate"], eval_parser, where)
-    opt_by_method = {}
+    from camo.optimize_cli import check_options_apply, option_applies
+
+    for dest in base_opt:
+        if dest in RESERVED["optimize"]:
+            continue  # _option_args says why
+        if dest in optimize_options(opt_parser) and not any(option_applies(m, dest) for m in methods):
+            raise CamoError(f"{where}: [optimize] {dest.replace('_', '-')} applies to none of the methods "
+                            f"({', '.join(methods)})")
+    opt_by_method: dict[str, tuple[dict[str, Any], list[str]]] = {}
     for m in methods:
-        merged = {**{k.replace("-", "_"): v for k, v in base_opt.items()},
-                  **{k.replace("-", "_"): v for k, v in per_method.get(m, {}).items()}}
+        own = {k.replace("-", "_"): v for k, v in per_method.get(m, {}).items()}
         sub_where = where if m not in per_method else f"{where} (method {m})"
-        opt_by_method[m] = _option_args("optimize", merged, opt_parser, sub_where)
+        merged = {**base_opt, **own}
+        values, _ = _option_args("optimize", merged, opt_parser, sub_where)
+        try:
+            check_options_apply(m, own)
+        except CamoError as exc:
+            raise CamoError(f"{where}: [optimize.{m}] {exc}") from None
+        # the key takes every option the grid gives the method (as keys always did); the spec those it uses
+        used = {d: v for d, v in values.items() if option_applies(m, d)}
+        opt_by_method[m] = values, [_arg(d, v) for d, v in sorted(used.items())]
 
     entries = _scene_entries(scenes, objects, path.parent, where)
     cells: list[Cell] = []
@@ -436,9 +461,11 @@ def load_grid(path: str | Path) -> Grid:
                     abl_part = "" if abl == "none" else "-wo-" + abl.replace(",", "+")
                     scene_part = Path(label).stem if sha else label
                     nm = _slug(f"{scene_part}__{m}{abl_part}__s{seed}")
+                    argv = [scene_arg, "--out", "/nonexistent-camo-grid-cell", "--method", m, "--seed", str(seed),
+                            *(["--ablate", abl] if abl != "none" else []), *opt_argv]
+                    spec = cell_spec(opt_parser, argv, f"{where}: cell {nm}")
                     cells.append(Cell(key=key, name=nm, scene=scene_arg, scene_label=label, method=m, ablation=abl,
-                                      seed=seed, optimize=tuple(sorted(opt_values.items())),
-                                      evaluate=tuple(sorted(eval_values.items())), optimize_argv=tuple(opt_argv),
+                                      seed=seed, spec=spec, evaluate=tuple(sorted(eval_values.items())),
                                       evaluate_argv=tuple(eval_argv)))
     names = [c.name for c in cells]
     if len(set(names)) != len(names):  # two packs with one file name: make the run names unique
@@ -449,40 +476,41 @@ def load_grid(path: str | Path) -> Grid:
     return grid
 
 
-def validate_cells(grid: Grid) -> None:
-    """Run every cell's command lines through the real `camo optimize` / `camo evaluate` checks (cheap: no
-    rendering, no Mitsuba) so that bad settings fail before the first cell starts."""
-    import contextlib
-    import io
+def optimize_options(parser: argparse.ArgumentParser) -> set[str]:
+    """The dests of ``camo optimize``'s options."""
+    return set(vars(parse_command(parser, _BASE_ARGV["optimize"], "camo optimize")))
 
+
+def _arg(dest: str, value: Any) -> str:
+    return "--" + dest.replace("_", "-") if value is True else f"--{dest.replace('_', '-')}={_text(value)}"
+
+
+def cell_spec(parser: argparse.ArgumentParser, argv: list[str], where: str) -> dict[str, Any]:
+    """The run spec (``to_dict``) that ``camo optimize ARGV`` runs: the real parser fills it, once."""
+    from camo.optimize_cli import spec_from_args
+
+    args = parse_command(parser, argv, where)
+    try:
+        return spec_from_args(args).to_dict()
+    except CamoError as exc:
+        raise CamoError(f"{where}: {exc}") from None
+
+
+def validate_cells(grid: Grid) -> None:
+    """Run every cell's evaluation command line through the real `camo evaluate` checks (cheap: no rendering, no
+    Mitsuba) so that bad settings fail before the first cell starts (the optimisation's are checked when its run
+    spec is made)."""
     from evaluation.evaluate import EvalSettings, parse_metrics
 
     from camo.cli import build_parser
-    from camo.optimize_cli import config_from_args
 
     parser = build_parser()
     seen_eval: set[tuple] = set()
     for c in grid.cells:
-        argv = c.optimize_command(Path("/nonexistent-camo-grid-cell"), None)
-        err = io.StringIO()
-        try:
-            with contextlib.redirect_stderr(err):
-                args = parser.parse_args(argv)
-        except SystemExit:
-            msg = err.getvalue().strip().splitlines()
-            raise CamoError(f"{grid.path}: cell {c.name}: {msg[-1] if msg else 'bad optimize options'}") from None
-        try:
-            config_from_args(args)
-        except CamoError as exc:
-            raise CamoError(f"{grid.path}: cell {c.name}: {exc}") from None
         if c.evaluate_argv not in seen_eval:
             seen_eval.add(c.evaluate_argv)
-            try:
-                with contextlib.redirect_stderr(err):
-                    ea = parser.parse_args(c.evaluate_command(Path("/nonexistent-camo-grid-cell"), None))
-            except SystemExit:
-                msg = err.getvalue().strip().splitlines()
-                raise CamoError(f"{grid.path}: [evaluate]: {msg[-1] if msg else 'bad evaluate options'}") from None
+            ea = parse_command(parser, c.evaluate_command(Path("/nonexistent-camo-grid-cell"), None),
+                               f"{grid.path}: [evaluate]")
             try:
                 EvalSettings(views=ea.views, jitter=ea.jitter, spp=ea.spp, resolution=ea.resolution,
                              metrics=parse_metrics(ea.metrics), seed=ea.seed).validate()

@@ -1,7 +1,21 @@
-"""Reading a run directory (output of ``camo optimize``; layout in CONTRIBUTING.md) back: the one place that does.
+"""The run directory (output of ``camo optimize``; layout in CONTRIBUTING.md): the one owner of its files.
 
-:func:`open_run` returns a :class:`RunDir`: its parsed ``config.toml`` (the resolved scene pack ``[pack]``, the
-appearance config ``[run.appearance]``, method and ablation), its cost in seconds (:meth:`RunDir.seconds`, from
+Writing: :func:`prepare_run_dir` (a new, empty or resumable folder), :func:`write_config` (``config.toml`` = the
+run spec's dict + provenance tables), :func:`config_fingerprint` (what a checkpoint must match to be resumed),
+:func:`write_log` (``log.jsonl``) and :func:`write_summary` (``summary.json``, for every method). The result files
+(maps, meshes, scene.xml, previews, renders.npz) are :mod:`optimizer.assets.result`'s.
+
+``config.toml`` has two layouts, both read here:
+
+* version 2 (``spec_version = 2``): the run spec (:class:`optimizer.optimise.spec.RunSpec`) at the top level --
+  ``scene``, ``method``, ``seed``, ``[spp]``, ``[stage1]``, ``[stage2]``, ``[appearance]``, ``[options]``, ``[pack]``
+  -- plus the provenance tables :data:`PROVENANCE` (``[versions]``, ``[plan]``, ``[fingerprint]``, ``[baseline]``);
+* version 1 (no ``spec_version``; written before run specs): a ``[run]`` table (method, ablate, ``[run.stage1]``,
+  ``[run.stage2]``, ``[run.appearance]``) beside ``[pack]`` and the same provenance tables. Such a run directory
+  still evaluates; it cannot be resumed or re-run from its config (run it again with the same flags).
+
+Reading: :func:`open_run` returns a :class:`RunDir`: its parsed ``config.toml`` (the resolved scene pack ``[pack]``,
+the appearance config, method and ablation), its cost in seconds (:meth:`RunDir.seconds`, from
 ``summary.json`` and ``log.jsonl``) and its result as an :class:`optimizer.assets.asset.Asset` (:meth:`RunDir.asset`):
 the world-space displaced, posed mesh of ``result.ply`` and the maps of ``maps/*.npy`` **as rendered**
 (``maps/roughness.npy`` holds the roughness after the renderer's safe minimum,
@@ -14,6 +28,7 @@ Every problem (no config.toml, bad TOML, missing or corrupt maps, a malformed PL
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import tomllib
@@ -22,11 +37,120 @@ from typing import Any
 
 import numpy as np
 
+from camo_base import atomic
 from optimizer.assets.asset import Asset, check_maps
 from camo_base.errors import CamoError
 
 #: Files a run directory must have for its result to be read (besides config.toml).
 RESULT_FILES = ("maps/albedo.npy", "maps/metallic.npy", "maps/roughness.npy", "maps/transmittance.npy", "result.ply")
+CONFIG = "config.toml"
+SUMMARY = "summary.json"
+LOG = "log.jsonl"
+CHECKPOINT = "checkpoint.npz"
+#: Layout version of config.toml written now (``spec_version``; the run spec's version).
+CONFIG_VERSION = 2
+#: Tables of config.toml that are provenance, not the run spec.
+PROVENANCE = ("versions", "plan", "fingerprint", "baseline")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# writing
+# --------------------------------------------------------------------------------------------------------------
+
+
+def prepare_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
+    """Make ``out`` ready for a run: new or empty (or ``overwrite``); with ``resume`` it must hold a checkpoint
+    written with this config layout. CamoError (one line) otherwise; nothing in ``out`` changes."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise CamoError(f"--out {out} exists and is not a folder")
+    if resume:
+        if not (out / CHECKPOINT).is_file():
+            raise CamoError(f"--resume: no {CHECKPOINT} in {out}")
+        if (out / CONFIG).is_file():
+            try:
+                layout = config_layout(read_config(out), out)
+            except CamoError:
+                layout = CONFIG_VERSION  # unreadable: the checkpoint's fingerprint decides
+            if layout != CONFIG_VERSION:
+                raise CamoError(f"--resume: {out} was written by camo before run specs (config.toml layout {layout}); "
+                                "it cannot be resumed: start a new run (its finished files still evaluate)")
+        return
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise CamoError(f"run directory {out} is not empty; use --resume to continue it, --overwrite to replace it, or another --out")
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def write_config(out: Path, spec: dict[str, Any], provenance: dict[str, Any]) -> None:
+    """``out/config.toml`` = the run spec's dict (``RunSpec.to_dict``) + provenance tables (:data:`PROVENANCE`)."""
+    import tomli_w
+
+    bad = sorted(set(provenance) - set(PROVENANCE)) or sorted(set(provenance) & set(spec))
+    if bad:
+        raise ValueError(f"config.toml: {', '.join(bad)} is not a provenance table (or clashes with the spec)")
+    if spec.get("spec_version") != CONFIG_VERSION:
+        raise ValueError(f"config.toml: the spec must carry spec_version = {CONFIG_VERSION}")
+    atomic.write_text(Path(out) / CONFIG, tomli_w.dumps({**spec, **_toml_plain(provenance)}))
+
+
+def _toml_plain(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _toml_plain(v) for k, v in obj.items() if v is not None}
+    if isinstance(obj, (list, tuple)):
+        return [_toml_plain(v) for v in obj]
+    return obj
+
+
+def config_fingerprint(spec: dict[str, Any], ignore: tuple[str, ...] = ()) -> str:
+    """16 hex digits of the SHA-256 of a run spec's dict without the dotted fields ``ignore`` (those a resumed run
+    may change); a checkpoint records it and ``--resume`` requires the same."""
+    d = json.loads(json.dumps(spec))
+    for path in ignore:
+        *parents, last = path.split(".")
+        node = d
+        for p in parents:
+            node = node.get(p, {}) if isinstance(node, dict) else {}
+        if isinstance(node, dict):
+            node.pop(last, None)
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def write_log(out: Path, history: list[dict[str, Any]]) -> None:
+    """``out/log.jsonl``: one JSON object per iteration (a run appends to it as it goes)."""
+    atomic.write_text(Path(out) / LOG, "".join(json.dumps(h) + "\n" for h in history))
+
+
+def write_summary(out: Path, *, scene: str, method: str, loss: str, initial_per_view: list[float],
+                  final_per_view: list[float], history: list[dict[str, Any]], seconds: dict[str, float],
+                  final_render: dict[str, Any], extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write ``out/summary.json`` (every method; the only writer) and return it.
+
+    ``initial_per_view`` / ``final_per_view``: the loss of the initial render and of the final render of each view
+    at the target spp; ``seconds``: named wall-clock seconds, written as ``seconds_<name>`` (``setup`` always;
+    ``ours``: ``warm_start``, ``stage1``, ``stage2``, ``optimisation``; baselines: ``method``);
+    ``final_render``: integrator, spp and seed of the final render; ``extra``: method-specific keys."""
+    doc: dict[str, Any] = {
+        "scene": scene,
+        "method": method,
+        "iterations": {f"stage{st}": sum(1 for h in history if h.get("stage", 1) == st) for st in (1, 2)},
+        "loss": loss,
+        "initial_loss_high_spp": float(np.mean(initial_per_view)),
+        "final_loss_high_spp": float(np.mean(final_per_view)),
+        "final_loss_per_view": [float(x) for x in final_per_view],
+        **{f"seconds_{k}": float(v) for k, v in seconds.items()},
+        # seconds of the gradient steps only (Stage 2: without its pseudo-ground-truth renders and inpainting)
+        "seconds_iterations": float(sum(h.get("seconds", 0.0) for h in history)),
+        "nonfinite_grads_total": int(sum(h.get("nonfinite_grads", 0) for h in history)),
+        "final_render": final_render,
+        **(extra or {}),
+    }
+    atomic.write_json(Path(out) / SUMMARY, doc)
+    return doc
+
+
+# --------------------------------------------------------------------------------------------------------------
+# reading
+# --------------------------------------------------------------------------------------------------------------
 
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "int": "<i4", "int32": "<i4",
               "uint": "<u4", "uint32": "<u4", "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1",
@@ -71,12 +195,38 @@ def pack_from_config(cfg: dict[str, Any], run_dir: Path):
     return pack
 
 
+def config_layout(cfg: dict[str, Any], run_dir: Path) -> int:
+    """The layout version of a parsed config.toml (module doc): 2 (run spec) or 1 (``[run]`` table)."""
+    if "spec_version" in cfg:
+        v = cfg["spec_version"]
+        if v != CONFIG_VERSION:
+            raise CamoError(f"{run_dir / CONFIG}: spec_version {v!r} is not {CONFIG_VERSION} (written by another camo "
+                            "version; use that version or run it again)")
+        return v
+    if isinstance(cfg.get("run"), dict):
+        return 1
+    raise CamoError(f"{run_dir / CONFIG}: neither spec_version nor a [run] table (not a config.toml of camo optimize)")
+
+
+def spec_of_config(cfg: dict[str, Any], run_dir: Path) -> dict[str, Any]:
+    """The run spec's dict of a version-2 config.toml (the provenance tables removed); CamoError for version 1."""
+    if config_layout(cfg, run_dir) != CONFIG_VERSION:
+        raise CamoError(f"{run_dir / CONFIG} was written by camo before run specs; its run directory evaluates but "
+                        "cannot be re-run from it: run `camo optimize` again with the same flags")
+    return {k: v for k, v in cfg.items() if k not in PROVENANCE}
+
+
+def _run_table(cfg: dict[str, Any], run_dir: Path) -> dict[str, Any]:
+    """Method, ablate and appearance as one table, for either layout."""
+    return cfg if config_layout(cfg, run_dir) == CONFIG_VERSION else cfg["run"]
+
+
 def appearance_from_config(cfg: dict[str, Any], run_dir: Path):
     from optimizer.rendering.appearance import AppearanceConfig
 
-    raw = (cfg.get("run") or {}).get("appearance", {})
+    raw = _run_table(cfg, run_dir).get("appearance", {})
     if not isinstance(raw, dict):
-        raise CamoError(f"{run_dir / 'config.toml'}: [run.appearance] must be a table")
+        raise CamoError(f"{run_dir / 'config.toml'}: [{'run.' if 'run' in cfg else ''}appearance] must be a table")
     known = {f.name for f in dataclasses.fields(AppearanceConfig)}
     return AppearanceConfig(**{k: v for k, v in raw.items() if k in known})
 
@@ -259,9 +409,7 @@ def open_run(path: str | Path) -> RunDir:
     if not run_dir.is_dir():
         raise CamoError(f"not a run directory (not a folder): {run_dir}")
     cfg = read_config(run_dir)
-    run = cfg.get("run")
-    if not isinstance(run, dict):
-        raise CamoError(f"{run_dir / 'config.toml'}: no [run] table")
+    run = _run_table(cfg, run_dir)
     pack = pack_from_config(cfg, run_dir)
     app = appearance_from_config(cfg, run_dir)
     missing = [f for f in RESULT_FILES if not (run_dir / f).is_file()]

@@ -1,18 +1,18 @@
-"""``camo optimize``: one optimisation run and its run directory.
+"""``camo optimize``: run a :class:`optimizer.optimise.spec.RunSpec` into its run directory.
 
-The run directory (see CONTRIBUTING.md) holds ``config.toml`` (the resolved
-config with seed and library versions), ``log.jsonl``, ``checkpoint.npz``
-(every ``checkpoint_every`` iterations; ``--resume`` continues from it and
-ends with the same numbers as an uninterrupted run), the maps, the exported
-asset (``result.glb``, ``result.obj``, ``scene.xml``), ``pose.json``,
-per-view preview strips and a loss curve. Every file is written atomically.
+:func:`run` takes a spec and runs its method: ``ours`` here (:func:`optimize`: Stage 1, then Stage 2 unless
+ablated), a baseline through :func:`optimizer.optimise.baselines.run_baseline`. The run directory (see
+CONTRIBUTING.md) is written through :mod:`optimizer.assets.rundir` (``config.toml`` = the spec + provenance,
+``log.jsonl``, ``summary.json``) and :mod:`optimizer.assets.result` (maps, ``result.glb``, ``result.obj``,
+``scene.xml``, ``pose.json``, previews, renders); ``checkpoint.npz`` (every ``checkpoint_every`` iterations;
+``--resume`` continues from it and ends with the same numbers as an uninterrupted run) is written here. Every file
+is written atomically.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -21,84 +21,30 @@ from typing import Any
 import numpy as np
 
 from camo_base import atomic, imaging
-from optimizer.rendering.appearance import AppearanceConfig
 from camo_base.errors import CamoError
+from camo_base.provenance import versions  # (evaluation.evaluate imports it from here too)
+from optimizer.assets.rundir import CHECKPOINT, LOG, prepare_run_dir, write_config, write_log
+from optimizer.optimise.finish import finish
+from optimizer.optimise.spec import RunSpec
+from optimizer.optimise.stage1 import Stage1
+from optimizer.rendering.appearance import AppearanceConfig
 from optimizer.scenes.scenepack import ScenePack
-from optimizer.optimise.stage1 import Stage1, Stage1Config
-from optimizer.optimise.stage2 import Stage2Config
-
-CHECKPOINT = "checkpoint.npz"
 
 
-@dataclasses.dataclass
-class RunConfig:
-    scene: str
-    method: str = "ours"
-    stages: tuple[int, ...] = (1, 2)
-    ablate: tuple[str, ...] = ()
-    checkpoint_every: int = 10
-    planner: bool = True
-    shadow_gradients: bool = False
-    threads: int | None = None
-    preset: str = "fast"  # optimizer/schedule.PRESETS: "fast" (default) or "paper"
-    time_budget: float | None = None  # seconds for warm start + Stage 1 + Stage 2 iterations (setup excluded)
-    snapshot_every: int = 0  # > 0: snapshots/sS_XXXX.npz every N iterations of each stage (bench_convergence)
-    rough_start: bool = True  # raise a glint-prone initial roughness to planner.GLINT_ROUGHNESS (fast preset)
-    stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
-    stage2: Stage2Config = dataclasses.field(default_factory=Stage2Config)
-    appearance: AppearanceConfig = dataclasses.field(default_factory=AppearanceConfig)
+def run(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False, progress: bool = True,
+        threads: int | None = None) -> Path:
+    """Run ``spec`` into the run directory ``out`` (validated first; CamoError, one line, for bad input).
 
+    ``threads``: CPU threads of the LLVM backend (and torch, for GANmouflage); not part of the spec (it does not
+    change the result), recorded in ``config.toml``'s ``[versions]``."""
+    spec.validate()
+    if spec.method == "ours":
+        return optimize(spec, out, resume=resume, overwrite=overwrite, progress=progress, threads=threads)
+    if resume:
+        raise CamoError(f"--resume: method {spec.method!r} is a one-shot baseline and keeps no checkpoint; run it again")
+    from optimizer.optimise.baselines import run_baseline
 
-def versions() -> dict[str, str]:
-    import drjit
-    import mitsuba
-
-    from optimizer import __version__, backend
-
-    out = {"camo": __version__, "python": platform.python_version(), "mitsuba": mitsuba.__version__,
-           "drjit": drjit.__version__, "numpy": np.__version__}
-    try:
-        import torch
-
-        out["torch"] = torch.__version__
-    except ImportError:
-        pass
-    info = backend.info()
-    if info:
-        out["variant"] = info.variant
-        out["threads"] = str(info.threads)
-    return out
-
-
-def _plain(obj: Any) -> Any:
-    """A TOML-writable copy (no None, tuples as lists)."""
-    if dataclasses.is_dataclass(obj):
-        obj = dataclasses.asdict(obj)
-    if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items() if v is not None}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    return obj
-
-
-def write_config(path: Path, cfg: RunConfig, pack: ScenePack, extra: dict[str, Any]) -> None:
-    import tomli_w
-
-    doc = {"run": _plain(cfg), "pack": _plain(pack.to_dict()), **_plain(extra)}
-    atomic.write_text(path, tomli_w.dumps(doc))
-
-
-def config_fingerprint(cfg: RunConfig, pack: ScenePack) -> str:
-    import hashlib
-
-    d = _plain(cfg)
-    d.pop("checkpoint_every", None)
-    d.pop("threads", None)
-    d.pop("snapshot_every", None)
-    d["stage1"].pop("iterations", None)
-    d["stage2"].pop("iterations", None)
-    blob = json.dumps({"cfg": d, "pack": _plain(pack.to_dict())}, sort_keys=True).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
+    return run_baseline(spec, out, overwrite=overwrite, progress=progress, threads=threads)
 
 
 def appearance_for(ablate: set[str], base: AppearanceConfig | None = None) -> AppearanceConfig:
@@ -135,60 +81,50 @@ def load_checkpoint(path: Path) -> dict[str, np.ndarray]:
         raise CamoError(f"checkpoint {path} is corrupt or unreadable ({type(exc).__name__}); delete it or start a new run") from None
 
 
-def prepare_run_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise CamoError(f"--out {out} exists and is not a folder")
-    if resume:
-        if not (out / CHECKPOINT).is_file():
-            raise CamoError(f"--resume: no {CHECKPOINT} in {out}")
-        return
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise CamoError(f"run directory {out} is not empty; use --resume to continue it, --overwrite to replace it, or another --out")
-    out.mkdir(parents=True, exist_ok=True)
-
-
-def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = False, overwrite: bool = False,
-             progress: bool = True) -> Path:
-    """Run Stage 1 and, unless ablated, Stage 2 for ``pack`` into the run directory ``out``."""
+def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False,
+             progress: bool = True, threads: int | None = None) -> Path:
+    """Run Stage 1 and, unless ablated, Stage 2 of ``spec`` (method ``ours``) into the run directory ``out``."""
     from optimizer import backend
     from optimizer.scenes.cameras import cameras
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
     from optimizer.rendering.planner import full_plan, plan
 
+    if spec.method != "ours":
+        raise ValueError(f"optimize runs method ours, not {spec.method!r} (use run)")
     out = Path(out)
     prepare_run_dir(out, resume, overwrite)
-    backend.init(threads=cfg.threads)
-    env = get_environment(pack.environment)
-    pack, rough_note = glint_safe_start(pack, env, cfg)
-    fingerprint = config_fingerprint(cfg, pack)
+    backend.init(threads=threads)
+    env = get_environment(spec.pack.environment)
+    pack, rough_note = glint_safe_start(spec.pack, env, spec)
+    fingerprint = spec.fingerprint()
     state = None
     if resume:
         state = load_checkpoint(out / CHECKPOINT)
         if str(state.get("fingerprint", "")) != fingerprint:
             raise CamoError(f"--resume: {out} was made with a different configuration; start a new run instead")
     resume_stage = int(state["stage"]) if state is not None and "stage" in state else 1
-    if state is not None and resume_stage == 2 and not cfg.time_budget and \
-            int(state.get("stage1_iterations", -1)) != cfg.stage1.iterations:
+    if state is not None and resume_stage == 2 and not spec.time_budget and \
+            int(state.get("stage1_iterations", -1)) != spec.stage1.iterations:
         raise CamoError(f"--resume: {out} finished Stage 1 with {int(state.get('stage1_iterations', -1))} iterations; "
-                        f"it cannot continue with --iterations {cfg.stage1.iterations} (start a new run)")
+                        f"it cannot continue with --iterations {spec.stage1.iterations} (start a new run)")
 
     inpainter = None
-    if 2 in cfg.stages:  # load the inpainter first: a bad weights folder must fail before Stage 1 runs
+    s2c = spec.stage2_config()
+    if 2 in spec.stages:  # load the inpainter first: a bad weights folder must fail before Stage 1 runs
         from optimizer.optimise.inpaint import get_inpainter
 
-        s2c = cfg.stage2
         opts = {"sdxl_path": s2c.sdxl_path, "controlnet_path": s2c.controlnet_path, "prompt": s2c.prompt} \
             if s2c.backend == "diffusers" else {}
         inpainter = get_inpainter(s2c.backend, **opts)
 
     t_setup = time.perf_counter()
     prepared = prepare_object(pack)
-    app = cfg.appearance
+    app = spec.appearance
 
     def plan_for(a: AppearanceConfig):
         params = a.planner_params()
-        return plan(pack, env, params, "optimize", cfg.shadow_gradients) if cfg.planner else \
+        return plan(pack, env, params, "optimize", spec.shadow_gradients) if spec.planner else \
             full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
 
     pl = plan_for(app)
@@ -199,9 +135,8 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
         say(f"note: {rough_note}")
     elif advice:
         say(f"note: initial roughness {advice}")
-    budget1 = stage1_budget(cfg)
-    s1cfg = dataclasses.replace(cfg.stage1, time_budget=budget1)
-    t_ws = time.perf_counter()
+    budget1 = stage1_budget(spec)
+    s1cfg = spec.stage1_config(time_budget=budget1)
     s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say)
     warm_seconds = s1.warm_start_info.seconds if s1.warm_start_info else 0.0
     setup_seconds = time.perf_counter() - t_setup - warm_seconds
@@ -214,40 +149,40 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
             s1.load_checkpoint_state(state)  # validates keys, shapes and values (CamoError)
         else:
             _check_stage2_checkpoint(state, s1)
-        history = _read_log(out / "log.jsonl", s1.iteration if resume_stage == 1 else None,
+        history = _read_log(out / LOG, s1.iteration if resume_stage == 1 else None,
                             int(state["iteration"]) if resume_stage == 2 else None)
         s1.elapsed = stage_seconds(history, 1)
-    write_config(out / "config.toml", cfg, pack, {
-        "versions": versions(),
-        "plan": {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons],
-                 # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
-                 "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp},
-        "fingerprint": {"value": fingerprint},
-    })
-    atomic.write_text(out / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history))
+    plan_record = {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons],
+                   # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
+                   "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp}
+    if rough_note:
+        plan_record["start_roughness"] = pack.material.roughness  # rough_start raised the pack's (spec.pack)
+    write_config(out, spec.to_dict(), {"versions": versions(), "plan": plan_record,
+                                       "fingerprint": {"value": fingerprint}})
+    write_log(out, history)
 
     final_stage: Stage1 = s1
-    with open(out / "log.jsonl", "a", encoding="utf-8") as log:
+    with open(out / LOG, "a", encoding="utf-8") as log:
         if resume_stage == 1:
             _loop(s1, "stage 1", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint), cfg.checkpoint_every,
-                  snapshots(out, cfg.snapshot_every, clock))
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint), spec.checkpoint_every,
+                  snapshots(out, spec.snapshot_every, clock))
             values1 = s1.current_values()
         else:
             values1 = {k[len("stage1/"):]: v for k, v in state.items() if k.startswith("stage1/")}
-        if 2 in cfg.stages:
+        if 2 in spec.stages:
             from optimizer.optimise.stage2 import Stage2, pseudo_gt_strip
 
             # Stage 2 keeps Stage 1's pose; its displacement is refined too unless --stage2-fixed-displacement
             # (then no geometry moves and the planner drops the projective integrator)
-            app2 = dataclasses.replace(app, pose=False, freeze_displacement=not cfg.stage2.displacement)
-            s2 = Stage2(pack, env, prepared, cams, plan_for(app2), cfg.stage1, app2, say, initial=values1,
-                        targets=s1.targets, stage2=cfg.stage2, inpainter=inpainter)
+            app2 = dataclasses.replace(app, pose=False, freeze_displacement=not s2c.displacement)
+            s2 = Stage2(pack, env, prepared, cams, plan_for(app2), spec.stage1_config(), app2, say, initial=values1,
+                        targets=s1.targets, stage2=s2c, inpainter=inpainter)
             s2.initial_render = s1.initial_render
-            s2.total_iterations = cfg.stage2.iterations
+            s2.total_iterations = s2c.iterations
             s1_seconds = warm_seconds + stage_seconds(history, 1)
-            if cfg.time_budget:
-                s2.time_budget = max(cfg.time_budget - s1_seconds, 1e-3)
+            if spec.time_budget:
+                s2.time_budget = max(spec.time_budget - s1_seconds, 1e-3)
             clock["offset"] = s1_seconds
             if resume_stage == 2:
                 s2.load_checkpoint_state(state)
@@ -255,24 +190,24 @@ def optimize(pack: ScenePack, cfg: RunConfig, out: str | Path, resume: bool = Fa
             extra = {f"stage1/{k}": v for k, v in values1.items()}
             extra["stage1_iterations"] = np.array(s1.iteration if resume_stage == 1 else int(state["stage1_iterations"]))
             _loop(s2, "stage 2", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), cfg.checkpoint_every,
-                  snapshots(out, cfg.snapshot_every, clock))
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), spec.checkpoint_every,
+                  snapshots(out, spec.snapshot_every, clock))
             for v in sorted(s2.pseudo_np):
                 imaging.save_png(out / "stage2" / f"view_{v:02d}_pseudo_gt.png", s2.pseudo_np[v])
                 imaging.save_png(out / "stage2" / f"view_{v:02d}_strip.png", pseudo_gt_strip(s2, v))
             final_stage = s2
-    finish_run(out, final_stage, pack, env, history, setup_seconds, cfg, s1.warm_start_info)
+    finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info)
     return out
 
 
-def glint_safe_start(pack: ScenePack, env, cfg: RunConfig) -> tuple[ScenePack, str | None]:
-    """With ``cfg.rough_start``, a pack whose initial roughness would keep sun glints (the planner's "initial
+def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, str | None]:
+    """With ``spec.rough_start``, a pack whose initial roughness would keep sun glints (the planner's "initial
     roughness" advice: a compact light and roughness below ``planner.GLINT_ROUGHNESS``) starts at that roughness
     instead; returns the pack (a copy when changed) and a note saying so, or ``(pack, None)``."""
     from optimizer.rendering.planner import GLINT_ROUGHNESS, glint_advice
 
-    params = cfg.appearance.planner_params()
-    if not cfg.rough_start or not glint_advice(pack, env, params):
+    params = spec.appearance.planner_params()
+    if not spec.rough_start or not glint_advice(pack, env, params):
         return pack, None
     old = pack.material.roughness
     pack = dataclasses.replace(pack, material=dataclasses.replace(pack.material, roughness=GLINT_ROUGHNESS))
@@ -281,12 +216,12 @@ def glint_safe_start(pack: ScenePack, env, cfg: RunConfig) -> tuple[ScenePack, s
                   "--preset paper keeps the pack's value")
 
 
-def stage1_budget(cfg: RunConfig) -> float | None:
+def stage1_budget(spec: RunSpec) -> float | None:
     """Stage 1's share of ``--time-budget`` (warm start included): 80 % when Stage 2 runs, all of it otherwise;
     Stage 2 gets whatever Stage 1 left."""
-    if not cfg.time_budget:
+    if not spec.time_budget:
         return None
-    return 0.8 * cfg.time_budget if 2 in cfg.stages else float(cfg.time_budget)
+    return 0.8 * spec.time_budget if 2 in spec.stages else float(spec.time_budget)
 
 
 def stage_seconds(history: list[dict[str, Any]], stage: int) -> float:
@@ -368,39 +303,18 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
-               cfg: RunConfig | None = None, warm=None) -> None:
-    """Final render, previews, exported asset and summary of a Stage 1 run."""
-    from optimizer.optimise.loss import make_loss
-    from optimizer.assets.result import Result, final_render_seed, write_result
+               spec: RunSpec, warm=None) -> None:
+    """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``)."""
+    from optimizer.assets.result import Result
 
     res = Result(pack, env, s1.cams, s1.geometry, s1.current_values(), s1.app, s1.shading_integrator(),
                  s1.cfg.target_spp, s1.targets)
-    final = write_result(out, res, history, seed=s1.cfg.seed)
-    bg = s1.targets.background
-    lossfn = make_loss(s1.cfg.loss, s1.cfg.alpha, s1.cfg.eps)
-    dom = [None if s1.cfg.domain == "frame" else s1.targets.domain[v] for v in range(len(final))]
-    per_view = [lossfn.numpy(final[v], bg[v], dom[v]) for v in range(len(final))]
-    initial = [lossfn.numpy(s1.initial_render[v], bg[v], dom[v]) for v in range(len(final))]
     warm_s = float(warm.seconds) if warm is not None else 0.0
     s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
-    atomic.write_json(out / "summary.json", {
-        "scene": pack.name,
-        "iterations": {f"stage{st}": sum(1 for h in history if h.get("stage") == st) for st in (1, 2)},
-        "loss": s1.cfg.loss,
-        "initial_loss_high_spp": float(np.mean(initial)),
-        "final_loss_high_spp": float(np.mean(per_view)),
-        "final_loss_per_view": per_view,
-        "seconds_setup": setup_seconds,
-        "seconds_iterations": float(sum(h["seconds"] for h in history)),
-        # wall-clock seconds of the optimisation: Stage 1 = warm start + its iterations, Stage 2 = its iterations
-        # with their pseudo-ground-truth renders and inpainting (``seconds_iterations`` counts gradient steps only)
-        "seconds_warm_start": warm_s,
-        "seconds_stage1": warm_s + s1_s,
-        "seconds_stage2": s2_s,
-        "seconds_optimisation": warm_s + s1_s + s2_s,
-        "preset": cfg.preset if cfg else None,
-        "time_budget": cfg.time_budget if cfg else None,
-        "warm_start": warm.to_dict() if warm is not None else None,
-        "nonfinite_grads_total": int(sum(h["nonfinite_grads"] for h in history)),
-        "final_render": {"integrator": res.integrator, "spp": res.spp, "seed": final_render_seed(s1.cfg.seed)},
-    })
+    # wall-clock seconds of the optimisation: Stage 1 = warm start + its iterations, Stage 2 = its iterations
+    # with their pseudo-ground-truth renders and inpainting (``seconds_iterations`` counts gradient steps only)
+    seconds = {"setup": setup_seconds, "warm_start": warm_s, "stage1": warm_s + s1_s, "stage2": s2_s,
+               "optimisation": warm_s + s1_s + s2_s}
+    finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
+           extra={"preset": spec.preset, "time_budget": spec.time_budget,
+                  "warm_start": warm.to_dict() if warm is not None else None})

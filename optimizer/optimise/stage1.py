@@ -48,11 +48,12 @@ from optimizer.optimise.schedule import lr_scale, progress, soft_threshold
 
 
 @dataclasses.dataclass
-class Stage1Config:
+class Stage1Settings:
+    """Stage 1's settings as a run spec records them (``[stage1]`` of a run's config.toml,
+    :class:`optimizer.optimise.spec.RunSpec`). The loss and its domain (``loss`` to ``shadow_threshold``) are read
+    by every method (the background targets, the summary's losses); the rest by ``ours`` only."""
+
     iterations: int = 50  # paper
-    spp: int = 4
-    target_spp: int = 64  # background targets and the domain estimate
-    seed: int = 0
     loss: str = "gated"  # or "mse" (paper Fig. 7)
     alpha: float = 1.0
     eps: float = 1e-2
@@ -61,10 +62,20 @@ class Stage1Config:
     shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
     silhouette_every: int = 4  # projective: the silhouette term on a random 1/N of the views per step, weighted
     # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/schedule.PRESETS: the
-    # default "fast" turns on the warm start and the cosine schedule)
+    # default "fast" turns on the warm start)
     warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
     lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
+
+
+@dataclasses.dataclass
+class Stage1Config(Stage1Settings):
+    """What a :class:`Stage1` runs with: its settings plus what the run spec holds once for every stage (the
+    seed, the spp) and this stage's share of the time budget (``RunSpec.stage1_config`` builds it)."""
+
+    spp: int = 4  # each training render (the run spec's spp.train)
+    target_spp: int = 64  # background targets, the domain estimate, the warm start, final renders (spp.target)
+    seed: int = 0  # the run seed: every stream of camo_base.seeds derives from it
     time_budget: float | None = None  # seconds of iterations for this stage (None: iterations decide)
 
 
@@ -102,6 +113,26 @@ def target_seed(seed: int) -> int:
     numbers: paths that miss the object give the same radiance in all of them): stream ``targets`` of
     :mod:`camo_base.seeds`."""
     return seeds.seed("targets", seed)
+
+
+def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: dict, cfg: Stage1Config
+                   ) -> tuple[Targets, np.ndarray]:
+    """Background targets, coverage, depth and loss domain of every view, and the initial render ``(V, H, W, 3)``
+    of the object ``obj_mesh`` (its initial appearance; it marks the object+shadow domain). Stage 1 and every
+    baseline render them here, so a baseline and ``ours`` with the same settings see bit-identical targets."""
+    bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
+    init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
+    sc_obj = scn.build_scene(env.build(), obj_mesh)
+    sc_bg = scn.build_scene(env.build())
+    cov, depth, dom = [], [], []
+    px = max(1, round(cfg.domain_dilate * max(cams[0].width, cams[0].height)))
+    for i, c in enumerate(cams):
+        cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
+        _, d = coverage_and_depth(sc_bg, c)
+        cov.append(cv)
+        depth.append(d)
+        dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
+    return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth)), init
 
 
 def shading_integrator(plan: Plan) -> dict:
@@ -162,24 +193,9 @@ class Stage1:
         return shading_integrator(self.plan)
 
     def _targets(self) -> Targets:
-        cfg = self.cfg
-        integ = self.shading_integrator()
-        seed = target_seed(cfg.seed)
-        bg = render_shaded(self.env.build(), None, self.cams, integ, cfg.target_spp, seed)
-        obj_mesh = self._object()
-        init = render_shaded(self.env.build(), obj_mesh, self.cams, integ, cfg.target_spp, seed)
-        sc_obj = scn.build_scene(self.env.build(), obj_mesh)
-        sc_bg = scn.build_scene(self.env.build())
-        cov, depth, dom = [], [], []
-        px = max(1, round(cfg.domain_dilate * max(self.cams[0].width, self.cams[0].height)))
-        for i, c in enumerate(self.cams):
-            cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
-            _, d = coverage_and_depth(sc_bg, c)
-            cov.append(cv)
-            depth.append(d)
-            dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
-        self.initial_render = init
-        return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth))
+        targets, self.initial_render = render_targets(self.env, self.cams, self._object(), self.shading_integrator(),
+                                                      self.cfg)
+        return targets
 
     def _training_scene(self):
         if uses_batch(self.plan.integrator):

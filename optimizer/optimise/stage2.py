@@ -36,15 +36,23 @@ GAMMA = 2.2
 
 
 @dataclasses.dataclass
-class Stage2Config:
+class Stage2Settings:
+    """Stage 2's settings as a run spec records them (``[stage2]`` of a run's config.toml)."""
+
     iterations: int = 20  # paper
     strength: float = 0.5  # t_start as a fraction of the schedule (diffusers) / blend for the patch backend
     backend: str = "patch"  # "patch" (offline) or "diffusers"
     prompt: str = "background"
-    preview_spp: int = 16  # spp of the render each pseudo ground truth is inpainted from
     displacement: bool = True  # paper: "refine the BSDF maps (and displacement)"; False keeps Stage 1's map
     sdxl_path: str | None = None
     controlnet_path: str | None = None
+
+
+@dataclasses.dataclass
+class Stage2Config(Stage2Settings):
+    """What a :class:`Stage2` runs with: its settings plus the preview spp the run spec holds with the others."""
+
+    preview_spp: int = 16  # spp of the render each pseudo ground truth is inpainted from (spp.stage2_preview)
 
 
 def gamma_encode_np(x: np.ndarray) -> np.ndarray:

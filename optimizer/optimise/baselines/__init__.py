@@ -18,22 +18,25 @@ ganmouflage    Guo et al. 2023: texture field + perceptual and adversarial losse
 ============== ========================================================================
 
 Every method writes the run directory of ``ours`` through
-:func:`optimizer.assets.result.write_result` (same renderer, lighting, spp, export),
-with the background targets rendered as in Stage 1
-(:func:`optimizer.optimise.baselines.common.render_targets`). Painted methods produce
+:func:`optimizer.optimise.run.finish` (same renderer, lighting, spp, export,
+``summary.json``), with the background targets rendered by Stage 1's own
+:func:`optimizer.optimise.stage1.render_targets`. Painted methods produce
 an albedo atlas at ``--map-resolution`` with metallic 0, roughness 1 (map
 value), transmittance 0, no displacement and no pose change. How background
 radiance becomes albedo: :mod:`optimizer.optimise.baselines.common`.
 
-CLI flags that apply: ``--out --seed --resolution --views --target-spp
---map-resolution --target-vertices --loss --domain --no-planner --threads
---overwrite --quiet``; ``--iterations`` (GANmouflage training iterations;
-``--threads`` also sets torch's thread count there); ``--stage2-backend``,
-``--sdxl-path``, ``--controlnet-path`` (the inpainter of ``diffusion2d``,
-default ``patch``). ``--ablate`` and ``--resume`` are refused; ``--spp``,
-``--stages``, ``--stage2-iterations`` and ``--stage2-strength`` are ignored
-(``diffusion2d`` always inpaints with strength 1: the background behind the
-object must not leak into the result). Importing this package imports
+What a baseline reads of its run spec is declared in the registry
+(:data:`optimizer.optimise.spec.METHODS`): the common part (scene and pack,
+seed, target spp, the loss and its domain, map resolution, planner) and its
+own ``[options]`` (``OwensOptions``, ``Diffusion2DOptions``,
+``GanmouflageConfig``). ``camo optimize`` flags that set anything else
+(``--spp``, ``--stages``, ``--stage2-iterations``, ``--ablate``, ...) are
+errors for a baseline; ``--iterations`` sets GANmouflage's training
+iterations; ``--stage2-backend``, ``--sdxl-path``, ``--controlnet-path`` set
+the inpainter of ``diffusion2d`` (default ``patch``; it always inpaints with
+strength 1: the background behind the object must not leak into the
+result); ``--threads`` also sets torch's thread count for GANmouflage.
+``--resume`` is refused (no checkpoint). Importing this package imports
 neither Mitsuba nor torch.
 """
 
@@ -44,9 +47,6 @@ from pathlib import Path
 from typing import Any
 
 from camo_base.errors import CamoError
-
-#: method names accepted by ``camo optimize --method`` besides ``ours``
-BASELINES = ("transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage", "ganmouflage-paper")
 
 
 def _compute_fn(method: str, options: Any, progress: bool):
@@ -62,54 +62,25 @@ def _compute_fn(method: str, options: Any, progress: bool):
         from optimizer.optimise.baselines.diffusion2d import compute
 
         return lambda st: compute(st, options)
-    if method in ("ganmouflage", "ganmouflage-paper"):
+    if method == "ganmouflage":
         from optimizer.optimise.baselines.ganmouflage import compute
 
         return lambda st: compute(st, options, progress)
-    raise CamoError(f"unknown baseline {method!r}; choose one of: {', '.join(BASELINES)}")
+    raise CamoError(f"unknown baseline {method!r} (the methods are optimizer.optimise.spec.METHODS)")
 
 
-def run_baseline(pack, cfg, out: str | Path, overwrite: bool = False, progress: bool = True, options: Any = None) -> Path:
-    """Run the baseline ``cfg.method`` for ``pack`` into the run directory ``out``.
-
-    ``cfg`` is an :class:`optimizer.optimise.run.RunConfig`; ``options`` the method's
-    options dataclass (``OwensOptions``, ``Diffusion2DOptions``,
-    ``GanmouflageConfig``; ``None`` = defaults).
-    """
+def run_baseline(spec, out: str | Path, overwrite: bool = False, progress: bool = True,
+                 threads: int | None = None) -> Path:
+    """Run the baseline of ``spec`` (an :class:`optimizer.optimise.spec.RunSpec`; its ``options`` are the method's)
+    into the run directory ``out``. ``threads``: the LLVM backend's (and GANmouflage's torch) thread count."""
     from optimizer.optimise.baselines.common import run_directory
 
-    method = cfg.method
-    if method == "ganmouflage-paper":
-        from optimizer.optimise.baselines.ganmouflage import GanmouflageConfig
-
-        options = options or GanmouflageConfig.paper()
-        cfg = dataclasses.replace(cfg, method="ganmouflage")
-    recorded = cfg.method
-    return run_directory(pack, cfg, out, recorded, _compute_fn(method, options, progress), overwrite, progress)
+    if spec.method == "ours":
+        raise ValueError("run_baseline runs baselines; method ours runs through optimizer.optimise.run.run")
+    options = spec.options
+    if options is not None and threads is not None and hasattr(options, "threads"):
+        options = dataclasses.replace(options, threads=threads)
+    return run_directory(spec, out, _compute_fn(spec.method, options, progress), overwrite, progress, threads)
 
 
-def run_from_args(args, pack, cfg) -> Path:
-    """``camo optimize --method BASELINE``: CLI flags -> options, then :func:`run_baseline`."""
-    if getattr(args, "resume", False):
-        raise CamoError(f"--resume: method {args.method!r} is a one-shot baseline and keeps no checkpoint; run it again")
-    if getattr(args, "ablate", ""):
-        raise CamoError("--ablate applies to --method ours only")
-    options = None
-    if args.method in ("ganmouflage", "ganmouflage-paper"):
-        from optimizer.optimise.baselines.ganmouflage import GanmouflageConfig
-
-        options = GanmouflageConfig.paper() if args.method == "ganmouflage-paper" else GanmouflageConfig()
-        over = {"threads": args.threads}
-        if args.iterations is not None:
-            over["iterations"] = args.iterations
-        options = dataclasses.replace(options, **over)
-    elif args.method == "diffusion2d":
-        from optimizer.optimise.baselines.diffusion2d import Diffusion2DOptions
-
-        backend = getattr(args, "stage2_backend", None) or "patch"
-        extra = {k: getattr(args, k) for k in ("sdxl_path", "controlnet_path") if getattr(args, k, None)}
-        options = Diffusion2DOptions(backend=backend, backend_options=extra if backend == "diffusers" else {})
-    return run_baseline(pack, cfg, args.out, overwrite=args.overwrite, progress=not args.quiet, options=options)
-
-
-__all__ = ["BASELINES", "run_baseline", "run_from_args"]
+__all__ = ["run_baseline"]

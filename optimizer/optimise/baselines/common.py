@@ -2,10 +2,10 @@
 
 Set-up (:func:`setup`) is the same as Stage 1's: the prepared object, the
 environment, the training cameras, the effect planner's plan and its shading
-integrator, and the background targets rendered by :func:`render_targets`,
-which calls the same render functions with the same seeds as
-``Stage1._targets`` (so a baseline and ``ours`` run with the same flags see
-bit-identical backgrounds, coverage, depth and loss domain).
+integrator, and the background targets rendered by Stage 1's own
+:func:`optimizer.optimise.stage1.render_targets` (a baseline and ``ours`` run
+with the same settings see bit-identical backgrounds, coverage, depth and
+loss domain).
 
 Every baseline's result is one set of appearance parameters (the ``values``
 dict of :mod:`optimizer.rendering.appearance`: maps, zero displacement, zero pose) that
@@ -44,7 +44,6 @@ equal to decoding the clipped sRGB-encoded pixel).
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -52,12 +51,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from camo_base import atomic, seeds
+from camo_base import seeds
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, initial_values, object_bsdf
 from optimizer.scenes.cameras import Camera
 from camo_base.errors import CamoError
 from optimizer.scenes.scenepack import ScenePack
-from optimizer.optimise.stage1 import Stage1Config, Targets, influence_domain, shading_integrator, target_seed
+from optimizer.optimise.stage1 import Stage1Config, Targets, render_targets, shading_integrator
 from optimizer.rendering import projection
 
 ALBEDO_MODES = ("global", "local", "photo")
@@ -69,31 +68,6 @@ class BaselineOptions:
 
     albedo_mode: str = "global"  # see the module doc
     visibility_eps: float = 0.01  # first-hit tolerance, fraction of the object's size
-
-
-def render_targets(env, cams: list[Camera], obj_mesh, integrator: dict, cfg: Stage1Config) -> tuple[Targets, np.ndarray]:
-    """Background targets, coverage, depth and loss domain exactly as Stage 1 renders them.
-
-    ``obj_mesh``: the object with its initial appearance (for coverage and the
-    object+shadow domain). Returns ``(targets, initial_render)``.
-    """
-    from optimizer.rendering import scene as scn
-    from optimizer.rendering.render import coverage_and_depth, render_shaded
-
-    seed = target_seed(cfg.seed)
-    bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, seed)
-    init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, seed)
-    sc_obj = scn.build_scene(env.build(), obj_mesh)
-    sc_bg = scn.build_scene(env.build())
-    cov, depth, dom = [], [], []
-    px = max(1, round(cfg.domain_dilate * max(cams[0].width, cams[0].height)))
-    for i, c in enumerate(cams):
-        cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
-        _, d = coverage_and_depth(sc_bg, c)
-        cov.append(cv)
-        depth.append(d)
-        dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
-    return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth)), init
 
 
 @dataclasses.dataclass
@@ -187,8 +161,8 @@ def observed_albedo(setup: Setup, obs: projection.Observations, images: np.ndarr
     return to_albedo(setup, col, mode, white)
 
 
-def setup(pack: ScenePack, cfg, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
-    """Prepare the scene and render the targets (``cfg`` is the run's :class:`optimizer.optimise.run.RunConfig`).
+def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
+    """Prepare the scene and render the targets of ``spec`` (the run's :class:`optimizer.optimise.spec.RunSpec`).
 
     ``env``: an :class:`optimizer.scenes.environments.Environment` to use instead of the pack's.
     """
@@ -197,24 +171,25 @@ def setup(pack: ScenePack, cfg, say: Callable[[str], None] = lambda s: None, env
     from optimizer.rendering.placement import prepare_object
     from optimizer.rendering.planner import full_plan, plan
 
+    pack, stage1 = spec.pack, spec.stage1_config()
     prepared = prepare_object(pack)
     env = env if env is not None else get_environment(pack.environment)
     full = AppearanceConfig()  # the planner sees the full parameter set: one renderer for every method
-    pl = plan(pack, env, full.planner_params(), "optimize", cfg.shadow_gradients) if cfg.planner else \
+    pl = plan(pack, env, full.planner_params(), "optimize", spec.shadow_gradients) if spec.planner else \
         full_plan("optimize", geometry=True)
     integ = shading_integrator(pl)
     cams = cameras(pack)
-    app = dataclasses.replace(cfg.appearance, pose=False, displacement=False, bsdf=True, transmittance=True)
+    app = dataclasses.replace(spec.appearance, pose=False, displacement=False, bsdf=True, transmittance=True)
     geometry = Geometry.build(prepared, pack.object, app)
     # The loss domain uses the object with the initial appearance of `ours` (same domain as Stage 1).
-    init_app = cfg.appearance
+    init_app = spec.appearance
     init_vals = initial_values(init_app, pack.material)
     from optimizer.rendering import scene as scn
 
     obj = scn.object_mesh(geometry.positions_np(), geometry.faces, geometry.uvs, object_bsdf(init_vals, init_app))
     say("rendering background targets and the loss domain")
-    targets, init = render_targets(env, cams, obj, integ, cfg.stage1)
-    return Setup(pack, env, cams, pl, integ, app, geometry, targets, init, cfg.stage1, say)
+    targets, init = render_targets(env, cams, obj, integ, stage1)
+    return Setup(pack, env, cams, pl, integ, app, geometry, targets, init, stage1, say)
 
 
 def painted_values(setup: Setup, albedo: np.ndarray) -> dict[str, np.ndarray]:
@@ -231,60 +206,44 @@ def painted_values(setup: Setup, albedo: np.ndarray) -> dict[str, np.ndarray]:
     return vals
 
 
-def run_directory(pack: ScenePack, cfg, out: str | Path, method: str,
+def run_directory(spec, out: str | Path,
                   compute: Callable[[Setup], tuple[dict[str, np.ndarray], list[dict[str, Any]], dict[str, Any]]],
-                  overwrite: bool = False, progress: bool = True) -> Path:
-    """Set up, run ``compute(setup) -> (values, history, info)``, and write the run directory.
+                  overwrite: bool = False, progress: bool = True, threads: int | None = None) -> Path:
+    """Set up ``spec`` (a baseline's :class:`optimizer.optimise.spec.RunSpec`), run ``compute(setup) -> (values,
+    history, info)``, and write the run directory.
 
     The directory has the layout of ``ours`` (CONTRIBUTING.md): ``config.toml``
-    (with a ``[baseline]`` table = ``info``), ``log.jsonl`` (one record per
+    (the spec, with a ``[baseline]`` table = ``info``), ``log.jsonl`` (one record per
     training iteration; empty for one-shot methods), maps, ``result.glb`` /
     ``.obj`` / ``.ply``, ``scene.xml``, ``pose.json``, previews, ``renders.npz``
     and ``summary.json``. There is no ``checkpoint.npz``: baselines are
     one-shot runs and cannot be resumed.
     """
     from optimizer import backend
-    from optimizer.optimise.loss import make_loss
-    from optimizer.assets.result import Result, write_result
-    from optimizer.optimise.run import config_fingerprint, prepare_run_dir, versions, write_config
+    from optimizer.assets.result import Result
+    from camo_base.provenance import versions
+    from optimizer.assets.rundir import prepare_run_dir, write_config, write_log
+    from optimizer.optimise.finish import finish
 
     out = Path(out)
     prepare_run_dir(out, False, overwrite)
-    backend.init(threads=cfg.threads)
+    backend.init(threads=threads)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
     t0 = time.perf_counter()
-    st = setup(pack, cfg, say)
+    st = setup(spec, say)
     seconds_setup = time.perf_counter() - t0
     t1 = time.perf_counter()
     values, history, info = compute(st)
     seconds_method = time.perf_counter() - t1
-    fingerprint = config_fingerprint(cfg, pack)
-    write_config(out / "config.toml", cfg, pack, {
+    write_config(out, spec.to_dict(), {
         "versions": versions(),
         "plan": {"integrator": st.plan.integrator, "reasons": [f"{k}: {v}" for k, v in st.plan.reasons]},
-        "fingerprint": {"value": fingerprint},
-        "baseline": {"method": method, **info},
+        "fingerprint": {"value": spec.fingerprint()},
+        "baseline": {"method": spec.method, **info},
     })
-    atomic.write_text(out / "log.jsonl", "".join(json.dumps(h) + "\n" for h in history))
+    write_log(out, history)
     say("rendering the result")
-    res = Result(pack, st.env, st.cams, st.geometry, values, st.app, st.integrator, st.stage1.target_spp, st.targets)
-    final = write_result(out, res, history, seed=st.stage1.seed)
-    bg = st.targets.background
-    lossfn = make_loss(st.stage1.loss, st.stage1.alpha, st.stage1.eps)
-    dom = [None if st.stage1.domain == "frame" else st.targets.domain[v] for v in range(len(final))]
-    per_view = [lossfn.numpy(final[v], bg[v], dom[v]) for v in range(len(final))]
-    initial = [lossfn.numpy(st.initial_render[v], bg[v], dom[v]) for v in range(len(final))]
-    atomic.write_json(out / "summary.json", {
-        "scene": pack.name,
-        "method": method,
-        "iterations": len(history),
-        "loss": st.stage1.loss,
-        "initial_loss_high_spp": float(np.mean(initial)),
-        "final_loss_high_spp": float(np.mean(per_view)),
-        "final_loss_per_view": per_view,
-        "seconds_setup": seconds_setup,
-        "seconds_method": seconds_method,
-        "seconds_iterations": float(sum(h.get("seconds", 0.0) for h in history)),
-        "nonfinite_grads_total": int(sum(h.get("nonfinite_grads", 0) for h in history)),
-    })
+    res = Result(spec.pack, st.env, st.cams, st.geometry, values, st.app, st.integrator, st.stage1.target_spp, st.targets)
+    finish(out, res, history, st.stage1, st.initial_render, method=spec.method,
+           seconds={"setup": seconds_setup, "method": seconds_method})
     return out
