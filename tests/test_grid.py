@@ -97,8 +97,6 @@ BAD_GRIDS = [
     ('scenes = ["gravel"]\n[optimize]\nno-planner = 1', "is a flag"),
     ('scenes = ["gravel"]\n[optimize]\ndomain = "everywhere"', "--domain: invalid choice: 'everywhere'"),
     ('scenes = ["gravel"]\n[optimize]\niter = 3', "unknown option 'iter'"),  # no argparse abbreviations
-    ('scenes = ["gravel"]\nmethods = ["mean"]\n[optimize]\nstage2-iterations = 3',
-     "[optimize] stage2-iterations applies to none of the methods (mean)"),
     ('scenes = ["gravel"]\nmethods = ["ours", "mean"]\n[optimize.mean]\nspp = 3',
      "[optimize.mean] --spp does not apply to --method mean"),
     ('scenes = ["gravel"]\n[optimize]\nstages = "3"', "--stages must include 1"),
@@ -257,27 +255,11 @@ scenes = ["gravel", "split:chair"]
 methods = ["ours", "mean", "ganmouflage", "diffusion2d"]
 ablations = ["none", "pose"]
 seeds = [0, 3]
-[optimize]
-iterations = 2
-views = 4
-resolution = 32
-spp = 2
-target-spp = 8
-stages = "1"
-target-vertices = 1500
-map-resolution = 32
-displacement-resolution = 16
-checkpoint-every = 1
-loss = "gated"
-no-planner = false
+""" + TINY_OPTIMIZE.replace("checkpoint-every = 1\n", 'checkpoint-every = 1\nloss = "gated"\nno-planner = false\n') + """
 [optimize.ganmouflage]
 iterations = 7
 [optimize.diffusion2d]
 stage2-backend = "patch"
-[evaluate]
-views = 4
-spp = 8
-metrics = ["psnr", "ssim"]
 """
 OLD_KEYS = {
     "gravel__ours__s0": "374ae9f32a7bd238", "gravel__ours__s3": "03719b115022cca2",
@@ -338,6 +320,19 @@ def test_grid_output_written_before_run_specs_says_how_to_convert_and_converts(t
     assert not any((cd / "run").exists() for cd in cells)
     assert all("spec" in json.loads((cd / "cell.json").read_text()) for cd in cells)
     assert camo("grid", "status", out) == 0 and "2 done" in capsys.readouterr().out
+
+
+def test_a_shared_option_no_method_uses_gets_a_note(tmp_path, capsys):
+    """Shared [optimize] options apply to the methods that use them; one that none uses is said (not an error:
+    grid files written before run specs carry such options, and their cells' keys include them)."""
+    grid = write(tmp_path / "g.toml", 'scenes = ["gravel"]\nmethods = ["mean"]\n[optimize]\nstage2-iterations = 3\n'
+                                      "spp = 2\ntarget-spp = 8\n")
+    assert camo("grid", "run", grid, "--out", tmp_path / "o", "--dry-run") == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"note: {grid}: [optimize] stage2-iterations, spp apply to none of this grid's methods (mean): "
+                   "no cell uses them"]
+    (cell,) = load_grid(grid).cells
+    assert cell.spec["spp"] == {"target": 8} and "stage2" not in cell.spec
 
 
 def test_dry_run_lists_cells_and_writes_nothing(tmp_path, capsys):

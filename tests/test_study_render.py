@@ -17,9 +17,9 @@ from PIL import Image
 from camo.cli import main
 from camo_base.errors import CamoError
 
-TINY = ["--method", "mean", "--iterations", "1", "--views", "2", "--resolution", "32", "--map-resolution", "32",
-        "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "4",
-        "--stages", "1", "--quiet", "--threads", "1"]
+# (mean takes no Stage 1 / Stage 2 flags: --iterations, --spp, --stages ... would be refused)
+TINY = ["--method", "mean", "--views", "2", "--resolution", "32", "--map-resolution", "32",
+        "--target-vertices", "1500", "--target-spp", "4", "--quiet", "--threads", "1"]
 
 
 @pytest.fixture(scope="module")

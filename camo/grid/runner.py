@@ -114,6 +114,8 @@ def run_grid(grid_path: str | Path, out: str | Path, executor: str = "local", wo
     grid = load_grid(grid_path)
     out = Path(out)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
+    for note in grid.notes:
+        print(f"note: {grid.path}: {note}", file=sys.stderr)
     if dry_run:
         st = states(grid.cells, out) if out.is_dir() else {c.key: ("pending", "") for c in grid.cells}
         print(f"grid {grid.name}: {len(grid.cells)} cell(s): {_summary(_counts(st))}")

@@ -11,7 +11,7 @@ Schema (every key but ``scenes`` is optional; unknown keys are errors)::
     seeds     = [0, 1, 2]                      # `camo optimize --seed` (default [0])
 
     [optimize]                                 # any `camo optimize` option (long name, - or _): for every
-    iterations = 50                            # method that uses it (an option none of them uses is an error)
+    iterations = 50                            # method that uses it (one none of them uses gets a note)
     resolution = 128
     views = 16
     stages = "1,2"                             # lists are joined with commas: stages = [1, 2]
@@ -145,6 +145,7 @@ class Grid:
     name: str
     cells: list[Cell]
     source: str  # the grid file's text
+    notes: list[str] = dataclasses.field(default_factory=list)  # what `camo grid run` says before it starts
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "path": str(self.path), "cells": [c.to_dict() for c in self.cells]}
@@ -429,12 +430,12 @@ def load_grid(path: str | Path) -> Grid:
     eval_values, eval_argv = _option_args("evaluate", sections["evaluate"], eval_parser, where)
     from camo.optimize_cli import check_options_apply, option_applies
 
-    for dest in base_opt:
-        if dest in RESERVED["optimize"]:
-            continue  # _option_args says why
-        if dest in optimize_options(opt_parser) and not any(option_applies(m, dest) for m in methods):
-            raise CamoError(f"{where}: [optimize] {dest.replace('_', '-')} applies to none of the methods "
-                            f"({', '.join(methods)})")
+    known = optimize_options(opt_parser)
+    unused = [d.replace("_", "-") for d in base_opt
+              if d in known and d not in RESERVED["optimize"] and not any(option_applies(m, d) for m in methods)]
+    # Not an error: grid files written before run specs may carry them (and their cells' keys include them)
+    notes = [f"[optimize] {', '.join(unused)} {'applies' if len(unused) == 1 else 'apply'} to none of this grid's "
+             f"methods ({', '.join(methods)}): no cell uses {'it' if len(unused) == 1 else 'them'}"] if unused else []
     opt_by_method: dict[str, tuple[dict[str, Any], list[str]]] = {}
     for m in methods:
         own = {k.replace("-", "_"): v for k, v in per_method.get(m, {}).items()}
@@ -471,7 +472,7 @@ def load_grid(path: str | Path) -> Grid:
     if len(set(names)) != len(names):  # two packs with one file name: make the run names unique
         cells = [dataclasses.replace(c, name=f"{c.name}__{c.key[:8]}") if names.count(c.name) > 1 else c
                  for c in cells]
-    grid = Grid(path=path.resolve(), name=name, cells=cells, source=source)
+    grid = Grid(path=path.resolve(), name=name, cells=cells, source=source, notes=notes)
     validate_cells(grid)
     return grid
 

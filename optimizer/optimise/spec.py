@@ -41,7 +41,7 @@ import math
 from typing import Any, Callable, Mapping
 
 from camo_base.errors import CamoError
-from optimizer.assets.rundir import CONFIG_VERSION
+from optimizer.assets.rundir import CONFIG_VERSION, config_fingerprint
 from optimizer.optimise.stage1 import Stage1Config, Stage1Settings
 from optimizer.optimise.stage2 import Stage2Config, Stage2Settings
 from optimizer.rendering.appearance import AppearanceConfig
@@ -237,7 +237,8 @@ class RunSpec:
             if name == "pack":
                 kw[name] = _pack_from(value, where)
             elif name == "options":
-                kw[name] = _dataclass_from(type(make()), value, f"{where}: [options]", base=make())
+                base = make()
+                kw[name] = _dataclass_from(type(base), value, f"{where}: [options]", base=base)
             elif name in _TABLES:
                 kw[name] = _dataclass_from(_TABLES[name], value, f"{where}: [{name}]")
             else:
@@ -266,8 +267,6 @@ class RunSpec:
     def fingerprint(self) -> str:
         """16 hex digits identifying the work: the spec without :data:`RESUMABLE` fields (a checkpoint made with
         another fingerprint cannot be resumed)."""
-        from optimizer.assets.rundir import config_fingerprint
-
         return config_fingerprint(self.to_dict(), ignore=RESUMABLE)
 
     def validate(self, names: Mapping[str, str] | None = None) -> "RunSpec":

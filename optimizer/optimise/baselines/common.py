@@ -83,8 +83,9 @@ class Setup:
     geometry: Geometry
     targets: Targets
     initial_render: np.ndarray  # (V, H, W, 3) the object with the pack's initial material
-    stage1: Stage1Config
+    stage1: Stage1Config  # the targets' settings (target spp, loss and domain), from the run spec
     say: Callable[[str], None]
+    seed: int = 0  # the run seed (RunSpec.seed): streams of camo_base.seeds derive from it
     _white: np.ndarray | None = None
     _vis_scene: Any = None
 
@@ -113,7 +114,7 @@ class Setup:
             g = self.geometry
             mesh = scn.object_mesh(self.positions, g.faces, g.uvs, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}})
             self._white = render_shaded(self.env.build(), mesh, self.cams, self.integrator, self.stage1.target_spp,
-                                        seeds.seed("baseline_white", self.stage1.seed))
+                                        seeds.seed("baseline_white", self.seed))
         return self._white
 
     def white_level(self) -> np.ndarray:
@@ -189,7 +190,7 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
     obj = scn.object_mesh(geometry.positions_np(), geometry.faces, geometry.uvs, object_bsdf(init_vals, init_app))
     say("rendering background targets and the loss domain")
     targets, init = render_targets(env, cams, obj, integ, stage1)
-    return Setup(pack, env, cams, pl, integ, app, geometry, targets, init, stage1, say)
+    return Setup(pack, env, cams, pl, integ, app, geometry, targets, init, stage1, say, seed=spec.seed)
 
 
 def painted_values(setup: Setup, albedo: np.ndarray) -> dict[str, np.ndarray]:

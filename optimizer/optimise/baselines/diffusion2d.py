@@ -55,7 +55,7 @@ def inpaint_views(setup: Setup, opts: Diffusion2DOptions) -> tuple[np.ndarray, l
         t0 = time.perf_counter()
         bg = imaging.linear_to_srgb(t.background[v])
         mask = t.coverage[v] > opts.mask_threshold
-        res = inp.inpaint(bg, mask, bg, t.depth[v], strength=opts.strength, seed=seeds.seed("diffusion2d", setup.stage1.seed, view=v))
+        res = inp.inpaint(bg, mask, bg, t.depth[v], strength=opts.strength, seed=seeds.seed("diffusion2d", setup.seed, view=v))
         out.append(imaging.srgb_to_linear(res))
         secs.append(time.perf_counter() - t0)
         setup.say(f"diffusion2d: inpainted view {v + 1}/{len(setup.cams)} ({secs[-1]:.1f} s)")

@@ -694,7 +694,7 @@ class Trainer:
 
 def compute(setup: Setup, cfg: GanmouflageConfig | None = None, progress: bool = True):
     cfg = cfg or GanmouflageConfig()
-    seed = seeds.seed("baseline", setup.stage1.seed)
+    seed = seeds.seed("baseline", setup.seed)
     setup.say(f"ganmouflage: preparing the texture field's inputs ({cfg.preset} preset)")
     tr = Trainer(setup, cfg, seed)
     from tqdm import tqdm

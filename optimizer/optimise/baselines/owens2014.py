@@ -109,7 +109,7 @@ def greedy_assignment(visible: np.ndarray, cos: np.ndarray, stable_angle_deg: fl
 def compute(setup: Setup, method: str, opts: OwensOptions | None = None):
     """Run one Owens model; returns ``(values, history, info)`` for :func:`common.run_directory`."""
     opts = opts or OwensOptions()
-    seed = seeds.seed("baseline", setup.stage1.seed)
+    seed = seeds.seed("baseline", setup.seed)
     setup.say(f"{method}: rasterising the {setup.app.map_resolution}^2 atlas and casting visibility rays")
     surf = setup.texel_surface()
     obs: Observations = setup.observe(surf, opts.visibility_eps)
