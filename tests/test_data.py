@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import hashlib
 import http.server
-import io
-import tarfile
 import threading
 import tomllib
 import urllib.parse
-import zipfile
 from pathlib import Path
 
 import pytest
 
+from fixture_archives import tar_bytes, zip_bytes
 from camo import cli
 from optimizer.scenes.data import fetch as fetch_mod
 from optimizer.scenes.data.manifest import PLACEHOLDER, load_manifest
@@ -60,39 +58,18 @@ ROOM_XML = """<scene version="3.0.0">
 """
 
 
-def _zip(entries: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
-        for name, data in entries.items():
-            info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
-            info.create_system = 3
-            info.external_attr = 0o100644 << 16
-            zf.writestr(info, data)
-    return buf.getvalue()
-
-
-def _tar(entries: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w", format=tarfile.USTAR_FORMAT) as tf:
-        for name, data in entries.items():
-            info = tarfile.TarInfo(name)
-            info.size, info.mode, info.mtime = len(data), 0o644, 0
-            tf.addfile(info, io.BytesIO(data))
-    return buf.getvalue()
-
-
 def make_fixtures() -> dict[str, bytes]:
     """The files the test server serves (deterministic: their checksums are pinned in example_local.toml)."""
     sky = hashlib.shake_256(b"camo-test-sky").digest(3 * (1 << 20) + 12345)
     return {
         "sky.hdr": sky,
-        "chair.zip": _zip({"chair/chair.obj": CUBE_OBJ.encode(), "chair/LICENSE.txt": b"CC0-1.0 test fixture\n"}),
-        "room.tar": _tar({"room/scene.xml": ROOM_XML.encode(), "room/LICENSE.txt": b"CC0-1.0 test fixture\n"}),
+        "chair.zip": zip_bytes({"chair/chair.obj": CUBE_OBJ.encode(), "chair/LICENSE.txt": b"CC0-1.0 test fixture\n"}),
+        "room.tar": tar_bytes({"room/scene.xml": ROOM_XML.encode(), "room/LICENSE.txt": b"CC0-1.0 test fixture\n"}),
         # served instead of what its manifest entry pins
         "corrupt.hdr": hashlib.shake_256(b"camo-test-corrupt-served").digest(200_000),
         "loose.hdr": hashlib.shake_256(b"camo-test-unpinned").digest(300_000),
-        "evil.zip": _zip({"ok/a.obj": CUBE_OBJ.encode(), "../escaped.obj": CUBE_OBJ.encode()}),
-        "abs.tar": _tar({"/tmp/camo-abs-escape.obj": CUBE_OBJ.encode()}),
+        "evil.zip": zip_bytes({"ok/a.obj": CUBE_OBJ.encode(), "../escaped.obj": CUBE_OBJ.encode()}),
+        "abs.tar": tar_bytes({"/tmp/camo-abs-escape.obj": CUBE_OBJ.encode()}),
     }
 
 

@@ -13,10 +13,8 @@ from __future__ import annotations
 import base64
 import hashlib
 import http.server
-import io
 import os
 import shutil
-import tarfile
 import tomllib
 import urllib.parse
 import zipfile
@@ -25,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fixture_archives import tar_bytes, zip_bytes
 from camo.cli import main
 from optimizer.scenes.data import fetch as fetch_mod
 from optimizer.scenes.data import registry as reg
@@ -68,27 +67,11 @@ def _js_module(data: bytes, mime: str = "application/exr") -> bytes:
 
 
 def _tgz(entries: dict[str, bytes], links: dict[str, str] | None = None) -> bytes:
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz", format=tarfile.USTAR_FORMAT) as tf:
-        for name, data in entries.items():
-            info = tarfile.TarInfo(name)
-            info.size, info.mode, info.mtime = len(data), 0o644, 0
-            tf.addfile(info, io.BytesIO(data))
-        for name, target in (links or {}).items():
-            info = tarfile.TarInfo(name)
-            info.type, info.linkname = tarfile.SYMTYPE, target
-            tf.addfile(info)
-    return buf.getvalue()
+    return tar_bytes(entries, links, gzip=True)
 
 
 def _wheel(entries: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for name, data in entries.items():
-            info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
-            info.external_attr = 0o100644 << 16
-            zf.writestr(info, data)
-    return buf.getvalue()
+    return zip_bytes(entries, zipfile.ZIP_DEFLATED)
 
 
 def sha(b: bytes) -> str:
