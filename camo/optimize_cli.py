@@ -260,8 +260,7 @@ def spec_from_args(args):
     for path, value in tables["options"].items():
         options = _set_option(options, path.split("."), value)
     spec = RunSpec(scene=args.scene, pack=pack, method=method_name, preset=preset_name, stages=stages,
-                   ablate=tuple(ablate), planner=not args.no_planner, shadow_gradients=bool(args.shadow_gradients),
-                   rough_start=preset_name == "fast" and "roughness" not in init, spp=SppSettings(**tables["spp"]),
+                   ablate=tuple(ablate), planner=not args.no_planner, rough_start=preset_name == "fast" and "roughness" not in init, spp=SppSettings(**tables["spp"]),
                    stage1=s1, stage2=s2, appearance=app, options=options, **tables[""])
     # what the method does not read goes back to its default (the preset's values for `ours` among them): the spec
     # records only what the method reads; every option given was checked above to be read

@@ -223,7 +223,9 @@ def test_spec_round_trips_through_toml(method, tmp_path):
     from optimizer.optimise.spec import RunSpec
 
     extra = {"ours": ["--iterations", "7", "--stage2-strength", "0.3", "--ablate", "pose", "--init", "roughness=0.2"],
-             "ganmouflage": ["--iterations", "5"], "diffusion2d": ["--stage2-backend", "patch"]}.get(method, [])
+             "ganmouflage": ["--iterations", "5"], "diffusion2d": ["--stage2-backend", "patch"],
+             "transparent": ["--no-planner", "--shadow-gradients", "--loss", "mse", "--domain", "frame", "--preset",
+                             "paper", "--map-resolution", "16"]}.get(method, [])
     pack = tmp_path / "p.toml"
     pack.write_text('name = "p"\n[object]\nprimitive = "vase"\n[environment]\nbuiltin = "meadow"\n[render]\nspp = 3\n')
     spec = spec_of(str(pack), "--out", "x", "--method", method, "--seed", "5", "--target-spp", "9", "--views", "3",
@@ -240,6 +242,9 @@ def test_spec_round_trips_through_toml(method, tmp_path):
     else:  # a baseline's spec holds only what it reads
         d = spec.to_dict()
         assert "stage2" not in d and "stages" not in d and "train" not in d["spp"] and "iterations" not in d["stage1"]
+    if method == "transparent":
+        assert (back.planner, back.shadow_gradients, back.stage1.loss, back.stage1.domain) == (False, True, "mse", "frame")
+        assert back.preset == "paper" and back.appearance.map_resolution == 16 and back.options is None
     if method == "ganmouflage":
         assert back.options.iterations == 5
     if method == "ganmouflage-paper":
@@ -463,3 +468,34 @@ def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_pat
     (old / "config.toml").write_text(V1_CONFIG.replace('method = "ours"', 'method = "mean"') +
                                      '\n[baseline]\nmethod = "mean"\n')
     assert open_run(old).method == "mean"
+
+
+def test_every_flag_lands_in_its_spec_field():
+    from camo.optimize_cli import OPTION_FIELDS
+
+    argv = ["gravel", "--out", "x", "--time-budget", "30", "--snapshot-every", "2", "--checkpoint-every", "3",
+            "--warm-start", "off", "--lr-schedule", "cosine", "--lr-maps", "0.02", "--lr-displacement", "0.03",
+            "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
+            "--sdxl-path", "/a", "--controlnet-path", "/b", "--stage2-strength", "0.7", "--silhouette-every", "2",
+            "--domain", "frame", "--loss", "mse", "--map-resolution", "40", "--displacement-resolution", "20",
+            "--target-vertices", "500", "--views", "3", "--resolution", "16", "--spp", "3", "--target-spp", "9",
+            "--seed", "8", "--preset", "paper", "--no-planner", "--shadow-gradients", "--stages", "1,2", "--ablate",
+            "pose", "--init", "albedo=0.3", "--iterations", "5", "--stage2-iterations", "6", "--method", "ours"]
+    assert {a[2:].replace("-", "_") for a in argv if a.startswith("--")} - {"out"} == set(OPTION_FIELDS)
+    d = spec_of(*argv).to_dict()
+    assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
+                              "time_budget", "checkpoint_every", "snapshot_every", "spp")} == {
+        "seed": 8, "preset": "paper", "stages": [1, 2], "ablate": ["pose"], "planner": False, "shadow_gradients": True,
+        "rough_start": False, "time_budget": 30.0, "checkpoint_every": 3, "snapshot_every": 2,
+        "spp": {"train": 3, "target": 9, "stage2_preview": 16}}
+    assert d["stage1"] == {"iterations": 5, "loss": "mse", "alpha": 1.0, "eps": 0.01, "domain": "frame",
+                           "domain_dilate": 0.04, "shadow_threshold": 0.05, "silhouette_every": 2, "warm_start": False,
+                           "lr_schedule": "cosine", "lr_floor": 0.1}
+    assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
+                           "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
+    app = d["appearance"]
+    assert (app["lr_maps"], app["lr_displacement"], app["displacement_bound"], app["map_resolution"],
+            app["displacement_resolution"], app["pose"]) == (0.02, 0.03, 0.01, 40, 20, False)
+    pack = d["pack"]
+    assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}
+    assert pack["object"]["target_vertices"] == 500 and pack["material"]["albedo"] == [0.3, 0.3, 0.3]
