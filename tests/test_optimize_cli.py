@@ -499,3 +499,16 @@ def test_every_flag_lands_in_its_spec_field():
     pack = d["pack"]
     assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}
     assert pack["object"]["target_vertices"] == 500 and pack["material"]["albedo"] == [0.3, 0.3, 0.3]
+
+
+def test_cli_method_names_are_the_registry_s():
+    from camo import optimize_cli
+    from optimizer.optimise.spec import METHOD_NAMES
+
+    assert optimize_cli.METHODS == METHOD_NAMES  # (a literal in the CLI keeps `camo --help` light)
+    with pytest.raises(Exception, match="takes no options"):
+        from optimizer.optimise.baselines.owens2014 import OwensOptions
+        from optimizer.optimise.spec import RunSpec
+        from optimizer.scenes.builtin_scenes import resolve_scene
+
+        RunSpec(scene="gravel", pack=resolve_scene("gravel"), options=OwensOptions())

@@ -173,8 +173,13 @@ class RunSpec:
     def __post_init__(self) -> None:
         m, make = resolve_method(self.method)
         self.method = m.name
+        default = make()
         if self.options is None:
-            self.options = make()
+            self.options = default
+        elif default is None:
+            raise CamoError(f"method {m.name} takes no options, got {type(self.options).__name__}")
+        elif type(self.options) is not type(default):
+            raise CamoError(f"method {m.name} takes {type(default).__name__} options, got {type(self.options).__name__}")
         # The pack's own [render] spp is `camo scenes render`'s; a run has its spp in `spp` and records no other.
         if self.pack.render.spp != RenderSpec.spp:
             self.pack = dataclasses.replace(self.pack, render=dataclasses.replace(self.pack.render, spp=RenderSpec.spp))
