@@ -23,7 +23,7 @@ UNCAPPED = 100_000
 METHODS = ("ours", "transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage", "ganmouflage-paper")
 
 #: Options that say where and how a run executes, not what it is: never part of the spec.
-EXECUTION = ("scene", "out", "resume", "overwrite", "quiet", "threads")
+EXECUTION = ("scene", "spec", "out", "resume", "overwrite", "quiet", "threads")
 
 #: The run spec field each other option sets (its ``dest``, ``-`` as ``_``). ``init`` sets the pack's material,
 #: ``no_planner`` and ``stage2_fixed_displacement`` set the negation of their field.
@@ -54,7 +54,11 @@ ABSENT: dict[str, Any] = {"seed": 0, "preset": "fast", "loss": "gated", "ablate"
 
 def register(sub) -> None:
     p = sub.add_parser("optimize", help="optimise an object's appearance to hide it in a scene")
-    p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
+    p.add_argument("scene", nargs="?",
+                   help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml (or give --spec instead)")
+    p.add_argument("--spec", metavar="CONFIG",
+                   help="run the spec a run directory recorded (its config.toml, or the directory): the same run "
+                        "again, in --out; only --seed may change it (a replicate), every other spec option is refused")
     p.add_argument("--out", required=True, help="run directory (must be new or empty unless --resume/--overwrite)")
     p.add_argument("--method", help=f"method: {', '.join(METHODS)} (default ours)")
     p.add_argument("--preset", choices=("fast", "paper"),
@@ -276,10 +280,54 @@ def _set_option(options, path: list[str], value):
     return dataclasses.replace(options, **{path[0]: d})
 
 
+def spec_from_file(path: str, seed: int | None = None):
+    """The run spec recorded in ``path`` (a run directory's ``config.toml`` or the directory), with ``seed`` replaced
+    when given; CamoError (one line) for a missing file, a config.toml from before run specs, or a bad spec."""
+    from pathlib import Path
+
+    from optimizer.assets.rundir import read_config, spec_of_config
+    from optimizer.optimise.spec import RunSpec
+
+    p = Path(path)
+    run_dir = p if p.is_dir() else p.parent
+    if not p.is_dir() and not p.is_file():
+        raise CamoError(f"--spec {path}: no such file or run directory")
+    cfg = read_config(run_dir) if p.is_dir() else _read_toml(p)
+    data = spec_of_config(cfg, run_dir)
+    if seed is not None:
+        data["seed"] = seed
+    spec = RunSpec.from_dict(data, where=str(p))
+    return spec.validate()
+
+
+def _read_toml(path) -> dict[str, Any]:
+    import tomllib
+
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise CamoError(f"{path}: not valid TOML ({exc})") from None
+
+
+def spec_of(args):
+    """The run spec of ``camo optimize`` arguments: from the flags, or from ``--spec`` (then only ``--seed``)."""
+    if args.spec is None:
+        if args.scene is None:
+            raise CamoError("give a SCENE (built-in name or scene pack) or --spec CONFIG")
+        return spec_from_args(args)
+    if args.scene is not None:
+        raise CamoError("give a SCENE or --spec CONFIG, not both (the spec names its scene)")
+    other = sorted(flag(d) for d in given_options(args) if d != "seed")
+    if other:
+        raise CamoError(f"--spec runs the recorded spec as written; {other[0]} would change it (edit a copy of the "
+                        "config.toml instead, or give the scene and flags)")
+    return spec_from_file(args.spec, args.seed)
+
+
 def run_optimize(args) -> int:
     from optimizer.optimise.run import run
 
-    spec = spec_from_args(args)
+    spec = spec_of(args)
     out = run(spec, args.out, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, threads=args.threads)
     print(f"wrote {out}")
     return 0

@@ -512,3 +512,44 @@ def test_cli_method_names_are_the_registry_s():
         from optimizer.scenes.builtin_scenes import resolve_scene
 
         RunSpec(scene="gravel", pack=resolve_scene("gravel"), options=OwensOptions())
+
+
+def test_spec_reruns_a_run_from_its_config_toml(run_dir, tmp_path, capsys):
+    """`camo optimize --spec RUN_DIR` runs the recorded spec again: the same config.toml spec and, at one thread,
+    the same maps bit for bit; `--seed` makes a replicate (only the seed differs); every other spec option, a
+    SCENE next to --spec, a missing file and an old-layout config.toml are one-line errors."""
+    import tomllib
+
+    from optimizer.assets.rundir import PROVENANCE
+
+    def spec_part(d):
+        cfg = tomllib.loads((d / "config.toml").read_text())
+        return {k: v for k, v in cfg.items() if k not in PROVENANCE}
+
+    again = tmp_path / "again"
+    assert main(["optimize", "--spec", str(run_dir), "--out", str(again), "--quiet", "--threads", "1"]) == 0
+    assert spec_part(again) == spec_part(run_dir)
+    for name in ("albedo", "roughness", "transmittance"):
+        np.testing.assert_array_equal(np.load(again / "maps" / f"{name}.npy"), np.load(run_dir / "maps" / f"{name}.npy"))
+    rep = tmp_path / "replicate"
+    assert main(["optimize", "--spec", str(run_dir / "config.toml"), "--seed", "7", "--out", str(rep), "--quiet",
+                 "--threads", "1"]) == 0
+    a, b = spec_part(rep), spec_part(run_dir)
+    assert a.pop("seed") == 7 and b.pop("seed", 0) == 0 and a == b
+    assert not np.array_equal(np.load(rep / "maps" / "albedo.npy"), np.load(run_dir / "maps" / "albedo.npy"))
+
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "config.toml").write_text(V1_CONFIG)
+    for argv, needle in (
+        (["--spec", str(run_dir), "--iterations", "3"], "--iterations would change it"),
+        (["gravel", "--spec", str(run_dir)], "not both"),
+        ([], "give a SCENE"),
+        (["--spec", str(tmp_path / "nope.toml")], "no such file"),
+        (["--spec", str(old)], "before run specs"),
+    ):
+        capsys.readouterr()
+        assert main(["optimize", *argv, "--out", str(tmp_path / "x")]) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("camo: error:") and needle in err[0], (argv, err)
+    assert not (tmp_path / "x").exists()
