@@ -464,7 +464,7 @@ def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], 
 
     from evaluation.metrics import METRICS, weights_sha256
     from camo_base import atomic
-    from optimizer.optimise.run import versions
+    from camo_base.provenance import versions
 
     doc: dict[str, Any] = {
         "evaluate": {

@@ -206,3 +206,12 @@ def test_camo_base_imports_no_heavy_library_at_module_level():
                 names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
                 bad += [f"{name}:{node.lineno} {n}" for n in names if n.split(".")[0] in HEAVY]
     assert bad == []
+
+
+def test_evaluation_and_the_study_never_need_the_optimiser(real):
+    """Evaluating anyone's result reads it through optimizer.assets and renders it with optimizer.rendering; nothing
+    in evaluation or study_site imports optimizer.optimise (Stage 1/2, baselines, the run driver)."""
+    edges, lines = real
+    bad = [f"{m}:{lines[(m, t)]} imports {t}" for m in edges if m.split(".")[0] in ("evaluation", "study_site")
+           for t in edges[m] if t.startswith("optimizer.optimise")]
+    assert bad == []

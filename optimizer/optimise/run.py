@@ -22,7 +22,7 @@ import numpy as np
 
 from camo_base import atomic, imaging
 from camo_base.errors import CamoError
-from camo_base.provenance import versions  # (evaluation.evaluate imports it from here too)
+from camo_base.provenance import versions
 from optimizer.assets.rundir import CHECKPOINT, LOG, prepare_run_dir, write_config, write_log
 from optimizer.optimise.finish import finish
 from optimizer.optimise.spec import RunSpec
