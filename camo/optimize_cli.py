@@ -39,6 +39,7 @@ OPTION_FIELDS: dict[str, str] = {
     "stage2_fixed_displacement": "stage2.displacement", "sdxl_path": "stage2.sdxl_path",
     "controlnet_path": "stage2.controlnet_path",
     "lr_maps": "appearance.lr_maps", "lr_displacement": "appearance.lr_displacement",
+    "grad_blur": "appearance.grad_blur",
     "map_resolution": "appearance.map_resolution", "displacement_resolution": "appearance.displacement_resolution",
     "displacement_bound": "appearance.displacement_bound",
     "stages": "stages", "ablate": "ablate", "time_budget": "time_budget", "checkpoint_every": "checkpoint_every",
@@ -73,6 +74,9 @@ def register(sub) -> None:
     p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (both presets: constant)")
     p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
+    p.add_argument("--grad-blur", type=float, metavar="TEXELS",
+                   help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (0: off, the "
+                        "paper); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
     p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 20)")

@@ -34,7 +34,7 @@ from typing import Any, Callable
 import numpy as np
 
 from optimizer.rendering import scene as scn
-from optimizer.optimise.adam import Adam, dr_numpy
+from optimizer.optimise.adam import Adam, blur_texels, dr_numpy
 from optimizer.rendering.appearance import MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf, pose_record, world_positions
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
@@ -360,6 +360,8 @@ class Stage1:
             dr.backward(l_disp)
             disp = float(l_disp[0])
         nonfinite = self.opt.sanitise_grads()
+        if self.app.grad_blur > 0:
+            self._blur_map_grads(self.app.grad_blur)
         scale = self.lr_scale()
         self.opt.step(self.project, scale)
         if "displacement" in self.opt and self.app.displacement_shrink > 0:
@@ -381,6 +383,16 @@ class Stage1:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         self.history.append(rec)
         return rec
+
+    def _blur_map_grads(self, sigma: float) -> None:
+        """Blur each BSDF map's gradient by :func:`~optimizer.optimise.adam.blur_texels` (``AppearanceConfig.
+        grad_blur`` says why). Runs after the gradients are sanitised (finite)."""
+        import drjit as dr
+
+        for name in MAPS:
+            if name in self.opt:
+                x = self.opt[name]
+                dr.set_grad(x, type(x)(blur_texels(dr_numpy(dr.grad(x)), sigma)))
 
     def _shrink_displacement(self, scale: float) -> None:
         """Proximal L1 step on the normalised displacement: ``d <- sign(d) max(|d| - k lr_t, 0)``, k =

@@ -65,6 +65,12 @@ class AppearanceConfig:
     # > 0: after each Adam step, shrink d towards 0 by this fraction of the step's displacement rate (the proximal
     # step of an L1 term in Adam's normalised units; optimizer/optimise/schedule.py says why). 0 = the paper.
     displacement_shrink: float = 0.0
+    # > 0: each step, the BSDF maps' gradients are blurred by a Gaussian of this many texels (sigma) before Adam.
+    # Adam normalises every texel's step, so at a few spp each texel of a noise-dominated map (metallic,
+    # transmittance, roughness) random-walks by ~lr per step: salt-and-pepper maps that render as sparkles. A
+    # blurred gradient keeps the smooth signal and averages the per-texel noise (a Sobolev-style preconditioner);
+    # the drift left is smooth. 0 = the paper (per-texel gradients).
+    grad_blur: float = 0.0
     freeze_displacement: bool = False  # displacement applied from the initial values, not optimised (Stage 2 option)
 
     def trainable(self) -> list[str]:
