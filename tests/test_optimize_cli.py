@@ -475,7 +475,7 @@ def test_every_flag_lands_in_its_spec_field():
 
     argv = ["gravel", "--out", "x", "--time-budget", "30", "--snapshot-every", "2", "--checkpoint-every", "3",
             "--warm-start", "off", "--lr-schedule", "cosine", "--lr-maps", "0.02", "--lr-displacement", "0.03",
-            "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
+            "--grad-blur", "1.5", "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
             "--sdxl-path", "/a", "--controlnet-path", "/b", "--stage2-strength", "0.7", "--silhouette-every", "2",
             "--domain", "frame", "--loss", "mse", "--map-resolution", "40", "--displacement-resolution", "20",
             "--target-vertices", "500", "--views", "3", "--resolution", "16", "--spp", "3", "--target-spp", "9",
@@ -495,7 +495,7 @@ def test_every_flag_lands_in_its_spec_field():
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]
     assert (app["lr_maps"], app["lr_displacement"], app["displacement_bound"], app["map_resolution"],
-            app["displacement_resolution"], app["pose"]) == (0.02, 0.03, 0.01, 40, 20, False)
+            app["displacement_resolution"], app["pose"], app["grad_blur"]) == (0.02, 0.03, 0.01, 40, 20, False, 1.5)
     pack = d["pack"]
     assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}
     assert pack["object"]["target_vertices"] == 500 and pack["material"]["albedo"] == [0.3, 0.3, 0.3]
