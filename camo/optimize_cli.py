@@ -64,7 +64,7 @@ def register(sub) -> None:
     p.add_argument("--method", help=f"method: {', '.join(METHODS)} (default ours)")
     p.add_argument("--preset", choices=("fast", "paper"),
                    help="fast (default): least-squares albedo warm start, transmittance start 0.75, proximal L1 step on "
-                        "the displacement, 20 + 4 iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
+                        "the displacement, map gradients blurred by 2 texels, 20 + 4 iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
                         "50 + 20 iterations, silhouette term on every view). Explicit flags override either")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
@@ -75,8 +75,8 @@ def register(sub) -> None:
     p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
     p.add_argument("--grad-blur", type=float, metavar="TEXELS",
-                   help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (0: off, the "
-                        "paper); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
+                   help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (fast: 2; paper "
+                        "and 0: off); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
     p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 20)")

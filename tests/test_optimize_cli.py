@@ -449,7 +449,9 @@ def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_pat
     shutil.copytree(run_dir, old)
     (old / "config.toml").write_text(V1_CONFIG)
     a, b = open_run(old), open_run(run_dir)
-    assert (a.method, a.ablation, a.app) == (b.method, b.ablation, b.app)
+    # the old layout predates --grad-blur: its runs had per-texel gradients (0), today's fast preset blurs by 2
+    assert a.app.grad_blur == 0.0 and b.app.grad_blur == 2.0
+    assert (a.method, a.ablation, a.app) == (b.method, b.ablation, dataclasses.replace(b.app, grad_blur=0.0))
     assert a.pack.render.spp == 4 and a.pack == dataclasses.replace(b.pack, render=dataclasses.replace(b.pack.render, spp=4))
     assert (a.object, a.scene) == ("utility_box", "gravel")
     flags = ["--views", "2", "--spp", "4", "--metrics", "psnr,ssim", "--quiet", "--threads", "2"]
