@@ -289,6 +289,7 @@ def spec_from_file(path: str, seed: int | None = None):
     when given; CamoError (one line) for a missing file, a config.toml from before run specs, or a bad spec."""
     from pathlib import Path
 
+    from camo_base.documents import read_toml
     from optimizer.assets.rundir import read_config, spec_of_config
     from optimizer.optimise.spec import RunSpec
 
@@ -296,21 +297,12 @@ def spec_from_file(path: str, seed: int | None = None):
     run_dir = p if p.is_dir() else p.parent
     if not p.is_dir() and not p.is_file():
         raise CamoError(f"--spec {path}: no such file or run directory")
-    cfg = read_config(run_dir) if p.is_dir() else _read_toml(p)
+    cfg = read_config(run_dir) if p.is_dir() else read_toml(p, "--spec")
     data = spec_of_config(cfg, run_dir)
     if seed is not None:
         data["seed"] = seed
     spec = RunSpec.from_dict(data, where=str(p))
     return spec.validate()
-
-
-def _read_toml(path) -> dict[str, Any]:
-    import tomllib
-
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise CamoError(f"{path}: not valid TOML ({exc})") from None
 
 
 def spec_of(args):
