@@ -562,3 +562,54 @@ def test_fig7_plain_gradient_descent_characterisation():
         assert abs(hue_deg(traj_mse[-1])) < 0.05
     assert hue_dist(traj[-1], BG_DARK["purple"]) < hue_dist(A0, BG_DARK["purple"])  # towards purple
     assert hue_dist(descend_albedo("gated", BG_DARK["green"])[-1], BG_DARK["green"]) > hue_dist(A0, BG_DARK["green"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Charbonnier smoothing (delta): Eq. 9's |.| made mean-seeking near the match
+
+
+def test_smoothed_gated_loss_hand_computed_and_matches_numpy():
+    obj = np.array([[[1.0, 2.0, 0.5]]], np.float32)
+    bg = np.array([[[0.5, 0.5, 0.5]]], np.float32)
+    d = 0.2
+    yo, yb = obj[0, 0] @ W709, bg[0, 0] @ W709
+    dy = abs(yo - yb)
+    rho = lambda x: math.sqrt(x * x + d * d) - d  # noqa: E731
+    chroma = np.mean([rho(a) for a in obj[0, 0] / (yo + 0.01) - bg[0, 0] / (yb + 0.01)])
+    expected = rho(yo - yb) + chroma / (1 + math.exp(dy))  # the gate keeps the raw |dY|
+    assert L.gated_loss_np(obj, bg, delta=d) == pytest.approx(expected, rel=1e-12)
+    assert f(L.gated_loss(mi.TensorXf(obj), bg, delta=d)) == pytest.approx(expected, rel=1e-6)
+    assert L.make_loss("gated", delta=d).numpy(obj, bg) == pytest.approx(expected, rel=1e-12)
+    # delta 0 is Eq. 9 exactly; the smoothed loss is below it by at most delta per term (1 + alpha ... here 2 delta)
+    obj2, bg2 = _smooth_point()
+    assert L.gated_loss_np(obj2, bg2, delta=0.0) == L.gated_loss_np(obj2, bg2)
+    assert 0 < L.gated_loss_np(obj2, bg2) - L.gated_loss_np(obj2, bg2, delta=d) <= 2 * d
+    fd = _fd(lambda x: L.gated_loss_np(x, bg2, delta=d), obj2)
+    _, g = grad_of(L.gated_loss, obj2, bg2.astype(np.float32), delta=d)
+    np.testing.assert_allclose(g, fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max())
+    for bad in (-0.1, float("nan"), "x"):
+        with pytest.raises(CamoError, match="delta"):
+            L.make_loss("gated", delta=bad)
+
+
+def test_smoothing_moves_the_optimum_of_a_noisy_render_towards_its_mean():
+    """Why delta exists. A grey object of mean radiance m rendered with right-skewed noise (exponential samples)
+    against a grey background of 0.5. Mitsuba's adjoint pass uses a decorrelated seed, so a step's expected
+    gradient is E[dL/dI at the noisy primal] x E[dI/dtheta]; gradient descent stops where the first factor summed
+    over pixels is 0, i.e. where the loss's slope under a uniform shift of the noisy image vanishes. For Eq. 9's
+    L1 luminance term that is where the *median* of the noisy pixel (m ln 2) equals 0.5: m = 0.72, 44 % too bright.
+    With delta 1 the fixed point is less than half as far from the unbiased m = 0.5."""
+    rng = np.random.default_rng(0)
+    noise = rng.exponential(1.0, size=(64, 64, 1)).repeat(3, axis=2)  # grey, unit mean
+    bg = np.full((64, 64, 3), 0.5)
+    means, h = np.linspace(0.3, 1.0, 141), 1e-4
+
+    def fixed_point(delta):
+        def slope(m):
+            lum = [L.gated_loss_terms_np(m * noise + s, bg, delta=delta)["luminance"] for s in (h, -h)]
+            return (lum[0] - lum[1]) / (2 * h)
+        return means[np.argmin([abs(slope(m)) for m in means])]
+
+    m_l1, m_smooth = fixed_point(0.0), fixed_point(1.0)
+    assert m_l1 == pytest.approx(0.5 / math.log(2), abs=0.02)
+    assert abs(m_smooth - 0.5) < 0.5 * abs(m_l1 - 0.5)
