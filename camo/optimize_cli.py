@@ -32,8 +32,7 @@ OPTION_FIELDS: dict[str, str] = {
     "resolution": "pack.render.resolution", "views": "pack.cameras.views",
     "target_vertices": "pack.object.target_vertices", "init": "pack.material",
     "spp": "spp.train", "target_spp": "spp.target",
-    "iterations": "stage1.iterations", "loss": "stage1.loss", "loss_delta": "stage1.loss_delta",
-    "domain": "stage1.domain",
+    "iterations": "stage1.iterations", "loss": "stage1.loss", "domain": "stage1.domain",
     "silhouette_every": "stage1.silhouette_every", "warm_start": "stage1.warm_start",
     "lr_schedule": "stage1.lr_schedule",
     "stage2_iterations": "stage2.iterations", "stage2_backend": "stage2.backend", "stage2_strength": "stage2.strength",
@@ -93,8 +92,6 @@ def register(sub) -> None:
                    help="initial material values, overriding the scene pack's [material]: albedo (grey, or R/G/B), "
                         "metallic, roughness, transmittance in [0, 1] (paper: 0.5, 0, 0, 0.5)")
     p.add_argument("--loss", choices=("gated", "mse"), help="luminance-gated (Eq. 9, default) or plain MSE")
-    p.add_argument("--loss-delta", type=float, metavar="DELTA",
-                   help="Charbonnier smoothing of Eq. 9's absolute values, sqrt(x^2 + DELTA^2) - DELTA (paper: 0)")
     p.add_argument("--map-resolution", type=int, help="BSDF map resolution (paper: 800)")
     p.add_argument("--displacement-resolution", type=int, help="displacement map resolution (default 256)")
     p.add_argument("--displacement-bound", type=float, help="displacement amplitude bound, fraction of object size (default 0.02)")

@@ -479,7 +479,7 @@ def test_every_flag_lands_in_its_spec_field():
             "--warm-start", "off", "--lr-schedule", "cosine", "--lr-maps", "0.02", "--lr-displacement", "0.03",
             "--grad-blur", "1.5", "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
             "--sdxl-path", "/a", "--controlnet-path", "/b", "--stage2-strength", "0.7", "--silhouette-every", "2",
-            "--domain", "frame", "--loss", "mse", "--loss-delta", "0.05", "--map-resolution", "40", "--displacement-resolution", "20",
+            "--domain", "frame", "--loss", "mse", "--map-resolution", "40", "--displacement-resolution", "20",
             "--target-vertices", "500", "--views", "3", "--resolution", "16", "--spp", "3", "--target-spp", "9",
             "--seed", "8", "--preset", "paper", "--no-planner", "--shadow-gradients", "--stages", "1,2", "--ablate",
             "pose", "--init", "albedo=0.3", "--iterations", "5", "--stage2-iterations", "6", "--method", "ours"]
@@ -490,7 +490,7 @@ def test_every_flag_lands_in_its_spec_field():
         "seed": 8, "preset": "paper", "stages": [1, 2], "ablate": ["pose"], "planner": False, "shadow_gradients": True,
         "rough_start": False, "time_budget": 30.0, "checkpoint_every": 3, "snapshot_every": 2,
         "spp": {"train": 3, "target": 9, "stage2_preview": 16}}
-    assert d["stage1"] == {"iterations": 5, "loss": "mse", "alpha": 1.0, "eps": 0.01, "loss_delta": 0.05, "domain": "frame",
+    assert d["stage1"] == {"iterations": 5, "loss": "mse", "alpha": 1.0, "eps": 0.01, "domain": "frame",
                            "domain_dilate": 0.04, "shadow_threshold": 0.05, "silhouette_every": 2, "warm_start": False,
                            "lr_schedule": "cosine", "lr_floor": 0.1}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",

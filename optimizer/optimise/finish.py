@@ -27,7 +27,7 @@ def finish(out: Path, res, history: list[dict[str, Any]], cfg: Stage1Config, ini
 
     final = write_result(out, res, history, seed=cfg.seed)
     bg = res.targets.background
-    lossfn = make_loss(cfg.loss, cfg.alpha, cfg.eps, cfg.loss_delta)
+    lossfn = make_loss(cfg.loss, cfg.alpha, cfg.eps)
     dom = [None if cfg.domain == "frame" else res.targets.domain[v] for v in range(len(final))]
     per_view = [lossfn.numpy(final[v], bg[v], dom[v]) for v in range(len(final))]
     initial = [lossfn.numpy(initial_render[v], bg[v], dom[v]) for v in range(len(final))]

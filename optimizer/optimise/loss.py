@@ -58,16 +58,6 @@ Choices the paper leaves open, and what this module does
   ``log.jsonl``). If no pixel is left (empty mask, object off-screen in this
   view, or every pixel non-finite) the loss is 0 with a zero gradient.
 * **Background is a constant target**: it is detached (no gradient).
-* **Smoothed absolute values (``delta``, default 0 = Eq. 9 as written).** The paper's ``|.|`` are
-  median-seeking: the expected L1 distance of a noisy render to a target is smallest when the render's
-  *median* matches it. A path-traced pixel at a few spp is right-skewed (rare bright samples), so its median
-  lies below its mean, and gradient steps on Eq. 9 evaluated on 4-spp renders (with Mitsuba's decorrelated
-  adjoint seed the gradient is that of the *expected* loss) drive the object's mean radiance above the
-  background: measured on ``meadow`` at demo sizes, the training loss rises again after ~20 iterations and the
-  novel-view crop PSNR falls (31.2 dB at 20 iterations, 30.2 at 87; docs/results/convergence.md). With
-  ``delta > 0`` each ``|x|`` is replaced by the Charbonnier function ``sqrt(x^2 + delta^2) - delta``: quadratic
-  (mean-seeking) for ``|x| << delta``, ``|x| - delta`` beyond. ``delta`` is in the units of each term (radiance
-  for the luminance term, chromaticity for the chroma term); the gate keeps the raw ``|dY|``.
 * **Behaviour to know (measured in tests/test_loss.py, Fig. 7 in miniature).**
   When the luminance gap cannot be closed, the gate removes the chromaticity
   gradient completely, but the luminance term still pushes the albedo along
@@ -266,34 +256,14 @@ class LossTerms:
 
 
 def gated_loss_terms(
-    obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS, detach_gate: bool = False,
-    delta: float = 0.0,
+    obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS, detach_gate: bool = False
 ) -> LossTerms:
     """Eq. 9 split into its terms; see :func:`gated_loss` and the module docstring."""
-    return _gated(obj, bg, weight, alpha, eps, detach_gate, extras=True, delta=delta)
+    return _gated(obj, bg, weight, alpha, eps, detach_gate, extras=True)
 
 
-def _check_delta(delta: float) -> float:
-    try:
-        delta = float(delta)
-    except (TypeError, ValueError):
-        raise CamoError(f"loss delta must be a number, got {delta!r}") from None
-    if not math.isfinite(delta) or delta < 0:
-        raise CamoError(f"loss delta must be a finite number >= 0, got {delta}")
-    return delta
-
-
-def _smooth_abs(x, delta: float):
-    """``|x|`` (delta 0) or the Charbonnier ``sqrt(x^2 + delta^2) - delta`` (Dr.Jit)."""
-    _, dr = _mi()
-    if delta == 0:
-        return dr.abs(x)
-    return dr.sqrt(x * x + delta * delta) - delta
-
-
-def _gated(obj, bg, weight, alpha, eps, detach_gate, extras, delta: float = 0.0):
+def _gated(obj, bg, weight, alpha, eps, detach_gate, extras):
     alpha, eps = _check_params(alpha, eps)
-    delta = _check_delta(delta)
     mi, dr = _mi()
     o, b, w_eff, inv, nonfinite = _prepare(obj, bg, weight, count_nonfinite=extras)
     yo, yb = _lum(o), _lum(b)
@@ -302,26 +272,24 @@ def _gated(obj, bg, weight, alpha, eps, detach_gate, extras, delta: float = 0.0)
     if detach_gate:
         g = dr.detach(g)
     ro, rb = 1.0 / (yo + eps), 1.0 / (yb + eps)
-    sa = _smooth_abs
-    chroma = (sa(o[0] * ro - b[0] * rb, delta) + sa(o[1] * ro - b[1] * rb, delta) + sa(o[2] * ro - b[2] * rb, delta)) \
-        * (1.0 / 3.0)
-    lum_term = alpha * dr.sum(w_eff * (dy if delta == 0 else sa(yo - yb, delta))) * inv
+    chroma = (dr.abs(o[0] * ro - b[0] * rb) + dr.abs(o[1] * ro - b[1] * rb) + dr.abs(o[2] * ro - b[2] * rb)) * (
+        1.0 / 3.0
+    )
+    lum_term = alpha * dr.sum(w_eff * dy) * inv
     chroma_term = dr.sum(w_eff * g * chroma) * inv
     ungated = dr.sum(w_eff * chroma) * inv if extras else None
     return LossTerms(lum_term + chroma_term, lum_term, chroma_term, ungated, nonfinite)
 
 
-def gated_loss(obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS, detach_gate: bool = False,
-               delta: float = 0.0):
+def gated_loss(obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS, detach_gate: bool = False):
     """Luminance-gated chromaticity loss, Eq. 9 (width-1 ``mi.Float``, differentiable w.r.t. ``obj``).
 
     ``obj``/``bg``: ``(H, W, 3)`` linear radiance (``mi.TensorXf``; NumPy is
     accepted and converted); ``bg`` is detached. ``weight``: optional
     non-negative ``(H, W)``/``(H, W, 1)`` pixel weight (weighted mean), None =
-    whole frame. ``delta``: Charbonnier smoothing of the absolute values (0: Eq. 9 exactly). Non-finite pixels
-    are excluded and zeroed; see the module docstring.
+    whole frame. Non-finite pixels are excluded and zeroed; see the module docstring.
     """
-    return _gated(obj, bg, weight, alpha, eps, detach_gate, extras=False, delta=delta).total
+    return _gated(obj, bg, weight, alpha, eps, detach_gate, extras=False).total
 
 
 def mse_loss(obj, bg, weight=None):
@@ -339,29 +307,28 @@ class LossFn:
     name: str
     alpha: float = DEFAULT_ALPHA
     eps: float = DEFAULT_EPS
-    delta: float = 0.0
 
     def __call__(self, obj, bg, weight=None):
         if self.name == "gated":
-            return gated_loss(obj, bg, weight, self.alpha, self.eps, delta=self.delta)
+            return gated_loss(obj, bg, weight, self.alpha, self.eps)
         return mse_loss(obj, bg, weight)
 
     def numpy(self, obj, bg, weight=None) -> float:
         if self.name == "gated":
-            return gated_loss_np(obj, bg, weight, self.alpha, self.eps, delta=self.delta)
+            return gated_loss_np(obj, bg, weight, self.alpha, self.eps)
         return mse_loss_np(obj, bg, weight)
 
 
-def make_loss(name: str, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS, delta: float = 0.0) -> Callable:
+def make_loss(name: str, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS) -> Callable:
     """The loss called ``name`` (``"gated"`` or ``"mse"``); anything else raises :class:`CamoError`.
 
-    ``alpha``, ``eps`` and ``delta`` are validated (alpha >= 0, eps > 0, delta >= 0, finite) and ignored by ``"mse"``.
+    ``alpha`` and ``eps`` are validated (alpha >= 0, eps > 0, finite) and ignored by ``"mse"``.
     """
     key = str(name).strip().lower() if isinstance(name, str) else None
     if key not in LOSS_NAMES:
         raise CamoError(f"unknown loss {name!r}; choose one of: {', '.join(LOSS_NAMES)}")
     alpha, eps = _check_params(alpha, eps)
-    return LossFn(key, alpha, eps, _check_delta(delta))
+    return LossFn(key, alpha, eps)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -404,22 +371,17 @@ def _wmean(w: np.ndarray, x: np.ndarray) -> float:
     return float((w * x).sum() / s) if s > 0 else 0.0
 
 
-def _smooth_abs_np(x: np.ndarray, delta: float) -> np.ndarray:
-    return np.abs(x) if delta == 0 else np.sqrt(x * x + delta * delta) - delta
-
-
 def gated_loss_terms_np(
-    obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS, delta: float = 0.0
+    obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS
 ) -> dict[str, float]:
     """Float64 reference of :func:`gated_loss_terms` (dict of floats, same keys)."""
     alpha, eps = _check_params(alpha, eps)
-    delta = _check_delta(delta)
     o, b, w_eff, nonfinite = _prepare_np(obj, bg, weight)
     yo = np.maximum(luminance_np(o), 0.0)
     yb = np.maximum(luminance_np(b), 0.0)
     dy = np.abs(yo - yb)
-    chroma = _smooth_abs_np(o / (yo + eps)[:, None] - b / (yb + eps)[:, None], delta).mean(axis=1)
-    lum = alpha * _wmean(w_eff, _smooth_abs_np(yo - yb, delta))
+    chroma = np.abs(o / (yo + eps)[:, None] - b / (yb + eps)[:, None]).mean(axis=1)
+    lum = alpha * _wmean(w_eff, dy)
     chr_ = _wmean(w_eff, gate_np(dy) * chroma)
     return {
         "total": lum + chr_,
@@ -430,10 +392,9 @@ def gated_loss_terms_np(
     }
 
 
-def gated_loss_np(obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS,
-                  delta: float = 0.0) -> float:
+def gated_loss_np(obj, bg, weight=None, alpha: float = DEFAULT_ALPHA, eps: float = DEFAULT_EPS) -> float:
     """Float64 NumPy reference of :func:`gated_loss` (Eq. 9) for ``(H, W, 3)`` arrays."""
-    return gated_loss_terms_np(obj, bg, weight, alpha, eps, delta)["total"]
+    return gated_loss_terms_np(obj, bg, weight, alpha, eps)["total"]
 
 
 def mse_loss_np(obj, bg, weight=None) -> float:

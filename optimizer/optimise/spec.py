@@ -57,7 +57,7 @@ RESUMABLE = ("checkpoint_every", "snapshot_every", "stage1.iterations", "stage2.
 #: What every method reads: the scene, the seed, the background targets and loss domain (the target spp, Stage 1's
 #: loss settings), the albedo atlas' resolution and the index of refraction, the effect planner's inputs.
 COMMON_READS = ("scene", "pack", "method", "seed", "preset", "spp.target", "stage1.loss", "stage1.alpha", "stage1.eps",
-                "stage1.loss_delta", "stage1.domain", "stage1.domain_dilate", "stage1.shadow_threshold", "appearance.map_resolution",
+                "stage1.domain", "stage1.domain_dilate", "stage1.shadow_threshold", "appearance.map_resolution",
                 "appearance.eta", "planner", "shadow_gradients")
 
 
@@ -325,7 +325,6 @@ class RunSpec:
         within("appearance.lr_maps", 0.0, 10.0, lo_open=True)
         within("appearance.lr_displacement", 0.0, 10.0, lo_open=True)
         within("appearance.grad_blur", 0.0, 64.0)
-        within("stage1.loss_delta", 0.0, 10.0)
         within("stage2.strength", 0.0, 1.0, lo_open=True)
         within("options.strength", 0.0, 1.0, lo_open=True)
         if m.reads_path("time_budget") and self.time_budget is not None and \

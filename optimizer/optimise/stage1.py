@@ -57,7 +57,6 @@ class Stage1Settings:
     loss: str = "gated"  # or "mse" (paper Fig. 7)
     alpha: float = 1.0
     eps: float = 1e-2
-    loss_delta: float = 0.0  # Charbonnier smoothing of Eq. 9's |.| (optimizer/optimise/loss.py); paper: 0
     domain: str = "object+shadow"  # or "frame"
     domain_dilate: float = 0.04  # fraction of the image's larger side
     shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
@@ -298,14 +297,14 @@ class Stage1:
         cfg = self.cfg
         if cfg.loss == "mse":
             return mse_loss(img, self._batch_bg, self._batch_w), None
-        t = gated_loss_terms(img, self._batch_bg, self._batch_w, cfg.alpha, cfg.eps, delta=cfg.loss_delta)
+        t = gated_loss_terms(img, self._batch_bg, self._batch_w, cfg.alpha, cfg.eps)
         return t.total, t
 
     def _view_loss(self, img, view: int):
         cfg = self.cfg
         if cfg.loss == "mse":
             return mse_loss(img, self._bg[view], self._w[view]), None
-        t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps, delta=cfg.loss_delta)
+        t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps)
         return t.total, t
 
     def step(self) -> dict[str, Any]:
