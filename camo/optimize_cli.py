@@ -49,7 +49,7 @@ OPTION_FIELDS: dict[str, str] = {
 #: What an absent option means, for the options whose absence is a fixed value (not the pack's or the preset's):
 #: the run spec's defaults, written as the option would be. ``camo grid`` drops an option set to this value from a
 #: cell's key (the same work); tests/test_optimize_cli.py checks it against the spec.
-ABSENT: dict[str, Any] = {"seed": 0, "preset": "fast", "loss": "gated", "ablate": "", "init": "", "stages": "1,2",
+ABSENT: dict[str, Any] = {"seed": 0, "preset": "fast", "ablate": "", "init": "", "stages": "1,2",
                           "checkpoint_every": 10, "snapshot_every": 0, "method": "ours"}
 
 
@@ -63,23 +63,24 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="run directory (must be new or empty unless --resume/--overwrite)")
     p.add_argument("--method", help=f"method: {', '.join(METHODS)} (default ours)")
     p.add_argument("--preset", choices=("fast", "paper"),
-                   help="fast (default): least-squares albedo warm start, transmittance start 0.75, proximal L1 step on "
-                        "the displacement, map gradients blurred by 2 texels, 20 + 4 iterations; paper: the paper's schedule exactly (grey start, constant rates 1e-2 / 1e-1, "
-                        "50 + 20 iterations, silhouette term on every view). Explicit flags override either")
+                   help="fast (default): least-squares albedo warm start, transmittance start 0.75, squared-error loss, "
+                        "map rate 2e-2, proximal L1 step on the displacement, map gradients blurred by 2 texels, 60 + 4 "
+                        "iterations; paper: the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / "
+                        "1e-1, 50 + 20 iterations, silhouette term on every view). Explicit flags override either")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
                         "without --iterations / --stage2-iterations the iteration caps are lifted)")
     p.add_argument("--warm-start", choices=("on", "off"),
                    help="least-squares albedo start (fast: on unless --init sets albedo; paper: off)")
     p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (both presets: constant)")
-    p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2)")
+    p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2, fast: 2e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
     p.add_argument("--grad-blur", type=float, metavar="TEXELS",
                    help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (fast: 2; paper "
                         "and 0: off); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
-    p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 20)")
+    p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 60)")
     p.add_argument("--resolution", type=int, help="render width = height in pixels (default: the pack's)")
     p.add_argument("--spp", type=int, help="samples per pixel of each training render (default 4; the run spec's spp.train)")
     p.add_argument("--target-spp", type=int, help="samples per pixel of the background targets, the loss domain, the warm "
@@ -91,7 +92,8 @@ def register(sub) -> None:
     p.add_argument("--init", metavar="KEY=VALUE,...",
                    help="initial material values, overriding the scene pack's [material]: albedo (grey, or R/G/B), "
                         "metallic, roughness, transmittance in [0, 1] (paper: 0.5, 0, 0, 0.5)")
-    p.add_argument("--loss", choices=("gated", "mse"), help="luminance-gated (Eq. 9, default) or plain MSE")
+    p.add_argument("--loss", choices=("gated", "mse"),
+                   help="luminance-gated (Eq. 9; paper preset) or squared error (fast preset: unbiased at a few spp)")
     p.add_argument("--map-resolution", type=int, help="BSDF map resolution (paper: 800)")
     p.add_argument("--displacement-resolution", type=int, help="displacement map resolution (default 256)")
     p.add_argument("--displacement-bound", type=float, help="displacement amplitude bound, fraction of object size (default 0.02)")
