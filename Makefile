@@ -10,7 +10,7 @@ TORCH_SPEC  ?= torch==2.13.0
 DEMO_SCENE  ?= meadow
 DEMO_OUT    ?= demo_out
 # The demo is sized for a few minutes on 2 CPU cores; the schedule is the default `--preset fast` (warm start,
-# 20 + 4 iterations; `--preset paper` is the paper's), the other settings are the paper's CLI defaults.
+# squared-error loss, 60 + 4 iterations; `--preset paper` is the paper's), the other settings are the paper's CLI defaults.
 # DEMO_OPT applies to every method; DEMO_OURS_OPT are settings only `ours` reads (a baseline refuses them).
 DEMO_OPT    ?= --views 8 --resolution 96 --target-vertices 10000 --map-resolution 256 --target-spp 32 --overwrite
 DEMO_OURS_OPT ?= --displacement-resolution 128 --spp 4
