@@ -47,6 +47,13 @@ METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
 MARKS = (20.0, 60.0, 180.0)
 
 
+def scene_label(name: str) -> str:
+    """A scene's name in output paths: ``pack:ENV:OBJECT`` -> ``pack_ENV_OBJECT``, a pack file -> its stem."""
+    if name.endswith(".toml"):
+        return Path(name).stem
+    return name.replace(":", "_")
+
+
 def scene_arg(name: str, workdir: Path) -> str:
     """``pack:ENV:OBJECT`` -> a user pack file around a built-in environment (the paper's initial material)."""
     if not name.startswith("pack:"):
@@ -198,7 +205,7 @@ def main() -> None:
         sep = ";" if ";" in args.variants else ","
         for variant in [v.strip() for v in args.variants.split(sep) if v.strip()]:
             name, _ = variant_flags(variant)
-            run_dir = out / "runs" / scene.replace(":", "_") / name
+            run_dir = out / "runs" / scene_label(scene) / name
             _, wall = run_variant(camo, sarg, variant, sizes, run_dir, args.every)
             scorer = scorer or Scorer(run_dir, args.eval_views, args.eval_spp)
             summary = json.loads((run_dir / "summary.json").read_text())
@@ -216,7 +223,7 @@ def main() -> None:
             finals[(scene, name)] = wall
             if img is not None:
                 strip = np.concatenate([np.concatenate(list(scorer.bg.image), 1), np.concatenate(list(img), 1)], 0)
-                save_png(out / f"final_{scene.replace(':', '_')}_{name}.png", linear_to_srgb(strip))
+                save_png(out / f"final_{scene_label(scene)}_{name}.png", linear_to_srgb(strip))
     with open(out / "curves.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
