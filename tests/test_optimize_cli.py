@@ -483,7 +483,7 @@ def test_every_flag_lands_in_its_spec_field():
     from camo.optimize_cli import OPTION_FIELDS
 
     argv = ["gravel", "--out", "x", "--time-budget", "30", "--snapshot-every", "2", "--checkpoint-every", "3",
-            "--warm-start", "off", "--lr-schedule", "cosine", "--average-tail", "0.3", "--lr-maps", "0.02", "--lr-displacement", "0.03",
+            "--warm-start", "off", "--lr-schedule", "cosine", "--lr-maps", "0.02", "--lr-displacement", "0.03",
             "--grad-blur", "1.5", "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
             "--sdxl-path", "/a", "--controlnet-path", "/b", "--stage2-strength", "0.7", "--silhouette-every", "2",
             "--domain", "frame", "--loss", "mse", "--map-resolution", "40", "--displacement-resolution", "20",
@@ -499,7 +499,7 @@ def test_every_flag_lands_in_its_spec_field():
         "spp": {"train": 3, "target": 9, "stage2_preview": 16}}
     assert d["stage1"] == {"iterations": 5, "loss": "mse", "alpha": 1.0, "eps": 0.01, "domain": "frame",
                            "domain_dilate": 0.04, "shadow_threshold": 0.05, "silhouette_every": 2, "warm_start": False,
-                           "lr_schedule": "cosine", "lr_floor": 0.1, "average_tail": 0.3}
+                           "lr_schedule": "cosine", "lr_floor": 0.1}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]
