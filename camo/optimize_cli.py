@@ -34,7 +34,7 @@ OPTION_FIELDS: dict[str, str] = {
     "spp": "spp.train", "target_spp": "spp.target",
     "iterations": "stage1.iterations", "loss": "stage1.loss", "domain": "stage1.domain",
     "silhouette_every": "stage1.silhouette_every", "warm_start": "stage1.warm_start",
-    "lr_schedule": "stage1.lr_schedule", "average_tail": "stage1.average_tail",
+    "lr_schedule": "stage1.lr_schedule",
     "stage2_iterations": "stage2.iterations", "stage2_backend": "stage2.backend", "stage2_strength": "stage2.strength",
     "stage2_fixed_displacement": "stage2.displacement", "sdxl_path": "stage2.sdxl_path",
     "controlnet_path": "stage2.controlnet_path",
@@ -75,9 +75,6 @@ def register(sub) -> None:
     p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (both presets: constant)")
     p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2, fast: 2e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
-    p.add_argument("--average-tail", type=float, metavar="FRACTION",
-                   help="Stage 1's result is the mean of its iterates over this last fraction of the stage (Polyak "
-                        "tail averaging; paper: 0, the last iterate)")
     p.add_argument("--grad-blur", type=float, metavar="TEXELS",
                    help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (fast: 2; paper "
                         "and 0: off); averages the per-texel Monte Carlo noise that otherwise speckles the maps")

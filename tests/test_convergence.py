@@ -164,33 +164,6 @@ def test_grad_blur_makes_the_noise_driven_maps_smooth(tmp_path):
         assert rough["2"][name] < 0.5 * rough["0"][name], (name, rough)
 
 
-def test_tail_average_is_the_mean_of_the_last_iterates_and_survives_a_checkpoint(tmp_path):
-    """--average-tail 0.5 over 4 iterations: Stage 1's result (its maps and its last snapshot) is the mean of
-    iterates 3 and 4 of the same run without averaging (one thread: the trajectories are bit-identical, averaging
-    does not steer them); a checkpoint taken inside the tail carries the running mean, and a run resumed from it
-    ends with the same maps."""
-    common = [*TINY, "--stages", "1", "--iterations", "4", "--snapshot-every", "1", "--warm-start", "off"]
-    assert main(["optimize", "gravel", "--out", str(tmp_path / "last"), *common, "--average-tail", "0"]) == 0
-    assert main(["optimize", "gravel", "--out", str(tmp_path / "avg"), *common, "--average-tail", "0.5"]) == 0
-    assert "average_tail = 0.5" in (tmp_path / "avg" / "config.toml").read_text()
-    it = {k: np.load(tmp_path / "last" / "snapshots" / f"s1_000{k}.npz") for k in (3, 4)}
-    for name in ("albedo", "metallic", "roughness", "transmittance", "displacement"):
-        want = 0.5 * (it[3][name] + it[4][name])
-        assert np.abs(it[4][name] - it[3][name]).max() > 1e-4, name  # the iterates differ: the mean is a new value
-        np.testing.assert_allclose(np.load(tmp_path / "avg" / "snapshots" / "s1_0004.npz")[name], want, atol=2e-6)
-        np.testing.assert_allclose(np.load(tmp_path / "avg" / "snapshots" / "s1_0003.npz")[name], it[3][name], atol=0)
-    np.testing.assert_allclose(np.load(tmp_path / "avg" / "maps" / "albedo.npy"), 0.5 * (it[3]["albedo"] + it[4]["albedo"]),
-                               atol=2e-6)
-    # the checkpoint carries the running mean: a run re-opened from it (--resume of a finished run re-writes the
-    # result from the checkpoint) ends with the same averaged maps
-    ck = np.load(tmp_path / "avg" / "checkpoint.npz")
-    assert int(ck["average_n"]) == 2
-    np.testing.assert_allclose(ck["average/albedo"], 0.5 * (it[3]["albedo"] + it[4]["albedo"]), atol=2e-6)
-    before = np.load(tmp_path / "avg" / "maps" / "albedo.npy")
-    assert main(["optimize", "gravel", "--out", str(tmp_path / "avg"), *common, "--average-tail", "0.5", "--resume"]) == 0
-    np.testing.assert_array_equal(np.load(tmp_path / "avg" / "maps" / "albedo.npy"), before)
-
-
 # --- end to end --------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -66,10 +66,6 @@ class Stage1Settings:
     warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
     lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
-    # Polyak-Ruppert tail averaging: the stage's result is the mean of the iterates over the last `average_tail`
-    # of its progress (0: the last iterate, the paper). The iterates of a constant-rate Adam at a few spp jitter
-    # around the optimum by about one rate per step; their mean does not. Stage 1 only.
-    average_tail: float = 0.0
 
 
 @dataclasses.dataclass
@@ -166,8 +162,6 @@ class Stage1:
         self.total_iterations = cfg.iterations  # the schedule's length (Stage 2 sets its own)
         self.time_budget = cfg.time_budget
         self.history: list[dict[str, Any]] = []
-        self._avg: dict[str, Any] = {}  # running mean of the iterates in the averaging tail (Dr.Jit arrays)
-        self._avg_n = 0
         if targets is None:
             log("rendering background targets and the loss domain")
         self.targets = targets if targets is not None else self._targets()
@@ -375,7 +369,6 @@ class Stage1:
         self.iteration += 1
         seconds = time.perf_counter() - t0
         self.elapsed += seconds
-        self._accumulate_average()
         rec = {
             "iteration": self.iteration,
             "stage": self.STAGE,
@@ -413,27 +406,6 @@ class Stage1:
         self.opt.values["displacement"] = new
         dr.eval(new)
 
-    def _averaging(self) -> bool:
-        return self.STAGE == 1 and getattr(self.cfg, "average_tail", 0.0) > 0
-
-    def _accumulate_average(self) -> None:
-        """Add this iterate to the running mean once the stage's progress has entered its averaging tail
-        (``Stage1Settings.average_tail``): ``avg += (x - avg) / n``, detached, on every trainable parameter."""
-        if not self._averaging():
-            return
-        import drjit as dr
-
-        p = progress(self.iteration, self.total_iterations, self.elapsed, self.time_budget)
-        if p <= 1.0 - self.cfg.average_tail and not self.done():
-            return
-        self._avg_n += 1
-        for name, x in self.opt.values.items():
-            cur = dr.detach(x)
-            prev = self._avg.get(name)
-            self._avg[name] = type(cur)(cur if prev is None else prev + (cur - prev) * (1.0 / self._avg_n))
-            dr.schedule(self._avg[name])
-        dr.eval()
-
     def lr_scale(self) -> float:
         """This step's learning-rate multiplier (:func:`optimizer.optimise.schedule.lr_scale` at the stage's progress)."""
         p = progress(self.iteration, self.total_iterations, self.elapsed, self.time_budget)
@@ -447,12 +419,9 @@ class Stage1:
 
     # --- results --------------------------------------------------------------
     def current_values(self) -> dict[str, np.ndarray]:
-        """The parameters as NumPy arrays: the last iterate, or, once a stage with tail averaging is done, the mean
-        of the iterates in its tail (what the result, Stage 2 and the snapshots after the last step see)."""
-        use_avg = self._avg_n > 0 and self.done()
         out = dict(self.values)
         for name in self.opt.values:
-            arr = dr_numpy(self._avg[name] if use_avg else self.opt[name])
+            arr = dr_numpy(self.opt[name])
             out[name] = arr.reshape(self.values[name].shape)
         return out
 
@@ -465,10 +434,6 @@ class Stage1:
     def checkpoint_state(self) -> dict[str, np.ndarray]:
         st = self.opt.state()
         st["iteration"] = np.array(self.iteration)
-        if self._avg_n:
-            st["average_n"] = np.array(self._avg_n)
-            for name, a in self._avg.items():
-                st[f"average/{name}"] = dr_numpy(a)
         return st
 
     def load_checkpoint_state(self, st: dict[str, np.ndarray]) -> None:
@@ -479,12 +444,3 @@ class Stage1:
             raise CamoError("checkpoint is corrupt: no valid iteration count")
         self.opt.load_state(st)
         self.iteration = int(it)
-        n = st.get("average_n")
-        self._avg, self._avg_n = {}, 0
-        if n is not None and self._averaging():
-            for name, x in self.opt.values.items():
-                arr = st.get(f"average/{name}")
-                if arr is None or arr.size != dr_numpy(x).size or not np.isfinite(arr).all():
-                    raise CamoError(f"checkpoint is corrupt: no valid average/{name}")
-                self._avg[name] = type(x)(arr) if arr.ndim == 3 else type(x)(arr.ravel())
-            self._avg_n = int(n)
