@@ -64,7 +64,7 @@ def register(sub) -> None:
     p.add_argument("--method", help=f"method: {', '.join(METHODS)} (default ours)")
     p.add_argument("--preset", choices=("fast", "paper"),
                    help="fast (default): least-squares albedo warm start, transmittance start 0.75, squared-error loss, "
-                        "map rate 2e-2, proximal L1 step on the displacement, map gradients blurred by 2 texels, 60 + 4 "
+                        "proximal L1 step on the displacement, map gradients blurred by 2 texels, 60 + 4 "
                         "iterations; paper: the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / "
                         "1e-1, 50 + 20 iterations, silhouette term on every view). Explicit flags override either")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
@@ -73,7 +73,7 @@ def register(sub) -> None:
     p.add_argument("--warm-start", choices=("on", "off"),
                    help="least-squares albedo start (fast: on unless --init sets albedo; paper: off)")
     p.add_argument("--lr-schedule", choices=("cosine", "constant"), help="learning-rate schedule (both presets: constant)")
-    p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (paper: 1e-2, fast: 2e-2)")
+    p.add_argument("--lr-maps", type=float, help="Adam rate of the BSDF maps (both presets: 1e-2)")
     p.add_argument("--lr-displacement", type=float, help="Adam rate of the normalised displacement (paper: 1e-1, fast: 5e-2)")
     p.add_argument("--grad-blur", type=float, metavar="TEXELS",
                    help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (fast: 2; paper "
