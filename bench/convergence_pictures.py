@@ -19,22 +19,25 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 
-def rows_of(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(background row, with-object row) of one ``final_*.png``, each ``(h, W, 3)`` uint8."""
+def rows_of(path: Path, views: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(background row, with-object row) of one ``final_*.png``, each ``(h, W, 3)`` uint8; with ``views``, only the
+    first ``views`` square views of each row."""
     a = np.asarray(Image.open(path).convert("RGB"))
     h = a.shape[0] // 2
-    return a[:h], a[h:2 * h]
+    w = a.shape[1] if views is None else min(a.shape[1], views * h)
+    return a[:h, :w], a[h:2 * h, :w]
 
 
-def sheet(out_dir: Path, scenes: list[str], variants: list[str], scale: int = 2, label_w: int = 180) -> Image.Image:
+def sheet(out_dir: Path, scenes: list[str], variants: list[str], scale: int = 2, label_w: int = 180,
+          views: int | None = None) -> Image.Image:
     rows: list[tuple[str, np.ndarray]] = []
     for scene in scenes:
         files = {v: out_dir / f"final_{scene}_{v}.png" for v in variants}
         missing = [str(p) for p in files.values() if not p.is_file()]
         if missing:
             raise SystemExit(f"convergence_pictures: missing {missing[0]} (run bench/bench_convergence.py first)")
-        rows.append((f"{scene}\nbackground", rows_of(files[variants[0]])[0]))
-        rows += [(f"{scene}\n{v}", rows_of(files[v])[1]) for v in variants]
+        rows.append((f"{scene}\nbackground", rows_of(files[variants[0]], views)[0]))
+        rows += [(f"{scene}\n{v}", rows_of(files[v], views)[1]) for v in variants]
     width = max(r.shape[1] for _, r in rows) * scale
     tiles = []
     for label, img in rows:
@@ -57,10 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", default="meadow,room,split")
     ap.add_argument("--variants", default="fast,paper,mean")
     ap.add_argument("--scale", type=int, default=2)
+    ap.add_argument("--views", type=int, help="only the first N views of each row (default: all)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     img = sheet(args.bench_out, [s.replace(":", "_") for s in args.scenes.split(",")], args.variants.split(","),
-                args.scale)
+                args.scale, views=args.views)
     tmp = args.out.with_name(args.out.name + ".tmp" + args.out.suffix)
     img.save(tmp, quality=90)
     tmp.replace(args.out)
