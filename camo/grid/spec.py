@@ -197,9 +197,9 @@ def _option_args(section: str, table: dict[str, Any], parser: argparse.ArgumentP
     (options equal to their absent value left out: the same work, the same key) and argv fragments."""
     absent: dict[str, Any] = {}
     if section == "optimize":
-        from camo.optimize_cli import ABSENT
+        from camo.optimize_cli import ABSENT, KEY_STABLE
 
-        absent = ABSENT
+        absent = {**ABSENT, **KEY_STABLE}
     reserved = RESERVED[section]
     known = vars(parse_command(parser, _BASE_ARGV[section], where))  # every option's dest
     argv: list[str] = []
