@@ -469,6 +469,34 @@ def test_principled_bsdf_corners_at_grazing_views(grazing, box, corner, loss):
            nonfinite_grads=[r["nonfinite_grads"] for r in recs], maps_moved=moved)
 
 
+@pytest.mark.parametrize("loss", ["gated", "mse"])
+def test_black_albedo_under_transmission_has_finite_gradients_and_leaves_zero(grazing, box, loss):
+    """Hard case: albedo exactly 0 on a transmissive object (a warm start that clipped every texel at 0, or
+    ``--init albedo=0``). Mitsuba's principled BSDF tints transmission by ``sqrt(base_color)``, whose slope is
+    infinite at 0: before ``ALBEDO_MIN`` such texels got Inf/NaN gradients every step (meadow: ~1700 a step, and
+    a NaN rotation gradient every other step), were zeroed by the sanitiser and stayed at 0 for good.
+
+    Expected: no non-finite gradient entry in any step, the albedo starts at ``ALBEDO_MIN`` (not 0) and moves."""
+    from optimizer.rendering.appearance import ALBEDO_MIN
+
+    pack, env, app, targets = grazing
+    init = initial_values(app, pack.material)
+    init["albedo"] = np.zeros_like(init["albedo"])
+    init["transmittance"] = np.full_like(init["transmittance"], 0.75)
+    s = stage1(pack, env, box, app, initial=init, targets=targets, loss=loss)
+    start = s.current_values()["albedo"]
+    assert start.min() == pytest.approx(ALBEDO_MIN)
+    recs = [s.step(), s.step()]
+    assert [r["nonfinite_grads"] for r in recs] == [0, 0]
+    for rec in recs:
+        assert_step_sane(rec)
+    assert_values_in_range(s)
+    a = s.current_values()["albedo"]
+    assert a.min() >= ALBEDO_MIN - 1e-9 and np.any(a != start)
+    report(f"black albedo, T 0.75 ({loss})", nonfinite_grads=[r["nonfinite_grads"] for r in recs],
+           albedo_max=float(a.max()))
+
+
 def test_nonfinite_gradient_entries_are_counted_dropped_and_never_reach_a_parameter(box):
     """Hard case: NaN, +Inf and -Inf gradient entries (as a NaN-prone BSDF lobe would produce) in the maps
     and in the pose of a Stage 1 step.

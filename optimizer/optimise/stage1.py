@@ -35,7 +35,7 @@ import numpy as np
 
 from optimizer.rendering import scene as scn
 from optimizer.optimise.adam import Adam, blur_texels, dr_numpy
-from optimizer.rendering.appearance import MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf, pose_record, world_positions
+from optimizer.rendering.appearance import ALBEDO_MIN, MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf, pose_record, world_positions
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
 from camo_base import seeds
@@ -172,6 +172,8 @@ class Stage1:
             self.values, self.warm_start_info = warm_start_albedo(
                 self.values, self.geometry, app, env, cams, self.shading_integrator(), self.targets.background,
                 self.targets.coverage, cfg.target_spp, target_seed(cfg.seed), log)
+        # A zero albedo channel has an infinite gradient under transmission (appearance.ALBEDO_MIN): start above it.
+        self.values["albedo"] = np.clip(self.values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         self.opt = Adam(app.learning_rates())
         for name in app.trainable():
             v = self.values[name]

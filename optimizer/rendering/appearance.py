@@ -44,6 +44,13 @@ from optimizer.scenes.scenepack import MaterialSpec, ObjectSpec
 
 MAPS = ("albedo", "metallic", "roughness", "transmittance")
 
+#: Smallest albedo value a channel may take. Mitsuba's principled BSDF tints its specular transmission by
+#: ``sqrt(base_color)``, whose slope is infinite at 0: with ``spec_trans > 0`` a channel at exactly 0 gets an
+#: infinite (or NaN) gradient. The sanitiser zeroes it, so such a texel could never leave 0, and the NaN reached
+#: the pose's gradient through the shared vertex graph (one step in two lost its rotation update on meadow; the
+#: warm start clips 13 % of meadow's seen texels at 0). At 1e-3 the slope is ~16 and the colour is black in 8 bit.
+ALBEDO_MIN = 1e-3
+
 
 @dataclasses.dataclass
 class AppearanceConfig:
@@ -218,7 +225,8 @@ class Geometry:
 
 
 def clamp_projections(cfg: AppearanceConfig, size: float) -> dict[str, Any]:
-    """Per-parameter projections applied after each Adam step (maps to [0, 1], d to [-1, 1], dt clipped)."""
+    """Per-parameter projections applied after each Adam step (maps to [0, 1] -- albedo to [ALBEDO_MIN, 1] --,
+    d to [-1, 1], dt clipped)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -226,6 +234,9 @@ def clamp_projections(cfg: AppearanceConfig, size: float) -> dict[str, Any]:
 
     def unit(x):
         return dr.clip(dr.select(dr.isfinite(x), x, 0.0), 0.0, 1.0)
+
+    def colour(x):  # albedo: [ALBEDO_MIN, 1] (the principled BSDF's sqrt tint has an infinite slope at 0)
+        return dr.clip(dr.select(dr.isfinite(x), x, ALBEDO_MIN), ALBEDO_MIN, 1.0)
 
     def signed(x):
         return dr.clip(dr.select(dr.isfinite(x), x, 0.0), -1.0, 1.0)
@@ -243,7 +254,7 @@ def clamp_projections(cfg: AppearanceConfig, size: float) -> dict[str, Any]:
         x = dr.select(ok, x, 0.0)
         return dr.clip(x - 2 * math.pi * dr.round(x / (2 * math.pi)), -math.pi, math.pi)
 
-    return {"albedo": unit, "metallic": unit, "roughness": unit, "transmittance": unit,
+    return {"albedo": colour, "metallic": unit, "roughness": unit, "transmittance": unit,
             "displacement": signed, "translation": offset, "rotation": angle}
 
 
