@@ -3,7 +3,8 @@
 For each scene and variant (default: ``fast``, the default preset, and ``paper``, the paper's schedule) one
 ``camo optimize`` run is made at the demo's sizes with ``--snapshot-every N``; every snapshot (the parameters
 after N iterations, with the wall-clock seconds of the optimisation so far: warm start + Stage 1 + Stage 2
-iterations, set-up excluded, as ``summary.json`` records them) is then scored exactly like ``camo evaluate``:
+iterations and held-out checks, set-up excluded, as ``summary.json`` records them) and the run's result (with
+held-out selection, the chosen iterate; ``kind = result`` in the CSV, a star in the plot) are then scored exactly like ``camo evaluate``:
 rendered on jittered novel views (``--eval-views``, default 8, +-0.25 at radius 4, seed 0) at ``--eval-spp``
 (default 64) with the evaluation path tracer, 8-bit sRGB, GANmouflage object crop, mean over views of crop
 PSNR, SSIM, LPIPS-proxy and SIFID-proxy. All variants of a scene share the background render and cameras.
@@ -147,9 +148,10 @@ def final_values(run_dir: Path) -> dict[str, np.ndarray]:
 
 
 def at_mark(rows: list[dict], mark: float) -> dict | None:
-    """The last snapshot taken within ``mark`` seconds (a finished run counts with its final snapshot)."""
+    """The last snapshot taken within ``mark`` seconds; a run finished within the mark counts with its result (with
+    held-out selection, the chosen iterate, which may be older than its last snapshot)."""
     inside = [r for r in rows if r["seconds"] <= mark + 1e-9]
-    return max(inside, key=lambda r: r["seconds"]) if inside else None
+    return max(inside, key=lambda r: (r["seconds"], r.get("kind") == "result")) if inside else None
 
 
 def plot(rows: list[dict], out: Path) -> None:
@@ -164,9 +166,17 @@ def plot(rows: list[dict], out: Path) -> None:
         for j, metric in enumerate(("psnr", "lpips_proxy")):
             ax = axes[i, j]
             for var in dict.fromkeys(r["variant"] for r in rows if r["scene"] == sc):
-                pts = sorted((r["seconds"], r[metric]) for r in rows if r["scene"] == sc and r["variant"] == var)
-                xs, ys = zip(*pts)
-                ax.plot(xs, ys, "o-" if len(xs) > 1 else "s", label=var, ms=3)
+                mine = [r for r in rows if r["scene"] == sc and r["variant"] == var]
+                pts = sorted((r["seconds"], r[metric]) for r in mine if r.get("kind") != "result")
+                res = [(r["seconds"], r[metric]) for r in mine if r.get("kind") == "result"]
+                if pts:
+                    xs, ys = zip(*pts)
+                    line, = ax.plot(xs, ys, "o-" if len(xs) > 1 else "s", label=var, ms=3)
+                    colour = line.get_color()
+                else:
+                    colour = None
+                if res:  # the run's result (held-out selection: the chosen iterate): a star at the run's end
+                    ax.plot(*zip(*res), "*", ms=9, color=colour, label=None if pts else var)
             for m in MARKS:
                 ax.axvline(m, color="0.8", lw=0.8, zorder=0)
             ax.set_title(f"{sc}: crop {metric} ({'higher' if metric == 'psnr' else 'lower'} is better)", fontsize=9)
@@ -210,14 +220,18 @@ def main() -> None:
             scorer = scorer or Scorer(run_dir, args.eval_views, args.eval_spp)
             summary = json.loads((run_dir / "summary.json").read_text())
             if name in BASELINES:
-                snaps = [(final_values(run_dir), float(summary["seconds_method"]), 0, 0)]
+                snaps = [(final_values(run_dir), float(summary["seconds_method"]), 0, 0, "result")]
             else:
-                snaps = [snapshot_values(p) for p in sorted((run_dir / "snapshots").glob("*.npz"))]
-                snaps.sort(key=lambda s: s[1])
+                # every snapshot (the iterate at that time), then the run's result (with held-out selection: the
+                # chosen iterate) at the run's end: at equal seconds the result sorts last
+                snaps = [(*snapshot_values(p), "snapshot") for p in sorted((run_dir / "snapshots").glob("s*_*.npz"))]
+                if (run_dir / "snapshots" / "result.npz").is_file():
+                    snaps.append((*snapshot_values(run_dir / "snapshots" / "result.npz"), "result"))
+                snaps.sort(key=lambda s: (s[1], s[4] == "result"))
             img = None
-            for vals, secs, it, stage in snaps:
+            for vals, secs, it, stage, kind in snaps:
                 scores, img = scorer.score(run_dir, vals)
-                rows.append({"scene": scene, "variant": name, "stage": stage, "iteration": it,
+                rows.append({"scene": scene, "variant": name, "kind": kind, "stage": stage, "iteration": it,
                              "seconds": round(secs, 2), **{k: round(v, 4) for k, v in scores.items()}})
                 print(json.dumps(rows[-1]), flush=True)
             finals[(scene, name)] = wall
@@ -237,7 +251,7 @@ def main() -> None:
         for m in MARKS:
             r = at_mark(rs, m)
             cells.append(f"{r['psnr']:.2f} / {r['lpips_proxy']:.3f}" if r else "-")
-        last = max(rs, key=lambda r: r["seconds"])
+        last = max(rs, key=lambda r: (r["seconds"], r["kind"] == "result"))
         cells.append(f"{last['psnr']:.2f} / {last['lpips_proxy']:.3f} ({last['seconds']:.0f})")
         lines.append(f"| {scene} | {name} | " + " | ".join(cells) + " |")
     (out / "marks.md").write_text("\n".join(lines) + "\n")

@@ -44,6 +44,8 @@ OPTION_FIELDS: dict[str, str] = {
     "displacement_bound": "appearance.displacement_bound",
     "stages": "stages", "ablate": "ablate", "time_budget": "time_budget", "checkpoint_every": "checkpoint_every",
     "snapshot_every": "snapshot_every", "no_planner": "planner", "shadow_gradients": "shadow_gradients",
+    "holdout_views": "holdout.views", "holdout_every": "holdout.every", "holdout_spp": "holdout.spp",
+    "patience": "holdout.patience",
 }
 
 #: What an absent option means, for the options whose absence is a fixed value (not the pack's or the preset's):
@@ -72,7 +74,7 @@ def register(sub) -> None:
     p.add_argument("--preset", choices=("fast", "paper"),
                    help="fast (default): least-squares albedo warm start, transmittance start 0.75, squared-error loss, "
                         "proximal L1 step on the displacement, map gradients blurred by 2 texels, 60 + 4 "
-                        "iterations; paper: the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / "
+                        "iterations, the best iterate on 4 held-out views is the result; paper: the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / "
                         "1e-1, 50 + 20 iterations, silhouette term on every view). Explicit flags override either")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
@@ -87,6 +89,14 @@ def register(sub) -> None:
                         "and 0: off); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
+    p.add_argument("--holdout-views", type=int, metavar="N",
+                   help="held-out jittered views (own seed stream, never the evaluation's) that pick the result among "
+                        "the iterates checked every --holdout-every iterations and at each stage's end (fast: 4; paper "
+                        "and 0: the last iterate is the result)")
+    p.add_argument("--holdout-every", type=int, metavar="N", help="iterations between held-out checks (fast: 10)")
+    p.add_argument("--holdout-spp", type=int, metavar="N", help="samples per pixel of the held-out renders (fast: 16)")
+    p.add_argument("--patience", type=int, metavar="N",
+                   help="stop Stage 1 after N held-out checks in a row without a better iterate (default 0: never)")
     p.add_argument("--iterations", type=int, help="Stage 1 iterations (paper: 50, fast: 60)")
     p.add_argument("--resolution", type=int, help="render width = height in pixels (default: the pack's)")
     p.add_argument("--spp", type=int, help="samples per pixel of each training render (default 4; the run spec's spp.train)")
@@ -214,6 +224,7 @@ def spec_from_args(args):
     from camo.cli import load_scene_arg, parse_ablate
     from optimizer.optimise.run import appearance_for
     from optimizer.optimise.schedule import PRESETS
+    from optimizer.optimise.holdout import HoldoutSettings
     from optimizer.optimise.spec import RunSpec, SppSettings, resolve_method
     from optimizer.optimise.stage1 import Stage1Settings
     from optimizer.optimise.stage2 import Stage2Settings
@@ -242,7 +253,8 @@ def spec_from_args(args):
     if "transmittance" in ablate or "bsdf" in ablate:
         pack.material = dataclasses.replace(pack.material, transmittance=0.0)
     # every other option sets its field as given: group them by table
-    tables: dict[str, dict[str, Any]] = {"": {}, "spp": {}, "stage1": {}, "stage2": {}, "appearance": {}, "options": {}}
+    tables: dict[str, dict[str, Any]] = {"": {}, "spp": {}, "stage1": {}, "stage2": {}, "appearance": {}, "holdout": {},
+                                         "options": {}}
     for d, value in given.items():
         if d not in _SPECIAL:
             head, _, rest = option_field(method, d).partition(".")
@@ -253,6 +265,7 @@ def spec_from_args(args):
     app = appearance_for(ablate, dataclasses.replace(AppearanceConfig(), **preset["appearance"]))
     app = dataclasses.replace(app, **tables["appearance"])
     s1 = dataclasses.replace(Stage1Settings(**preset["stage1"]), **tables["stage1"])
+    holdout = dataclasses.replace(HoldoutSettings(**preset["holdout"]), **tables["holdout"])
     s2 = dataclasses.replace(Stage2Settings(**preset["stage2"]), **tables["stage2"],
                              displacement=not args.stage2_fixed_displacement)
     if args.time_budget and args.iterations is None:
@@ -278,7 +291,7 @@ def spec_from_args(args):
         options = _set_option(options, path.split("."), value)
     spec = RunSpec(scene=args.scene, pack=pack, method=method_name, preset=preset_name, stages=stages,
                    ablate=tuple(ablate), planner=not args.no_planner, rough_start=preset_name == "fast" and "roughness" not in init, spp=SppSettings(**tables["spp"]),
-                   stage1=s1, stage2=s2, appearance=app, options=options, **tables[""])
+                   stage1=s1, stage2=s2, appearance=app, holdout=holdout, options=options, **tables[""])
     # what the method does not read goes back to its default (the preset's values for `ours` among them): the spec
     # records only what the method reads; every option given was checked above to be read
     return spec.normalised().validate(field_names(method))

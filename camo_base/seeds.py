@@ -24,6 +24,13 @@ reproduce bit for bit (s = the run seed, e = the evaluation seed, i = iteration,
     baseline            s                                         Owens 2014 (random order, greedy ties), GANmouflage
                                                                   (torch and NumPy generators)
     diffusion2d         s + v                                     diffusion2d: the inpainter for view v
+    holdout_cameras     7919 s + 271                              the jitter of a run's held-out views (added
+                                                                  2026-11-26; never the evaluation's stream, so a
+                                                                  run never selects on the test views unless an
+                                                                  evaluation seed happens to equal 7919 s + 271)
+    holdout_render      7919 s + 977 + pair                       every held-out render; pair 0 and 1 are the two
+                                                                  independent pairs of a check (each pair: with and
+                                                                  without the object, one seed)
     evaluation_cameras  e                                         the jitter of the evaluation's novel views
     evaluation_render   (7919 e + 104729) & 0x7FFFFFFF            every evaluation render (all runs, background and
                                                                   with-object images alike)
@@ -89,6 +96,10 @@ STREAMS: dict[str, Stream] = {s.name: s for s in (
     Stream("stage2_inpaint", "Stage 2: the inpainter", run=977, indices=(("iteration", 1),)),
     Stream("baseline", "Owens 2014 orders and ties, GANmouflage's generators"),
     Stream("diffusion2d", "diffusion2d: the inpainter, per view", indices=(("view", 1),)),
+    Stream("holdout_cameras", "jitter of a run's held-out views (optimizer/optimise/holdout.py)", run=7919,
+           offset=271),
+    Stream("holdout_render", "every held-out render of a run (background and with-object alike), per pair",
+           run=7919, offset=977, indices=(("pair", 1),)),
     Stream("evaluation_cameras", "jitter of the evaluation's novel views", source="evaluation"),
     Stream("evaluation_render", "every evaluation render", run=7919, offset=104729, mask=MASK31, source="evaluation"),
     Stream("observer", "the simulated observer, per stimulus", indices=(("stimulus", 7919),), source="evaluation"),

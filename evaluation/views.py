@@ -91,13 +91,6 @@ class EvalCameras:
         return hashlib.sha256(blob).hexdigest()[:12]
 
 
-def rig_radius(pack, training: list[Camera]) -> float:
-    """The rig's radius: the orbit radius, or the mean camera-target distance of a camera list."""
-    if pack.cameras.mode == "orbit":
-        return float(pack.cameras.radius)
-    return float(np.mean([math.dist(c.origin, c.target) for c in training]))
-
-
 def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_JITTER, seed: int = 0,
                        resolution: tuple[int, int] | None = None) -> EvalCameras:
     """Jittered novel views of ``pack``'s training cameras.
@@ -107,7 +100,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
     Every training camera's jitter is drawn in the same order whatever ``views`` is, so a smaller evaluation
     is a subset of a larger one.
     """
-    from optimizer.scenes.cameras import cameras, jitter as jitter_cams
+    from optimizer.scenes.cameras import cameras, jitter as jitter_cams, rig_radius
 
     if not (isinstance(jitter, (int, float)) and math.isfinite(jitter)) or jitter <= 0:
         raise CamoError(f"--jitter must be > 0 (evaluation never uses the training cameras), got {jitter}")

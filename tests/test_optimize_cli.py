@@ -485,7 +485,8 @@ def test_every_flag_lands_in_its_spec_field():
             "--domain", "frame", "--loss", "mse", "--map-resolution", "40", "--displacement-resolution", "20",
             "--target-vertices", "500", "--views", "3", "--resolution", "16", "--spp", "3", "--target-spp", "9",
             "--seed", "8", "--preset", "paper", "--no-planner", "--shadow-gradients", "--stages", "1,2", "--ablate",
-            "pose", "--init", "albedo=0.3", "--iterations", "5", "--stage2-iterations", "6", "--method", "ours"]
+            "pose", "--init", "albedo=0.3", "--iterations", "5", "--stage2-iterations", "6", "--method", "ours",
+            "--holdout-views", "3", "--holdout-every", "7", "--holdout-spp", "5", "--patience", "2"]
     assert {a[2:].replace("-", "_") for a in argv if a.startswith("--")} - {"out"} == set(OPTION_FIELDS)
     d = spec_of(*argv).to_dict()
     assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
@@ -501,6 +502,7 @@ def test_every_flag_lands_in_its_spec_field():
     app = d["appearance"]
     assert (app["lr_maps"], app["lr_displacement"], app["displacement_bound"], app["map_resolution"],
             app["displacement_resolution"], app["pose"], app["grad_blur"]) == (0.02, 0.03, 0.01, 40, 20, False, 1.5)
+    assert d["holdout"] == {"views": 3, "every": 7, "spp": 5, "patience": 2}
     pack = d["pack"]
     assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}
     assert pack["object"]["target_vertices"] == 500 and pack["material"]["albedo"] == [0.3, 0.3, 0.3]

@@ -27,6 +27,8 @@ def old_formulas(s: int, it: int, v: int, k: int) -> dict[str, int | list[int]]:
         "stage2_inpaint": s * 977 + it,
         "baseline": s,  # owens2014.compute, ganmouflage.compute
         "diffusion2d": s + v,  # diffusion2d.inpaint_views
+        "holdout_cameras": s * 7919 + 271,  # new streams (2026-11-26): optimizer/optimise/holdout.py
+        "holdout_render": s * 7919 + 977,  # pair 0 (pair 1: + 1)
         "evaluation_cameras": s,  # evaluation/views.py evaluation_cameras
         "evaluation_render": (s * 7919 + 104729) & 0x7FFFFFFF,  # evaluation/views.py render_seed
         "observer": s + 7919 * k,  # evaluation/observer.py predict_entries
@@ -35,7 +37,7 @@ def old_formulas(s: int, it: int, v: int, k: int) -> dict[str, int | list[int]]:
 
 def current(name: str, s: int, it: int, v: int, k: int):
     st = seeds.stream(name)
-    idx = {"iteration": it, "view": v, "stimulus": k}
+    idx = {"iteration": it, "view": v, "stimulus": k, "pair": 0}
     return seeds.entropy(name, s, **{n: idx[n] for n, _ in st.indices})
 
 
@@ -61,7 +63,8 @@ def test_aliases_share_the_numbers_of_targets():
 def run_streams(method: str) -> tuple[str, ...]:
     """The sampler-seed streams a run of ``method`` draws from (one process, one run seed)."""
     common = ("targets", "final_render")
-    return {"ours": (*common, "step", "step_grad", "stage2_render", "stage2_inpaint"),
+    return {"ours": (*common, "step", "step_grad", "stage2_render", "stage2_inpaint", "holdout_cameras",
+                     "holdout_render"),
             "owens": (*common, "baseline_white", "baseline"),
             "diffusion2d": (*common, "baseline_white", "diffusion2d"),
             "ganmouflage": (*common, "baseline_white", "baseline")}[method]
@@ -74,9 +77,9 @@ def test_streams_of_one_run_differ_for_seeds_from_1(method):
         for name in run_streams(method):
             names = {n for n, _ in seeds.stream(name).indices}
             its = range(200) if "iteration" in names else (0,)
-            views = range(32) if "view" in names else (0,)
+            views = range(32) if "view" in names else range(2) if "pair" in names else (0,)
             for it, v in itertools.product(its, views):
-                idx = {"iteration": it, "view": v}
+                idx = {"iteration": it, "view": v, "pair": v}
                 value = seeds.seed(name, s, **{n: idx[n] for n in names})
                 prev = used.setdefault(value, (name, it, v))
                 assert prev[0] == name, (s, value, prev, (name, it, v))

@@ -25,6 +25,7 @@ from camo_base.errors import CamoError
 from camo_base.provenance import versions
 from optimizer.assets.rundir import CHECKPOINT, LOG, prepare_run_dir, write_config, write_log
 from optimizer.optimise.finish import finish
+from optimizer.optimise.holdout import Holdout
 from optimizer.optimise.spec import RunSpec
 from optimizer.optimise.stage1 import Stage1
 from optimizer.rendering.appearance import AppearanceConfig
@@ -104,7 +105,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
         if str(state.get("fingerprint", "")) != fingerprint:
             raise CamoError(f"--resume: {out} was made with a different configuration; start a new run instead")
     resume_stage = int(state["stage"]) if state is not None and "stage" in state else 1
-    if state is not None and resume_stage == 2 and not spec.time_budget and \
+    if state is not None and resume_stage == 2 and not spec.time_budget and not spec.holdout.patience and \
             int(state.get("stage1_iterations", -1)) != spec.stage1.iterations:
         raise CamoError(f"--resume: {out} finished Stage 1 with {int(state.get('stage1_iterations', -1))} iterations; "
                         f"it cannot continue with --iterations {spec.stage1.iterations} (start a new run)")
@@ -138,6 +139,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
     budget1 = stage1_budget(spec)
     s1cfg = spec.stage1_config(time_budget=budget1)
     s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say)
+    hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
     warm_seconds = s1.warm_start_info.seconds if s1.warm_start_info else 0.0
     setup_seconds = time.perf_counter() - t_setup - warm_seconds
     if budget1:
@@ -149,6 +151,9 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
             s1.load_checkpoint_state(state)  # validates keys, shapes and values (CamoError)
         else:
             _check_stage2_checkpoint(state, s1)
+        if hold is not None:
+            hold.load_state(state)
+            s1.stop_requested = resume_stage == 1 and hold.patience_spent()
         history = _read_log(out / LOG, s1.iteration if resume_stage == 1 else None,
                             int(state["iteration"]) if resume_stage == 2 else None)
         s1.elapsed = stage_seconds(history, 1)
@@ -161,12 +166,15 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
                                        "fingerprint": {"value": fingerprint}})
     write_log(out, history)
 
+    def held(extra=None):  # checkpoint entries: a stage's own plus the held-out views' best iterate
+        return {**(extra or {}), **(hold.state() if hold is not None else {})}
+
     final_stage: Stage1 = s1
     with open(out / LOG, "a", encoding="utf-8") as log:
         if resume_stage == 1:
             _loop(s1, "stage 1", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint), spec.checkpoint_every,
-                  snapshots(out, spec.snapshot_every, clock))
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, held()), spec.checkpoint_every,
+                  snapshots(out, spec.snapshot_every, clock), hold, clock)
             values1 = s1.current_values()
         else:
             values1 = {k[len("stage1/"):]: v for k, v in state.items() if k.startswith("stage1/")}
@@ -190,13 +198,21 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
             extra = {f"stage1/{k}": v for k, v in values1.items()}
             extra["stage1_iterations"] = np.array(s1.iteration if resume_stage == 1 else int(state["stage1_iterations"]))
             _loop(s2, "stage 2", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, extra), spec.checkpoint_every,
-                  snapshots(out, spec.snapshot_every, clock))
+                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, held(extra)), spec.checkpoint_every,
+                  snapshots(out, spec.snapshot_every, clock), hold, clock)
             for v in sorted(s2.pseudo_np):
                 imaging.save_png(out / "stage2" / f"view_{v:02d}_pseudo_gt.png", s2.pseudo_np[v])
                 imaging.save_png(out / "stage2" / f"view_{v:02d}_strip.png", pseudo_gt_strip(s2, v))
             final_stage = s2
-    finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info)
+    values = hold.best if hold is not None and hold.best is not None else final_stage.current_values()
+    if spec.snapshot_every > 0:  # the result itself, at the run's end (with a holdout: the chosen iterate)
+        chosen = hold.best_check if hold is not None and hold.best_check else \
+            {"stage": final_stage.STAGE, "iteration": final_stage.iteration}
+        write_snapshot(out / "snapshots" / "result.npz", values,
+                       warm_seconds + stage_seconds(history, 1) + stage_seconds(history, 2),
+                       chosen["iteration"], chosen["stage"])
+    finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info, values=values,
+               holdout=hold.summary() if hold is not None else None)
     return out
 
 
@@ -225,28 +241,37 @@ def stage1_budget(spec: RunSpec) -> float | None:
 
 
 def stage_seconds(history: list[dict[str, Any]], stage: int) -> float:
-    """Wall-clock seconds of a stage's logged iterations (Stage 2: inpainting and its render included)."""
-    return float(sum(h.get("seconds_total", h.get("seconds", 0.0)) for h in history if h.get("stage") == stage))
+    """Wall-clock seconds of a stage's logged iterations (Stage 2: inpainting and its render included; held-out
+    checks included)."""
+    return float(sum(h.get("seconds_total", h.get("seconds", 0.0)) + h.get("seconds_holdout", 0.0)
+                     for h in history if h.get("stage") == stage))
 
 
 def snapshots(out: Path, every: int, clock: dict[str, float]):
     """A callback saving ``snapshots/sS_XXXX.npz`` (the parameters and the optimisation seconds so far) every
-    ``every`` iterations, or None. ``clock["offset"]``: seconds spent before this stage (warm start, Stage 1)."""
+    ``every`` iterations, or None (the run adds ``snapshots/result.npz``, its result, at the end). ``clock["offset"]``: seconds spent before this stage (warm start, Stage 1)."""
     if every <= 0:
         return None
 
     def save(stage: Stage1) -> None:
         if stage.iteration % every and not stage.done():
             return
-        vals = stage.current_values()
-        vals["seconds"] = np.array(clock["offset"] + stage.elapsed)
-        vals["iteration"] = np.array(stage.iteration)
-        vals["stage"] = np.array(stage.STAGE)
-        with atomic.atomic_path(out / "snapshots" / f"s{stage.STAGE}_{stage.iteration:04d}.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez_compressed(f, **vals)
+        write_snapshot(out / "snapshots" / f"s{stage.STAGE}_{stage.iteration:04d}.npz", stage.current_values(),
+                       clock["offset"] + stage.elapsed, stage.iteration, stage.STAGE)
 
     return save
+
+
+def write_snapshot(path: Path, values: dict[str, np.ndarray], seconds: float, iteration: int, stage: int) -> None:
+    """One snapshot file: the parameters, the optimisation seconds so far, and the iterate's stage and iteration
+    (``snapshots/result.npz``: the run's result, with the stage and iteration it was taken from)."""
+    vals = dict(values)
+    vals["seconds"] = np.array(seconds)
+    vals["iteration"] = np.array(iteration)
+    vals["stage"] = np.array(stage)
+    with atomic.atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **vals)
 
 
 def _check_stage2_checkpoint(state: dict[str, np.ndarray], s1: Stage1) -> None:
@@ -269,15 +294,35 @@ def _check_stage2_checkpoint(state: dict[str, np.ndarray], s1: Stage1) -> None:
 
 
 def _loop(stage: Stage1, label: str, progress: bool, log, history: list, checkpoint, every: int,
-          snapshot=None) -> None:
+          snapshot=None, holdout=None, clock: dict[str, float] | None = None) -> None:
+    """Run ``stage`` to its end: log, checkpoint and snapshot its steps; with ``holdout`` (a
+    :class:`~optimizer.optimise.holdout.Holdout`) check the held-out views when due (Stage 1's start, every
+    ``holdout.every`` iterations, each stage's end), count the check's seconds in the stage's clock and its log
+    record (``seconds_holdout``, ``holdout_mse``), and end Stage 1 early once its patience is spent."""
     from tqdm import tqdm
 
+    offset = (clock or {}).get("offset", 0.0)
+    pending = 0.0  # seconds of the check at Stage 1's start: logged with the first step
+    if holdout is not None and stage.iteration == 0 and stage.STAGE == 1:
+        pending = holdout.check(stage.current_values(), stage.STAGE, 0, offset + stage.elapsed)["check_seconds"]
+        stage.elapsed += pending
     iterations = stage.total_iterations
     if snapshot is not None and stage.iteration == 0:
         snapshot(stage)
     bar = tqdm(total=iterations, initial=stage.iteration, disable=not progress, desc=label, unit="it")
     while not stage.done():
         rec = stage.step()
+        if holdout is not None and holdout.due(stage.iteration, stage.done()):
+            chk = holdout.check(stage.current_values(), stage.STAGE, stage.iteration,
+                                (clock or {}).get("offset", 0.0) + stage.elapsed)
+            stage.elapsed += chk["check_seconds"]
+            rec["holdout_mse"] = chk["mse"]
+            rec["seconds_holdout"] = chk["check_seconds"] + pending
+            pending = 0.0
+            if stage.STAGE == 1 and holdout.patience_spent():
+                stage.stop_requested = True
+        elif pending:
+            rec["seconds_holdout"], pending = pending, 0.0
         history.append(rec)
         log.write(json.dumps(rec) + "\n")
         log.flush()
@@ -303,12 +348,15 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
-               spec: RunSpec, warm=None) -> None:
-    """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``)."""
+               spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
+               holdout: dict[str, Any] | None = None) -> None:
+    """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
+    the result's parameters (default: the last stage's current ones; the held-out views' best iterate when
+    ``holdout``, their summary, is given)."""
     from optimizer.assets.result import Result
 
-    res = Result(pack, env, s1.cams, s1.geometry, s1.current_values(), s1.app, s1.shading_integrator(),
-                 s1.cfg.target_spp, s1.targets)
+    res = Result(pack, env, s1.cams, s1.geometry, s1.current_values() if values is None else values, s1.app,
+                 s1.shading_integrator(), s1.cfg.target_spp, s1.targets)
     warm_s = float(warm.seconds) if warm is not None else 0.0
     s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
     # wall-clock seconds of the optimisation: Stage 1 = warm start + its iterations, Stage 2 = its iterations
@@ -317,4 +365,4 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
                "optimisation": warm_s + s1_s + s2_s}
     finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
            extra={"preset": spec.preset, "time_budget": spec.time_budget,
-                  "warm_start": warm.to_dict() if warm is not None else None})
+                  "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout})

@@ -20,6 +20,8 @@ A :class:`RunSpec` is what a run *is*. ``camo optimize`` only fills one from its
     [stage1]       Stage1Settings (optimizer.optimise.stage1)
     [stage2]       Stage2Settings (optimizer.optimise.stage2)
     [appearance]   AppearanceConfig (optimizer.rendering.appearance)
+    [holdout]      HoldoutSettings (optimizer.optimise.holdout): held-out views that pick the result among the
+                   iterates (views 0: off, the paper's last iterate)
     [options]      the method's own options (its dataclass, :attr:`Method.options`); ours and transparent have none
     [pack]         the resolved scene pack (--resolution, --views, --target-vertices, --init and the preset's
                    starting material applied)
@@ -42,6 +44,7 @@ from typing import Any, Callable, Mapping
 
 from camo_base.errors import CamoError
 from optimizer.assets.rundir import CONFIG_VERSION, config_fingerprint
+from optimizer.optimise.holdout import HoldoutSettings
 from optimizer.optimise.stage1 import Stage1Config, Stage1Settings
 from optimizer.optimise.stage2 import Stage2Config, Stage2Settings
 from optimizer.rendering.appearance import AppearanceConfig
@@ -168,6 +171,7 @@ class RunSpec:
     stage1: Stage1Settings = dataclasses.field(default_factory=Stage1Settings)
     stage2: Stage2Settings = dataclasses.field(default_factory=Stage2Settings)
     appearance: AppearanceConfig = dataclasses.field(default_factory=AppearanceConfig)
+    holdout: HoldoutSettings = dataclasses.field(default_factory=HoldoutSettings)
     options: Any = None  # the method's options dataclass (None: its defaults, or the method has none)
 
     def __post_init__(self) -> None:
@@ -320,6 +324,12 @@ class RunSpec:
                   "appearance.displacement_resolution", "options.iterations"):
             at_least(p, 1)
         at_least("snapshot_every", 0)
+        for p in ("holdout.views", "holdout.patience"):
+            at_least(p, 0)
+        for p in ("holdout.every", "holdout.spp"):
+            at_least(p, 1)
+        if m.reads_path("holdout") and self.holdout.patience and not self.holdout.views:
+            raise CamoError(f"{name('holdout.patience')} needs held-out views ({name('holdout.views')} >= 1)")
         at_least("pack.object.target_vertices", 100)
         within("appearance.displacement_bound", 0.0, 0.5)
         within("appearance.lr_maps", 0.0, 10.0, lo_open=True)
@@ -360,7 +370,7 @@ class RunSpec:
 # --------------------------------------------------------------------------------------------------------------
 
 _TABLES: dict[str, type] = {"spp": SppSettings, "stage1": Stage1Settings, "stage2": Stage2Settings,
-                            "appearance": AppearanceConfig}
+                            "appearance": AppearanceConfig, "holdout": HoldoutSettings}
 
 
 def plain(obj: Any) -> Any:

@@ -161,6 +161,7 @@ class Stage1:
         self.elapsed = 0.0  # seconds of this stage's iterations so far (the schedule's clock)
         self.total_iterations = cfg.iterations  # the schedule's length (Stage 2 sets its own)
         self.time_budget = cfg.time_budget
+        self.stop_requested = False  # set by the run loop (held-out patience spent): the stage ends after this step
         self.history: list[dict[str, Any]] = []
         if targets is None:
             log("rendering background targets and the loss domain")
@@ -414,8 +415,8 @@ class Stage1:
         return lr_scale(p, self.cfg.lr_schedule, self.cfg.lr_floor)
 
     def done(self) -> bool:
-        """All iterations taken, or the stage's time budget spent."""
-        if self.iteration >= self.total_iterations:
+        """All iterations taken, the stage's time budget spent, or a stop requested (held-out patience)."""
+        if self.stop_requested or self.iteration >= self.total_iterations:
             return True
         return bool(self.time_budget) and self.elapsed >= self.time_budget
 

@@ -63,6 +63,13 @@ def cameras(pack: "ScenePack", resolution: tuple[int, int] | None = None) -> lis
     return [Camera(tuple(p), tuple(t), c.fov, w, h) for p, t in zip(camera_positions(pack), targets)]
 
 
+def rig_radius(pack: "ScenePack", training: list[Camera]) -> float:
+    """The rig's radius: the orbit radius, or the mean camera-target distance of a camera list."""
+    if pack.cameras.mode == "orbit":
+        return float(pack.cameras.radius)
+    return float(np.mean([math.dist(c.origin, c.target) for c in training]))
+
+
 def jitter(cams: list[Camera], amount: float, radius: float, seed: int, repeats: int = 1) -> list[Camera]:
     """Novel views: each camera (``repeats`` times) moved by U(-a, a) per axis, a = amount * radius / 4.
 
