@@ -34,7 +34,7 @@ OPTION_FIELDS: dict[str, str] = {
     "spp": "spp.train", "target_spp": "spp.target",
     "iterations": "stage1.iterations", "loss": "stage1.loss", "domain": "stage1.domain",
     "silhouette_every": "stage1.silhouette_every", "warm_start": "stage1.warm_start",
-    "lr_schedule": "stage1.lr_schedule",
+    "lr_schedule": "stage1.lr_schedule", "pose_search": "stage1.pose_search",
     "stage2_iterations": "stage2.iterations", "stage2_backend": "stage2.backend", "stage2_strength": "stage2.strength",
     "stage2_fixed_displacement": "stage2.displacement", "sdxl_path": "stage2.sdxl_path",
     "controlnet_path": "stage2.controlnet_path",
@@ -74,7 +74,7 @@ def register(sub) -> None:
     p.add_argument("--preset", choices=("fast", "paper"),
                    help="fast (default): least-squares albedo warm start, transmittance start 0.75, squared-error loss, "
                         "proximal L1 step on the displacement, map gradients blurred by 2 texels, 60 + 4 "
-                        "iterations, the best iterate on 4 held-out views is the result; paper: the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / "
+                        "iterations, a 16-turn pose search first, the best iterate on 4 held-out views is the result; paper: the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / "
                         "1e-1, 50 + 20 iterations, silhouette term on every view). Explicit flags override either")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; "
@@ -89,6 +89,9 @@ def register(sub) -> None:
                         "and 0: off); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
+    p.add_argument("--pose-search", type=int, metavar="N",
+                   help="before Stage 1, try N turns of the object about the vertical axis and start from the one whose "
+                        "shadow and reflections change the ground least (fast: 16; paper and 0: off)")
     p.add_argument("--holdout-views", type=int, metavar="N",
                    help="held-out jittered views (own seed stream, never the evaluation's) that pick the result among "
                         "the iterates checked every --holdout-every iterations and at each stage's end (fast: 4; paper "

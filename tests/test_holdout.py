@@ -265,3 +265,29 @@ def test_presets_say_whether_the_holdout_picks_the_result():
 
     assert PRESETS["paper"]["holdout"] == {}
     assert PRESETS["fast"]["holdout"]["views"] >= 1
+
+
+def test_nonfinite_held_out_renders_score_finite_and_never_win_by_accident():
+    """Hard case: a held-out render with NaN and +-Inf pixels (a NaN-prone BSDF lobe, a firefly). sRGB encoding reads
+    NaN as black and clips Inf to white (as an 8-bit image would), so the score stays finite; an iterate whose render
+    is all NaN scores as a black object and loses to a close match."""
+    from optimizer.scenes.builtin_scenes import resolve_scene
+
+    bg = np.full((1, 2, 2, 3), 0.2, np.float32)
+
+    def render(values, cams, spp, seed):
+        kind = int(values["x"][0])
+        img = bg.copy()
+        if kind == 0:
+            img[0, 0, 0] = [np.nan, np.inf, -np.inf]
+        elif kind == 1:
+            img[:] = np.nan
+        else:
+            img[0, 0, 0] += 0.01
+        return img
+
+    h = Holdout(HoldoutSettings(views=1), resolve_scene("gravel"), 0, render, lambda cams, spp, seed: bg,
+                lambda values, cams: np.ones((1, 2, 2)), 0.05, 0.0)
+    recs = [h.check({"x": np.array([k])}, 1, k, 0.0) for k in range(3)]
+    assert all(math.isfinite(r["mse"]) and math.isfinite(r["psnr"]) for r in recs)
+    assert int(h.best["x"][0]) == 2

@@ -140,7 +140,9 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
     s1cfg = spec.stage1_config(time_budget=budget1)
     s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say)
     hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
-    warm_seconds = s1.warm_start_info.seconds if s1.warm_start_info else 0.0
+    # seconds before Stage 1's first step that count as optimisation: the pose search and the warm start
+    warm_seconds = (s1.warm_start_info.seconds if s1.warm_start_info else 0.0) + \
+        (s1.pose_search_info.seconds if s1.pose_search_info else 0.0)
     setup_seconds = time.perf_counter() - t_setup - warm_seconds
     if budget1:
         s1.time_budget = max(budget1 - warm_seconds, 1e-3)  # the warm start is paid from Stage 1's budget
@@ -212,7 +214,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
                        warm_seconds + stage_seconds(history, 1) + stage_seconds(history, 2),
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info, values=values,
-               holdout=hold.summary() if hold is not None else None)
+               holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info)
     return out
 
 
@@ -349,7 +351,7 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
-               holdout: dict[str, Any] | None = None) -> None:
+               holdout: dict[str, Any] | None = None, pose=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
     the result's parameters (default: the last stage's current ones; the held-out views' best iterate when
     ``holdout``, their summary, is given)."""
@@ -358,11 +360,13 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
     res = Result(pack, env, s1.cams, s1.geometry, s1.current_values() if values is None else values, s1.app,
                  s1.shading_integrator(), s1.cfg.target_spp, s1.targets)
     warm_s = float(warm.seconds) if warm is not None else 0.0
+    pose_s = float(pose.seconds) if pose is not None else 0.0
     s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
-    # wall-clock seconds of the optimisation: Stage 1 = warm start + its iterations, Stage 2 = its iterations
-    # with their pseudo-ground-truth renders and inpainting (``seconds_iterations`` counts gradient steps only)
-    seconds = {"setup": setup_seconds, "warm_start": warm_s, "stage1": warm_s + s1_s, "stage2": s2_s,
-               "optimisation": warm_s + s1_s + s2_s}
+    # wall-clock seconds of the optimisation: Stage 1 = pose search + warm start + its iterations, Stage 2 = its
+    # iterations with their pseudo-ground-truth renders and inpainting (``seconds_iterations``: gradient steps only)
+    seconds = {"setup": setup_seconds, "warm_start": warm_s, "pose_search": pose_s, "stage1": pose_s + warm_s + s1_s,
+               "stage2": s2_s, "optimisation": pose_s + warm_s + s1_s + s2_s}
     finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
            extra={"preset": spec.preset, "time_budget": spec.time_budget,
-                  "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout})
+                  "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout,
+                  "pose_search": pose.to_dict() if pose is not None else None})

@@ -324,6 +324,7 @@ class RunSpec:
                   "appearance.displacement_resolution", "options.iterations"):
             at_least(p, 1)
         at_least("snapshot_every", 0)
+        at_least("stage1.pose_search", 0)
         for p in ("holdout.views", "holdout.patience"):
             at_least(p, 0)
         for p in ("holdout.every", "holdout.spp"):

@@ -64,6 +64,7 @@ class Stage1Settings:
     # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/schedule.PRESETS: the
     # default "fast" turns on the warm start)
     warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
+    pose_search: int = 0  # > 0: try this many turns about the vertical axis first (optimizer/optimise/posesearch.py)
     lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
 
@@ -163,6 +164,13 @@ class Stage1:
         self.time_budget = cfg.time_budget
         self.stop_requested = False  # set by the run loop (held-out patience spent): the stage ends after this step
         self.history: list[dict[str, Any]] = []
+        self.pose_search_info = None
+        if cfg.pose_search and "rotation" in app.trainable() and initial is None and targets is None:
+            from optimizer.optimise.posesearch import SPP, VIEWS, pose_search
+
+            self.values, self.pose_search_info = pose_search(
+                self.values, self.geometry, app, env, cams, self.shading_integrator(), cfg.pose_search, VIEWS, SPP,
+                seeds.seed("pose_search", cfg.seed), log)
         if targets is None:
             log("rendering background targets and the loss domain")
         self.targets = targets if targets is not None else self._targets()
