@@ -210,14 +210,18 @@ def test_warm_start_matches_the_background_better_than_grey(runs):
 
 
 def test_snapshots_have_increasing_seconds_and_the_final_values(runs):
-    snaps = sorted((runs["fast"] / "snapshots").glob("*.npz"))
+    snaps = sorted((runs["fast"] / "snapshots").glob("s*_*.npz"))
     assert [p.name for p in snaps] == ["s1_0000.npz", "s1_0001.npz", "s1_0002.npz", "s1_0003.npz", "s2_0000.npz",
                                        "s2_0001.npz"]
     secs = [float(np.load(p)["seconds"]) for p in snaps]
     assert all(b >= a for a, b in zip(secs, secs[1:])) and secs[0] > 0  # s1_0000 already paid the warm start
-    last = np.load(snaps[-1])
+    # the result (the held-out views' chosen iterate) is one of the snapshots, saved again as result.npz at the end
+    res = np.load(runs["fast"] / "snapshots" / "result.npz")
+    chosen = np.load(runs["fast"] / "snapshots" / f"s{int(res['stage'])}_{int(res['iteration']):04d}.npz")
     albedo = np.load(runs["fast"] / "maps" / "albedo.npy")
-    np.testing.assert_allclose(last["albedo"], albedo, atol=1e-6)
+    np.testing.assert_allclose(chosen["albedo"], albedo, atol=1e-6)
+    np.testing.assert_array_equal(res["albedo"], chosen["albedo"])
+    assert float(res["seconds"]) >= secs[-1]
     log = [json.loads(x) for x in (runs["fast"] / "log.jsonl").read_text().splitlines()]
     sched = _config(runs["fast"])["stage1"]["lr_schedule"]
     planned = {1: 3, 2: 1}

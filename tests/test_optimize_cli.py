@@ -503,7 +503,7 @@ def test_every_flag_lands_in_its_spec_field():
     app = d["appearance"]
     assert (app["lr_maps"], app["lr_displacement"], app["displacement_bound"], app["map_resolution"],
             app["displacement_resolution"], app["pose"], app["grad_blur"]) == (0.02, 0.03, 0.01, 40, 20, False, 1.5)
-    assert d["holdout"] == {"views": 3, "every": 7, "spp": 5, "patience": 2}
+    assert d["holdout"] == {"views": 3, "every": 7, "spp": 5, "patience": 2, "noise_spp": 64}
     pack = d["pack"]
     assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}
     assert pack["object"]["target_vertices"] == 500 and pack["material"]["albedo"] == [0.3, 0.3, 0.3]

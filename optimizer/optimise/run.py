@@ -304,16 +304,18 @@ def _loop(stage: Stage1, label: str, progress: bool, log, history: list, checkpo
     from tqdm import tqdm
 
     offset = (clock or {}).get("offset", 0.0)
-    pending = 0.0  # seconds of the check at Stage 1's start: logged with the first step
+    # seconds of the check at Stage 1's start: counted with the first step (so that a time budget below a step's
+    # cost still takes one step, as without checks)
+    pending = 0.0
     if holdout is not None and stage.iteration == 0 and stage.STAGE == 1:
         pending = holdout.check(stage.current_values(), stage.STAGE, 0, offset + stage.elapsed)["check_seconds"]
-        stage.elapsed += pending
     iterations = stage.total_iterations
     if snapshot is not None and stage.iteration == 0:
         snapshot(stage)
     bar = tqdm(total=iterations, initial=stage.iteration, disable=not progress, desc=label, unit="it")
     while not stage.done():
         rec = stage.step()
+        stage.elapsed += pending
         if holdout is not None and holdout.due(stage.iteration, stage.done()):
             chk = holdout.check(stage.current_values(), stage.STAGE, stage.iteration,
                                 (clock or {}).get("offset", 0.0) + stage.elapsed)
