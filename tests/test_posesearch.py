@@ -102,3 +102,23 @@ def test_bad_pose_search_is_a_one_line_error(tmp_path, capsys):
     assert main(["optimize", "gravel", "--out", str(tmp_path / "y"), "--quiet", "--method", "mean",
                  "--pose-search", "4"]) == 2
     assert "--pose-search does not apply to --method mean" in capsys.readouterr().err
+
+
+def test_a_resumed_run_keeps_the_turn_it_chose(tmp_path):
+    """The chosen turn travels in the checkpoint: a resumed run starts from it without searching again (renders at
+    more than one thread are not bit-stable, and the turn decides the loss domain); a corrupt record is a one-line
+    error."""
+    out = tmp_path / "run"
+    args = ["optimize", "gravel", "--out", str(out), *TINY, "--stages", "1", "--pose-search", "8",
+            "--holdout-views", "0", "--checkpoint-every", "1"]
+    assert main([*args, "--iterations", "1"]) == 0
+    first = json.loads((out / "summary.json").read_text())["pose_search"]
+    ck = dict(np.load(out / "checkpoint.npz"))
+    assert json.loads(str(ck["pose_search/info"]))["rotation"] == pytest.approx(first["rotation"])
+    assert main([*args, "--iterations", "2", "--resume"]) == 0
+    again = json.loads((out / "summary.json").read_text())["pose_search"]
+    assert again == first  # the same record, seconds included: nothing was searched again
+    ck["pose_search/info"] = np.array("{not json")
+    with open(out / "checkpoint.npz", "wb") as f:
+        np.savez(f, **ck)
+    assert main([*args, "--iterations", "3", "--resume"]) == 2

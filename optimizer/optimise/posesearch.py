@@ -49,7 +49,8 @@ class PoseSearchInfo:
 
     angles_deg: list[float]  # the turns tried, degrees
     scores: list[float]  # their scores (sRGB squared difference outside the object, summed over views, per pixel)
-    chosen_deg: float  # the initial theta, degrees
+    chosen_deg: float  # the best turn, degrees
+    rotation: float  # the initial theta it set, radians in [-pi, pi] (the turn added to the pose it started from)
     views: int
     spp: int
     seconds: float
@@ -110,8 +111,8 @@ def pose_search(values: dict[str, np.ndarray], geometry, app, env, cams: Sequenc
     best, thetas, scores = search_turn(angles, render, bg)
     out = dict(values)
     out["rotation"] = np.array([math.remainder(base + best, 2.0 * math.pi)], np.float32)
-    info = PoseSearchInfo([math.degrees(t) for t in thetas], scores, math.degrees(best), len(sub), spp,
-                          time.perf_counter() - t0)
+    info = PoseSearchInfo([math.degrees(t) for t in thetas], scores, math.degrees(best), float(out["rotation"][0]),
+                          len(sub), spp, time.perf_counter() - t0)
     log(f"pose search: {angles} turns, best {info.chosen_deg:.0f} deg (score {min(scores):.3g}, at 0 deg "
         f"{scores[0]:.3g}), {info.seconds:.1f} s")
     return out, info

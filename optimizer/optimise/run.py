@@ -138,7 +138,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
         say(f"note: initial roughness {advice}")
     budget1 = stage1_budget(spec)
     s1cfg = spec.stage1_config(time_budget=budget1)
-    s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say)
+    s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say, pose_search_info=checkpointed_turn(state))
     hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
     # seconds before Stage 1's first step that count as optimisation: the pose search and the warm start
     warm_seconds = (s1.warm_start_info.seconds if s1.warm_start_info else 0.0) + \
@@ -168,8 +168,9 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
                                        "fingerprint": {"value": fingerprint}})
     write_log(out, history)
 
-    def held(extra=None):  # checkpoint entries: a stage's own plus the held-out views' best iterate
-        return {**(extra or {}), **(hold.state() if hold is not None else {})}
+    def held(extra=None):  # checkpoint entries: a stage's own, the held-out views' best iterate, the chosen turn
+        turn = {"pose_search/info": np.array(json.dumps(s1.pose_search_info.to_dict()))} if s1.pose_search_info else {}
+        return {**(extra or {}), **(hold.state() if hold is not None else {}), **turn}
 
     final_stage: Stage1 = s1
     with open(out / LOG, "a", encoding="utf-8") as log:
@@ -216,6 +217,18 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
     finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info, values=values,
                holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info)
     return out
+
+
+def checkpointed_turn(state: dict[str, np.ndarray] | None):
+    """The turn search's record in a checkpoint (a resumed run starts from the same turn), or None."""
+    from optimizer.optimise.posesearch import PoseSearchInfo
+
+    if state is None or "pose_search/info" not in state:
+        return None
+    try:
+        return PoseSearchInfo(**json.loads(str(state["pose_search/info"])))
+    except (TypeError, ValueError):
+        raise CamoError("checkpoint is corrupt: bad pose_search/info") from None
 
 
 def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, str | None]:

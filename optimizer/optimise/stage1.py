@@ -148,9 +148,13 @@ class Stage1:
 
     def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
                  cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None,
-                 initial: dict[str, np.ndarray] | None = None, targets: Targets | None = None):
+                 initial: dict[str, np.ndarray] | None = None, targets: Targets | None = None,
+                 pose_search_info=None):
         """``initial`` overrides the paper's initial values (e.g. a Stage 1 result for Stage 2);
-        ``targets`` reuses background renders and the loss domain of an earlier stage."""
+        ``targets`` reuses background renders and the loss domain of an earlier stage; ``pose_search_info`` (a
+        resumed run's :class:`~optimizer.optimise.posesearch.PoseSearchInfo`) sets the turn the search chose
+        instead of searching again (the renders at more than one thread are not bit-stable, and the turn decides
+        the loss domain)."""
         import drjit as dr
         import mitsuba as mi
 
@@ -168,9 +172,13 @@ class Stage1:
         if cfg.pose_search and "rotation" in app.trainable() and initial is None and targets is None:
             from optimizer.optimise.posesearch import SPP, VIEWS, pose_search
 
-            self.values, self.pose_search_info = pose_search(
-                self.values, self.geometry, app, env, cams, self.shading_integrator(), cfg.pose_search, VIEWS, SPP,
-                seeds.seed("pose_search", cfg.seed), log)
+            if pose_search_info is not None:
+                self.values["rotation"] = np.array([pose_search_info.rotation], np.float32)
+                self.pose_search_info = pose_search_info
+            else:
+                self.values, self.pose_search_info = pose_search(
+                    self.values, self.geometry, app, env, cams, self.shading_integrator(), cfg.pose_search, VIEWS,
+                    SPP, seeds.seed("pose_search", cfg.seed), log)
         if targets is None:
             log("rendering background targets and the loss domain")
         self.targets = targets if targets is not None else self._targets()
