@@ -100,7 +100,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
     Every training camera's jitter is drawn in the same order whatever ``views`` is, so a smaller evaluation
     is a subset of a larger one.
     """
-    from optimizer.scenes.cameras import cameras, jitter as jitter_cams, rig_radius
+    from optimizer.scenes.cameras import cameras, evenly_spaced, jitter as jitter_cams, rig_radius
 
     if not (isinstance(jitter, (int, float)) and math.isfinite(jitter)) or jitter <= 0:
         raise CamoError(f"--jitter must be > 0 (evaluation never uses the training cameras), got {jitter}")
@@ -113,7 +113,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
     repeats = max(1, math.ceil(views / n_train))
     moved = jitter_cams(training, float(jitter), radius, seeds.seed("evaluation_cameras", int(seed)), repeats=repeats)
     if views <= n_train:
-        idx = sorted({int(round(i * n_train / views)) % n_train for i in range(views)})
+        idx = evenly_spaced(n_train, views)
     else:
         idx = list(range(views))
     cams = [moved[i] for i in idx]

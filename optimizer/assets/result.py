@@ -17,7 +17,7 @@ import numpy as np
 from camo_base import atomic, imaging, seeds
 from optimizer.assets import export, scene_xml
 from optimizer.rendering import scene as scn
-from optimizer.rendering.appearance import AppearanceConfig, Geometry, object_bsdf, pose_record, rendered_maps, world_positions
+from optimizer.rendering.appearance import AppearanceConfig, Geometry, object_bsdf, object_mesh, pose_record, rendered_maps, world_positions
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
 from optimizer.rendering.render import render_shaded
@@ -68,7 +68,7 @@ def plot_loss(path: Path, history: list[dict[str, Any]]) -> None:
 def render_result(res: Result, seed: int = 12345) -> np.ndarray:
     """Path-traced renders ``(V, H, W, 3)`` of the result in its scene."""
     g = res.geometry
-    mesh = scn.object_mesh(world_positions(g, res.values, res.app), g.faces, g.uvs, object_bsdf(res.values, res.app))
+    mesh = object_mesh(g, res.values, res.app)
     return render_shaded(res.env.build(), mesh, res.cams, res.integrator, res.spp, seed)
 
 

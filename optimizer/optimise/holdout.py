@@ -65,18 +65,14 @@ class HoldoutSettings:
 
 def holdout_cameras(pack, views: int, seed: int, resolution: tuple[int, int] | None = None) -> list:
     """``views`` jittered cameras of ``pack``'s training rig (evenly spaced over it), from stream ``holdout_cameras``."""
-    from optimizer.scenes.cameras import cameras, jitter, rig_radius
+    from optimizer.scenes.cameras import cameras, evenly_spaced, jitter, rig_radius
 
     training = cameras(pack, resolution)
     n = len(training)
     repeats = max(1, -(-views // n))
     moved = jitter(training, HOLDOUT_JITTER, rig_radius(pack, training), seeds.seed("holdout_cameras", seed),
                    repeats=repeats)
-    if views <= n:
-        idx = sorted({int(round(i * n / views)) % n for i in range(views)})
-    else:
-        idx = list(range(views))
-    return [moved[i] for i in idx]
+    return [moved[i] for i in (evenly_spaced(n, views) if views <= n else range(views))]
 
 
 def split_error(img1: np.ndarray, bg1: np.ndarray, img2: np.ndarray, bg2: np.ndarray,
@@ -130,14 +126,13 @@ class Holdout:
         """The held-out views of a :class:`~optimizer.optimise.stage1.Stage1` run (its scene, seed, path tracer,
         geometry and loss-domain rule)."""
         from optimizer.rendering import scene as scn
-        from optimizer.rendering.appearance import object_bsdf, world_positions
+        from optimizer.rendering.appearance import object_mesh
         from optimizer.rendering.render import coverage_and_depth, render_shaded
 
         integrator = stage.shading_integrator()
-        g = stage.geometry
 
         def mesh(values):
-            return scn.object_mesh(world_positions(g, values, stage.app), g.faces, g.uvs, object_bsdf(values, stage.app))
+            return object_mesh(stage.geometry, values, stage.app)
 
         def render(values, cams, spp, seed):
             return render_shaded(stage.env.build(), mesh(values), cams, integrator, spp, seed)
@@ -161,16 +156,14 @@ class Holdout:
     def check(self, values: dict[str, np.ndarray], stage: int, iteration: int, seconds: float) -> dict[str, Any]:
         """Score ``values`` (a stage's current parameters) and keep them if they are the best so far; returns the
         check's record ``{stage, iteration, seconds, mse, psnr, bias2, variance, best, check_seconds}`` (``mse``:
-        the score, module doc). ``seconds``: the run's
-        optimisation seconds at this point (for the record only)."""
+        the score, module doc). ``seconds``: the run's optimisation seconds at this point (for the record only)."""
         from optimizer.optimise.stage1 import influence_domain
 
         t0 = time.perf_counter()
         s = self.settings
-        seeds_ = self.render_seeds
-        img = [self._render(values, self.cams, s.spp, sd) for sd in seeds_]
+        img = [self._render(values, self.cams, s.spp, sd) for sd in self.render_seeds]
         if self.bg is None:  # first check: the backgrounds and the object+shadow domain of these views
-            self.bg = np.stack([self._background(self.cams, s.spp, sd) for sd in seeds_])
+            self.bg = np.stack([self._background(self.cams, s.spp, sd) for sd in self.render_seeds])
             cov = self._coverage(values, self.cams)
             px = max(1, round(self._dilate * max(self.cams[0].width, self.cams[0].height)))
             self.domain = np.stack([influence_domain(self.bg[0][v], img[0][v], cov[v], self._threshold, px)

@@ -88,21 +88,19 @@ def pose_search(values: dict[str, np.ndarray], geometry, app, env, cams: Sequenc
                 ) -> tuple[dict[str, np.ndarray], PoseSearchInfo]:
     """Return ``values`` with ``rotation`` set to the best of ``angles`` turns (module doc) and what was done."""
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.appearance import object_bsdf, world_positions
+    from optimizer.rendering.appearance import object_mesh
     from optimizer.rendering.render import coverage_and_depth, render_shaded
+    from optimizer.scenes.cameras import evenly_spaced
 
     t0 = time.perf_counter()
-    n = len(cams)
-    k = max(1, min(views, n))
-    sub = [cams[i] for i in sorted({int(round(j * n / k)) % n for j in range(k)})]
+    sub = [cams[i] for i in evenly_spaced(len(cams), max(1, min(views, len(cams))))]
     bg = render_shaded(env.build(), None, sub, integrator, spp, seed)
     base = float(values["rotation"][0])
     trial = {key: v for key, v in values.items()}
 
     def render(theta: float):
         trial["rotation"] = np.array([base + theta], np.float32)
-        mesh = scn.object_mesh(world_positions(geometry, trial, app), geometry.faces, geometry.uvs,
-                               object_bsdf(trial, app))
+        mesh = object_mesh(geometry, trial, app)
         img = render_shaded(env.build(), mesh, sub, integrator, spp, seed)
         sc = scn.build_scene(env.build(), mesh)
         cov = np.stack([coverage_and_depth(sc, c, mesh, ss=2)[0] for c in sub])

@@ -330,8 +330,7 @@ def _loop(stage: Stage1, label: str, progress: bool, log, history: list, checkpo
         rec = stage.step()
         stage.elapsed += pending
         if holdout is not None and holdout.due(stage.iteration, stage.done()):
-            chk = holdout.check(stage.current_values(), stage.STAGE, stage.iteration,
-                                (clock or {}).get("offset", 0.0) + stage.elapsed)
+            chk = holdout.check(stage.current_values(), stage.STAGE, stage.iteration, offset + stage.elapsed)
             stage.elapsed += chk["check_seconds"]
             rec["holdout_mse"] = chk["mse"]
             rec["seconds_holdout"] = chk["check_seconds"] + pending
@@ -368,8 +367,8 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
                holdout: dict[str, Any] | None = None, pose=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
-    the result's parameters (default: the last stage's current ones; the held-out views' best iterate when
-    ``holdout``, their summary, is given)."""
+    the result's parameters (default: the last stage's current ones); ``holdout`` and ``pose``: the held-out
+    views' and the turn search's records for ``summary.json``."""
     from optimizer.assets.result import Result
 
     res = Result(pack, env, s1.cams, s1.geometry, s1.current_values() if values is None else values, s1.app,

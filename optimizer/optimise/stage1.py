@@ -35,7 +35,7 @@ import numpy as np
 
 from optimizer.rendering import scene as scn
 from optimizer.optimise.adam import Adam, blur_texels, dr_numpy
-from optimizer.rendering.appearance import ALBEDO_MIN, MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_bsdf, pose_record, world_positions
+from optimizer.rendering.appearance import ALBEDO_MIN, MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_mesh, pose_record, world_positions
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
 from camo_base import seeds
@@ -204,8 +204,7 @@ class Stage1:
 
     # --- set-up -------------------------------------------------------------
     def _object(self):
-        g = self.geometry
-        return scn.object_mesh(world_positions(g, self.values, self.app), g.faces, g.uvs, object_bsdf(self.values, self.app))
+        return object_mesh(self.geometry, self.values, self.app)
 
     def shading_integrator(self) -> dict:
         """A path tracer consistent with the training integrator (same depth) for targets and final renders."""

@@ -272,6 +272,12 @@ def object_bsdf(values: dict[str, np.ndarray], app: AppearanceConfig) -> dict:
     return scn.principled(values["albedo"], values["metallic"], values["roughness"], values["transmittance"], app.eta)
 
 
+def object_mesh(geometry: Geometry, values: dict[str, np.ndarray], app: AppearanceConfig) -> dict:
+    """The object's Mitsuba mesh dict for parameter ``values``: world positions, UV faces, BSDF."""
+    return scn.object_mesh(world_positions(geometry, values, app), geometry.faces, geometry.uvs,
+                           object_bsdf(values, app))
+
+
 def world_positions(geometry: Geometry, values: dict[str, np.ndarray], app: AppearanceConfig) -> np.ndarray:
     """World positions ``(Nu, 3)`` of the UV-split mesh for parameter ``values``."""
     d = values["displacement"][..., 0] if app.displacement else None

@@ -63,6 +63,11 @@ def cameras(pack: "ScenePack", resolution: tuple[int, int] | None = None) -> lis
     return [Camera(tuple(p), tuple(t), c.fov, w, h) for p, t in zip(camera_positions(pack), targets)]
 
 
+def evenly_spaced(n: int, k: int) -> list[int]:
+    """Indices of ``k`` <= ``n`` cameras spread evenly over a rig of ``n`` (sorted, no repeats)."""
+    return sorted({int(round(i * n / k)) % n for i in range(k)})
+
+
 def rig_radius(pack: "ScenePack", training: list[Camera]) -> float:
     """The rig's radius: the orbit radius, or the mean camera-target distance of a camera list."""
     if pack.cameras.mode == "orbit":
