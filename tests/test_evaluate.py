@@ -209,17 +209,21 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     final = np.load(runs[0] / "renders.npz")["final"]
     cov = np.load(runs[0] / "renders.npz")["coverage"] > 0
 
-    def changed(x):  # fraction of the object's pixels that differ from the run's own final render
-        return float((np.abs(x - final).max(-1)[cov] > 1e-4).mean())
+    def error(x):  # mean absolute difference over the object's pixels from the run's own final render
+        return float(np.abs(x - final).max(-1)[cov].mean())
 
-    # Same scene, sampler seed and spp: equal up to the LLVM backend's rare cross-process differences
-    # (same-process renders are bit-exact; so far every re-render here was too).
-    assert changed(img) <= 0.02, changed(img)
-    # applying the safe minimum twice gives a visibly different object
+    # Same scene, sampler seed and spp. The LLVM backend's multi-thread renders are not bit-stable across
+    # processes (a few per cent of the object's pixels move by up to ~3e-3; measured mean ~1e-5), so the
+    # re-render is compared by its mean error against two yardsticks rendered here: applying the safe
+    # minimum twice (measured mean 5.7e-3) and a different sampler seed, i.e. the render noise (2.1e-2).
     wrong = dict(assets.values(), roughness=assets.maps["roughness"])
     mesh = scn.object_mesh(assets.vertices, assets.faces, assets.uvs, object_bsdf(wrong, run.app))
     img2 = render_shaded(env.build(), mesh, cameras(run.pack), shading, final_render["spp"], final_render["seed"])
-    assert changed(img2) > 0.3, changed(img2)
+    img3 = render_shaded(env.build(), object_mesh_of(run, assets), cameras(run.pack), shading, final_render["spp"],
+                         final_render["seed"] + 1)
+    assert error(img2) > 1e-3 and error(img3) > 1e-2, (error(img2), error(img3))
+    assert error(img) < 0.05 * error(img2), (error(img), error(img2))
+    assert error(img) < 0.01 * error(img3), (error(img), error(img3))
 
 
 def test_renders_json_in_the_study_format(eval_dir):
