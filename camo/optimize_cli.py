@@ -35,6 +35,7 @@ OPTION_FIELDS: dict[str, str] = {
     "iterations": "stage1.iterations", "loss": "stage1.loss", "domain": "stage1.domain",
     "silhouette_every": "stage1.silhouette_every", "warm_start": "stage1.warm_start",
     "lr_schedule": "stage1.lr_schedule", "pose_search": "stage1.pose_search",
+    "average": "stage1.average",
     "stage2_iterations": "stage2.iterations", "stage2_backend": "stage2.backend", "stage2_strength": "stage2.strength",
     "stage2_fixed_displacement": "stage2.displacement", "sdxl_path": "stage2.sdxl_path",
     "controlnet_path": "stage2.controlnet_path",
@@ -87,6 +88,9 @@ def register(sub) -> None:
     p.add_argument("--grad-blur", type=float, metavar="TEXELS",
                    help="blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (fast: 2; paper "
                         "and 0: off); averages the per-texel Monte Carlo noise that otherwise speckles the maps")
+    p.add_argument("--average", type=float, metavar="DECAY",
+                   help="the result is the moving average of the iterates with this decay (about the last "
+                        "1 / (1 - DECAY) iterates; 0: the iterate itself)")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
     p.add_argument("--pose-search", type=int, metavar="N",

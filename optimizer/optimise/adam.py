@@ -6,6 +6,15 @@ resumed from a checkpoint continues bit-for-bit. Non-finite gradient entries
 never reach a parameter: they are zeroed and counted before the update (one
 NaN would otherwise poison the moments for good, and ``dr.clip`` propagates NaN
 in Dr.Jit 1.5).
+
+Iterate averaging (``average`` > 0, a choice beyond the paper): besides the iterate ``x_t`` the optimiser keeps
+an exponential moving average of the projected iterates, ``a_t = beta a_{t-1} + (1 - beta) x_t`` from ``a_0 = 0``,
+read bias-corrected as ``a_t / (1 - beta^t)`` (Adam's correction of its moments; at ``t = 1`` this is ``x_1``).
+With Monte Carlo gradients and a constant rate each value jitters by about one rate around its optimum; the
+average of the last ~``1 / (1 - beta)`` iterates sits closer to it without slowing the descent the way a decaying
+rate does (Polyak-Ruppert averaging). The gradients are always taken at ``x_t``; the average is what a caller
+reads as the result (:meth:`averaged`). A convex combination of projected iterates lies inside the box
+constraints; the last step's projection is applied to it once more against float rounding.
 """
 
 from __future__ import annotations
@@ -16,12 +25,17 @@ import numpy as np
 
 
 class Adam:
-    def __init__(self, lrs: dict[str, float], beta_1: float = 0.9, beta_2: float = 0.999, eps: float = 1e-8):
+    def __init__(self, lrs: dict[str, float], beta_1: float = 0.9, beta_2: float = 0.999, eps: float = 1e-8,
+                 average: float = 0.0):
+        if not (0.0 <= average < 1.0):
+            raise ValueError(f"iterate-average decay must be in [0, 1), got {average}")
         self.lrs = dict(lrs)
         self.b1, self.b2, self.eps = beta_1, beta_2, eps
+        self.average = float(average)
         self.values: dict[str, Any] = {}
         self.m: dict[str, Any] = {}
         self.v: dict[str, Any] = {}
+        self.avg: dict[str, Any] = {}  # uncorrected moving average of the iterates (average > 0)
         self.t = 0
 
     def add(self, name: str, value) -> None:
@@ -33,6 +47,8 @@ class Adam:
         self.values[name] = x
         self.m[name] = dr.zeros(type(value), dr.shape(value))
         self.v[name] = dr.zeros(type(value), dr.shape(value))
+        if self.average:
+            self.avg[name] = dr.zeros(type(value), dr.shape(value))
 
     def __getitem__(self, name: str):
         return self.values[name]
@@ -64,6 +80,7 @@ class Adam:
         if not (scale >= 0.0 and scale < float("inf")):
             raise ValueError(f"learning-rate scale must be finite and >= 0, got {scale}")
         self.t += 1
+        self._project = project or {}
         c1 = 1.0 - self.b1**self.t
         c2 = 1.0 - self.b2**self.t
         for name, x in self.values.items():
@@ -77,7 +94,21 @@ class Adam:
             dr.enable_grad(new)
             self.values[name], self.m[name], self.v[name] = new, m, v
             dr.schedule(new, m, v)
+            if self.average:
+                self.avg[name] = type(x)(self.average * self.avg[name] + (1.0 - self.average) * dr.detach(new))
+                dr.schedule(self.avg[name])
         dr.eval()
+
+    def averaged(self, name: str):
+        """The bias-corrected moving average of ``name``'s iterates (detached); the iterate itself when averaging is
+        off or no step has been taken."""
+        import drjit as dr
+
+        if not self.average or self.t == 0:
+            return dr.detach(self.values[name])
+        a = type(self.avg[name])(self.avg[name] / (1.0 - self.average**self.t))
+        project = getattr(self, "_project", {})
+        return type(a)(project[name](a)) if name in project else a
 
     def state(self) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {"adam_t": np.array(self.t)}
@@ -85,6 +116,8 @@ class Adam:
             out[f"value/{name}"] = np.asarray(dr_numpy(self.values[name]))
             out[f"m/{name}"] = np.asarray(dr_numpy(self.m[name]))
             out[f"v/{name}"] = np.asarray(dr_numpy(self.v[name]))
+            if self.average:
+                out[f"avg/{name}"] = np.asarray(dr_numpy(self.avg[name]))
         return out
 
     def check_state(self, state: dict[str, np.ndarray]) -> None:
@@ -96,7 +129,7 @@ class Adam:
             raise CamoError("checkpoint is corrupt: no integer optimiser step count")
         for name, x in self.values.items():
             want = tuple(dr_numpy(x).shape)
-            for key in ("value", "m", "v"):
+            for key in ("value", "m", "v") + (("avg",) if self.average else ()):
                 arr = state.get(f"{key}/{name}")
                 if arr is None:
                     raise CamoError(f"checkpoint is corrupt or from another configuration: no {key}/{name}")
@@ -113,7 +146,8 @@ class Adam:
         self.t = int(state["adam_t"])
         for name, x in list(self.values.items()):
             kind = type(x)
-            for store, key in ((self.values, "value"), (self.m, "m"), (self.v, "v")):
+            stores = ((self.values, "value"), (self.m, "m"), (self.v, "v")) + (((self.avg, "avg"),) if self.average else ())
+            for store, key in stores:
                 arr = state[f"{key}/{name}"]
                 store[name] = kind(arr) if dr.is_tensor_v(x) else kind(arr.ravel())
             dr.enable_grad(self.values[name])

@@ -336,6 +336,7 @@ class RunSpec:
         within("appearance.lr_maps", 0.0, 10.0, lo_open=True)
         within("appearance.lr_displacement", 0.0, 10.0, lo_open=True)
         within("appearance.grad_blur", 0.0, 64.0)
+        within("stage1.average", 0.0, 0.999)
         within("stage2.strength", 0.0, 1.0, lo_open=True)
         within("options.strength", 0.0, 1.0, lo_open=True)
         if m.reads_path("time_budget") and self.time_budget is not None and \

@@ -67,6 +67,7 @@ class Stage1Settings:
     pose_search: int = 0  # > 0: try this many turns about the vertical axis first (optimizer/optimise/posesearch.py)
     lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
+    average: float = 0.0  # > 0: the result is the moving average of the iterates with this decay (optimise/adam.py)
 
 
 @dataclasses.dataclass
@@ -191,7 +192,7 @@ class Stage1:
                 self.targets.coverage, cfg.target_spp, target_seed(cfg.seed), log)
         # A zero albedo channel has an infinite gradient under transmission (appearance.ALBEDO_MIN): start above it.
         self.values["albedo"] = np.clip(self.values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
-        self.opt = Adam(app.learning_rates())
+        self.opt = Adam(app.learning_rates(), average=cfg.average)
         for name in app.trainable():
             v = self.values[name]
             self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
@@ -437,9 +438,11 @@ class Stage1:
 
     # --- results --------------------------------------------------------------
     def current_values(self) -> dict[str, np.ndarray]:
+        """The stage's current result: the iterate, or with ``average`` > 0 the moving average of the iterates
+        (:class:`~optimizer.optimise.adam.Adam`; the gradients are taken at the iterate)."""
         out = dict(self.values)
         for name in self.opt.values:
-            arr = dr_numpy(self.opt[name])
+            arr = dr_numpy(self.opt.averaged(name))
             out[name] = arr.reshape(self.values[name].shape)
         return out
 
