@@ -35,7 +35,7 @@ OPTION_FIELDS: dict[str, str] = {
     "iterations": "stage1.iterations", "loss": "stage1.loss", "domain": "stage1.domain",
     "silhouette_every": "stage1.silhouette_every", "warm_start": "stage1.warm_start",
     "lr_schedule": "stage1.lr_schedule", "pose_search": "stage1.pose_search",
-    "average": "stage1.average",
+    "average": "stage1.average", "roughness_search": "stage1.roughness_search",
     "stage2_iterations": "stage2.iterations", "stage2_backend": "stage2.backend", "stage2_strength": "stage2.strength",
     "stage2_fixed_displacement": "stage2.displacement", "sdxl_path": "stage2.sdxl_path",
     "controlnet_path": "stage2.controlnet_path",
@@ -91,6 +91,10 @@ def register(sub) -> None:
     p.add_argument("--average", type=float, metavar="DECAY",
                    help="the result is the moving average of the iterates with this decay (about the last "
                         "1 / (1 - DECAY) iterates; 0: the iterate itself)")
+    p.add_argument("--roughness-search", metavar="R1,R2,...",
+                   help="before Stage 1, warm-start each of these uniform starting roughness values and start from the "
+                        "one that scores best on the held-out views (fast: 0.5,0.7,0.9; paper, 'off' and --init "
+                        "roughness=X: off)")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")
     p.add_argument("--pose-search", type=int, metavar="N",
@@ -221,7 +225,18 @@ def field_names(method) -> dict[str, str]:
 
 #: Options whose value is not the field's value as given (read and converted by :func:`spec_from_args` itself).
 _SPECIAL = ("method", "preset", "resolution", "views", "target_vertices", "init", "ablate", "stages", "warm_start",
-            "no_planner", "stage2_fixed_displacement")
+            "no_planner", "stage2_fixed_displacement", "roughness_search")
+
+
+def parse_roughness_list(text: str) -> tuple[float, ...]:
+    """``--roughness-search``: ``R1,R2,...`` (numbers in [0, 1]) or ``off`` / empty -> a tuple; CamoError otherwise."""
+    if text.strip().lower() in ("", "off", "none"):
+        return ()
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise CamoError(f"--roughness-search must be a comma list of numbers in [0, 1] or 'off', got {text!r}") from None
+    return values
 
 
 def spec_from_args(args):
@@ -283,6 +298,11 @@ def spec_from_args(args):
         s1 = dataclasses.replace(s1, warm_start=args.warm_start == "on")
     elif "albedo" in init:  # an explicit starting albedo is kept (the warm start would replace it)
         s1 = dataclasses.replace(s1, warm_start=False)
+    if args.roughness_search is not None:
+        s1 = dataclasses.replace(s1, roughness_search=parse_roughness_list(args.roughness_search))
+    elif "roughness" in init or "bsdf" in ablate or not holdout.views:
+        # an explicit (or ablated) starting roughness is kept; without held-out views there is nothing to score on
+        s1 = dataclasses.replace(s1, roughness_search=())
     stages = (1, 2)
     if args.stages is not None:
         try:

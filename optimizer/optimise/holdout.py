@@ -153,23 +153,28 @@ class Holdout:
         """Whether a stage at ``iteration`` (``done``: its last) is checked: its start, every ``every``, its end."""
         return done or iteration == 0 or iteration % max(self.settings.every, 1) == 0
 
-    def check(self, values: dict[str, np.ndarray], stage: int, iteration: int, seconds: float) -> dict[str, Any]:
-        """Score ``values`` (a stage's current parameters) and keep them if they are the best so far; returns the
-        check's record ``{stage, iteration, seconds, mse, psnr, bias2, variance, best, check_seconds}`` (``mse``:
-        the score, module doc). ``seconds``: the run's optimisation seconds at this point (for the record only)."""
+    def score(self, values: dict[str, np.ndarray]) -> tuple[float, float, float]:
+        """``(score, bias2, variance)`` of parameter ``values`` on the held-out views (module doc), nothing kept.
+        The first call also renders the backgrounds and fixes the object+shadow domain from ``values``."""
         from optimizer.optimise.stage1 import influence_domain
 
-        t0 = time.perf_counter()
         s = self.settings
         img = [self._render(values, self.cams, s.spp, sd) for sd in self.render_seeds]
-        if self.bg is None:  # first check: the backgrounds and the object+shadow domain of these views
+        if self.bg is None:  # first score: the backgrounds and the object+shadow domain of these views
             self.bg = np.stack([self._background(self.cams, s.spp, sd) for sd in self.render_seeds])
             cov = self._coverage(values, self.cams)
             px = max(1, round(self._dilate * max(self.cams[0].width, self.cams[0].height)))
             self.domain = np.stack([influence_domain(self.bg[0][v], img[0][v], cov[v], self._threshold, px)
                                     for v in range(len(self.cams))])
         bias2, var = split_error(img[0], self.bg[0], img[1], self.bg[1], self.domain)
-        mse = max(bias2 + var * s.spp / max(s.noise_spp, 1), 0.0)
+        return max(bias2 + var * s.spp / max(s.noise_spp, 1), 0.0), bias2, var
+
+    def check(self, values: dict[str, np.ndarray], stage: int, iteration: int, seconds: float) -> dict[str, Any]:
+        """Score ``values`` (a stage's current parameters) and keep them if they are the best so far; returns the
+        check's record ``{stage, iteration, seconds, mse, psnr, bias2, variance, best, check_seconds}`` (``mse``:
+        the score, module doc). ``seconds``: the run's optimisation seconds at this point (for the record only)."""
+        t0 = time.perf_counter()
+        mse, bias2, var = self.score(values)
         better = self.best_check is None or mse < self.best_check["mse"]
         if better:
             self.best = {k: np.array(v, copy=True) for k, v in values.items()}

@@ -138,11 +138,15 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
         say(f"note: initial roughness {advice}")
     budget1 = stage1_budget(spec)
     s1cfg = spec.stage1_config(time_budget=budget1)
-    s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say, pose_search_info=checkpointed_turn(state))
+    s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say, pose_search_info=checkpointed_turn(state),
+                start_search_info=checkpointed_start(state))
     hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
-    # seconds before Stage 1's first step that count as optimisation: the pose search and the warm start
+    if state is None and hold is not None and s1cfg.roughness_search and "roughness" in app.trainable():
+        s1.search_start(s1cfg.roughness_search, lambda values: hold.score(values)[0])
+    # seconds before Stage 1's first step that count as optimisation: the pose search, the start search, the warm start
     warm_seconds = (s1.warm_start_info.seconds if s1.warm_start_info else 0.0) + \
-        (s1.pose_search_info.seconds if s1.pose_search_info else 0.0)
+        (s1.pose_search_info.seconds if s1.pose_search_info else 0.0) + \
+        (s1.start_search_info.seconds if s1.start_search_info else 0.0)
     setup_seconds = time.perf_counter() - t_setup - warm_seconds
     if budget1:
         s1.time_budget = max(budget1 - warm_seconds, 1e-3)  # the warm start is paid from Stage 1's budget
@@ -168,8 +172,10 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
                                        "fingerprint": {"value": fingerprint}})
     write_log(out, history)
 
-    def held(extra=None):  # checkpoint entries: a stage's own, the held-out views' best iterate, the chosen turn
+    def held(extra=None):  # checkpoint entries: a stage's own, the held-out views' best iterate, the searches' choices
         turn = {"pose_search/info": np.array(json.dumps(s1.pose_search_info.to_dict()))} if s1.pose_search_info else {}
+        if s1.start_search_info:
+            turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
         return {**(extra or {}), **(hold.state() if hold is not None else {}), **turn}
 
     final_stage: Stage1 = s1
@@ -215,7 +221,8 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
                        warm_seconds + stage_seconds(history, 1) + stage_seconds(history, 2),
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info, values=values,
-               holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info)
+               holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
+               start=s1.start_search_info)
     return out
 
 
@@ -229,6 +236,20 @@ def checkpointed_turn(state: dict[str, np.ndarray] | None):
         return PoseSearchInfo(**json.loads(str(state["pose_search/info"])))
     except (TypeError, ValueError):
         raise CamoError("checkpoint is corrupt: bad pose_search/info") from None
+
+
+def checkpointed_start(state: dict[str, np.ndarray] | None):
+    """The start search's record in a checkpoint (a resumed run starts from the same roughness), or None."""
+    from optimizer.optimise.startsearch import StartSearchInfo
+
+    if state is None or "start_search/info" not in state:
+        return None
+    try:
+        info = StartSearchInfo(**json.loads(str(state["start_search/info"])))
+        float(info.chosen)
+        return info
+    except (TypeError, ValueError):
+        raise CamoError("checkpoint is corrupt: bad start_search/info") from None
 
 
 def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, str | None]:
@@ -365,22 +386,26 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
-               holdout: dict[str, Any] | None = None, pose=None) -> None:
+               holdout: dict[str, Any] | None = None, pose=None, start=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
-    the result's parameters (default: the last stage's current ones); ``holdout`` and ``pose``: the held-out
-    views' and the turn search's records for ``summary.json``."""
+    the result's parameters (default: the last stage's current ones); ``holdout``, ``pose`` and ``start``: the
+    held-out views', the turn search's and the start search's records for ``summary.json``."""
     from optimizer.assets.result import Result
 
     res = Result(pack, env, s1.cams, s1.geometry, s1.current_values() if values is None else values, s1.app,
                  s1.shading_integrator(), s1.cfg.target_spp, s1.targets)
     warm_s = float(warm.seconds) if warm is not None else 0.0
     pose_s = float(pose.seconds) if pose is not None else 0.0
+    start_s = float(start.seconds) if start is not None else 0.0
     s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
-    # wall-clock seconds of the optimisation: Stage 1 = pose search + warm start + its iterations, Stage 2 = its
-    # iterations with their pseudo-ground-truth renders and inpainting (``seconds_iterations``: gradient steps only)
-    seconds = {"setup": setup_seconds, "warm_start": warm_s, "pose_search": pose_s, "stage1": pose_s + warm_s + s1_s,
-               "stage2": s2_s, "optimisation": pose_s + warm_s + s1_s + s2_s}
+    pre = pose_s + start_s + warm_s
+    # wall-clock seconds of the optimisation: Stage 1 = pose search + start search + warm start + its iterations,
+    # Stage 2 = its iterations with their pseudo-ground-truth renders and inpainting (``seconds_iterations``: gradient
+    # steps only)
+    seconds = {"setup": setup_seconds, "warm_start": warm_s, "pose_search": pose_s, "start_search": start_s,
+               "stage1": pre + s1_s, "stage2": s2_s, "optimisation": pre + s1_s + s2_s}
     finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
            extra={"preset": spec.preset, "time_budget": spec.time_budget,
                   "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout,
-                  "pose_search": pose.to_dict() if pose is not None else None})
+                  "pose_search": pose.to_dict() if pose is not None else None,
+                  "start_search": start.to_dict() if start is not None else None})

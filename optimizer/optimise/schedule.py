@@ -59,7 +59,7 @@ def progress(iteration: int, iterations: int, seconds: float = 0.0, budget: floa
 PRESETS: dict[str, dict[str, dict]] = {
     "paper": {
         "stage1": {"iterations": 50, "loss": "gated", "warm_start": False, "lr_schedule": "constant",
-                   "silhouette_every": 1, "pose_search": 0},
+                   "silhouette_every": 1, "pose_search": 0, "roughness_search": ()},
         "stage2": {"iterations": 20},
         "appearance": {"lr_maps": 1e-2, "lr_displacement": 1e-1, "displacement_shrink": 0.0, "grad_blur": 0.0},
         "material": {},
@@ -76,8 +76,12 @@ PRESETS: dict[str, dict[str, dict]] = {
         # pose_search 16: the object starts at the best of 16 turns about the vertical axis, scored by how much its
         # shadow and reflections change the ground (optimizer/optimise/posesearch.py; gravel +1.28 dB, panorama
         # +1.07, room +0.70, occluded +0.16 at equal settings, one run each)
+        # roughness_search: Stage 1 starts from the best of these uniform roughness values, each warm-started and
+        # scored on the held-out views (optimizer/optimise/startsearch.py): the roughness map stays within ~0.1 of its
+        # start, and the best start is scene-dependent (0.7 against 0.5: meadow +0.46 dB, gravel +0.51, occluded
+        # +0.61; split -0.74, room -0.63), which the score after the warm start predicts
         "stage1": {"iterations": 60, "loss": "mse", "warm_start": True, "lr_schedule": "constant",
-                   "silhouette_every": 4, "pose_search": 16},
+                   "silhouette_every": 4, "pose_search": 16, "roughness_search": (0.5, 0.7, 0.9)},
         "stage2": {"iterations": 4},
         # grad_blur 2: the maps' gradients blurred by 2 texels (AppearanceConfig.grad_blur); one run per scene at demo
         # sizes: meadow +0.35 dB / -0.012 LPIPS-proxy, split +0.69 / -0.022, room +0.88 / -0.040, gravel and

@@ -337,6 +337,13 @@ class RunSpec:
         within("appearance.lr_displacement", 0.0, 10.0, lo_open=True)
         within("appearance.grad_blur", 0.0, 64.0)
         within("stage1.average", 0.0, 0.999)
+        if m.reads_path("stage1.roughness_search") and self.stage1.roughness_search:
+            rs = self.stage1.roughness_search
+            if not all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and 0.0 <= r <= 1.0
+                       for r in rs):
+                raise CamoError(f"{name('stage1.roughness_search')} must be numbers in [0, 1], got {list(rs)}")
+            if not self.holdout.views:
+                raise CamoError(f"{name('stage1.roughness_search')} needs held-out views ({name('holdout.views')} >= 1)")
         within("stage2.strength", 0.0, 1.0, lo_open=True)
         within("options.strength", 0.0, 1.0, lo_open=True)
         if m.reads_path("time_budget") and self.time_budget is not None and \

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -45,6 +45,9 @@ from optimizer.rendering.planner import Plan, training_integrator
 from optimizer.rendering.render import coverage_and_depth, render_shaded, uses_batch
 from optimizer.scenes.scenepack import ScenePack
 from optimizer.optimise.schedule import lr_scale, progress, soft_threshold
+
+if TYPE_CHECKING:
+    from optimizer.optimise.startsearch import StartSearchInfo
 
 
 @dataclasses.dataclass
@@ -68,6 +71,8 @@ class Stage1Settings:
     lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
     average: float = 0.0  # > 0: the result is the moving average of the iterates with this decay (optimise/adam.py)
+    # starting roughness values tried on the held-out views before Stage 1 (optimizer/optimise/startsearch.py); [] off
+    roughness_search: tuple[float, ...] = ()
 
 
 @dataclasses.dataclass
@@ -150,12 +155,14 @@ class Stage1:
     def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
                  cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None,
                  initial: dict[str, np.ndarray] | None = None, targets: Targets | None = None,
-                 pose_search_info=None):
+                 pose_search_info=None, start_search_info=None):
         """``initial`` overrides the paper's initial values (e.g. a Stage 1 result for Stage 2);
         ``targets`` reuses background renders and the loss domain of an earlier stage; ``pose_search_info`` (a
         resumed run's :class:`~optimizer.optimise.posesearch.PoseSearchInfo`) sets the turn the search chose
         instead of searching again (the renders at more than one thread are not bit-stable, and the turn decides
-        the loss domain)."""
+        the loss domain); ``start_search_info`` (a resumed run's
+        :class:`~optimizer.optimise.startsearch.StartSearchInfo`) likewise sets the starting roughness the search
+        chose (:meth:`search_start` runs the search)."""
         import drjit as dr
         import mitsuba as mi
 
@@ -183,19 +190,15 @@ class Stage1:
         if targets is None:
             log("rendering background targets and the loss domain")
         self.targets = targets if targets is not None else self._targets()
+        self.start_search_info = start_search_info
+        if start_search_info is not None and initial is None:
+            self.values["roughness"] = np.full_like(self.values["roughness"], start_search_info.chosen)
+        self._log = log
+        self._unprepared = {k: v.copy() for k, v in self.values.items()}  # the start before the warm start
         self.warm_start_info = None
-        if cfg.warm_start and initial is None:
-            from optimizer.optimise.warmstart import warm_start_albedo
-
-            self.values, self.warm_start_info = warm_start_albedo(
-                self.values, self.geometry, app, env, cams, self.shading_integrator(), self.targets.background,
-                self.targets.coverage, cfg.target_spp, target_seed(cfg.seed), log)
-        # A zero albedo channel has an infinite gradient under transmission (appearance.ALBEDO_MIN): start above it.
-        self.values["albedo"] = np.clip(self.values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
-        self.opt = Adam(app.learning_rates(), average=cfg.average)
-        for name in app.trainable():
-            v = self.values[name]
-            self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
+        self._warm = bool(cfg.warm_start and initial is None)
+        self.values, self.warm_start_info = self._prepare(self.values)
+        self._make_optimiser()
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
@@ -204,6 +207,55 @@ class Stage1:
         dr.eval()
 
     # --- set-up -------------------------------------------------------------
+    def _prepare(self, values: dict[str, np.ndarray]):
+        """A start as Stage 1 takes it: the warm-started albedo (when on), clipped above ``ALBEDO_MIN`` (a zero
+        albedo channel has an infinite gradient under transmission); returns ``(values, warm-start info or None)``."""
+        info = None
+        if self._warm:
+            from optimizer.optimise.warmstart import warm_start_albedo
+
+            values, info = warm_start_albedo(
+                values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
+                self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
+                self._log)
+        values = dict(values)
+        values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
+        return values, info
+
+    def _make_optimiser(self) -> None:
+        import mitsuba as mi
+
+        self.opt = Adam(self.app.learning_rates(), average=self.cfg.average)
+        for name in self.app.trainable():
+            v = self.values[name]
+            self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
+
+    def search_start(self, candidates, score) -> "StartSearchInfo":
+        """Restart from the best starting roughness among ``candidates``, each warm-started and scored by
+        ``score(values)`` (lower is better; the run's held-out views), before the first step
+        (:mod:`optimizer.optimise.startsearch`). The start already prepared is reused for its own roughness.
+        Returns the search's record; its seconds exclude the chosen start's warm start (``warm_start_info``)."""
+        from optimizer.optimise.startsearch import start_search
+
+        if self.iteration:
+            raise RuntimeError("the start search runs before Stage 1's first step")
+        t0 = time.perf_counter()
+        have = (float(self.values["roughness"].flat[0]), self.values, self.warm_start_info)
+        before = self.warm_start_info.seconds if self.warm_start_info is not None else 0.0
+
+        def prepare(values):
+            if np.all(values["roughness"] == have[0]):
+                return have[1], have[2]
+            return self._prepare(values)
+
+        self.values, self.warm_start_info, info = start_search(candidates, self._unprepared, prepare, score,
+                                                               self._log)
+        chosen = self.warm_start_info.seconds if self.warm_start_info is not None else 0.0
+        info.seconds = time.perf_counter() - t0 + before - chosen
+        self._make_optimiser()
+        self.start_search_info = info
+        return info
+
     def _object(self):
         return object_mesh(self.geometry, self.values, self.app)
 

@@ -1,0 +1,83 @@
+"""A search of the starting roughness on held-out views before Stage 1 (beyond the paper; the ``fast`` preset).
+
+The paper starts from roughness 0 and lets Stage 1 move the roughness map by Adam steps. Two measurements say the
+starting roughness decides the result while the steps do not find it (demo sizes, 60 + 4 iterations,
+docs/results/convergence.md):
+
+* **the map hardly moves**: from starts of 0.2, 0.35, 0.5 and 0.7 the final median roughness on meadow was 0.23,
+  0.37, 0.51 and 0.65 (each within ~0.1 of its start), whatever is better for the novel views. Its gradient is
+  dominated by Monte Carlo noise at 4 spp, and what a rougher surface buys in *other* views (a view-independent
+  appearance: blurred refractions, no highlights that move with the viewpoint) is not in the training views' loss;
+* **which start is best depends on the scene**: meadow ends at 31.99 dB crop PSNR from 0.7 against a mean of 31.53
+  from 0.5 (and 31.68 from 0.85, 31.28 from 1.0); gravel +0.51 dB and occluded +0.61 from 0.7; but split -0.74 and
+  room -0.63.
+
+And one measurement makes a search cheap: **the score of a start after the warm start predicts the score of the
+run's result.** Over seven starts on meadow and 0.5 against 0.7 on five other scenes, the order of the novel-view
+crop PSNR right after the warm start (iteration 0) was the order of the results, in every case but one near-tie
+(panorama: 0.5 ahead at iteration 0, 0.7 ahead by 0.2 dB PSNR at the end and behind by 0.005 LPIPS-proxy).
+
+So each candidate roughness (``Stage1Settings.roughness_search``; fast: 0.5, 0.7, 0.9) is set as a uniform map, the
+albedo is warm-started for it (:mod:`optimizer.optimise.warmstart`: the least-squares albedo depends on the other
+maps), and the start is scored on the run's held-out views (:class:`optimizer.optimise.holdout.Holdout`, its own
+seed stream, never the evaluation's; the score counts the noise a 64-spp evaluation would see). Stage 1 starts from
+the best; ties keep the earlier candidate. Cost at demo sizes: one warm start (~0.9 s) and one held-out score
+(~0.3 s) per candidate, counted in Stage 1's seconds (``seconds_start_search``).
+
+Choices: the candidates stay at or above the planner's glint-safe roughness (``planner.GLINT_ROUGHNESS`` = 0.5):
+below it a sun-lit facet mirrors the sun as a glint no step removes; transmittance and metallic keep their starts
+(one parameter, three renders per candidate).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+
+@dataclasses.dataclass
+class StartSearchInfo:
+    """What the search did (``summary.json``'s ``start_search``)."""
+
+    roughness: list[float]  # the candidate starts, in the order tried
+    scores: list[float]  # their held-out scores (sRGB squared error, bias^2 + noise at the evaluation's spp)
+    chosen: float  # the starting roughness of Stage 1
+    seconds: float  # the search's seconds (its warm starts and scores; the chosen start's warm start included)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def start_search(candidates: Sequence[float], values: dict[str, np.ndarray],
+                 prepare: Callable[[dict[str, np.ndarray]], tuple[dict[str, np.ndarray], object]],
+                 score: Callable[[dict[str, np.ndarray]], float], say=lambda s: None
+                 ) -> tuple[dict[str, np.ndarray], object, StartSearchInfo]:
+    """Try each roughness in ``candidates`` as a uniform map on ``values`` (the start before the warm start),
+    ``prepare`` it (the warm start: ``values -> (values, info)``) and ``score`` it (lower is better); returns the
+    best prepared values, its ``prepare`` info and the search's record. Non-finite scores lose; ties keep the
+    earlier candidate."""
+    if not candidates:
+        raise ValueError("the start search needs at least one candidate roughness")
+    t0 = time.perf_counter()
+    best = None
+    scores: list[float] = []
+    for r in candidates:
+        start = dict(values)
+        start["roughness"] = np.full_like(values["roughness"], float(r))
+        prepared, info = prepare(start)
+        s = float(score(prepared))
+        scores.append(s)
+        say(f"start search: roughness {r:g} scores {s:.4g}")
+        if np.isfinite(s) and (best is None or s < best[0]):
+            best = (s, float(r), prepared, info)
+    if best is None:  # every score non-finite: keep the first candidate
+        r = float(candidates[0])
+        start = dict(values)
+        start["roughness"] = np.full_like(values["roughness"], r)
+        prepared, info = prepare(start)
+        best = (float("nan"), r, prepared, info)
+    info = StartSearchInfo([float(r) for r in candidates], scores, best[1], time.perf_counter() - t0)
+    return best[2], best[3], info
