@@ -198,8 +198,9 @@ def test_warm_start_matches_the_background_better_than_grey(runs):
     ws = s["warm_start"]
     assert 0 < ws["texels_seen"] <= ws["texels"] and ws["seconds"] > 0
     assert all(0.0 <= x <= 1.0 for x in ws["mean_albedo"])
-    # Stage 1's seconds: the turn search, the warm start, its steps and their held-out checks
-    assert s["seconds_stage1"] == pytest.approx(s["seconds_pose_search"] + s["seconds_warm_start"] + sum(
+    # Stage 1's seconds: the turn search, the start search, the warm start, its steps and their held-out checks
+    assert s["seconds_stage1"] == pytest.approx(s["seconds_pose_search"] + s["seconds_start_search"] +
+                                                s["seconds_warm_start"] + sum(
         r.get("seconds_total", r["seconds"]) + r.get("seconds_holdout", 0.0)
         for r in map(json.loads, (runs["fast"] / "log.jsonl").read_text().splitlines()) if r["stage"] == 1), rel=1e-6)
     assert s["seconds_optimisation"] == pytest.approx(s["seconds_stage1"] + s["seconds_stage2"])

@@ -487,7 +487,7 @@ def test_every_flag_lands_in_its_spec_field():
             "--seed", "8", "--preset", "paper", "--no-planner", "--shadow-gradients", "--stages", "1,2", "--ablate",
             "pose", "--init", "albedo=0.3", "--iterations", "5", "--stage2-iterations", "6", "--method", "ours",
             "--holdout-views", "3", "--holdout-every", "7", "--holdout-spp", "5", "--patience", "2",
-            "--pose-search", "5", "--average", "0.8"]
+            "--pose-search", "5", "--average", "0.8", "--roughness-search", "0.4,0.6"]
     assert {a[2:].replace("-", "_") for a in argv if a.startswith("--")} - {"out"} == set(OPTION_FIELDS)
     d = spec_of(*argv).to_dict()
     assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
@@ -497,7 +497,8 @@ def test_every_flag_lands_in_its_spec_field():
         "spp": {"train": 3, "target": 9, "stage2_preview": 16}}
     assert d["stage1"] == {"iterations": 5, "loss": "mse", "alpha": 1.0, "eps": 0.01, "domain": "frame",
                            "domain_dilate": 0.04, "shadow_threshold": 0.05, "silhouette_every": 2, "warm_start": False,
-                           "pose_search": 5, "lr_schedule": "cosine", "lr_floor": 0.1, "average": 0.8}
+                           "pose_search": 5, "lr_schedule": "cosine", "lr_floor": 0.1, "average": 0.8,
+                           "roughness_search": [0.4, 0.6]}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]

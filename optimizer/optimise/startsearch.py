@@ -24,6 +24,9 @@ seed stream, never the evaluation's; the score counts the noise a 64-spp evaluat
 the best; ties keep the earlier candidate. Cost at demo sizes: one warm start (~0.9 s) and one held-out score
 (~0.3 s) per candidate, counted in Stage 1's seconds (``seconds_start_search``).
 
+The held-out views' object+shadow domain is fixed by the first candidate scored (as it is by Stage 1's first check
+without the search), so every candidate is scored on the same pixels.
+
 Choices: the candidates stay at or above the planner's glint-safe roughness (``planner.GLINT_ROUGHNESS`` = 0.5):
 below it a sun-lit facet mirrors the sun as a glint no step removes; transmittance and metallic keep their starts
 (one parameter, three renders per candidate).
