@@ -93,7 +93,7 @@ def register(sub) -> None:
                         "1 / (1 - DECAY) iterates; 0: the iterate itself)")
     p.add_argument("--roughness-search", metavar="R1,R2,...",
                    help="before Stage 1, warm-start each of these uniform starting roughness values and start from the "
-                        "one that scores best on the held-out views (fast: 0.5,0.7,0.9; paper, 'off' and --init "
+                        "one that scores best on the held-out views (fast: 0.5,0.7; paper, 'off' and --init "
                         "roughness=X: off)")
     p.add_argument("--snapshot-every", type=int, metavar="N",
                    help="save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)")

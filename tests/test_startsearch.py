@@ -69,7 +69,7 @@ def spec(*flags):
 
 
 def test_presets_flags_and_the_options_that_turn_the_search_off():
-    assert spec().stage1.roughness_search == (0.5, 0.7, 0.9)
+    assert spec().stage1.roughness_search == (0.5, 0.7)
     assert spec("--preset", "paper").stage1.roughness_search == ()
     assert spec("--roughness-search", "0.4,0.6").stage1.roughness_search == (0.4, 0.6)
     assert spec("--roughness-search", "off").stage1.roughness_search == ()

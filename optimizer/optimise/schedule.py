@@ -81,7 +81,7 @@ PRESETS: dict[str, dict[str, dict]] = {
         # start, and the best start is scene-dependent (0.7 against 0.5: meadow +0.46 dB, gravel +0.51, occluded
         # +0.61; split -0.74, room -0.63), which the score after the warm start predicts
         "stage1": {"iterations": 60, "loss": "mse", "warm_start": True, "lr_schedule": "constant",
-                   "silhouette_every": 4, "pose_search": 16, "roughness_search": (0.5, 0.7, 0.9)},
+                   "silhouette_every": 4, "pose_search": 16, "roughness_search": (0.5, 0.7)},
         "stage2": {"iterations": 4},
         # grad_blur 2: the maps' gradients blurred by 2 texels (AppearanceConfig.grad_blur); one run per scene at demo
         # sizes: meadow +0.35 dB / -0.012 LPIPS-proxy, split +0.69 / -0.022, room +0.88 / -0.040, gravel and

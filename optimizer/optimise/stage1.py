@@ -195,6 +195,7 @@ class Stage1:
             self.values["roughness"] = np.full_like(self.values["roughness"], start_search_info.chosen)
         self._log = log
         self._unprepared = {k: v.copy() for k, v in self.values.items()}  # the start before the warm start
+        self._warm_cache: dict = {}  # the warm start's geometry-only work, shared by the start search's candidates
         self.warm_start_info = None
         self._warm = bool(cfg.warm_start and initial is None)
         self.values, self.warm_start_info = self._prepare(self.values)
@@ -217,7 +218,7 @@ class Stage1:
             values, info = warm_start_albedo(
                 values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
-                self._log)
+                self._log, cache=self._warm_cache)
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info

@@ -17,12 +17,15 @@ run's result.** Over seven starts on meadow and 0.5 against 0.7 on five other sc
 crop PSNR right after the warm start (iteration 0) was the order of the results, in every case but one near-tie
 (panorama: 0.5 ahead at iteration 0, 0.7 ahead by 0.2 dB PSNR at the end and behind by 0.005 LPIPS-proxy).
 
-So each candidate roughness (``Stage1Settings.roughness_search``; fast: 0.5, 0.7, 0.9) is set as a uniform map, the
+So each candidate roughness (``Stage1Settings.roughness_search``; fast: 0.5 and 0.7) is set as a uniform map, the
 albedo is warm-started for it (:mod:`optimizer.optimise.warmstart`: the least-squares albedo depends on the other
 maps), and the start is scored on the run's held-out views (:class:`optimizer.optimise.holdout.Holdout`, its own
 seed stream, never the evaluation's; the score counts the noise a 64-spp evaluation would see). Stage 1 starts from
-the best; ties keep the earlier candidate. Cost at demo sizes: one warm start (~0.9 s) and one held-out score
-(~0.3 s) per candidate, counted in Stage 1's seconds (``seconds_start_search``).
+the best; ties keep the earlier candidate. Cost: one warm start and one held-out score per candidate
+beyond the first (whose warm start Stage 1 needs anyway), counted in Stage 1's seconds (``seconds_start_search``):
+~1.5-2.5 s at demo sizes, ~13 s at the paper's (16 views at 128 px, 64 spp, 800 px maps: the warm start's two
+renders dominate). A third candidate, 0.9, never won on the seven scenes measured and cost another warm start:
+at the paper's sizes it put Stage 1's first step at 41 s instead of 28.
 
 The held-out views' object+shadow domain is fixed by the first candidate scored (as it is by Stage 1's first check
 without the search), so every candidate is scored on the same pixels.

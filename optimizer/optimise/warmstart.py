@@ -85,16 +85,54 @@ def least_squares_albedo(background: np.ndarray, black: np.ndarray, white: np.nd
     return np.clip(raw, 0.0, 1.0).astype(np.float32), assigned, raw.astype(np.float32)
 
 
+@dataclasses.dataclass
+class TexelViews:
+    """What the warm start needs of the geometry alone (not of the material): the texel surface, and for the texels
+    some training view sees with full coverage (``seen``, indices into the surface) their observations, weights
+    ``(V, n)`` and background colours ``(V, n, 3)``. A start search warm-starts several materials on one geometry
+    and computes this once (:func:`warm_start_albedo`'s ``cache``)."""
+
+    surface: object
+    seen: np.ndarray
+    obs: object
+    weight: np.ndarray
+    background: np.ndarray
+
+
+def texel_views(positions: np.ndarray, geometry, resolution: int, env, cams: Sequence[Camera],
+                background: np.ndarray, coverage: np.ndarray) -> TexelViews:
+    """:class:`TexelViews` of the object at world ``positions``. Only texels that some view sees are sampled and
+    solved (at the paper's sizes ~10 % of the atlas): the others have weight 0 in every view and stay unassigned."""
+    from optimizer.rendering import projection
+
+    surface = projection.rasterise_texels(positions, geometry.faces, geometry.uvs, resolution, geometry.normal)
+    sc, shape = projection.object_scene(env, positions, geometry.faces, geometry.uvs)
+    obs = projection.observe(sc, shape, cams, surface, 0.01 * float(geometry.size))
+    candidate = np.nonzero((obs.visible & (obs.cos > 0)).any(0))[0]
+    sub = projection.Observations(obs.visible[:, candidate], obs.x[:, candidate], obs.y[:, candidate],
+                                  obs.cos[:, candidate])
+    full = np.stack([projection.sample_bilinear(coverage[k][..., None], sub.x[k], sub.y[k])[:, 0]
+                     for k in range(len(cams))]) >= 0.999
+    weight = sub.visible * full * sub.cos
+    keep = (weight > 0).any(0)
+    seen = candidate[keep]
+    sub = projection.Observations(sub.visible[:, keep], sub.x[:, keep], sub.y[:, keep], sub.cos[:, keep])
+    return TexelViews(surface, seen, sub, weight[:, keep], sub.sample(background))
+
+
 def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: Sequence[Camera], integrator: dict,
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
-                      say=lambda s: None) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
+                      say=lambda s: None, cache: dict | None = None) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
     ``geometry``: :class:`optimizer.rendering.appearance.Geometry`; ``values``: the initial parameters (their displacement
     and pose place the surface); ``background (V, H, W, 3)`` linear targets and ``coverage (V, H, W)`` the
     object's pixel coverage in the training views ``cams``; ``integrator`` the shading path tracer of the
-    targets. Other maps are unchanged.
+    targets. Other maps are unchanged. ``cache``: a dict kept across calls on the same geometry, views and targets
+    (a start search): the :class:`TexelViews` are computed once per object placement and map resolution.
     """
+    import hashlib
+
     from optimizer.rendering import scene as scn
     from optimizer.rendering.appearance import object_bsdf, world_positions
     from optimizer.rendering import projection
@@ -104,9 +142,12 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     say("warm start: solving the albedo that matches the background (2 renders)")
     positions = world_positions(geometry, values, app)
     R = values["albedo"].shape[0]
-    surface = projection.rasterise_texels(positions, geometry.faces, geometry.uvs, R, geometry.normal)
-    sc, shape = projection.object_scene(env, positions, geometry.faces, geometry.uvs)
-    obs = projection.observe(sc, shape, cams, surface, 0.01 * float(geometry.size))
+    key = (hashlib.sha1(np.ascontiguousarray(positions, np.float64).tobytes()).hexdigest(), R)
+    tv = cache.get(key) if cache is not None else None
+    if tv is None:
+        tv = texel_views(positions, geometry, R, env, cams, background, coverage)
+        if cache is not None:
+            cache[key] = tv
 
     renders = []
     for grey in (0.0, 1.0):
@@ -115,20 +156,22 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
         mesh = scn.object_mesh(positions, geometry.faces, geometry.uvs, object_bsdf(v, app))
         renders.append(render_shaded(env.build(), mesh, cams, integrator, spp, seed))
     black, white = renders
-    full = np.stack([projection.sample_bilinear(coverage[k][..., None], obs.x[k], obs.y[k])[:, 0]
-                     for k in range(len(cams))]) >= 0.999
-    weight = obs.visible * full * obs.cos
-    albedo, assigned, raw = least_squares_albedo(obs.sample(background), obs.sample(black), obs.sample(white), weight)
+    n = len(tv.surface)
+    albedo = np.zeros((n, 3), np.float32)
+    raw = np.zeros((n, 3), np.float32)
+    assigned = np.zeros(n, bool)
+    albedo[tv.seen], assigned[tv.seen], raw[tv.seen] = least_squares_albedo(
+        tv.background, tv.obs.sample(black), tv.obs.sample(white), tv.weight)
     init_mean = values["albedo"].reshape(-1, 3).mean(0)
     new = dict(values)
-    new["albedo"] = projection.bake(surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
+    new["albedo"] = projection.bake(tv.surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
     seen = int(assigned.sum())
     info = WarmStartInfo(
-        texels=len(surface), texels_seen=seen,
+        texels=n, texels_seen=seen,
         clipped_high=float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0,
         clipped_low=float((raw[assigned] < 0.0).any(-1).mean()) if seen else 0.0,
         mean_albedo=[float(x) for x in (albedo[assigned].mean(0) if seen else init_mean)],
         seconds=time.perf_counter() - t0)
-    say(f"warm start: {seen}/{len(surface)} texels seen, mean albedo "
+    say(f"warm start: {seen}/{n} texels seen, mean albedo "
         f"({', '.join(f'{x:.2f}' for x in info.mean_albedo)}), {info.seconds:.1f} s")
     return new, info
