@@ -32,7 +32,7 @@ without the search), so every candidate is scored on the same pixels.
 
 Choices: the candidates stay at or above the planner's glint-safe roughness (``planner.GLINT_ROUGHNESS`` = 0.5):
 below it a sun-lit facet mirrors the sun as a glint no step removes; transmittance and metallic keep their starts
-(one parameter, three renders per candidate).
+(one parameter; per candidate the warm start's two renders and the held-out score's two pairs).
 """
 
 from __future__ import annotations
