@@ -278,26 +278,33 @@ def test_user_pack_under_the_sun_starts_rough_in_the_fast_preset(tmp_path, capsy
 
 # --- numerics: poisoned and degenerate inputs ----------------------------------------------------------------
 
-def test_warm_start_from_black_and_nan_targets_stays_finite_and_in_range(mi_backend):
-    """Hard case: background targets that are black in one view and NaN/Inf in another (a corrupt render).
-    The warm-started albedo is finite and in [0, 1] everywhere; black targets pull the albedo to 0 where only
-    they see the surface; nothing seen at all (every target poisoned) leaves the initial albedo."""
+def tiny_box_stage(views: int):
+    """A Stage 1 on gravel's box at 24 px, 32 px maps and 8-spp targets: ``(stage, appearance, environment)``."""
     from optimizer.rendering.appearance import AppearanceConfig
-    from optimizer.scenes.cameras import cameras
-    from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
     from optimizer.rendering.planner import plan
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
     from optimizer.scenes.scenepack import parse_pack
     from optimizer.optimise.stage1 import Stage1, Stage1Config
-    from optimizer.optimise.warmstart import warm_start_albedo
 
     pack = parse_pack({"object": {"primitive": "utility_box", "target_vertices": 400},
-                       "environment": {"builtin": "gravel"}, "cameras": {"views": 2},
+                       "environment": {"builtin": "gravel"}, "cameras": {"views": views},
                        "render": {"resolution": 24}, "material": {"roughness": 0.5}})
     env = get_environment(pack.environment)
     app = AppearanceConfig(map_resolution=32, displacement_resolution=16)
     s1 = Stage1(pack, env, prepare_object(pack), cameras(pack), plan(pack, env, app.planner_params()),
                 Stage1Config(iterations=1, target_spp=8), app)
+    return s1, app, env
+
+
+def test_warm_start_from_black_and_nan_targets_stays_finite_and_in_range(mi_backend):
+    """Hard case: background targets that are black in one view and NaN/Inf in another (a corrupt render).
+    The warm-started albedo is finite and in [0, 1] everywhere; black targets pull the albedo to 0 where only
+    they see the surface; nothing seen at all (every target poisoned) leaves the initial albedo."""
+    from optimizer.optimise.warmstart import warm_start_albedo
+
+    s1, app, env = tiny_box_stage(views=2)
     bg = s1.targets.background.copy()
     bg[0] = 0.0
     bg[1, ::2] = np.nan
@@ -334,24 +341,12 @@ def test_warm_start_cache_and_seen_texels_match_the_whole_atlas_solve(mi_backend
     mi, dr = mi_backend
     from optimizer.rendering import projection
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.appearance import AppearanceConfig, object_bsdf, world_positions
-    from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import plan
+    from optimizer.rendering.appearance import object_bsdf, world_positions
     from optimizer.rendering.render import render_shaded
-    from optimizer.scenes.cameras import cameras
-    from optimizer.scenes.environments import get_environment
-    from optimizer.scenes.scenepack import parse_pack
-    from optimizer.optimise.stage1 import Stage1, Stage1Config
     from optimizer.optimise.warmstart import least_squares_albedo, warm_start_albedo
 
     dr.set_thread_count(1)
-    pack = parse_pack({"object": {"primitive": "utility_box", "target_vertices": 400},
-                       "environment": {"builtin": "gravel"}, "cameras": {"views": 3},
-                       "render": {"resolution": 24}, "material": {"roughness": 0.5}})
-    env = get_environment(pack.environment)
-    app = AppearanceConfig(map_resolution=32, displacement_resolution=16)
-    s1 = Stage1(pack, env, prepare_object(pack), cameras(pack), plan(pack, env, app.planner_params()),
-                Stage1Config(iterations=1, target_spp=8), app)
+    s1, app, env = tiny_box_stage(views=3)
     bg, cov, integ = s1.targets.background, s1.targets.coverage, s1.shading_integrator()
     cache: dict = {}
     rough = dict(s1.values, roughness=np.full_like(s1.values["roughness"], 0.8))
