@@ -312,3 +312,26 @@ def test_iterate_average_is_the_result_and_survives_a_resume(tmp_path, capsys):
     assert main(["optimize", "gravel", "--out", str(tmp_path / "bad"), "--quiet", "--average", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--average must be in [0, 0.999], got 1" in err and len(err.splitlines()) == 1
+
+
+def test_parameters_scored_before_are_not_rendered_again():
+    """score() of the same arrays returns the same score without rendering (Stage 1's first check of the start the
+    start search scored); other arrays, or another dtype, render again."""
+    from optimizer.scenes.builtin_scenes import resolve_scene
+
+    calls = []
+    bg = np.full((1, 2, 2, 3), 0.2, np.float32)
+
+    def render(values, cams, spp, seed):
+        calls.append(seed)
+        return bg + float(values["x"][0])
+
+    h = Holdout(HoldoutSettings(views=1), resolve_scene("gravel"), 0, render, lambda cams, spp, seed: bg,
+                lambda values, cams: np.ones((1, 2, 2)), 0.05, 0.0)
+    a = {"x": np.array([0.05], np.float32)}
+    first = h.score(a)
+    assert len(calls) == 2 and first[0] > 0
+    assert h.score({"x": a["x"].copy()}) == first and len(calls) == 2
+    h.score({"x": np.array([0.06], np.float32)})
+    h.score({"x": np.array([0.05], np.float64)})
+    assert len(calls) == 6

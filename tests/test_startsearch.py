@@ -106,6 +106,8 @@ def test_the_chosen_start_is_stage_1s_and_a_resumed_run_keeps_it(tmp_path, capfd
     ss = s["start_search"]
     assert ss["roughness"] == [0.6, 0.95] and len(ss["scores"]) == 2 and all(x > 0 for x in ss["scores"])
     assert ss["chosen"] == [0.6, 0.95][int(np.argmin(ss["scores"]))]
+    # Stage 1's first held-out check is the chosen start the search scored (not rendered again)
+    assert s["holdout"]["checks"][0]["mse"] == ss["scores"][ss["roughness"].index(ss["chosen"])]
     first = np.load(full / "snapshots" / "s1_0000.npz")["roughness"]
     assert np.all(first == np.float32(ss["chosen"]))
     assert s["seconds_start_search"] == pytest.approx(ss["seconds"]) and ss["seconds"] > 0

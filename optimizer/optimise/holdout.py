@@ -92,6 +92,18 @@ def split_error(img1: np.ndarray, bg1: np.ndarray, img2: np.ndarray, bg2: np.nda
     return float((w * d1 * d2).sum() / total), float((w * (d1 - d2) ** 2).sum() / (2.0 * total))
 
 
+def values_digest(values: dict[str, np.ndarray]) -> str:
+    """A digest of parameter arrays (names, dtypes, shapes and bytes): equal digests, equal parameters."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for k in sorted(values):
+        a = np.ascontiguousarray(values[k])
+        h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
 def psnr_of(mse: float) -> float:
     """``-10 log10(mse)`` (sRGB in [0, 1]); inf for 0."""
     return float("inf") if mse <= 0 else float(-10.0 * np.log10(mse))
@@ -120,6 +132,7 @@ class Holdout:
         self.best_check: dict[str, Any] | None = None
         self.since_best = 0  # checks since the best one (patience)
         self.seconds = 0.0
+        self._memo: dict[str, tuple[float, float, float]] = {}  # digest of scored values -> score (see score)
 
     @classmethod
     def for_stage(cls, settings: HoldoutSettings, stage) -> "Holdout":
@@ -154,10 +167,15 @@ class Holdout:
         return done or iteration == 0 or iteration % max(self.settings.every, 1) == 0
 
     def score(self, values: dict[str, np.ndarray]) -> tuple[float, float, float]:
-        """``(score, bias2, variance)`` of parameter ``values`` on the held-out views (module doc), nothing kept.
-        The first call also renders the backgrounds and fixes the object+shadow domain from ``values``."""
+        """``(score, bias2, variance)`` of parameter ``values`` on the held-out views (module doc). The first call
+        also renders the backgrounds and fixes the object+shadow domain from ``values``. Parameters scored before
+        (the same arrays, :func:`values_digest`) are not rendered again: the renders' seeds are fixed, so the
+        score would be the same up to the backend's multi-thread float order; the last 8 scores are kept."""
         from optimizer.optimise.stage1 import influence_domain
 
+        key = values_digest(values)
+        if key in self._memo:  # e.g. Stage 1's first check of the start the start search just scored
+            return self._memo[key]
         s = self.settings
         img = [self._render(values, self.cams, s.spp, sd) for sd in self.render_seeds]
         if self.bg is None:  # first score: the backgrounds and the object+shadow domain of these views
@@ -167,7 +185,11 @@ class Holdout:
             self.domain = np.stack([influence_domain(self.bg[0][v], img[0][v], cov[v], self._threshold, px)
                                     for v in range(len(self.cams))])
         bias2, var = split_error(img[0], self.bg[0], img[1], self.bg[1], self.domain)
-        return max(bias2 + var * s.spp / max(s.noise_spp, 1), 0.0), bias2, var
+        result = (max(bias2 + var * s.spp / max(s.noise_spp, 1), 0.0), bias2, var)
+        if len(self._memo) >= 8:
+            self._memo.pop(next(iter(self._memo)))
+        self._memo[key] = result
+        return result
 
     def check(self, values: dict[str, np.ndarray], stage: int, iteration: int, seconds: float) -> dict[str, Any]:
         """Score ``values`` (a stage's current parameters) and keep them if they are the best so far; returns the
