@@ -27,7 +27,8 @@ beyond the first (whose warm start Stage 1 needs anyway), counted in Stage 1's s
 renders dominate). A third candidate, 0.9, never won on the seven scenes measured and cost another warm start:
 at the paper's sizes it put Stage 1's first step at 41 s instead of 28.
 
-The held-out views' object+shadow domain is fixed by the first candidate scored (as it is by Stage 1's first check
+The chosen start's score is Stage 1's first held-out check (:meth:`Holdout.score` remembers what it scored, so
+that check renders nothing). The held-out views' object+shadow domain is fixed by the first candidate scored (as it is by Stage 1's first check
 without the search), so every candidate is scored on the same pixels.
 
 Choices: the candidates stay at or above the planner's glint-safe roughness (``planner.GLINT_ROUGHNESS`` = 0.5):
