@@ -36,6 +36,7 @@ class Adam:
         self.m: dict[str, Any] = {}
         self.v: dict[str, Any] = {}
         self.avg: dict[str, Any] = {}  # uncorrected moving average of the iterates (average > 0)
+        self._project: dict[str, Callable] = {}  # the last step's projections (applied to the average too)
         self.t = 0
 
     def add(self, name: str, value) -> None:
@@ -107,8 +108,7 @@ class Adam:
         if not self.average or self.t == 0:
             return dr.detach(self.values[name])
         a = type(self.avg[name])(self.avg[name] / (1.0 - self.average**self.t))
-        project = getattr(self, "_project", {})
-        return type(a)(project[name](a)) if name in project else a
+        return type(a)(self._project[name](a)) if name in self._project else a
 
     def state(self) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {"adam_t": np.array(self.t)}

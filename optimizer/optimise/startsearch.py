@@ -23,8 +23,8 @@ maps), and the start is scored on the run's held-out views (:class:`optimizer.op
 seed stream, never the evaluation's; the score counts the noise a 64-spp evaluation would see). Stage 1 starts from
 the best; ties keep the earlier candidate. Cost: one warm start and one held-out score per candidate
 beyond the first (whose warm start Stage 1 needs anyway), counted in Stage 1's seconds (``seconds_start_search``):
-~1.5-2.5 s at demo sizes, ~13 s at the paper's (16 views at 128 px, 64 spp, 800 px maps: the warm start's two
-renders dominate). A third candidate, 0.9, never won on the seven scenes measured and cost another warm start:
+1.4-2.4 s at demo sizes, ~11 s at the paper's (16 views at 128 px, 64 spp, 800 px maps: the warm start's two
+renders dominate; its geometry-only work is shared by the candidates). A third candidate, 0.9, never won on the seven scenes measured and cost another warm start:
 at the paper's sizes it put Stage 1's first step at 41 s instead of 28.
 
 The chosen start's score is Stage 1's first held-out check (:meth:`Holdout.score` remembers what it scored, so
@@ -52,7 +52,7 @@ class StartSearchInfo:
     roughness: list[float]  # the candidate starts, in the order tried
     scores: list[float]  # their held-out scores (sRGB squared error, bias^2 + noise at the evaluation's spp)
     chosen: float  # the starting roughness of Stage 1
-    seconds: float  # the search's seconds (its warm starts and scores; the chosen start's warm start included)
+    seconds: float  # the search's seconds; Stage1.search_start leaves out the chosen start's warm start (its own record)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -69,22 +69,15 @@ def start_search(candidates: Sequence[float], values: dict[str, np.ndarray],
     if not candidates:
         raise ValueError("the start search needs at least one candidate roughness")
     t0 = time.perf_counter()
-    best = None
-    scores: list[float] = []
+    tried = []  # (score, roughness, prepared values, prepare info)
     for r in candidates:
         start = dict(values)
         start["roughness"] = np.full_like(values["roughness"], float(r))
         prepared, info = prepare(start)
         s = float(score(prepared))
-        scores.append(s)
         say(f"start search: roughness {r:g} scores {s:.4g}")
-        if np.isfinite(s) and (best is None or s < best[0]):
-            best = (s, float(r), prepared, info)
-    if best is None:  # every score non-finite: keep the first candidate
-        r = float(candidates[0])
-        start = dict(values)
-        start["roughness"] = np.full_like(values["roughness"], r)
-        prepared, info = prepare(start)
-        best = (float("nan"), r, prepared, info)
-    info = StartSearchInfo([float(r) for r in candidates], scores, best[1], time.perf_counter() - t0)
-    return best[2], best[3], info
+        tried.append((s, float(r), prepared, info))
+    finite = [t for t in tried if np.isfinite(t[0])]
+    best = min(finite, key=lambda t: t[0]) if finite else tried[0]  # min keeps the first of equals
+    record = StartSearchInfo([t[1] for t in tried], [t[0] for t in tried], best[1], time.perf_counter() - t0)
+    return best[2], best[3], record
