@@ -42,18 +42,16 @@ def register(sub) -> None:
     p.add_argument("--inception-weights", metavar="PATH", help="Inception v3 state dict for SIFID")
     p.add_argument("--dreamsim-weights", metavar="PATH", help="DreamSim weights folder (its cache_dir)")
     p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
-    p.add_argument("--observer-trials", type=int, default=100, metavar="N",
-                   help="simulated observer trials per view for the report's predicted Table I (default 100; 0 = "
-                   "none; docs/observer.md)")
-    p.add_argument("--observer-saliency", metavar="FILE",
-                   help="the observer's map from a local TorchScript saliency / camouflaged-object-detection network "
-                   "instead of the weight-free one (never downloaded)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_evaluate)
 
     p = sub.add_parser("report", help="merge evaluation directories into one Table II report")
     p.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate`")
     p.add_argument("--out", required=True, help="report folder (report.md, report.html, grids/)")
+    p.add_argument("--stimuli", nargs="+", default=[], metavar="STIMULI_DIR",
+                   help="stimulus sets built from these evaluations (`camo study build-stimuli`): adds the simulated "
+                   "observer's predicted Table I on them, its agreement with the metrics and the predicted power "
+                   "curve (docs/observer.md)")
     p.set_defaults(func=run_report)
 
 
@@ -92,8 +90,7 @@ def run_evaluate(args) -> int:
     settings = EvalSettings(views=args.views, jitter=args.jitter, spp=args.spp, resolution=args.resolution,
                             metrics=parse_metrics(args.metrics), seed=args.seed, lpips_weights=args.lpips_weights,
                             inception_weights=args.inception_weights, dreamsim_weights=args.dreamsim_weights,
-                            threads=args.threads, progress=not args.quiet, observer_trials=args.observer_trials,
-                            observer_saliency=args.observer_saliency)
+                            threads=args.threads, progress=not args.quiet)
     evaluate(input_specs(args), args.out, settings)
     print(f"wrote {args.out}")
     return 0
@@ -102,6 +99,6 @@ def run_evaluate(args) -> int:
 def run_report(args) -> int:
     from evaluation.report import write_report
 
-    paths = write_report(args.eval_dirs, args.out)
+    paths = write_report(args.eval_dirs, args.out, stimuli_dirs=args.stimuli)
     print(f"wrote {paths['md']}")
     return 0

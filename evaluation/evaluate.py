@@ -18,9 +18,6 @@ Output (EVAL_DIR, every file written atomically; see CONTRIBUTING.md)::
     renders/<run>/view_XX_{obj,bg}.png  (sRGB 8 bit), view_XX_mask.png (0/255),
                   view_XX_{obj,bg}.npy (linear float32), view_XX_depth.npy (background depth, scene units)
     eval_config.toml               resolved settings, seed, cameras, integrator, skipped metrics, versions
-    simulated.parquet/.csv, simulated_trials.parquet, simulated_config.json
-                                   the simulated observer's predictions per view and per simulated trial
-                                   (evaluation.observer; --observer-trials 0 skips them)
     report.md, report.html, grids/ (evaluation.report)
 
 Bad input (a missing run directory, a folder without config.toml, an unknown metric, ``--views 0``,
@@ -67,8 +64,6 @@ class EvalSettings:
     threads: int | None = None
     progress: bool = True
     write_report: bool = True
-    observer_trials: int = 100  # simulated observer trials per view (evaluation.observer); 0 = no prediction
-    observer_saliency: str | None = None  # a local TorchScript saliency network for the observer's map
 
     def validate(self) -> None:
         if self.views is not None and self.views < 1:
@@ -81,8 +76,6 @@ class EvalSettings:
             raise CamoError(f"--resolution must be >= 8, got {self.resolution}")
         if self.threads is not None and self.threads < 1:
             raise CamoError(f"--threads must be >= 1, got {self.threads}")
-        if not 0 <= self.observer_trials <= 100_000:
-            raise CamoError(f"--observer-trials must be 0-100000, got {self.observer_trials}")
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -347,10 +340,6 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     _check_sizes(jobs, names)
     backend.init(threads=settings.threads)
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
-    if settings.observer_saliency and settings.observer_trials > 0:
-        from evaluation.observer import load_saliency_model
-
-        load_saliency_model(settings.observer_saliency)
 
     renderer = ViewRenderer(settings.spp, settings.seed)
     rows: list[dict[str, Any]] = []
@@ -436,15 +425,6 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     write_renders(out, entries)
     write_eval_config(out / "eval_config.toml", settings, names, skipped, weights, per_run, list(scenes.values()),
                       renderer, time.perf_counter() - t_all)
-    if settings.observer_trials > 0:  # predicted Table I: the report's "simulated" section
-        from evaluation.observer import predict_eval_dir
-
-        t_obs = time.perf_counter()
-        from evaluation.observer import ObserverConfig
-
-        predict_eval_dir(out, n=settings.observer_trials, seed=settings.seed,
-                         config=ObserverConfig(start="random", saliency_model=settings.observer_saliency or ""))
-        say(f"simulated observer: {settings.observer_trials} trials per view in {time.perf_counter() - t_obs:.1f} s")
     if settings.write_report:
         from evaluation.report import write_report
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 
 from camo_base.errors import CamoError
 
@@ -73,6 +74,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="copy the evaluation renders as they are instead (object where the evaluation had it: at the frame "
         "centre); needed for evaluations holding 2D triplets",
     )
+    b.add_argument("--observer-trials", type=int, default=200, metavar="N",
+                   help="simulated observer trials per stimulus for the predicted Table I and power (default 200; "
+                   "0 = none; docs/observer.md)")
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)
 
@@ -123,13 +127,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     w = sub.add_parser(
         "power",
         help="participants needed to separate each pair of methods (resampled through Table I's tests)",
-        description="Power analysis: simulated studies of N participants drawn from predicted (camo evaluate's "
-        "simulated observer) or pilot outcomes, analysed with Table I's pairwise tests (Fisher and log-rank, "
-        "Holm); see study_site/power.py and docs/observer.md.",
+        description="Power analysis: simulated studies of N participants drawn from predicted (the simulated "
+        "observer on a stimulus set) or pilot outcomes, analysed with Table I's pairwise tests (Fisher and "
+        "log-rank, Holm), vectorised over the replicates; see study_site/power.py and docs/observer.md.",
     )
     src = w.add_mutually_exclusive_group()
-    src.add_argument("--predicted", nargs="+", metavar="EVAL_DIR",
-                     help="evaluation directories with the observer's simulated_trials.parquet")
+    src.add_argument("--predicted", nargs="+", metavar="STIMULI_DIR",
+                     help="stimulus sets with the observer's predictions (written by `camo study build-stimuli`, "
+                     "or `camo study predict`)")
     src.add_argument("--db", metavar="URL", help="a pilot study database (SQLAlchemy URL or SQLite path)")
     w.add_argument("--out", required=True, metavar="DIR")
     w.add_argument("--participants", default="10,20,30,40,60,80,100,150,200,300", metavar="N,...",
@@ -138,7 +143,25 @@ def register(subparsers) -> argparse.ArgumentParser:
     w.add_argument("--alpha", type=float, default=0.05, help="significance level after Holm (default 0.05)")
     w.add_argument("--target", type=float, default=0.8, help="power wanted (default 0.8)")
     w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--quiet", action="store_true", help="no progress bar")
     w.set_defaults(func=cmd_power)
+
+    q = sub.add_parser(
+        "predict",
+        help="run the simulated observer on every stimulus of a set (predicted Table I, power)",
+        description="The simulated observer (evaluation/observer.py) searches every stimulus of the set as the "
+        "site shows it and writes predicted.parquet/.csv, predicted_trials.parquet, predicted_config.json and "
+        "predicted_power/ next to manifest.json (build-stimuli does this already; use it to redo with other "
+        "observer settings). See study_site/predict.py and docs/observer.md.",
+    )
+    q.add_argument("stimuli", metavar="STIMULI_DIR")
+    q.add_argument("--trials", type=int, default=200, metavar="N", help="simulated trials per stimulus (200)")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--observer", metavar="KEY=VALUE,...",
+                   help="observer parameters (evaluation.observer.ObserverConfig), e.g. display_deg=14,criterion=4")
+    q.add_argument("--time-limit", type=float, metavar="S", help="seconds per trial (default: the site's 40)")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
+    q.set_defaults(func=cmd_predict)
 
     m = sub.add_parser(
         "simulate",
@@ -193,11 +216,13 @@ def cmd_power(args) -> int:
     if args.reps < 1 or args.reps > 100_000:
         raise CamoError("--reps must be 1-100000")
     if args.predicted:
-        cells, source = cells_from_predicted(args.predicted), "predicted by the simulated observer"
+        cells, source = cells_from_predicted(args.predicted), "predicted by the simulated observer on the stimuli"
     else:
         cells, source = cells_from_pilot(args.db), "pilot study"
+    t0 = time.perf_counter()
     res = write_power(cells, args.out, ns, reps=args.reps, alpha=args.alpha, target=args.target, seed=args.seed,
-                      source=source)
+                      source=source, progress=not args.quiet)
+    print(f"{len(ns)} numbers of participants x {args.reps} simulated studies in {time.perf_counter() - t0:.1f} s")
     from study_site.power import TESTS
 
     for r in res["needed"].itertuples():
@@ -215,12 +240,37 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
     return lo, hi
 
 
+def cmd_predict(args) -> int:
+    from study_site.predict import predict_stimulus_set
+    from study_site.simulate import parse_observer
+
+    cfg = parse_observer(args.observer)
+    views, _ = predict_stimulus_set(args.stimuli, n=args.trials, seed=args.seed, config=cfg,
+                                    time_limit_s=args.time_limit, progress=not args.quiet)
+    _print_predicted(views)
+    print(f"wrote {args.stimuli}/predicted.parquet, predicted_trials.parquet, predicted_power/")
+    return 0
+
+
+def _print_predicted(views) -> None:
+    from evaluation.observer import predicted_table
+
+    formal = views[~views["practice"].astype(bool)]
+    t = predicted_table(formal.assign(method=formal["condition"]))
+    for r in t.itertuples():
+        print(f"predicted {r.method}: confusion {100 * r.confusion_rate:.1f} % (miss {100 * r.p_miss:.1f} %, "
+              f"timeout {100 * r.p_timeout:.1f} %), mean time of finds {r.mean_time_found_s:.2f} s "
+              f"({r.n_views} stimuli)")
+
+
 def cmd_build_stimuli(args) -> int:
     from study_site.stimuli import build_stimuli, summarize
 
     scenes = [x for x in args.practice_scenes.split(",") if x.strip()]
     if args.synthetic_practice < 0 or args.synthetic_practice > 200:
         raise CamoError("--synthetic-practice must be 0-200")
+    if not 0 <= args.observer_trials <= 100_000:
+        raise CamoError("--observer-trials must be 0-100000")
     if args.copy:
         manifest = build_stimuli(args.eval_dirs, args.out, practice_dirs=args.practice, force=args.force,
                                  practice_scenes=scenes, synthetic_practice_n=args.synthetic_practice)
@@ -233,6 +283,11 @@ def cmd_build_stimuli(args) -> int:
             margin=args.margin, synthetic_practice_n=args.synthetic_practice, threads=args.threads, force=args.force,
         )
     print(f"{args.out}: {summarize(manifest)}")
+    if args.observer_trials > 0:
+        from study_site.predict import predict_stimulus_set
+
+        views, _ = predict_stimulus_set(args.out, n=args.observer_trials, seed=args.seed)
+        _print_predicted(views)
     return 0
 
 
