@@ -248,6 +248,9 @@ def cmd_predict(args) -> int:
     views, _ = predict_stimulus_set(args.stimuli, n=args.trials, seed=args.seed, config=cfg,
                                     time_limit_s=args.time_limit, progress=not args.quiet)
     _print_predicted(views)
+    from study_site.power import write_predicted_power
+
+    write_predicted_power(args.stimuli, seed=args.seed, progress=not args.quiet)
     print(f"wrote {args.stimuli}/predicted.parquet, predicted_trials.parquet, predicted_power/")
     return 0
 
@@ -286,8 +289,11 @@ def cmd_build_stimuli(args) -> int:
     if args.observer_trials > 0:
         from study_site.predict import predict_stimulus_set
 
+        from study_site.power import write_predicted_power
+
         views, _ = predict_stimulus_set(args.out, n=args.observer_trials, seed=args.seed)
         _print_predicted(views)
+        write_predicted_power(args.out, seed=args.seed)
     return 0
 
 

@@ -21,7 +21,8 @@ Files written next to ``manifest.json`` (server-side only, like it; atomically):
                                        practice, trial, found, timed_out, rt_s, time_limit_s
     predicted_config.json              observer settings, trials per stimulus, seed, the manifest's creation time
     predicted_power/                   power.md, power.csv, power_needed.csv, power.png of the formal stimuli
-                                       (:func:`study_site.power.write_power`; absent with fewer than two methods)
+                                       (:func:`study_site.power.write_predicted_power`, run by the CLI after the
+                                       predictions; absent with fewer than two methods)
 """
 
 from __future__ import annotations
@@ -56,10 +57,10 @@ def display_deg(width: int, height: int, site_config: dict[str, Any] | None = No
 
 
 def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, config=None,
-                         time_limit_s: float | None = None, power: bool = True, progress: bool = False,
+                         time_limit_s: float | None = None, progress: bool = False,
                          log: Callable[[str], None] | None = None):
     """Run the observer on every stimulus of the set in ``stim_dir`` (``n`` simulated trials each) and write the
-    files of the module docstring. Returns ``(per stimulus, per trial)`` DataFrames.
+    predicted* files of the module docstring (the power curve: :func:`study_site.power.write_predicted_power`). Returns ``(per stimulus, per trial)`` DataFrames.
 
     ``config``: an :class:`evaluation.observer.ObserverConfig` (its ``display_deg`` is the reference for a square
     image; ``time_limit_s`` defaults to the site's). Seeds: stream ``observer`` of :mod:`camo_base.seeds`, per
@@ -123,12 +124,6 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
         "trials_per_stimulus": n, "seed": seed, "manifest_created": sset.data.get("created"),
         "seconds": round(time.perf_counter() - t0, 1)})
     say(f"observer: {len(views)} stimuli x {n} simulated trials in {time.perf_counter() - t0:.1f} s")
-    formal = per_trial[~per_trial["practice"]]
-    if power and formal["method"].nunique() >= 2:
-        from study_site.power import write_power
-
-        write_power(formal, root / "predicted_power", reps=200, seed=seed,
-                    source="predicted by the simulated observer on this stimulus set")
     return views, per_trial
 
 
