@@ -299,7 +299,12 @@ class PanelScene:
         """Linear radiance ``(H, W, 3)`` of ``frame``."""
         import mitsuba as mi
 
-        img = mi.render(self.scene, sensor=self.sensor[frame], spp=self.spp, seed=frame_seed(seed, frame))
+        try:
+            img = mi.render(self.scene, sensor=self.sensor[frame], spp=self.spp, seed=frame_seed(seed, frame))
+        except RuntimeError as exc:  # Dr.Jit wraps a Ctrl-C during a render in a RuntimeError
+            if _caused_by_interrupt(exc):
+                raise KeyboardInterrupt from None
+            raise
         return np.asarray(img, dtype=np.float32)[..., :3]
 
 
@@ -333,6 +338,16 @@ def render_missing(job: Job, cache: FrameCache, progress: bool = True, say: Call
     bar.close()
     return {"rendered": len(seconds), "cached": cached, "seconds": float(sum(seconds)),
             "seconds_per_panel_frame": float(np.mean(seconds)) if seconds else math.nan}
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 class _NoBar:

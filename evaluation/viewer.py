@@ -302,7 +302,8 @@ def card_html(card: Card, env: Environment, size: int = 384) -> str:
     cam = camera_attributes(*card.camera)
     attrs = {
         "id": f"mv-{card.id}", "class": "camo-mv", "data-glb": card.id, "data-env": card.env_id,
-        "camera-controls": "", "interaction-prompt": "none", "tone-mapping": "linear", "exposure": "1",
+        "camera-controls": "", "loading": "eager", "interaction-prompt": "none", "tone-mapping": "linear",
+        "exposure": "1",
         "shadow-intensity": "1", "shadow-softness": "0.6", "min-camera-orbit": "auto 0deg 0.05m",
         "max-camera-orbit": "auto 180deg 1000m", "min-field-of-view": "5deg", "max-field-of-view": "120deg",
         "interpolation-decay": "60", "alt": f"{card.label}: interactive 3D view",
@@ -511,7 +512,8 @@ def write_run_viewer(run_dir: str | Path, out: str | Path | None = None, video: 
 
 
 def video_html(href: str, caption: str) -> str:
-    return (f'<figure><video src="{html.escape(href)}" controls loop muted playsinline style="max-width:100%">'
+    return (f'<figure><video src="{html.escape(href)}" controls loop muted playsinline preload="metadata" '
+            f'style="max-width:100%;min-width:480px">'
             f'</video><figcaption>{html.escape(caption)} — <a href="{html.escape(href)}">{html.escape(href)}</a>'
             f'</figcaption></figure>')
 
@@ -536,3 +538,179 @@ def serve(root: str | Path, port: int = 8030, page_name: str = "index.html") -> 
         pass
     finally:
         srv.server_close()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the report's viewer section
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Section:
+    """Markdown and HTML of a report section, and the viewer bundle its HTML needs (None: no viewer in it)."""
+
+    md: list[str]
+    html: list[str]
+    bundle: Bundle | None = None
+
+
+def copy_videos(videos: Sequence[str | Path], out: Path) -> list[dict[str, Any]]:
+    """Copy ``camo video`` outputs (and their animated previews) into ``out/videos/``; returns, per video, its href
+    (relative to ``out``), preview href, label and record (:func:`evaluation.turntable.read_sidecar`)."""
+    from camo_base.atomic import atomic_path
+    from evaluation.turntable import read_sidecar
+
+    done = []
+    for v in videos:
+        v = Path(v)
+        if not v.is_file():
+            raise CamoError(f"--video {v}: no such file")
+        rec = read_sidecar(v) or {}
+        item = {"label": v.name, "record": rec}
+        for key, src in (("href", v), ("preview", Path(rec["preview"]) if rec.get("preview") else None)):
+            if src is None or not src.is_file():
+                continue
+            dst = out / "videos" / src.name
+            if src.resolve() != dst.resolve():
+                with atomic_path(dst) as tmp:
+                    shutil.copyfile(src, tmp)
+            item[key] = dst.relative_to(out).as_posix()
+        if rec.get("panels"):
+            spp = rec.get("spp")
+            item["label"] = (f"{v.name}: {' | '.join(rec['panels'])} ({rec.get('scene', '?')}, "
+                             f"{rec.get('encoding', {}).get('frames', '?')} frames, {spp} spp)")
+        done.append(item)
+    return done
+
+
+def _eval_inputs(eval_dirs: Sequence[str | Path]) -> list[dict[str, Any]]:
+    """Every rendered input of the evaluations (run directories and assets; not triplets), once, with its stills
+    (``renders.json`` images and the evaluation's cameras)."""
+    from evaluation.evaldir import read_eval_config, renders_json
+
+    seen: dict[str, dict[str, Any]] = {}
+    for d in eval_dirs:
+        d = Path(d).resolve()
+        cfg = read_eval_config(d)
+        scenes = {s.get("camera_set"): s for s in cfg.get("scenes", []) if isinstance(s, dict)}
+        images: dict[str, dict[int, Path]] = {}
+        for e in renders_json(d):
+            try:
+                images.setdefault(str(e["run"]), {})[int(e["view"])] = d / str(e["image"])
+            except (KeyError, TypeError, ValueError):
+                continue
+        for r in cfg.get("runs", []):
+            if not isinstance(r, dict) or r.get("kind") not in ("run", "asset") or not r.get("path"):
+                continue
+            key = f"{r['kind']}:{r['path']}"
+            if key in seen:
+                continue
+            cams = scenes.get(r.get("camera_set"), {})
+            stills = []
+            for v, img in sorted(images.get(str(r.get("name")), {}).items()):
+                try:
+                    stills.append((img, tuple(cams["cameras"][v]), tuple(cams["targets"][v])))
+                except (KeyError, IndexError, TypeError):
+                    continue
+            seen[key] = {**r, "stills": stills, "eval_dir": str(d),
+                         "spp": (cfg.get("evaluate") or {}).get("spp")}
+    return list(seen.values())
+
+
+def report_section(eval_dirs: Sequence[str | Path], out: Path, videos: Sequence[dict[str, Any]] = (),
+                   env_width: int = ENV_WIDTH, max_stills: int = 8,
+                   say: Callable[[str], None] = lambda m: None) -> Section:
+    """The report's "Interactive 3D viewer" section: per scene, a viewer of each evaluated run / asset with its
+    evaluation stills (module docstring), the rasteriser's limits and the turntables ``videos`` (from
+    :func:`copy_videos`) as the reference. Inputs that cannot be read any more (moved, deleted) are listed."""
+    from evaluation.inputs import InputSpec, resolve
+    from evaluation.report import method_label
+    from optimizer.scenes.cameras import evenly_spaced
+
+    refs = [(v["href"], v["label"]) for v in videos if v.get("href")]
+    md = ["## Interactive 3D viewer", ""]
+    ht = ["<h2>Interactive 3D viewer</h2>"]
+    if viewer_script() is None:
+        msg = (f"The interactive viewer needs its JavaScript (@google/model-viewer, pinned): run `{FETCH_COMMAND}` "
+               "(make demo and make test do it), then `camo report` again.")
+        say(f"warning: {msg}")
+        return Section(md + [msg, ""], ht + [f"<p>{html.escape(msg)}</p>"])
+    from optimizer import backend
+
+    inputs = _eval_inputs(eval_dirs)
+    missing, cards_by_scene = [], {}
+    envs: dict[str, tuple[Environment, str]] = {}
+    bundle = Bundle(out)
+    for r in inputs:
+        try:
+            spec = InputSpec(r["kind"], r["path"], method=r.get("method"), scene=r.get("scene_source"),
+                             placement=r.get("placement", "auto"), name=r.get("name"))
+            (entry,) = resolve([spec])
+            glb = glb_of(entry)
+        except CamoError as exc:
+            missing.append(f"{r.get('name')}: {exc}")
+            continue
+        backend.init()
+        from evaluation.turntable import scene_key
+
+        skey = scene_key(entry.pack)
+        if skey not in envs:
+            env = environment_panorama(entry.pack, env_width, say=say)
+            envs[skey] = (env, bundle.add_environment(env, f"{entry.scene}-{skey[:8]}"))
+        env, env_id = envs[skey]
+        picked = [r["stills"][i] for i in evenly_spaced(len(r["stills"]), min(max_stills, len(r["stills"])))] \
+            if r["stills"] else []
+        stills = []
+        for img, origin, target in picked:
+            if img.is_file():
+                stills.append(Still(img.read_bytes(), origin, target, entry.pack.cameras.fov,
+                                    f"{img.stem.split('_obj')[0]}, {r.get('spp')} spp"))
+        from optimizer.scenes.cameras import cameras
+
+        c = cameras(entry.pack)[0]
+        camera = (stills[0].origin, stills[0].target, stills[0].fov) if stills else (c.origin, c.target, c.fov)
+        label = method_label(entry.method, entry.ablation)
+        cid = bundle.add(asset_id(entry.name, glb), glb, "model/gltf-binary")
+        cards_by_scene.setdefault(entry.scene, []).append(
+            (Card(cid, f"{label} — {entry.name}", glb, env_id, stills, camera), env))
+    if not cards_by_scene:
+        note = "No result could be shown: " + ("; ".join(missing) if missing else "the evaluations hold no 3D result")
+        return Section(md + [note, ""], ht + [f"<p>{html.escape(note)}</p>"])
+    bundle.install_script()
+    md += ["Open `report.html`: each result's glTF in an interactive viewer (orbit with the mouse), lit by the scene's "
+           "environment, next to its path-traced evaluation views. The viewer is a rasteriser; what it approximates "
+           "is listed there" + (", with the path-traced turntables as the reference: " +
+                                ", ".join(f"[{t}]({h})" for h, t in refs) if refs else "") + ".", ""]
+    ht.append(limits_html(refs))
+    for scene, cards in sorted(cards_by_scene.items()):
+        ht.append(f"<h3>{html.escape(scene)}</h3>")
+        ht += [card_html(card, env, 384) for card, env in cards]
+    if missing:
+        md += ["Not shown (cannot be read): " + "; ".join(missing), ""]
+        ht.append(f"<p>Not shown (cannot be read): {html.escape('; '.join(missing))}</p>")
+    return Section(md, ht, bundle)
+
+
+def videos_section(videos: Sequence[dict[str, Any]]) -> Section:
+    """The report's "Path-traced turntables" section (the videos copied by :func:`copy_videos`)."""
+    if not videos:
+        return Section([], [])
+    md, ht = ["## Path-traced turntables", ""], ["<h2>Path-traced turntables</h2>"]
+    for v in videos:
+        rec = v.get("record") or {}
+        sec = rec.get("seconds") or {}
+        enc = rec.get("encoding") or {}
+        facts = []
+        if enc:
+            facts.append(f"{enc.get('width')}x{enc.get('height')} px, {enc.get('codec')}, "
+                         f"{(enc.get('bytes') or 0) / 1e6:.2f} MB")
+        if rec.get("integrator"):
+            facts.append(f"{rec['integrator'].get('type')} max_depth {rec['integrator'].get('max_depth')}, "
+                         f"{rec.get('spp')} spp, seed {rec.get('seed')}")
+        if sec.get("per_frame"):
+            facts.append(f"{sec['per_frame']:.2f} s per frame to render")
+        text = v["label"] + (" (" + "; ".join(facts) + ")" if facts else "")
+        md += [f"- [{text}]({v['href']})" + (f" — animated preview: ![]({v['preview']})" if v.get("preview") else ""),
+               ""]
+        ht.append(video_html(v["href"], text))
+    return Section(md, ht)
