@@ -18,7 +18,7 @@ DEMO_OURS_OPT ?= --displacement-resolution 128 --spp 4
 TIMED        = bash .ci/timed
 DEMO_BASELINES ?= mean random
 # The demo's turntable (camo video): background | Mean | ours, sized for about a minute on 2 cores.
-DEMO_VIDEO_OPT ?= --frames 48 --resolution 96 --spp 8 --fps 24
+DEMO_VIDEO_OPT ?= --frames 48 --resolution 96 --spp 8 --fps 24 --preview-frames 24
 STAMP       := $(VENV)/.installed
 
 .PHONY: install viewer-js demo readme-media test test-slow test-all bench clean

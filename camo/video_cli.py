@@ -61,6 +61,7 @@ def register(sub) -> None:
     p.add_argument("--port", type=int, default=8030, help="local port (default 8030; 0 = any free port)")
     p.add_argument("--no-serve", action="store_true", help="write the page and exit (it also opens from disk)")
     p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_view)
 
 
@@ -103,12 +104,17 @@ def run_video(args) -> int:
 
 
 def run_view(args) -> int:
-    from evaluation.viewer import serve, write_run_viewer
+    from evaluation.viewer import make_server, serve, write_run_viewer
 
-    page = write_run_viewer(args.run_dir, args.out, video=args.video, env_width=args.env_width,
-                            threads=args.threads, say=_say(args))
-    print(f"wrote {page}")
-    if args.no_serve:
-        return 0
-    serve(page.parent, args.port, page.name)
+    out = args.out or str(__import__("pathlib").Path(args.run_dir) / "viewer")
+    srv = None if args.no_serve else make_server(out, args.port)  # a busy port fails before anything is written
+    try:
+        page = write_run_viewer(args.run_dir, out, video=args.video, env_width=args.env_width,
+                                threads=args.threads, say=_say(args))
+        print(f"wrote {page}")
+        if srv is not None:
+            serve(srv, page.name)
+    finally:
+        if srv is not None:
+            srv.server_close()
     return 0

@@ -518,19 +518,28 @@ def video_html(href: str, caption: str) -> str:
             f'</figcaption></figure>')
 
 
-def serve(root: str | Path, port: int = 8030, page_name: str = "index.html") -> None:
-    """Serve ``root`` on 127.0.0.1 until Ctrl-C (the page also opens from disk; serving suits a remote machine with
-    a forwarded port)."""
+def make_server(root: str | Path, port: int = 8030):
+    """An HTTP server of ``root`` on 127.0.0.1:``port`` (0: any free port; ``server.server_port`` says which)."""
     import functools
     import http.server
 
-    if not (0 <= int(port) <= 65535):
-        raise CamoError(f"--port must be in [0, 65535], got {port}")
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(root))
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise CamoError(f"--port must be an integer in [0, 65535], got {port!r}")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *a):  # no line per request on the terminal
+            pass
+
+    handler = functools.partial(Quiet, directory=str(root))
     try:
-        srv = http.server.ThreadingHTTPServer(("127.0.0.1", int(port)), handler)
+        return http.server.ThreadingHTTPServer(("127.0.0.1", port), handler)
     except OSError as exc:
         raise CamoError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror or exc}); try --port 0") from None
+
+
+def serve(srv, page_name: str = "index.html") -> None:
+    """Run a :func:`make_server` server until Ctrl-C (the page also opens from disk; serving suits a remote machine
+    with a forwarded port)."""
     print(f"serving http://127.0.0.1:{srv.server_port}/{page_name} (Ctrl-C stops)", flush=True)
     try:
         srv.serve_forever()
