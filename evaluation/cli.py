@@ -110,7 +110,10 @@ def run_report(args) -> int:
 
     import sys
 
-    paths = write_report(args.eval_dirs, args.out, videos=args.video, viewer=not args.no_viewer,
-                         env_width=args.env_width, say=lambda m: print(m, file=sys.stderr))
+    from evaluation.viewer import report_sections
+
+    sections = report_sections(args.eval_dirs, args.video, not args.no_viewer, args.env_width,
+                               say=lambda m: print(m, file=sys.stderr))
+    paths = write_report(args.eval_dirs, args.out, sections)
     print(f"wrote {paths['md']}")
     return 0

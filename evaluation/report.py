@@ -720,22 +720,18 @@ def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
     return md, ht
 
 
-def write_report(eval_dirs: Sequence[str | Path], out: str | Path, videos: Sequence[str | Path] = (),
-                 viewer: bool = False, env_width: int | None = None, say=lambda m: None) -> dict[str, Path]:
+def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None) -> dict[str, Path]:
     """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``.
 
-    ``videos``: ``camo video`` files copied into ``out/videos/`` and shown (the path-traced reference);
-    ``viewer``: an interactive 3D viewer of each evaluated result (:func:`evaluation.viewer.report_section`;
-    renders each scene's environment panorama once, ``env_width`` wide, and copies the viewer's files into
-    ``out/viewer/``)."""
+    ``sections(out)`` (optional, called once the evaluations have been read) returns further sections appended at
+    the end, each with ``md`` and ``html`` (lists of lines) and optionally ``style`` (CSS) and ``tail`` (HTML placed
+    before ``</body>``, e.g. scripts): the turntables and the interactive viewer of ``camo report``
+    (:mod:`evaluation.viewer`)."""
     from camo_base import atomic
 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CamoError(f"--out {out} exists and is not a folder")
-    for v in videos:
-        if not Path(v).is_file():
-            raise CamoError(f"--video {v}: no such file")
     df = load_metrics(eval_dirs)
     settings, skipped = _settings_lines(eval_dirs)
     not_computed = [m for m, _ in TABLE_METRICS if df[m].isna().all()]
@@ -812,28 +808,18 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, videos: Seque
                        figure_section("Image grids", grids, out)):
         md += f_md
         ht += f_ht
-    scripts = ""
-    if videos or viewer:
-        from evaluation import viewer as vw
-
-        copied = vw.copy_videos(videos, out)
-        sections = [vw.videos_section(copied)]
-        if viewer:
-            sections.append(vw.report_section(eval_dirs, out, copied, env_width or vw.ENV_WIDTH, say=say))
-        for sec in sections:
-            md += sec.md
-            ht += sec.html
-            if sec.bundle is not None:
-                scripts = "\n" + sec.bundle.script_tags() + "\n" + vw.SCRIPT
     style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
              "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
              "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")
-    if scripts:
-        from evaluation.viewer import STYLE
-
-        style += STYLE
+    tail = ""
+    for sec in (sections(out) if sections is not None else ()):
+        md += list(sec.md)
+        ht += list(sec.html)
+        if getattr(sec, "style", "") and sec.style not in style:
+            style += sec.style
+        tail += getattr(sec, "tail", "") or ""
     page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>Camouflage benchmark</title>"
-            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + scripts + "\n</body></html>\n")
+            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + tail + "\n</body></html>\n")
     atomic.write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
     atomic.write_text(out / "report.html", page)
     return {"md": out / "report.md", "html": out / "report.html"}

@@ -556,11 +556,41 @@ def serve(srv, page_name: str = "index.html") -> None:
 
 @dataclasses.dataclass
 class Section:
-    """Markdown and HTML of a report section, and the viewer bundle its HTML needs (None: no viewer in it)."""
+    """Markdown and HTML of a report section (:func:`evaluation.report.write_report`'s ``sections``), and the
+    viewer bundle its HTML needs (None: no viewer in it)."""
 
     md: list[str]
     html: list[str]
     bundle: Bundle | None = None
+
+    @property
+    def style(self) -> str:
+        return STYLE if self.bundle is not None else ""
+
+    @property
+    def tail(self) -> str:
+        return "\n" + self.bundle.script_tags() + "\n" + SCRIPT if self.bundle is not None else ""
+
+
+def report_sections(eval_dirs: Sequence[str | Path], videos: Sequence[str | Path] = (), viewer: bool = True,
+                    env_width: int = ENV_WIDTH, say: Callable[[str], None] = lambda m: None):
+    """``sections`` for :func:`evaluation.report.write_report`: the turntables ``videos`` (copied into
+    ``OUT/videos/``) and, with ``viewer``, the interactive viewer of every evaluated result. Checks the videos
+    exist before anything is written (CamoError)."""
+    for v in videos:
+        if not Path(v).is_file():
+            raise CamoError(f"--video {v}: no such file")
+    if viewer and (env_width < 64 or env_width % 4):
+        raise CamoError(f"--env-width must be a multiple of 4 and >= 64, got {env_width}")
+
+    def make(out: Path) -> list[Section]:
+        copied = copy_videos(videos, out)
+        secs = [videos_section(copied)]
+        if viewer:
+            secs.append(report_section(eval_dirs, out, copied, env_width, say=say))
+        return secs
+
+    return make
 
 
 def copy_videos(videos: Sequence[str | Path], out: Path) -> list[dict[str, Any]]:

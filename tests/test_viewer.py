@@ -128,3 +128,23 @@ def test_report_without_the_viewer_javascript_says_how_to_get_it(tmp_path, monke
     monkeypatch.setattr(viewer, "viewer_script", lambda: None)
     sec = viewer.report_section([], tmp_path)
     assert sec.bundle is None and viewer.FETCH_COMMAND in " ".join(sec.md)
+
+
+def test_bad_view_and_report_input_is_one_line(tmp_path, capsys):
+    def one_line(rc):
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.startswith("camo: error: ") and "\n" not in err, err
+        return err
+
+    assert "run directory not found" in one_line(main(["view", str(tmp_path / "nope"), "--no-serve"]))
+    assert "--port" in one_line(main(["view", str(tmp_path / "nope"), "--port", "70000"]))
+    assert not (tmp_path / "nope").exists()
+    ev = tmp_path / "eval"
+    ev.mkdir()
+    rep = tmp_path / "rep"
+    rep.mkdir()
+    (rep / "report.html").write_text("earlier")
+    err = one_line(main(["report", str(ev), "--out", str(rep), "--video", str(tmp_path / "missing.mp4")]))
+    assert "missing.mp4" in err and (rep / "report.html").read_text() == "earlier"
+    err = one_line(main(["report", str(ev), "--out", str(rep), "--env-width", "30"]))
+    assert "--env-width" in err and (rep / "report.html").read_text() == "earlier"
