@@ -5,7 +5,8 @@ On ``split`` (bright marble for x < 0, dark asphalt for x > 0: the environment's
 * the page loads offline, from disk, requesting nothing but ``file:``/``blob:``/``data:`` URLs (the viewer's
   JavaScript is the pinned copy beside the page), and served by ``camo view``'s server on 127.0.0.1;
 * a screenshot of the viewer has a non-empty object region (viewer with the model vs. the same view without it),
-  where the object projects, and that region and its pixels change when the camera orbits;
+  where the path tracer sees the object from that camera (its coverage mask), and that region and its pixels
+  change when the camera orbits;
 * the viewer's background at the stills' camera is the path-traced background's picture (marble and asphalt on
   the same sides, correlated), so the environment panorama is oriented and placed right;
 * clicking a still moves the viewer to that camera.
@@ -118,6 +119,13 @@ def test_viewer_page_offline_object_region_and_orbit(page_dir, browser):
         assert region.mean() > 0.01, region.mean()  # the object shows
         ys, xs = np.nonzero(region)
         assert abs(xs.mean() / w - 0.5) < 0.2 and abs(ys.mean() / h - 0.5) < 0.25  # at the centre it is aimed at
+        # where the path tracer sees it: the run's coverage mask of view 0 (the viewer opens at still 0's camera)
+        cov = np.load(run / "renders.npz")["coverage"][0] >= 0.5
+        small = np.asarray(Image.fromarray(region.astype(np.uint8) * 255).resize(cov.shape[::-1], Image.Resampling.BOX),
+                           np.float32) / 255 > 0.5
+        iou_pt = (small & cov).sum() / (small | cov).sum()
+        print(f"viewer silhouette vs path-traced coverage at view 0: IoU {iou_pt:.2f}")
+        assert iou_pt > 0.75, iou_pt  # 0.91 measured (32 px mask)
         # orbit by 90 degrees: the object seen from another side
         page.evaluate(f"""() => {{ const mv = document.querySelector('{sel}'); const o = mv.getCameraOrbit();
             mv.cameraOrbit = `${{o.theta * 180 / Math.PI + 90}}deg ${{o.phi * 180 / Math.PI}}deg ${{o.radius}}m`;
