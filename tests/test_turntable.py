@@ -75,6 +75,21 @@ def test_full_turn_passes_through_every_training_camera(runs):
     assert np.allclose(r, pack.cameras.radius)
 
 
+def test_camera_list_rigs_orbit_at_their_mean_distance_and_elevation():
+    from evaluation.turntable import evaluation_orbit
+    from optimizer.scenes.scenepack import parse_pack
+
+    r, el = 5.0, math.radians(30.0)
+    pos = [[r * math.cos(el) * math.cos(a), r * math.cos(el) * math.sin(a), 0.5 + r * math.sin(el)]
+           for a in (0.3, 1.9, 4.0)]
+    pack = parse_pack({"name": "l", "object": {"primitive": "vase"}, "environment": {"builtin": "gravel"},
+                       "cameras": {"mode": "list", "positions": pos, "targets": [[0, 0, 0.5]] * 3, "fov": 40.0}})
+    orbit = evaluation_orbit(pack, frames=12, resolution=32)
+    assert orbit.radius == pytest.approx(r) and orbit.elevation == pytest.approx(30.0)
+    assert orbit.centre == pytest.approx((0, 0, 0.5)) and orbit.start == pytest.approx(math.degrees(0.3))
+    assert np.allclose(orbit.cameras()[0].origin, pos[0]) and orbit.fov == 40.0
+
+
 def test_frame_seeds_come_from_the_seed_table():
     from camo_base import seeds
     from evaluation.turntable import frame_seed
@@ -273,7 +288,7 @@ def test_interrupted_video_continues_from_its_cached_frames(runs, tmp_path):
     out = tmp_path / "int.mp4"
     out.write_bytes(b"an earlier video")
     cmd = [sys.executable, "-m", "camo.cli", "video", str(runs["mean"]), "--out", str(out), "--frames", "24",
-           "--resolution", "32", "--spp", "32", "--no-preview", "--side-by-side"]
+           "--resolution", "32", "--spp", "64", "--no-preview", "--side-by-side"]
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     cache = Path(str(out) + ".frames")
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -308,13 +323,13 @@ def test_time_budget_chooses_spp_from_a_pilot(runs, tmp_path, capsys):
 
     out = tmp_path / "budget.mp4"
     args = ["video", str(runs["mean"]), "--out", str(out), "--frames", "6", "--resolution", "32", "--no-preview",
-            "--time-budget", "40"]
+            "--time-budget", "12"]
     assert main(args) == 0
     err = capsys.readouterr().err
     rec = read_sidecar(out)
     pilot = rec["pilot"]
     assert "pilot" in err and rec["spp"] == pilot["spp"] >= 1 and pilot["renders"] == 6
-    assert pilot["estimate"] <= 40 - pilot["pilot_seconds"] + 1e-6
+    assert pilot["estimate"] <= 12 - pilot["pilot_seconds"] + 1e-6
     assert pilot["estimate"] == pytest.approx(6 * (pilot["fixed"] + pilot["per_sample"] * pilot["spp"]))
     # the same command again keeps the spp its pilot chose (and so every cached frame)
     assert main(args) == 0
