@@ -613,7 +613,7 @@ def make_video(specs: Sequence[Any], out: str | Path, s: VideoSettings, say: Cal
     from camo_base import atomic
     from camo_base.provenance import versions
     from evaluation.inputs import resolve
-    from evaluation.video import write_animation, write_video
+    from evaluation.video import preview_frames, write_animation, write_video
     from optimizer import backend
     from optimizer.scenes.environments import get_environment
 
@@ -670,18 +670,13 @@ def make_video(specs: Sequence[Any], out: str | Path, s: VideoSettings, say: Cal
             imgs = [cache.load(p, k) for p, k in zip(panels, keys)]
             frame = compose(layout, imgs, labels, bg_index)
             if prev is not None and f % step == 0:
-                kept.append(frame)
+                kept.extend(preview_frames([frame], s.preview_width, 1)[0])  # scaled down now: little memory
             yield frame
 
     t = time.perf_counter()
     info = write_video(out, frames(), s.fps, s.codec, s.quality)
     t_encode = time.perf_counter() - t
-    preview_bytes = None
-    if prev is not None:
-        from evaluation.video import preview_frames
-
-        small, _ = preview_frames(kept, s.preview_width, len(kept))
-        preview_bytes = write_animation(prev, small, s.fps / step)
+    preview_bytes = write_animation(prev, kept, s.fps / step) if prev is not None else None
     record = {
         "video": str(out), "preview": str(prev) if prev is not None else None, "preview_bytes": preview_bytes,
         "cache": str(cache.root),
