@@ -304,6 +304,7 @@ def test_interrupted_video_continues_from_its_cached_frames(runs, tmp_path):
             proc.kill()
     assert proc.returncode == 130, stderr
     assert "interrupted:" in stderr and "run the same command again" in stderr
+    assert "panel frames [" in stderr and "<" in stderr.split("panel frames [")[-1]  # the progress bar and its ETA
     assert out.read_bytes() == b"an earlier video"  # nothing replaced it
     kept = {p: p.read_bytes() for p in cache.glob("*/*.png")}
     assert 6 <= len(kept) < 48
