@@ -52,6 +52,12 @@ def register(sub) -> None:
                    help="stimulus sets built from these evaluations (`camo study build-stimuli`): adds the simulated "
                    "observer's predicted Table I on them, its agreement with the metrics and the predicted power "
                    "curve (docs/observer.md)")
+    p.add_argument("--video", action="append", default=[], metavar="FILE",
+                   help="a `camo video` turntable to show and link as the path-traced reference (repeatable)")
+    p.add_argument("--no-viewer", action="store_true",
+                   help="no interactive 3D viewer section (it renders each scene's environment panorama once)")
+    p.add_argument("--env-width", type=int, default=1024, help="width of the viewer's environment panorama "
+                   "(default 1024)")
     p.set_defaults(func=run_report)
 
 
@@ -99,6 +105,12 @@ def run_evaluate(args) -> int:
 def run_report(args) -> int:
     from evaluation.report import write_report
 
-    paths = write_report(args.eval_dirs, args.out, stimuli_dirs=args.stimuli)
+    import sys
+
+    from evaluation.viewer import report_sections
+
+    sections = report_sections(args.eval_dirs, args.video, not args.no_viewer, args.env_width,
+                               say=lambda m: print(m, file=sys.stderr))
+    paths = write_report(args.eval_dirs, args.out, sections, stimuli_dirs=args.stimuli)
     print(f"wrote {paths['md']}")
     return 0
