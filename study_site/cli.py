@@ -76,7 +76,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)
 
-    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, admin token)")
+    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, cookie key, admin token)")
     k.add_argument("path", metavar="FILE", help="new file (mode 0600); refuses to overwrite")
     k.set_defaults(func=cmd_make_key)
 
@@ -95,6 +95,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="development: werkzeug's server, and an id key kept in the database when none is given",
     )
     s.add_argument("--id-key-file", metavar="FILE", help="participant-id HMAC key (`camo study make-key FILE`)")
+    s.add_argument("--secret-key-file", metavar="FILE",
+                   help="cookie-signing key (`camo study make-key FILE`; another key than --id-key-file)")
     s.add_argument("--admin-token-file", metavar="FILE", help="admin token (enables /admin/)")
     s.add_argument("--time-limit", type=float, metavar="S", help="seconds per trial (default 40)")
     s.add_argument("--practice-trials", type=int, metavar="N", help="practice trials (default 5)")
@@ -269,6 +271,7 @@ def cmd_serve(args) -> int:
     cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
     for flag, key in (
         ("id_key_file", "ID_HMAC_KEY_FILE"),
+        ("secret_key_file", "SECRET_KEY_FILE"),
         ("admin_token_file", "ADMIN_TOKEN_FILE"),
         ("time_limit", "TRIAL_TIME_LIMIT_S"),
         ("practice_trials", "PRACTICE_TRIALS"),
@@ -341,12 +344,12 @@ def cmd_report(args) -> int:
     t = res["table"]
     for r in t.itertuples():
         print(
-            f"{r.method}: confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
-            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s"
+            f"{r.label} ({r.condition}): confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
+            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s (server clock)"
         )
     b = res.get("baselines")
     if b is not None:
-        a = b[b["method"] == "all"].iloc[0]
+        a = b[b["condition"] == "all"].iloc[0]
         print(
             f"baselines over {a.n_trials} formal trials: centre click {100 * a.centre_click_hit_rate:.1f} %, "
             f"last-practice location {100 * a.last_practice_hit_rate:.1f} %, object area share "

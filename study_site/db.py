@@ -89,8 +89,11 @@ class PlanItem(Base):
     run: Mapped[str] = mapped_column(String(256))
     scene: Mapped[str] = mapped_column(String(256), index=True)
     object: Mapped[str] = mapped_column(String(256))
-    method: Mapped[str] = mapped_column(String(256))  # condition label (method or method+ablation)
-    ablation: Mapped[str] = mapped_column(String(256))
+    method: Mapped[str] = mapped_column(String(256))  # the run's method (``ours``)
+    ablation: Mapped[str] = mapped_column(String(256))  # its ablations: ``none`` or a comma list
+    # the condition (optimizer.assets.conditions): id (``ours-without-inpainting``) and label (``w/o Inpainting``)
+    condition: Mapped[str] = mapped_column(String(300), index=True)
+    label: Mapped[str] = mapped_column(String(300))
     view: Mapped[str] = mapped_column(String(64))
     width: Mapped[int] = mapped_column(Integer)
     height: Mapped[int] = mapped_column(Integer)
@@ -100,7 +103,7 @@ class PlanItem(Base):
 
 
 #: What a plan item shows, copied into its trial when it is answered (the trial row stands alone in the analysis).
-SHOWN_COLUMNS = ("practice", "stimulus_id", "run", "scene", "object", "method", "ablation", "view")
+SHOWN_COLUMNS = ("practice", "stimulus_id", "run", "scene", "object", "method", "ablation", "condition", "label", "view")
 
 
 class Trial(Base):
@@ -117,12 +120,14 @@ class Trial(Base):
     object: Mapped[str] = mapped_column(String(256))
     method: Mapped[str] = mapped_column(String(256))
     ablation: Mapped[str] = mapped_column(String(256))
+    condition: Mapped[str] = mapped_column(String(300))  # id and label as in the plan (see PlanItem)
+    label: Mapped[str] = mapped_column(String(300))
     view: Mapped[str] = mapped_column(String(64))
     hit: Mapped[bool] = mapped_column(Boolean)
     timed_out: Mapped[bool] = mapped_column(Boolean)
     click_x: Mapped[int | None] = mapped_column(Integer, nullable=True)  # image pixels (column)
     click_y: Mapped[int | None] = mapped_column(Integer, nullable=True)  # image pixels (row)
-    rt_ms: Mapped[float] = mapped_column(Float)  # client: performance.now() image shown -> click/timeout
+    rt_ms: Mapped[float] = mapped_column(Float)  # the page's claim: performance.now() image shown -> click/timeout
     time_limit_s: Mapped[float] = mapped_column(Float)
     display_w: Mapped[float | None] = mapped_column(Float, nullable=True)  # CSS px the image was shown at
     display_h: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -130,10 +135,13 @@ class Trial(Base):
     viewport_h: Mapped[float | None] = mapped_column(Float, nullable=True)
     dpr: Mapped[float | None] = mapped_column(Float, nullable=True)  # window.devicePixelRatio
     server_received_at: Mapped[datetime] = mapped_column(DateTime)
-    # server clock: ms from the trial's first /api/start to this answer's arrival
+    # the server's clock, the time the study decides on and reports: ms from the arrival of the trial's first
+    # /api/start to this answer's arrival
     server_rt_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
     late: Mapped[bool] = mapped_column(Boolean, default=False)  # a click after the deadline, stored as a timeout
-    too_fast: Mapped[bool] = mapped_column(Boolean, default=False)  # rt_ms below RT_FLOOR_MS (excluded in analysis)
+    too_fast: Mapped[bool] = mapped_column(Boolean, default=False)  # server_rt_ms below RT_FLOOR_MS (excluded)
+    # the page's rt_ms is more than CLOCK_TOLERANCE_MS below the server's: flagged, judged on the server's time
+    clock_mismatch: Mapped[bool] = mapped_column(Boolean, default=False)
     starts: Mapped[int] = mapped_column(Integer, default=1)  # times the image was shown (> 1: reloaded)
 
 
@@ -249,6 +257,15 @@ class Database:
                 s.add(Setting(key=key, value=factory()))
         with self.read() as s:
             return s.get(Setting, key).value
+
+    def put_setting(self, key: str, value: str) -> None:
+        """Store a setting, replacing an earlier value (e.g. the clock tolerance the server runs with)."""
+        with self.write() as s, s.begin():
+            row = s.get(Setting, key)
+            if row is None:
+                s.add(Setting(key=key, value=value))
+            elif row.value != value:
+                row.value = value
 
     def insert_ignore(self, session: Session, model, values: dict) -> bool:
         """INSERT that silently does nothing on a unique-key conflict; True if a row was inserted."""

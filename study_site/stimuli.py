@@ -51,10 +51,12 @@ import numpy as np
 from camo_base.atomic import atomic_path, write_json
 from camo_base.errors import CamoError
 from evaluation.evaldir import read_renders
+from optimizer.assets.conditions import condition
 
 MANIFEST_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 SYNTHETIC_SCENE = "practice_synthetic"
+PRACTICE_METHOD = "practice"  # the synthetic practice images' method (no condition of the study)
 OUTLINE_RGB = (255, 40, 200)  # magenta: rarely present in natural backgrounds
 
 
@@ -78,18 +80,15 @@ class Stimulus:
     centroid_y: float | None = None  # fraction of the height (0 top)
     area_share: float | None = None  # mask pixels / image pixels
     centre_hit: bool | None = None  # the centre pixel (width // 2, height // 2) lies on the object
+    #: the condition's id and label (:mod:`optimizer.assets.conditions`), always derived from method + ablation
+    condition: str = ""
+    label: str = ""
 
-    @property
-    def condition(self) -> str:
-        """Method label used in the analysis: ``method`` or ``method+ablation``."""
-        return condition_label(self.method, self.ablation)
-
-
-def condition_label(method: str, ablation: str | None) -> str:
-    ab = (ablation or "").strip()
-    if ab.lower() in ("", "none", "full", "null"):
-        return method
-    return f"{method}+{ab}"
+    def __post_init__(self):
+        c = condition(self.method, self.ablation)
+        object.__setattr__(self, "condition", c.id)
+        object.__setattr__(self, "label", c.label)
+        object.__setattr__(self, "ablation", c.ablation)
 
 
 # ---------------------------------------------------------------------------
@@ -273,6 +272,7 @@ class StimulusWriter:
         self.stimuli: list[dict[str, Any]] = []
 
     def add(self, rgb: np.ndarray, mask: np.ndarray, meta: dict[str, Any], practice: bool) -> dict[str, Any]:
+        cond = condition(str(meta["method"]), meta.get("ablation"))
         sid = secrets.token_urlsafe(12)
         rid = secrets.token_urlsafe(12)
         _save_png(self.out / "images" / f"{sid}.png", rgb)
@@ -285,14 +285,16 @@ class StimulusWriter:
             "scene": str(meta["scene"]),
             "object": str(meta.get("object") or ""),
             "method": str(meta["method"]),
-            "ablation": str(meta.get("ablation") or ""),
+            "ablation": cond.ablation,
+            "condition": cond.id,
+            "label": cond.label,
             "view": str(meta["view"]),
             "practice": bool(practice),
             "width": int(rgb.shape[1]),
             "height": int(rgb.shape[0]),
             "mask_pixels": int(mask.sum()),
             **placement(mask),
-            **{k: v for k, v in meta.items() if k not in ("run", "scene", "object", "method", "ablation", "view")},
+            **{k: v for k, v in meta.items() if k not in ("run", "scene", "object", "method", "ablation", "view", "condition", "label")},
         }
         self.stimuli.append(entry)
         return entry
@@ -359,7 +361,7 @@ def synthetic_practice(n: int, size: tuple[int, int], seed: int = 0):
         obj = np.clip(shifted * gain + rng.normal(0, 6, 3), 0, 255)
         img = np.where(mask[..., None], obj, bg)
         meta = {"run": SYNTHETIC_SCENE, "scene": f"{SYNTHETIC_SCENE}_{i:02d}", "object": "blob",
-                "method": "practice", "ablation": "", "view": "0"}
+                "method": PRACTICE_METHOD, "ablation": "", "view": "0"}
         out.append((np.clip(img, 0, 255).astype(np.uint8), mask, meta))
     return out
 
@@ -436,8 +438,8 @@ def build_stimuli(
 def summarize(manifest: dict[str, Any]) -> str:
     formal = [s for s in manifest["stimuli"] if not s["practice"]]
     scenes = sorted({s["scene"] for s in formal})
-    conds = sorted({condition_label(s["method"], s["ablation"]) for s in formal})
-    cells = {(s["scene"], condition_label(s["method"], s["ablation"])) for s in formal}
+    conds = sorted({condition(s["method"], s["ablation"]).label for s in formal})
+    cells = {(s["scene"], condition(s["method"], s["ablation"]).id) for s in formal}
     practice = [s for s in manifest["stimuli"] if s["practice"]]
     missing = len(scenes) * len(conds) - len(cells)
     text = (

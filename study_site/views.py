@@ -1,7 +1,7 @@
 """Participant pages and the trial API.
 
 Flow: landing (Prolific PROLIFIC_PID/STUDY_ID/SESSION_ID or ?id=, or a form) ->
-consent -> about you (optional age bracket) -> instructions -> task (practice,
+consent -> about you (age bracket, required: adults only; "under MIN_AGE" ends at /not-eligible) -> instructions -> task (practice,
 then formal trials; JS) -> done (completion code / redirect).
 
 Nothing sent before a click names the scene, method, mask or outline: the task
@@ -32,7 +32,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from study_site.assign import create_plan
-from study_site.config import age_brackets
+from study_site.config import UNDER_MIN_AGE, age_brackets
 from study_site.db import SHOWN_COLUMNS, Participant, PlanItem, Trial, lock_for_assignment, utcnow
 from study_site.security import TOKEN_RE, check_csrf, hmac_id, valid_id
 
@@ -41,6 +41,7 @@ bp = Blueprint("study", __name__)
 STAGE_ENDPOINT = {
     "consent": "study.consent",
     "declined": "study.declined",
+    "ineligible": "study.ineligible",
     "about": "study.about",
     "instructions": "study.instructions",
     "task": "study.task",
@@ -65,6 +66,8 @@ def _cfg(key):
 def stage_of(p: Participant) -> str:
     if p.completed_at is not None:
         return "done"
+    if p.age_bracket == UNDER_MIN_AGE:
+        return "ineligible"
     if p.consent_at is None:
         return "declined" if p.declined_at is not None else "consent"
     if p.demographics_at is None:
@@ -235,17 +238,30 @@ def about():
     p, r = require_stage("about")
     if r is not None:
         return r
+    min_age = int(_cfg("MIN_AGE"))
     if request.method == "POST":
         check_csrf()
         age = request.form.get("age") or None
-        if age is not None and age not in dict(age_brackets(int(_cfg("MIN_AGE")))):
+        if age is None:  # required: the study takes adults only
+            return render_template("about.html", brackets=age_brackets(min_age), min_age=min_age,
+                                   error="Please choose your age bracket.", **_step_context("about")), 400
+        if age != UNDER_MIN_AGE and age not in dict(age_brackets(min_age)):
             abort(400, description="Unknown age bracket.")
         with st().db.write() as s, s.begin():
             q = s.get(Participant, p.id)
             q.age_bracket = age
             q.demographics_at = utcnow()
-        return redirect(url_for("study.instructions"))
-    return render_template("about.html", brackets=age_brackets(int(_cfg("MIN_AGE"))), **_step_context("about"))
+        return redirect(url_for("study.ineligible" if age == UNDER_MIN_AGE else "study.instructions"))
+    return render_template("about.html", brackets=age_brackets(min_age), min_age=min_age, error=None,
+                           **_step_context("about"))
+
+
+@bp.get("/not-eligible")
+def ineligible():
+    p, r = require_stage("ineligible")
+    if r is not None:
+        return r
+    return render_template("ineligible.html", min_age=int(_cfg("MIN_AGE")))
 
 
 @bp.route("/instructions", methods=["GET", "POST"])
@@ -423,7 +439,6 @@ TRIAL_FIELDS = {
     "trial_index", "client_trial_id", "timed_out", "x", "y", "rt_ms", "display_w", "display_h",
     "viewport_w", "viewport_h", "dpr",
 }
-CLOCK_TOLERANCE_MS = 1000.0  # the page's clock may run ahead of the server's by this much (start latency)
 
 
 def _parse_trial(body) -> dict:
@@ -473,6 +488,7 @@ def _trial_answer(existing: Trial, item: PlanItem, total: int, ack: str, duplica
         timed_out=existing.timed_out,
         late=existing.late,
         too_fast=existing.too_fast,
+        clock_mismatch=existing.clock_mismatch,
         reveal=url_for("study.reveal", rid=item.reveal_id),
         next=existing.trial_index + 1,
         done=existing.trial_index + 1 >= total,
@@ -481,15 +497,19 @@ def _trial_answer(existing: Trial, item: PlanItem, total: int, ack: str, duplica
 
 @bp.post("/api/trial")
 def api_trial():
-    """Store one answer, judged against the server's clock of that trial.
+    """Store one answer, judged on the server's clock of that trial (``server_rt_ms``: from the arrival of the
+    trial's first ``/api/start`` to the arrival of this answer; it includes one network round trip and the
+    page's two paint frames, so it is at least the page's honest ``rt_ms``).
 
     * a retry of a stored trial returns the stored answer (idempotent; no re-judging);
     * the trial must have been started (``/api/start``), else 409;
-    * ``rt_ms`` may not exceed the server's elapsed time by more than ``CLOCK_TOLERANCE_MS`` (400);
+    * ``rt_ms`` may not exceed the server's time by more than ``CLOCK_TOLERANCE_MS`` (400: impossible);
+    * ``rt_ms`` more than ``CLOCK_TOLERANCE_MS`` *below* the server's time is stored with
+      ``clock_mismatch = true``; the trial is judged and reported on the server's time like any other;
     * a timeout before the time limit (page or server clock) is 400;
     * a click after the limit (``rt_ms`` > limit, or arriving after limit + ``DEADLINE_GRACE_S`` on the
       server) is stored as a timeout with ``late = true`` (not a hit, whatever it clicked);
-    * ``rt_ms`` below ``RT_FLOOR_MS`` is stored with ``too_fast = true`` (the analysis excludes it).
+    * a server time below ``RT_FLOOR_MS`` is stored with ``too_fast = true`` (the analysis excludes it).
     """
     check_csrf()
     data = _parse_trial(_json_body())
@@ -510,11 +530,13 @@ def api_trial():
     limit_ms = p.time_limit_s * 1000.0
     server_ms = _elapsed_ms(item.started_at, now)
     rt = data["rt_ms"]
-    if rt > server_ms + CLOCK_TOLERANCE_MS:
+    tol = float(_cfg("CLOCK_TOLERANCE_MS"))
+    if rt > server_ms + tol:
         abort(400, description="rt_ms exceeds the time since the trial started")
+    clock_mismatch = rt < server_ms - tol
     late = False
     if data["timed_out"]:
-        if rt < limit_ms - CLOCK_TOLERANCE_MS or server_ms < limit_ms - CLOCK_TOLERANCE_MS:
+        if rt < limit_ms - tol or server_ms < limit_ms - tol:
             abort(400, description="a timeout before the time limit")
     elif rt > limit_ms or server_ms > limit_ms + 1000.0 * float(_cfg("DEADLINE_GRACE_S")):
         late = True
@@ -529,7 +551,7 @@ def api_trial():
             if stim is None:
                 abort(409, description="stimulus set changed since this session started")
             hit = state.stimuli.hit(stim, x, y, int(_cfg("HIT_TOLERANCE_PX")))
-    too_fast = (not data["timed_out"]) and rt < float(_cfg("RT_FLOOR_MS"))
+    too_fast = (not data["timed_out"]) and server_ms < float(_cfg("RT_FLOOR_MS"))
     values = dict(
         participant_id=p.id,
         trial_index=idx,
@@ -550,6 +572,7 @@ def api_trial():
         server_rt_ms=server_ms,
         late=late,
         too_fast=too_fast,
+        clock_mismatch=clock_mismatch,
         starts=int(item.starts or 1),
     )
     # the write holds SQLite's writer lock: as few statements as possible

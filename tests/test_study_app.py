@@ -41,7 +41,8 @@ def _app(stim_dir, tmp_path, **cfg):
         "PRACTICE_TRIALS": 2,
         "TRIAL_TIME_LIMIT_S": 40,
         "ADMIN_TOKEN": "admintok123",
-        "ID_HMAC_KEY": ID_KEY,
+        "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64,
+        "RT_FLOOR_MS": 0,  # answers follow their start at once here (too_fast: tests/test_study_protocol.py)
     }
     base.update(cfg)
     app = create_app(base)
@@ -277,7 +278,7 @@ def test_cells_fill_evenly(stim_dir, tmp_path):
     assert len({tuple(o) for o in orders.values()}) > 1  # orders are shuffled
 
 
-def test_declined_and_demographics_optional(stim_dir, tmp_path):
+def test_declined_and_age_required(stim_dir, tmp_path):
     app = _app(stim_dir, tmp_path)
     c = app.test_client()
     c.get("/?id=someone_42")
@@ -287,8 +288,11 @@ def test_declined_and_demographics_optional(stim_dir, tmp_path):
     c.get("/?id=someone_42")  # came back: asked again
     assert c.get("/consent").status_code == 200
     c.post("/consent", data={"csrf_token": tok, "consent": "yes"})
-    assert c.post("/about-you", data={"csrf_token": tok}).status_code == 302  # skipped
-    assert c.post("/about-you", data={"csrf_token": tok, "age": "99"}).status_code in (302, 400)
+    r = c.post("/about-you", data={"csrf_token": tok})  # adults only: the age bracket is required
+    assert r.status_code == 400 and "Please choose your age bracket" in r.text
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "99"}).status_code == 400
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "prefer_not"}).status_code == 400
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "25-34"}).status_code == 302
 
 
 def test_anonymous_start_and_admin(stim_dir, tmp_path):

@@ -65,7 +65,7 @@ def _serve_site(root, limit_s=LIMIT_S, n_practice=N_PRACTICE):
             "TRIAL_TIME_LIMIT_S": limit_s,
             "PRACTICE_TRIALS": n_practice,
             "COMPLETION_CODE": "C0DE1234",
-            "ID_HMAC_KEY": "b" * 64,
+            "ID_HMAC_KEY": "b" * 64, "SECRET_KEY": "s" * 64,
         }
     )
     rec = Recorder(app)

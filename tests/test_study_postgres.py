@@ -42,7 +42,7 @@ def _app(stim, url, **cfg):
     from study_site import create_app
 
     app = create_app({"STIMULI_DIR": str(stim), "DATABASE_URL": url, "PRACTICE_TRIALS": 1, "RATE_LIMIT_PER_S": 0,
-                      "ID_HMAC_KEY": ID_KEY, "TRIAL_TIME_LIMIT_S": 10, **cfg})
+                      "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64, "TRIAL_TIME_LIMIT_S": 10, **cfg})
     app.testing = True
     return app
 
@@ -129,7 +129,7 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
 def test_postgres_concurrent_sessions_and_report(pg, stim, tmp_path):
     from study_site.analysis import write_report
 
-    app = _app(stim, pg)
+    app = _app(stim, pg, RT_FLOOR_MS=0)  # answers follow their start at once
     errors = []
 
     def participant(i):
@@ -158,7 +158,7 @@ def test_postgres_concurrent_sessions_and_report(pg, stim, tmp_path):
     res = write_report(pg, tmp_path / "rep", n_boot=100, stimuli_dir=stim)
     trials = res["trials"]
     assert len(trials) == 12 * 3 and trials.groupby(["participant", "trial_index"]).size().max() == 1
-    cells = Counter(zip(trials.loc[~trials.practice, "scene"], trials.loc[~trials.practice, "method"]))
+    cells = Counter(zip(trials.loc[~trials.practice, "scene"], trials.loc[~trials.practice, "condition"]))
     assert set(cells.values()) == {4}  # 12 participants over 3 methods per scene, least-filled first
-    assert res["baselines"].set_index("method").loc["all", "n_trials"] == 24
+    assert res["baselines"].set_index("condition").loc["all", "n_trials"] == 24
     app.extensions["camo_study"].db.dispose()

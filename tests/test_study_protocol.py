@@ -31,7 +31,7 @@ def stim_dir(tmp_path_factory):
 
 def _app(stim_dir, tmp_path, **cfg):
     base = {"STIMULI_DIR": str(stim_dir), "DATABASE_URL": f"sqlite:///{tmp_path / 'study.sqlite'}",
-            "PRACTICE_TRIALS": 2, "TRIAL_TIME_LIMIT_S": 6, "ID_HMAC_KEY": ID_KEY, "RATE_LIMIT_PER_S": 0}
+            "PRACTICE_TRIALS": 2, "TRIAL_TIME_LIMIT_S": 6, "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64, "RATE_LIMIT_PER_S": 0}
     base.update(cfg)
     app = create_app(base)
     app.testing = True
@@ -42,7 +42,7 @@ def _to_task(c, pid="P1"):
     c.get(f"/?PROLIFIC_PID={pid}")
     tok = re.search(r'name="csrf_token" value="([^"]+)"', c.get("/consent").text).group(1)
     c.post("/consent", data={"csrf_token": tok, "consent": "yes"})
-    c.post("/about-you", data={"csrf_token": tok})
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "25-34"}).status_code == 302
     assert c.post("/instructions", data={"csrf_token": tok}).status_code == 302
     return tok
 
@@ -175,13 +175,14 @@ def test_report_excludes_too_fast_and_gives_location_baselines(stim_dir, tmp_pat
             x0, y0, x1, y1 = rects[sid]
             c.post("/api/start", json={"trial_index": t["index"]}, headers=h)
             rt = 100.0 if (i == 0 and t["index"] == 2) else 700.0  # participant 0's first formal: too fast
+            _age(app, t["index"], rt / 1000.0)  # the server's clock decides: that much time passed
             body = {"trial_index": t["index"], "client_trial_id": f"rep{i}x{t['index']:04d}", "timed_out": False,
                     "rt_ms": rt, "x": (x0 + x1) // 2, "y": (y0 + y1) // 2}
             assert c.post("/api/trial", json=body, headers=h).status_code == 200
         assert c.post("/api/complete", json={}, headers=h).status_code == 200
     res = write_report(app.config["DATABASE_URL"], tmp_path / "rep", n_boot=50, stimuli_dir=stim_dir)
     assert int(res["table"]["n_trials"].sum()) == 3 * 2 - 1  # 2 formal scenes each, one too fast dropped
-    b = res["baselines"].set_index("method")
+    b = res["baselines"].set_index("condition")
     trials = res["trials"]
     formal = trials[~trials.practice & ~trials.too_fast]
     # centre click: exactly the stimuli whose mask covers the centre pixel
@@ -232,7 +233,7 @@ def test_leaking_practice_is_refused(tmp_path):
     build_stimuli([tmp_path / "formal"], tmp_path / "o4", synthetic_practice_n=0, log=lambda m: None)
     with pytest.raises(CamoError, match="no practice stimuli"):
         create_app({"STIMULI_DIR": str(tmp_path / "o4"), "DATABASE_URL": f"sqlite:///{tmp_path / 'x.sqlite'}",
-                    "ID_HMAC_KEY": ID_KEY, "PRACTICE_TRIALS": 2})
+                    "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64, "PRACTICE_TRIALS": 2})
 
 
 def test_cli_leak_refusal_is_one_line_exit_2(tmp_path, capsys):
@@ -324,7 +325,7 @@ def test_copy_mode_summary_reports_centre_bias(tmp_path):
 def test_id_key_outside_the_database(stim_dir, tmp_path, capsys):
     from camo.cli import main
 
-    cfg = {"STIMULI_DIR": str(stim_dir), "DATABASE_URL": f"sqlite:///{tmp_path / 'k.sqlite'}"}
+    cfg = {"STIMULI_DIR": str(stim_dir), "DATABASE_URL": f"sqlite:///{tmp_path / 'k.sqlite'}", "SECRET_KEY": "s" * 64}
     with pytest.raises(CamoError, match=r"camo study make-key"):
         create_app(cfg)
     with pytest.raises(CamoError, match="at least 32"):
@@ -340,30 +341,63 @@ def test_id_key_outside_the_database(stim_dir, tmp_path, capsys):
 
     with app.extensions["camo_study"].db.read() as s:
         assert s.get(Setting, "id_hmac_key") is None  # not in the database
-    dev = create_app(dict(cfg, DEV=True))  # development: a key kept in the database
+    dev = create_app(dict(cfg, DEV=True, SECRET_KEY=None))  # development: keys kept in the database
     with dev.extensions["camo_study"].db.read() as s:
         assert s.get(Setting, "id_hmac_key").value == dev.extensions["camo_study"].id_key
     with pytest.raises(CamoError, match="ID_HMAC_KEY file"):
         create_app(dict(cfg, ID_HMAC_KEY_FILE=str(tmp_path / "missing.key")))
 
 
-def test_age_brackets_from_18_and_consent_note_when_lowered(stim_dir, tmp_path):
+def test_adults_only_age_required(stim_dir, tmp_path, capsys):
+    """The age bracket is required, brackets are adult only, "Under 18" ends the participation, and a minimum
+    below 18 is refused in one line (config and `serve --min-age`)."""
+    from camo.cli import main
+
     app = _app(stim_dir, tmp_path)
     c = app.test_client()
     c.get("/?id=age_1")
     page = c.get("/consent").text
-    assert "minor-note" not in page
+    assert "Adults only" in page and "18 or older" in page and "guardian" not in page
     tok = re.search(r'name="csrf_token" value="([^"]+)"', page).group(1)
     c.post("/consent", data={"csrf_token": tok, "consent": "yes"})
-    values = re.findall(r'name="age" value="([^"]+)"', c.get("/about-you").text)
-    assert values == ["18-24", "25-34", "35-44", "45-54", "55-64", "65+", "prefer_not"]
+    about = c.get("/about-you").text
+    values = re.findall(r'name="age" value="([^"]+)" required', about)
+    assert values == ["18-24", "25-34", "35-44", "45-54", "55-64", "65+", "under"]
+    assert "Under 18" in about and "optional" not in about
+    assert c.post("/about-you", data={"csrf_token": tok}).status_code == 400  # no answer
     assert c.post("/about-you", data={"csrf_token": tok, "age": "10-20"}).status_code == 400
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "prefer_not"}).status_code == 400
+    r = c.post("/about-you", data={"csrf_token": tok, "age": "under"})
+    assert r.status_code == 302 and r.headers["Location"].endswith("/not-eligible")
+    assert "for adults aged 18 or older" in c.get("/not-eligible").text
+    # stays out: every page and the API lead back to /not-eligible; no plan was made
+    assert c.get("/instructions").headers["Location"].endswith("/not-eligible")
+    assert c.get("/task").headers["Location"].endswith("/not-eligible")
+    assert c.get("/api/state").status_code == 409
+    c.get("/?id=age_1")
+    assert c.get("/consent").headers["Location"].endswith("/not-eligible")
+    from study_site.analysis import load_tables
+
+    parts = load_tables(app.extensions["camo_study"].db.engine)[1]
+    assert parts["age_bracket"].tolist() == ["under"] and parts["n_trials"].tolist() == [0]
     (tmp_path / "y").mkdir()
-    c = _app(stim_dir, tmp_path / "y", MIN_AGE=16).test_client()
+    c = _app(stim_dir, tmp_path / "y", MIN_AGE=21).test_client()  # a higher minimum: brackets from 21
     c.get("/?id=age_2")
-    assert "a parent or guardian must agree" in c.get("/consent").text
-    with pytest.raises(CamoError, match="MIN_AGE"):
-        _app(stim_dir, tmp_path, MIN_AGE=5)
+    tok = re.search(r'name="csrf_token" value="([^"]+)"', c.get("/consent").text).group(1)
+    c.post("/consent", data={"csrf_token": tok, "consent": "yes"})
+    assert re.findall(r'name="age" value="([^"]+)"', c.get("/about-you").text)[:2] == ["21-24", "25-34"]
+    for low in (17, 10):
+        with pytest.raises(CamoError, match=rf"^MIN_AGE \(--min-age\) must be 18-99, not {low}: the study takes "
+                                            "adults only$"):
+            _app(stim_dir, tmp_path, MIN_AGE=low)
+    key = tmp_path / "k.key"
+    key.write_text("ab" * 32)
+    skey = tmp_path / "s.key"
+    skey.write_text("cd" * 32)
+    rc = main(["study", "serve", "--stimuli", str(stim_dir), "--db", str(tmp_path / "m.sqlite"), "--id-key-file",
+               str(key), "--secret-key-file", str(skey), "--min-age", "10"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == ["camo: error: MIN_AGE (--min-age) must be 18-99, not 10: the study takes adults only"]
 
 
 def test_serve_flags_reach_the_config(stim_dir, tmp_path, monkeypatch):
@@ -371,20 +405,23 @@ def test_serve_flags_reach_the_config(stim_dir, tmp_path, monkeypatch):
 
     seen = {}
     monkeypatch.setattr(cli, "serve_app", lambda app, *a, **k: seen.update(app.config))
-    key, tok = tmp_path / "id.key", tmp_path / "admin.tok"
+    key, tok, skey = tmp_path / "id.key", tmp_path / "admin.tok", tmp_path / "cookie.key"
     key.write_text("ab" * 32)
+    skey.write_text("cd" * 32)
     tok.write_text("admintoken-" + "x" * 20)
     p = argparse.ArgumentParser(prog="camo")
     register(p.add_subparsers(dest="command", required=True))
     args = p.parse_args(["study", "serve", "--stimuli", str(stim_dir), "--db", str(tmp_path / "s.sqlite"),
-                         "--id-key-file", str(key), "--admin-token-file", str(tok), "--time-limit", "25",
+                         "--id-key-file", str(key), "--secret-key-file", str(skey), "--admin-token-file", str(tok),
+                         "--time-limit", "25",
                          "--practice-trials", "3", "--min-age", "21", "--completion-code", "XYZ123"])
     assert args.func(args) == 0
     assert (seen["TRIAL_TIME_LIMIT_S"], seen["PRACTICE_TRIALS"], seen["MIN_AGE"], seen["COMPLETION_CODE"]) == (
         25.0, 3, 21, "XYZ123")
     assert seen["ADMIN_TOKEN"] == tok.read_text() and seen["ID_HMAC_KEY"] == "ab" * 32
+    assert seen["SECRET_KEY"] == "cd" * 32
     bad = p.parse_args(["study", "serve", "--stimuli", str(stim_dir), "--db", str(tmp_path / "s.sqlite"),
-                        "--id-key-file", str(key), "--time-limit", "0.5"])
+                        "--id-key-file", str(key), "--secret-key-file", str(skey), "--time-limit", "0.5"])
     with pytest.raises(CamoError, match="TRIAL_TIME_LIMIT_S"):
         bad.func(bad)
 

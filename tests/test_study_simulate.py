@@ -62,7 +62,7 @@ def live_site(tmp_path):
     _eval_dir(tmp_path / "eval")
     build_stimuli([tmp_path / "eval"], tmp_path / "stim", log=lambda m: None)
     app = create_app({"STIMULI_DIR": str(tmp_path / "stim"), "DATABASE_URL": f"sqlite:///{tmp_path / 'study.sqlite'}",
-                      "PRACTICE_TRIALS": 1, "TRIAL_TIME_LIMIT_S": 2.5, "ID_HMAC_KEY": "k" * 64})
+                      "PRACTICE_TRIALS": 1, "TRIAL_TIME_LIMIT_S": 2.5, "ID_HMAC_KEY": "k" * 64, "SECRET_KEY": "s" * 64})
     srv = make_server("127.0.0.1", 0, app, threaded=True)
     th = threading.Thread(target=srv.serve_forever, daemon=True)
     th.start()
