@@ -160,6 +160,47 @@ def test_late_and_too_fast_answers(stim_dir, tmp_path):
     assert 3 not in rows.index
 
 
+def test_under_reported_time_is_decided_on_the_server_clock(stim_dir, tmp_path):
+    """A page claiming 320 ms where the server measured ~6.2 s: stored with clock_mismatch, not too fast, and
+    Table I reports the server's 6.2 s and says which clock it reports; a page claiming more than the server
+    measured is refused; an honest page within the tolerance is not flagged."""
+    from study_site.analysis import write_report
+
+    app = _app(stim_dir, tmp_path, TRIAL_TIME_LIMIT_S=40, PRACTICE_TRIALS=0, RT_FLOOR_MS=300)
+    c = app.test_client()
+    tok = _to_task(c, "CLOCK1")
+    h = {"X-CSRF-Token": tok}
+    j, _ = _click_object_after(app, c, h, 0, server_s=6.224, rt_ms=320.0, cid="clock00001")
+    assert (j["hit"], j["too_fast"], j["late"], j["clock_mismatch"]) == (True, False, False, True)
+    # trial 1: the page claims 5 s but only ~1.6 s passed on the server: impossible, refused
+    c.post("/api/start", json={"trial_index": 1}, headers=h)
+    _age(app, 1, 1.6)
+    x, y = _centre_of_object(app, c, 1)
+    r = c.post("/api/trial", json={"trial_index": 1, "client_trial_id": "clock00002", "timed_out": False,
+                                   "rt_ms": 5000.0, "x": x, "y": y}, headers=h)
+    assert r.status_code == 400 and r.get_json()["error"] == "rt_ms exceeds the time since the trial started"
+    # the same trial answered honestly (1.45 s on the page; the server's 1.6 s adds the round trip): not flagged
+    r = c.post("/api/trial", json={"trial_index": 1, "client_trial_id": "clock00003", "timed_out": False,
+                                   "rt_ms": 1450.0, "x": x, "y": y}, headers=h)
+    assert r.status_code == 200 and r.get_json()["clock_mismatch"] is False
+    assert c.post("/api/complete", json={}, headers=h).status_code == 200
+    rows = _rows(app)
+    assert rows.loc[0, "rt_ms"] == 320.0 and 6224 <= rows.loc[0, "server_rt_ms"] < 6224 + 3000
+    assert bool(rows.loc[0, "clock_mismatch"]) and not bool(rows.loc[0, "too_fast"])
+    assert rows.loc[0, "rt_s"] == pytest.approx(rows.loc[0, "server_rt_ms"] / 1000) and rows.loc[0, "page_rt_s"] == 0.32
+    assert not bool(rows.loc[1, "clock_mismatch"]) and 1600 <= rows.loc[1, "server_rt_ms"] < 1600 + 3000
+    res = write_report(app.config["DATABASE_URL"], tmp_path / "rep", n_boot=10)
+    t = res["table"].set_index("condition")
+    first = rows.loc[0, "condition"]
+    assert t.loc[first, "mean_time_found_s"] == pytest.approx(rows.loc[0, "server_rt_ms"] / 1000)
+    assert t.loc[first, "mean_time_found_s"] > 6.2  # not the page's 0.32 s
+    md = (tmp_path / "rep" / "table_i.md").read_text()
+    assert "the **server's clock**" in md
+    assert "1 analysed trial(s) whose page claimed more than 1000 ms less than the server measured" in md
+    with pytest.raises(CamoError, match="CLOCK_TOLERANCE_MS must be between 50 and 10000"):
+        _app(stim_dir, tmp_path, CLOCK_TOLERANCE_MS=20000)
+
+
 def test_report_excludes_too_fast_and_gives_location_baselines(stim_dir, tmp_path):
     from study_site.analysis import write_report
 
