@@ -67,7 +67,7 @@ class Client(SiteClient):
         st, html, _ = self.request("GET", "/consent")
         self.csrf = CSRF_RE.search(html.decode()).group(1)
         self.form("/consent", {"consent": "yes"})
-        self.form("/about-you", {"age": rng.choice(["18-24", "25-34", "prefer_not", ""])})
+        self.form("/about-you", {"age": rng.choice(["18-24", "25-34", "35-44"])})
         self.form("/instructions", {})
         st, data, _ = self.request("GET", "/api/state")
         state = json.loads(data)

@@ -135,6 +135,10 @@ def create_app(config: Mapping[str, Any] | None = None):
         consent_paragraphs=_consent_paragraphs(cfg["CONSENT_FILE"]),
     )
     app.jinja_env.globals["age_brackets"] = age_brackets(cfg["MIN_AGE"])
+    # stimulus images: static, immutable, content-hash ETags, before Flask (study_site.serving)
+    from study_site.serving import StaticStimuli
+
+    app.wsgi_app = StaticStimuli(app.wsgi_app, stimuli.static_files())
     app.register_blueprint(views.bp)
     app.register_blueprint(admin.bp)
     app.jinja_env.globals["csrf_token"] = csrf_token
@@ -161,7 +165,7 @@ def create_app(config: Mapping[str, Any] | None = None):
         h.setdefault("X-Content-Type-Options", "nosniff")
         h.setdefault("Referrer-Policy", "no-referrer")
         h.setdefault("X-Frame-Options", "DENY")
-        if resp.mimetype != "image/png" and not request.path.startswith("/static/"):
+        if not resp.mimetype.startswith("image/") and not request.path.startswith("/static/"):
             h["Cache-Control"] = "no-store"
         if resp.status_code == 429:
             h.setdefault("Retry-After", "1")

@@ -5,17 +5,20 @@ consent -> about you (age bracket, required: adults only; "under MIN_AGE" ends a
 then formal trials; JS) -> done (completion code / redirect).
 
 Nothing sent before a click names the scene, method, mask or outline: the task
-page gets opaque image URLs (``/i/<id>``); ``POST /api/trial`` hit-tests the
+page gets opaque image URLs (``/i/<id>.webp``, static: :mod:`study_site.serving`); ``POST /api/trial`` hit-tests the
 click against the mask on the server and only its response carries the reveal
 URL (``/r/<rid>``), which is served only once that trial is stored.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
 import secrets
+from pathlib import Path
+
 from flask import (
     Blueprint,
     abort,
@@ -346,7 +349,7 @@ def api_state():
             {
                 "index": it.idx,
                 "practice": it.practice,
-                "src": url_for("study.image", sid=it.stimulus_id),
+                **_image_urls(it.stimulus_id),
                 "w": it.width,
                 "h": it.height,
                 "started": it.started_at is not None,
@@ -355,6 +358,13 @@ def api_state():
             if it.idx not in answered
         ],
     )
+
+
+def _image_urls(sid: str) -> dict[str, str]:
+    """``src`` (lossless WebP) and ``fallback`` (PNG) of a stimulus, served statically (:mod:`study_site.serving`)."""
+    stim = st().stimuli.by_id.get(sid)
+    webp, png = st().stimuli.image_names(stim) if stim is not None else (f"{sid}.png", f"{sid}.png")
+    return {"src": f"{request.script_root}/i/{webp}", "fallback": f"{request.script_root}/i/{png}"}
 
 
 def _elapsed_ms(started_at, now) -> float:
@@ -615,26 +625,6 @@ def api_complete():
     return jsonify(ok=True, redirect=url_for("study.done"))
 
 
-@bp.get("/i/<sid>")
-def image(sid: str):
-    if not TOKEN_RE.match(sid):
-        abort(404)
-    with st().db.read() as s:
-        p = current_participant(s)
-        if p is None:
-            abort(404)
-        ok = s.scalar(
-            select(func.count()).where(PlanItem.participant_id == p.id, PlanItem.stimulus_id == sid)
-        )
-    stim = st().stimuli.by_id.get(sid)
-    if not ok or stim is None:
-        abort(404)
-    resp = send_file(st().stimuli.image_path(stim), mimetype="image/png", max_age=3600, conditional=True)
-    resp.cache_control.private = True
-    resp.cache_control.public = False
-    return resp
-
-
 @bp.get("/r/<rid>")
 def reveal(rid: str):
     if not TOKEN_RE.match(rid):
@@ -652,10 +642,25 @@ def reveal(rid: str):
     stim = st().stimuli.by_reveal.get(rid)
     if not answered or stim is None:
         abort(404)
-    resp = send_file(st().stimuli.reveal_path(stim), mimetype="image/png", max_age=3600, conditional=True)
+    # WebP to browsers that take it (Vary: Accept), else PNG; a content-hash ETag and no Last-Modified
+    webp = st().stimuli.reveal_path(stim, ".webp")
+    path = webp if "image/webp" in request.headers.get("Accept", "") and webp.is_file() else \
+        st().stimuli.reveal_path(stim)
+    f = _reveal_file(str(path))
+    resp = send_file(f.path, mimetype=f.mimetype, etag=False, last_modified=None, conditional=False)
+    resp.headers.pop("Last-Modified", None)
+    resp.set_etag(f.etag.strip('"'))
     resp.cache_control.private = True
-    resp.cache_control.public = False
-    return resp
+    resp.cache_control.max_age = 3600
+    resp.vary.add("Accept")
+    return resp.make_conditional(request)
+
+
+@functools.lru_cache(maxsize=4096)
+def _reveal_file(path: str):
+    from study_site.serving import static_file
+
+    return static_file(Path(path))
 
 
 # ---------------------------------------------------------------------------

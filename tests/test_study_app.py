@@ -98,7 +98,7 @@ def _age_trial(app, idx, seconds):
 def _finish(client, tok, rects, hit_every=2):
     state = client.get("/api/state").get_json()
     for t in state["trials"]:
-        sid = t["src"].rsplit("/", 1)[1]
+        sid = t["src"].rsplit("/", 1)[1].split(".")[0]
         x0, y0, x1, y1 = rects[sid]
         if t["index"] % hit_every == 0:
             x, y = (x0 + x1) // 2, (y0 + y1) // 2
@@ -201,9 +201,9 @@ def test_full_session_rows_and_no_leak(stim_dir, tmp_path):
     # images only for the participant's own plan; reveal only after answering
     t0 = state["trials"][0]
     assert c.get(t0["src"]).status_code == 200
-    rid = next(s.reveal_id for s in StimulusSet(stim_dir).stimuli if s.id == t0["src"].rsplit("/", 1)[1])
+    rid = next(s.reveal_id for s in StimulusSet(stim_dir).stimuli if s.id == t0["src"].rsplit("/", 1)[1].split(".")[0])
     assert c.get(f"/r/{rid}").status_code == 404
-    sid = t0["src"].rsplit("/", 1)[1]
+    sid = t0["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = rects[sid]
     x0, y0 = (x0 + x1) // 2, (y0 + y1) // 2  # practice images are synthetic ellipses: aim at the centre
     r = _post_trial(c, tok, 0, x=x0, y=y0, display_w=640.0, display_h=480.0)

@@ -171,7 +171,7 @@ class Participant:
         p = self.page
         p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
         src = p.get_attribute("#stage img.stim", "src")
-        sid = src.rsplit("/", 1)[1]
+        sid = src.rsplit("/", 1)[1].split(".")[0]
         self.seen.append(sid)
         if shot_name:
             shot(p, shot_name + "_trial")
@@ -356,8 +356,8 @@ def test_reload_mid_trial_keeps_the_deadline(slow_site, browser):
     # the time bar starts from the remaining share, not from full
     bar = p.evaluate("() => parseFloat(document.getElementById('timer-fill').style.width)")
     assert bar == 0 or bar < 80
-    who.seen.append(first_src.rsplit("/", 1)[1])
-    x0, y0, x1, y1 = site["rects"][first_src.rsplit("/", 1)[1]]
+    who.seen.append(first_src.rsplit("/", 1)[1].split(".")[0])
+    x0, y0, x1, y1 = site["rects"][first_src.rsplit("/", 1)[1].split(".")[0]]
     box = p.locator("#stage img.stim").bounding_box()
     p.mouse.click(box["x"] + ((x0 + x1) / 2 + 0.5) * box["width"] / SIZE[0],
                   box["y"] + ((y0 + y1) / 2 + 0.5) * box["height"] / SIZE[1])

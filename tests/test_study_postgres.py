@@ -80,7 +80,7 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
     trials = c.get("/api/state").get_json()["trials"]
     assert [t["practice"] for t in trials] == [True, False, False]
     # trial 0: hit, then two retries
-    sid = trials[0]["src"].rsplit("/", 1)[1]
+    sid = trials[0]["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = rects[sid]
     assert c.post("/api/start", json={"trial_index": 0}, headers=h).get_json()["starts"] == 1
     body = {"trial_index": 0, "client_trial_id": "pground-0", "timed_out": False, "rt_ms": 612.5,
@@ -103,7 +103,7 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
         it.started_at -= timedelta(seconds=13)
     st = c.post("/api/start", json={"trial_index": 1}, headers=h).get_json()
     assert st["starts"] == 2 and st["remaining_ms"] == 0 and st["elapsed_ms"] >= 13000
-    sid = trials[1]["src"].rsplit("/", 1)[1]
+    sid = trials[1]["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = rects[sid]
     late = {"trial_index": 1, "client_trial_id": "pground-1", "timed_out": False, "rt_ms": 12000.0,
             "x": (x0 + x1) // 2, "y": (y0 + y1) // 2}

@@ -11,6 +11,7 @@ import re
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from camo_base.errors import CamoError
 from study_site import create_app
@@ -60,7 +61,7 @@ def _age(app, idx, seconds):
 
 
 def _centre_of_object(app, c, idx):
-    sid = next(t for t in c.get("/api/state").get_json()["trials"] if t["index"] == idx)["src"].rsplit("/", 1)[1]
+    sid = next(t for t in c.get("/api/state").get_json()["trials"] if t["index"] == idx)["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = mask_rects(app.config["STIMULI_DIR"])[sid]
     return (x0 + x1) // 2, (y0 + y1) // 2
 
@@ -212,7 +213,7 @@ def test_report_excludes_too_fast_and_gives_location_baselines(stim_dir, tmp_pat
         tok = _to_task(c, f"R{i}")
         h = {"X-CSRF-Token": tok}
         for t in c.get("/api/state").get_json()["trials"]:
-            sid = t["src"].rsplit("/", 1)[1]
+            sid = t["src"].rsplit("/", 1)[1].split(".")[0]
             x0, y0, x1, y1 = rects[sid]
             c.post("/api/start", json={"trial_index": t["index"]}, headers=h)
             rt = 100.0 if (i == 0 and t["index"] == 2) else 700.0  # participant 0's first formal: too fast
@@ -275,6 +276,81 @@ def test_leaking_practice_is_refused(tmp_path):
     with pytest.raises(CamoError, match="no practice stimuli"):
         create_app({"STIMULI_DIR": str(tmp_path / "o4"), "DATABASE_URL": f"sqlite:///{tmp_path / 'x.sqlite'}",
                     "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64, "PRACTICE_TRIALS": 2})
+
+
+def test_practice_leak_by_content_is_refused(tmp_path, capsys):
+    """Practice is compared with the formal trials by what the images show, not by scene names: the formal images
+    (and backgrounds) copied under another scene name are refused by perceptual hash, when built and when a
+    hand-edited manifest is loaded; different pictures pass."""
+    import shutil
+
+    from camo.cli import main
+    from study_site.stimuli import phash, phash_distance
+
+    make_fake_eval_dir(tmp_path / "formal", scenes=("s1", "s2"), methods=("m",), views=1, size=(96, 72), seed=1)
+    make_fake_eval_dir(tmp_path / "other", scenes=("p1", "p2"), methods=("m",), views=1, size=(96, 72), seed=2)
+    # the practice folder shows formal scene s2's view under the name p9
+    entries = make_fake_eval_dir(tmp_path / "copy", scenes=("p9",), methods=("m",), views=1, size=(96, 72), seed=3)
+    src = tmp_path / "formal" / "renders" / "s2__m"
+    dst = tmp_path / "copy" / "renders" / "p9__m"
+    for f in ("view_00_obj.png", "view_00_bg.png"):
+        shutil.copy(src / f, dst / f)
+    rc = main(["study", "build-stimuli", str(tmp_path / "formal"), "--out", str(tmp_path / "o1"), "--copy",
+               "--practice", str(tmp_path / "copy")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0].startswith("camo: error: ") and "practice image of scene p9 (view 0) looks like formal scene s2" in err[0]
+    assert not (tmp_path / "o1" / "manifest.json").exists()
+    # other pictures: accepted, hashes recorded, and far apart
+    man = build_stimuli([tmp_path / "formal"], tmp_path / "o2", practice_dirs=[tmp_path / "other"], log=lambda m: None)
+    pr = [x for x in man["stimuli"] if x["practice"]]
+    fo = [x for x in man["stimuli"] if not x["practice"]]
+    assert all(len(x["phash"]) == 16 and len(x["background_phash"]) == 16 for x in man["stimuli"])
+    assert min(phash_distance(a["phash"], b["phash"]) for a in pr for b in fo) > 8
+    img = np.asarray(Image.open(tmp_path / "o2" / "images" / f"{fo[0]['id']}.png"))
+    assert phash(img) == fo[0]["phash"] and phash(img[:, ::-1]) != fo[0]["phash"]
+    # a hand-edited manifest whose practice image is a formal one is refused when loaded (the server won't start)
+    mpath = tmp_path / "o2" / "manifest.json"
+    data = json.loads(mpath.read_text())
+    p0 = next(x for x in data["stimuli"] if x["practice"])
+    f0 = next(x for x in data["stimuli"] if not x["practice"])
+    shutil.copy(tmp_path / "o2" / "images" / f"{f0['id']}.png", tmp_path / "o2" / "images" / f"{p0['id']}.png")
+    for x in data["stimuli"]:
+        x.pop("phash", None)  # as a manifest from before hashes were recorded: computed from the images
+    mpath.write_text(json.dumps(data))
+    with pytest.raises(CamoError, match=r"practice image of scene p\d .* looks like formal scene s\d"):
+        StimulusSet(tmp_path / "o2")
+
+
+def test_same_environment_under_another_name_is_refused():
+    """meadow:teapot (practice) and meadow (formal) show the same grass, sun and camera orbit: refused by their
+    environment, whatever the scene names; a panorama is compared by its bytes, not its name."""
+    from optimizer.scenes.builtin_scenes import resolve_scene
+    from study_site.stimuli import check_no_content_leak, environment_key
+
+    def rows(formal, practice):
+        return ([{"practice": False, "scene": n, "view": "0", "environment": environment_key(resolve_scene(n).environment)}
+                 for n in formal]
+                + [{"practice": True, "scene": n, "view": "0", "environment": environment_key(resolve_scene(n).environment)}
+                   for n in practice])
+
+    with pytest.raises(CamoError, match=r"practice scene meadow(:|_)teapot shows the same environment "
+                                        r"\(builtin:meadow\) as formal scene meadow"):
+        check_no_content_leak([dict(r, scene=n) for r, n in zip(rows(["meadow"], ["meadow:teapot"]),
+                                                                 ["meadow", "meadow:teapot"])], "build-stimuli")
+    check_no_content_leak(rows(["meadow", "room"], ["gravel:teapot"]))  # another environment: fine
+
+
+def test_panorama_environment_by_content(tmp_path):
+    from optimizer.scenes.scenepack import EnvironmentSpec
+    from study_site.stimuli import environment_key
+
+    a, b, c = tmp_path / "plaza.hdr", tmp_path / "renamed.hdr", tmp_path / "forest.hdr"
+    a.write_bytes(b"#?RADIANCE\n" + bytes(range(256)) * 4)
+    b.write_bytes(a.read_bytes())
+    c.write_bytes(b"#?RADIANCE\n" + bytes(range(255, -1, -1)) * 4)
+    ka, kb, kc = (environment_key(EnvironmentSpec(panorama=str(p))) for p in (a, b, c))
+    assert ka == kb != kc and ka.startswith("panorama:")
 
 
 def test_cli_leak_refusal_is_one_line_exit_2(tmp_path, capsys):
