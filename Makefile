@@ -44,15 +44,15 @@ demo: install
 	@echo "demo done: previews in $(DEMO_OUT)/runs/*/previews, report in $(DEMO_OUT)/report/report.html"
 
 test: install
-	bash .ci/system-deps chromium
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q
 
 test-slow: install
-	bash .ci/system-deps chromium
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m slow
 
 test-all: install
-	bash .ci/system-deps chromium
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
 clean:

@@ -96,7 +96,7 @@ def test_simulated_participants_through_the_site_and_the_report(live_site):
     assert sum(r["timed_out"] for r in rec.values()) == int(trials["timed_out"].sum())
     # every cell filled evenly: 4 participants per scene x method
     assert set(formal.groupby(["scene", "method"]).size()) == {n // 2}
-    t = rep["table"].set_index("method")
+    t = rep["table"].set_index("condition")
     assert t.loc["red", "confusion_rate"] <= 0.25  # a saturated red disc is found
     # what the library predicts for these images (same observer, the site's 2.5 s limit, centre start): the site's
     # figures agree within sampling error (6 trials per stimulus; a hidden disc is "found" only where it happens
