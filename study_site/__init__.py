@@ -123,6 +123,8 @@ def create_app(config: Mapping[str, Any] | None = None):
     db.put_setting("clock_tolerance_ms", f"{cfg['CLOCK_TOLERANCE_MS']:g}")  # stated in Table I
     app.config.from_mapping(cfg)
     app.config["PERMANENT_SESSION_LIFETIME"] = timedelta(days=2)
+    # a study takes minutes: no new signed cookie on every API call (saves signing + compressing per request)
+    app.config["SESSION_REFRESH_EACH_REQUEST"] = False
     app.config["TEMPLATES_AUTO_RELOAD"] = False
     app.extensions["camo_study"] = StudyState(
         db=db,

@@ -36,7 +36,7 @@ from sqlalchemy import (
     insert,
     select,
 )
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.exc import ArgumentError, IntegrityError, OperationalError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
@@ -199,13 +199,15 @@ class Database:
         self.url = url
         self.engine = make_engine(url, **engine_kwargs)
         self._read = sessionmaker(self.engine, expire_on_commit=False)
-        self._write = sessionmaker(self.engine.execution_options(sqlite_begin="IMMEDIATE"), expire_on_commit=False)
+        self._write_engine = self.engine.execution_options(sqlite_begin="IMMEDIATE")
+        self._write = sessionmaker(self._write_engine, expire_on_commit=False)
+        self._insert_ignore_stmts: dict = {}
         self._write_lock = threading.Lock() if self.engine.dialect.name == "sqlite" else contextlib.nullcontext()
         self._light_engine = None
         if self.engine.dialect.name == "sqlite":  # same file, commits without fsync (see write_light)
             self._light_engine = make_engine(url, **dict(engine_kwargs, synchronous="NORMAL"))
-            self._light = sessionmaker(self._light_engine.execution_options(sqlite_begin="IMMEDIATE"),
-                                       expire_on_commit=False)
+            self._light_write_engine = self._light_engine.execution_options(sqlite_begin="IMMEDIATE")
+            self._light = sessionmaker(self._light_write_engine, expire_on_commit=False)
         else:
             if self.engine.dialect.name == "postgresql":
 
@@ -214,7 +216,8 @@ class Database:
                     if conn.get_execution_options().get("camo_light"):
                         conn.exec_driver_sql("SET LOCAL synchronous_commit TO OFF")
 
-            self._light = sessionmaker(self.engine.execution_options(camo_light=True), expire_on_commit=False)
+            self._light_write_engine = self.engine.execution_options(camo_light=True)
+            self._light = sessionmaker(self._light_write_engine, expire_on_commit=False)
         try:
             Base.metadata.create_all(self.engine)
         except OperationalError as exc:
@@ -241,6 +244,20 @@ class Database:
         with self._write_lock:
             with self._light() as s:
                 yield s
+
+    @contextlib.contextmanager
+    def read_conn(self) -> Iterator[Connection]:
+        """A Core connection for reads (the hot API paths: prebuilt statements, no ORM; see study_site.views)."""
+        with self.engine.connect() as c:
+            yield c
+
+    @contextlib.contextmanager
+    def write_conn(self, light: bool = False) -> Iterator[Connection]:
+        """A Core connection in a write transaction, committed on exit: like :meth:`write` (``light=False``) or
+        :meth:`write_light` (``light=True``)."""
+        with self._write_lock:
+            with (self._light_write_engine if light else self._write_engine).begin() as c:
+                yield c
 
     @property
     def dialect(self) -> str:
@@ -282,6 +299,28 @@ class Database:
             return True
         except IntegrityError:
             return False
+
+    def insert_ignore_conn(self, conn: Connection, model, values: dict) -> bool:
+        """:meth:`insert_ignore` on a Core connection, with the statement built once per table (the trial write's
+        hot path)."""
+        stmt = self._insert_ignore_stmts.get(model.__tablename__)
+        if stmt is None:
+            if self.dialect == "sqlite":
+                from sqlalchemy.dialects.sqlite import insert as dialect_insert
+            elif self.dialect == "postgresql":
+                from sqlalchemy.dialects.postgresql import insert as dialect_insert
+            else:
+                dialect_insert = None
+            stmt = dialect_insert(model.__table__).on_conflict_do_nothing() if dialect_insert else False
+            self._insert_ignore_stmts[model.__tablename__] = stmt
+        if stmt is False:
+            try:
+                with conn.begin_nested():
+                    conn.execute(insert(model.__table__), values)
+                return True
+            except IntegrityError:
+                return False
+        return bool(conn.execute(stmt, values).rowcount)
 
     def dispose(self) -> None:
         self.engine.dispose()

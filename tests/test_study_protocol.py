@@ -193,8 +193,9 @@ def test_under_reported_time_is_decided_on_the_server_clock(stim_dir, tmp_path):
     res = write_report(app.config["DATABASE_URL"], tmp_path / "rep", n_boot=10)
     t = res["table"].set_index("condition")
     first = rows.loc[0, "condition"]
-    assert t.loc[first, "mean_time_found_s"] == pytest.approx(rows.loc[0, "server_rt_ms"] / 1000)
-    assert t.loc[first, "mean_time_found_s"] > 6.2  # not the page's 0.32 s
+    same = rows[rows["condition"] == first]  # trial 1 may show the same condition
+    assert t.loc[first, "mean_time_found_s"] == pytest.approx(same["server_rt_ms"].mean() / 1000)
+    assert t.loc[first, "mean_time_found_s"] >= (6.2 + 1.6 * (len(same) - 1)) / len(same)  # not the page's 0.32 s
     md = (tmp_path / "rep" / "table_i.md").read_text()
     assert "the **server's clock**" in md
     assert "1 analysed trial(s) whose page claimed more than 1000 ms less than the server measured" in md
