@@ -291,7 +291,7 @@ def test_practice_leak_by_content_is_refused(tmp_path, capsys):
     make_fake_eval_dir(tmp_path / "formal", scenes=("s1", "s2"), methods=("m",), views=1, size=(96, 72), seed=1)
     make_fake_eval_dir(tmp_path / "other", scenes=("p1", "p2"), methods=("m",), views=1, size=(96, 72), seed=2)
     # the practice folder shows formal scene s2's view under the name p9
-    entries = make_fake_eval_dir(tmp_path / "copy", scenes=("p9",), methods=("m",), views=1, size=(96, 72), seed=3)
+    make_fake_eval_dir(tmp_path / "copy", scenes=("p9",), methods=("m",), views=1, size=(96, 72), seed=3)
     src = tmp_path / "formal" / "renders" / "s2__m"
     dst = tmp_path / "copy" / "renders" / "p9__m"
     for f in ("view_00_obj.png", "view_00_bg.png"):
