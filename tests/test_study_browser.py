@@ -381,3 +381,27 @@ def test_reload_mid_trial_keeps_the_deadline(slow_site, browser):
     r = rows.iloc[1]
     assert r.timed_out and not r.hit and r.starts == 2 and r.server_rt_ms >= 6000
     ctx.close()
+
+
+def test_adults_only_in_the_browser(site, browser):
+    """The age question is required (the browser will not submit without an answer) and "Under 18" ends the
+    participation on the not-eligible page."""
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+    p = ctx.new_page()
+    p.goto(f"{site['base']}/?PROLIFIC_PID=MINOR_1")
+    p.wait_for_url("**/consent")
+    assert "Adults only" in p.inner_text("#adult-note")
+    p.click("#agree")
+    p.wait_for_url("**/about-you")
+    p.click("#continue")  # nothing chosen: the form is not sent
+    assert p.url.endswith("/about-you")
+    assert p.evaluate("() => document.querySelector('input[name=age]').validity.valueMissing")
+    shot(p, "03b_about_you_required")
+    p.check("input[value='under']")
+    p.click("#continue")
+    p.wait_for_url("**/not-eligible")
+    assert "adults aged 18 or older" in p.inner_text("#ineligible")
+    shot(p, "11_not_eligible")
+    p.goto(f"{site['base']}/task")
+    assert p.url.endswith("/not-eligible")
+    ctx.close()
