@@ -200,6 +200,8 @@ class Database:
         self.engine = make_engine(url, **engine_kwargs)
         self._read = sessionmaker(self.engine, expire_on_commit=False)
         self._write_engine = self.engine.execution_options(sqlite_begin="IMMEDIATE")
+        self._read_engine = (self.engine.execution_options(isolation_level="AUTOCOMMIT")
+                             if self.engine.dialect.name == "postgresql" else self.engine)
         self._write = sessionmaker(self._write_engine, expire_on_commit=False)
         self._insert_ignore_stmts: dict = {}
         self._write_lock = threading.Lock() if self.engine.dialect.name == "sqlite" else contextlib.nullcontext()
@@ -247,8 +249,9 @@ class Database:
 
     @contextlib.contextmanager
     def read_conn(self) -> Iterator[Connection]:
-        """A Core connection for reads (the hot API paths: prebuilt statements, no ORM; see study_site.views)."""
-        with self.engine.connect() as c:
+        """A Core connection for reads (the hot API paths: prebuilt statements, no ORM; see study_site.views). On
+        PostgreSQL in autocommit mode: a read is one round trip to the server (no BEGIN, no ROLLBACK on return)."""
+        with self._read_engine.connect() as c:
             yield c
 
     @contextlib.contextmanager

@@ -314,15 +314,8 @@ def task():
 
 
 def _api_participant(s) -> Participant:
-    p = current_participant(s)
-    if p is None:
-        abort(401, description="no study session; open the study link again")
-    stage = stage_of(p)
-    if stage != "task":
-        resp = jsonify(error=f"not in the task ({stage})", redirect=url_for(STAGE_ENDPOINT[stage]))
-        resp.status_code = 409
-        abort(resp)
-    return p
+    """The session's participant (ORM), or abort 401 / 409 like :func:`_api_row`."""
+    return _api_row(current_participant(s))
 
 
 @bp.get("/api/state")
@@ -413,7 +406,7 @@ TOUCH_EVERY_S = 60.0
 
 
 def _api_row(row):
-    """The participant row of an API call, or abort 401 (no session) / 409 (not in the task)."""
+    """The participant (a row or an ORM object) of an API call, or abort 401 (no session) / 409 (not in the task)."""
     if row is None:
         abort(401, description="no study session; open the study link again")
     stage = stage_of(row)
