@@ -278,7 +278,8 @@ def location_baselines(trials: pd.DataFrame, formal: pd.DataFrame, stimuli_dir) 
                      "share": share})
     df = pd.DataFrame(rows, columns=["condition", "label", "centre", "last_practice", "share"])
     out = []
-    for m, g in [("all", df)] + list(df.groupby("condition")):
+    order = conditions_in_order(df) if len(df) else []
+    for m, g in [("all", df)] + [(c, df[df["condition"] == c]) for c in order]:
         lp = g["last_practice"].dropna()
         out.append({
             "condition": m,
