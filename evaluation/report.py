@@ -687,8 +687,13 @@ def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
     return md, ht
 
 
-def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
-    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
+def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None) -> dict[str, Path]:
+    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``.
+
+    ``sections(out)`` (optional, called once the evaluations have been read) returns further sections appended at
+    the end, each with ``md`` and ``html`` (lists of lines) and optionally ``style`` (CSS) and ``tail`` (HTML placed
+    before ``</body>``, e.g. scripts): the turntables and the interactive viewer of ``camo report``
+    (:mod:`evaluation.viewer`)."""
     from camo_base import atomic
 
     out = Path(out)
@@ -773,8 +778,15 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
              "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
              "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")
+    tail = ""
+    for sec in (sections(out) if sections is not None else ()):
+        md += list(sec.md)
+        ht += list(sec.html)
+        if getattr(sec, "style", "") and sec.style not in style:
+            style += sec.style
+        tail += getattr(sec, "tail", "") or ""
     page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>Camouflage benchmark</title>"
-            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + "\n</body></html>\n")
+            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + tail + "\n</body></html>\n")
     atomic.write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
     atomic.write_text(out / "report.html", page)
     return {"md": out / "report.md", "html": out / "report.html"}
