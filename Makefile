@@ -56,15 +56,15 @@ readme-media: demo
 	cp $(DEMO_OUT)/turntable.webp docs/results/turntable_meadow.webp
 
 test: install viewer-js
-	bash .ci/system-deps chromium
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q
 
 test-slow: install viewer-js
-	bash .ci/system-deps chromium
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m slow
 
 test-all: install viewer-js
-	bash .ci/system-deps chromium
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
 clean:

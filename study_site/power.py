@@ -56,7 +56,7 @@ TESTS = {"p_fisher_holm": "confusion rate (Fisher, Holm)", "p_logrank_holm": "ti
 
 def cells_from_predicted(stim_dirs: Sequence[str | Path]) -> pd.DataFrame:
     """Per simulated formal trial ``scene, method, found, timed_out, rt_s, time_limit_s`` from stimulus sets'
-    ``predicted_trials.parquet`` (``method`` = the study's condition label: ``method`` or ``method+ablation``)."""
+    ``predicted_trials.parquet`` (``method`` = the study's condition id, :mod:`optimizer.assets.conditions`)."""
     from study_site.predict import read_predicted
 
     frames = []
@@ -77,6 +77,7 @@ def cells_from_pilot(db) -> pd.DataFrame:
     f = formal_trials(trials)
     if f.empty:
         raise CamoError("the pilot database has no analysed formal trials (completed participants)")
+    f = f.drop(columns=["method"]).rename(columns={"condition": "method"})  # cells are conditions
     return f[["scene", "method", "found", "timed_out", "rt_s", "time_limit_s"]].reset_index(drop=True)
 
 
@@ -102,7 +103,8 @@ def simulate_study(cells: pd.DataFrame | dict, n_participants: int, rng: np.rand
                 continue
             found, tout, rt, lim = arrays[(scene, m)]
             idx = rng.integers(len(found), size=sel.size)
-            parts.append(pd.DataFrame({"participant": pid[sel], "scene": scene, "method": m, "found": found[idx],
+            parts.append(pd.DataFrame({"participant": pid[sel], "scene": scene, "method": m, "condition": m,
+                                       "label": m, "found": found[idx],
                                        "timed_out": tout[idx], "rt_s": rt[idx], "time_limit_s": lim[idx]}))
     return pd.concat(parts, ignore_index=True)
 
@@ -143,8 +145,8 @@ def draw_replicates(arrays: dict, n_participants: int, reps: int, rng: np.random
 def replicate_frame(draws: dict[str, dict[str, np.ndarray]], r: int) -> pd.DataFrame:
     """Replicate ``r`` of :func:`draw_replicates` as the trial table :func:`study_site.analysis.pairwise_tests`
     reads (for checking the vectorised tests against it)."""
-    return pd.concat([pd.DataFrame({"method": m, "found": d["found"][r], "timed_out": d["timed_out"][r],
-                                    "rt_s": d["rt"][r], "time_limit_s": d["limit"][r]})
+    return pd.concat([pd.DataFrame({"method": m, "condition": m, "label": m, "found": d["found"][r],
+                                    "timed_out": d["timed_out"][r], "rt_s": d["rt"][r], "time_limit_s": d["limit"][r]})
                       for m, d in sorted(draws.items())], ignore_index=True)
 
 
@@ -215,9 +217,11 @@ def holm_rows(p: np.ndarray) -> np.ndarray:
 
 
 def replicate_pvalues(draws: dict[str, dict[str, np.ndarray]], k: int) -> dict[tuple[str, str], dict[str, np.ndarray]]:
-    """Per method pair (sorted), the Holm-adjusted Fisher and log-rank p of every replicate: ``{(a, b): {test:
-    (reps,)}}`` with the keys of :data:`TESTS`."""
-    methods = sorted(draws)
+    """Per condition pair (in the paper's order, as :func:`study_site.analysis.pairwise_tests`), the Holm-adjusted
+    Fisher and log-rank p of every replicate: ``{(a, b): {test: (reps,)}}`` with the keys of :data:`TESTS`."""
+    from optimizer.assets.conditions import parse_id
+
+    methods = sorted(draws, key=lambda c: (parse_id(c).order, c))  # the paper's order, as pairwise_tests
     pairs = list(combinations(methods, 2))
     fis, lr = [], []
     for a, b in pairs:
@@ -345,11 +349,11 @@ def write_power(cells: pd.DataFrame, out: str | Path, participants: Sequence[int
              f"Holm over the pairs, target power {100 * target:.0f} %. Method: `study_site/power.py`.", "",
              "| Method | source trials | confusion rate |", "|---|---:|---:|"]
     for m, r in rates.iterrows():
-        lines.append(f"| {m} | {int(r.trials)} | {100 * r.confusion:.1f}% |")
+        lines.append(f"| {_label(m)} | {int(r.trials)} | {100 * r.confusion:.1f}% |")
     lines += ["", "| Pair | Test | Participants for target | Power at largest N |", "|---|---|---:|---:|"]
     for r in need.itertuples():
         n = f"{int(r.participants)}" if np.isfinite(r.participants) else f"> {r.max_n}"
-        lines.append(f"| {r.method_a} vs {r.method_b} | {TESTS[r.test]} | {n} | {100 * r.power_at_max_n:.0f}% "
+        lines.append(f"| {_label(r.method_a)} vs {_label(r.method_b)} | {TESTS[r.test]} | {n} | {100 * r.power_at_max_n:.0f}% "
                      f"(N = {r.max_n}) |")
     lines += ["", "![power curve](power.png)", ""]
     write_text(out / "power.md", "\n".join(lines))
@@ -364,6 +368,12 @@ def write_predicted_power(stim_dir: str | Path, reps: int = 200, seed: int = 0, 
         return None
     return write_power(cells, Path(stim_dir) / "predicted_power", reps=reps, seed=seed, progress=progress,
                        source="predicted by the simulated observer on this stimulus set")
+def _label(cond_id: str) -> str:
+    """``label (id)`` of a condition id, for power.md."""
+    from optimizer.assets.conditions import label_of_id
+
+    lab = label_of_id(cond_id)
+    return lab if lab == cond_id else f"{lab} (`{cond_id}`)"
 
 
 def parse_participants(text: str) -> list[int]:

@@ -1,7 +1,7 @@
 """The simulated observer on the stimuli participants see (``camo study build-stimuli``, ``camo study predict``).
 
 The observer (:mod:`evaluation.observer`) searches every stimulus of a set exactly as the site shows it: the image
-file served to participants (object at its drawn, off-centre place), at the site's display size, with the site's
+file served to participants (the WebP when the set has one, else the PNG; object at its drawn, off-centre place), at the site's display size, with the site's
 time limit, and its click scored against the set's mask. The predictions are what ``camo study power --predicted``
 and the report's predicted Table I (``camo report EVAL_DIR --stimuli STIMULI_DIR``) read; the centred evaluation
 renders are never used for them.
@@ -89,7 +89,8 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
 
         bar = tqdm(total=len(sset.stimuli), desc="observer", unit="stimulus", file=sys.stderr, leave=False)
     for k, s in enumerate(sset.stimuli):
-        img = _load_rgb(sset.image_path(s))
+        webp = sset.image_path(s, ".webp")  # what the site serves first (study_site.stimuli.image_names)
+        img = _load_rgb(webp if webp.is_file() else sset.image_path(s))
         mask = sset.mask(s)
         if mask.shape != img.shape[:2]:
             raise CamoError(f"{sset.mask_path(s)}: mask size differs from its image")

@@ -100,7 +100,7 @@ def test_vectorised_tests_equal_the_study_analysis_replicate_by_replicate():
     for r in range(15):
         for row in pairwise_tests(replicate_frame(draws, r)).itertuples():
             for test in ("p_fisher_holm", "p_logrank_holm"):
-                assert pv[(row.method_a, row.method_b)][test][r] == pytest.approx(getattr(row, test), rel=1e-9)
+                assert pv[(row.condition_a, row.condition_b)][test][r] == pytest.approx(getattr(row, test), rel=1e-9)
 
 
 def test_fisher_matches_scipy_on_random_tables():

@@ -332,6 +332,13 @@ class RunDir:
     def ablation_label(self) -> str:
         return ",".join(self.ablation) if self.ablation else "none"
 
+    @property
+    def condition(self):
+        """The run's condition (:mod:`optimizer.assets.conditions`): its id and label in every table."""
+        from optimizer.assets.conditions import condition
+
+        return condition(self.method, self.ablation)
+
     def summary(self) -> dict[str, Any]:
         """``summary.json`` ({} when absent; CamoError when unreadable)."""
         p = self.path / "summary.json"
