@@ -52,10 +52,6 @@ DEFAULT_JITTER = 0.25
 # run directories and assets (read by optimizer.assets.rundir / optimizer.assets.asset; thin names kept for callers)
 # --------------------------------------------------------------------------------------------------------------
 
-#: What evaluation knows about one run directory (:class:`optimizer.assets.rundir.RunDir`).
-RunInfo = RunDir
-
-
 def load_run(path: str | Path) -> RunDir:
     """Read a run directory's config (:func:`optimizer.assets.rundir.open_run`); CamoError for anything missing."""
     return open_run(path)

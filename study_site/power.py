@@ -26,7 +26,6 @@ curve ``power.png``.
 from __future__ import annotations
 
 import math
-from itertools import combinations
 from pathlib import Path
 from typing import Any, Sequence
 

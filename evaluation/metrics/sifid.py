@@ -41,7 +41,6 @@ SIFID_VARIANTS = {
 }
 #: The variant recorded with every SIFID score unless another is asked for.
 SIFID_VARIANT = "singan"
-SIFID_DIMS = 64
 
 _STEM = (  # name, in, out, stride, padding
     ("Conv2d_1a_3x3", 3, 32, 2, 0),

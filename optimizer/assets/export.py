@@ -434,8 +434,6 @@ def write_ply(path: str | os.PathLike, vertices, faces, uvs=None, normals=None) 
 
 # --- maps ----------------------------------------------------------------------
 
-MAP_NAMES = ("albedo", "metallic", "roughness", "transmittance", "displacement")
-
 
 def map_preview(name: str, arr: np.ndarray, displacement_bound: float | None = None) -> np.ndarray | None:
     """The 8-bit preview of one map, or None when it is not an image (e.g. per-vertex data).

@@ -68,7 +68,7 @@ class Stage1Settings:
     # default "fast" turns on the warm start)
     warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
     pose_search: int = 0  # > 0: try this many turns about the vertical axis first (optimizer/optimise/posesearch.py)
-    lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
+    lr_schedule: str = "constant"  # or "cosine" (optimizer/optimise/schedule.py); both presets: constant
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
     average: float = 0.0  # > 0: the result is the moving average of the iterates with this decay (optimise/adam.py)
     # starting roughness values tried on the held-out views before Stage 1 (optimizer/optimise/startsearch.py); [] off

@@ -15,16 +15,6 @@ from typing import Any
 import numpy as np
 
 
-def equirect_directions(width: int, height: int) -> np.ndarray:
-    """World directions ``(H, W, 3)`` of an equirect panorama's pixel centres (rotation 0)."""
-    v = (np.arange(height) + 0.5) / height
-    u = (np.arange(width) + 0.5) / width
-    theta = np.pi * v[:, None]
-    phi = 2.0 * np.pi * u[None, :]
-    st = np.sin(theta)
-    return np.stack(np.broadcast_arrays(st * np.sin(phi), st * np.cos(phi), np.cos(theta)), axis=-1).astype(np.float32)
-
-
 def render_equirect(elements: dict[str, Any], origin, width: int = 512, spp: int = 32, seed: int = 0,
                     max_depth: int = 8) -> np.ndarray:
     """Path-trace an equirect panorama ``(width/2, width, 3)`` of a scene seen from ``origin``.
@@ -190,35 +180,3 @@ def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndar
     }
 
 
-def clamp_negative_radiance(pano: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
-    """Set negative channel values of a linear panorama ``(H, W, 3)`` to 0, and say how much that changed.
-
-    Lossy HDR compression (the DWAB EXRs of web asset packs) rings around a bright sun: a few pixels next
-    to it go negative (e.g. -3894 beside a 2.99e4 sun). No radiance is negative, so a renderer must not
-    see them; clamping keeps every other pixel bit-exact and leaves the sun's peak where it was. The
-    returned figures (all solid-angle weighted, Rec. 709 luminance) are what the repair did:
-    ``pixels`` with a negative channel, ``pixel_fraction``, ``power_before`` / ``power_after`` (sr-weighted
-    luminance over the sphere), ``energy_removed`` (the negative energy clamped away, >= 0) and
-    ``energy_removed_fraction`` (of ``power_before``), and the most negative value ``min_value``.
-    NaN or infinite values are refused (a :class:`~camo_base.errors.CamoError`), not repaired.
-    """
-    from camo_base.imaging import REC709_LUMA
-
-    a = _finite_rgb(pano)
-    neg = np.minimum(a, 0.0).astype(np.float64)
-    w = solid_angles(a.shape[0], a.shape[1])
-    luma = np.asarray(REC709_LUMA, np.float64)
-    before = float(np.sum((a.astype(np.float64) @ luma) * w))
-    removed = float(-np.sum((neg @ luma) * w))
-    out = np.maximum(a, 0.0).astype(np.float32)
-    after = float(np.sum((out.astype(np.float64) @ luma) * w))
-    pixels = int((a < 0).any(axis=-1).sum())
-    return out, {
-        "pixels": pixels,
-        "pixel_fraction": pixels / float(a.shape[0] * a.shape[1]),
-        "min_value": float(a.min()),
-        "power_before": before,
-        "power_after": after,
-        "energy_removed": removed,
-        "energy_removed_fraction": removed / before if before > 0 else 0.0,
-    }
