@@ -11,12 +11,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:  # (only for annotations: scenepack imports this module)
-    from optimizer.scenes.scenepack import ScenePack
+# ``pack`` arguments are :class:`optimizer.scenes.scenepack.ScenePack` (not imported: scenepack imports this module).
 
 
 @dataclasses.dataclass(frozen=True)
