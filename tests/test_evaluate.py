@@ -247,7 +247,8 @@ def test_renders_json_in_the_study_format(eval_dir):
 
 
 def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
-    from evaluation.report import TABLE_II_HEADER, load_metrics, method_label
+    from evaluation.report import TABLE_II_HEADER, load_metrics
+    from optimizer.assets.conditions import condition_label as method_label
 
     out = tmp_path / "merged"
     assert main(["report", str(eval_dir), str(eval_dir_big), str(eval_dir), "--out", str(out)]) == 0
@@ -273,7 +274,7 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
 
 
 def test_report_order_follows_table_ii():
-    from evaluation.report import label_order, method_label
+    from optimizer.assets.conditions import condition_label as method_label, condition_order as label_order
 
     rows = [("ours", "none"), ("ours", "pose"), ("random", "none"), ("transparent", "none"), ("ours", "inpainting"),
             ("ganmouflage", "none"), ("diffusion2d", "none"), ("ours", "displacement"), ("ours", "bsdf"),

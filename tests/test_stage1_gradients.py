@@ -19,13 +19,13 @@ def test_step_gradient_equals_per_view_reapplication(mi_backend):
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
     from optimizer.rendering.planner import plan
-    from optimizer.optimise.run import appearance_for
     from optimizer.optimise.stage1 import Stage1, Stage1Config
+    from optimizer.rendering.appearance import AppearanceConfig
 
     pack = builtin_scenes.get("gravel")
     pack.cameras = dataclasses.replace(pack.cameras, views=3)
     pack.render = dataclasses.replace(pack.render, resolution=(24, 24))
-    app = dataclasses.replace(appearance_for(set()), map_resolution=32, displacement_resolution=16)
+    app = dataclasses.replace(AppearanceConfig(), map_resolution=32, displacement_resolution=16)
     env = get_environment(pack.environment)
     pl = plan(pack, env, app.planner_params())
     assert pl.integrator["type"] == "prb_projective"  # the per-view path (no batch sensor)

@@ -1,7 +1,8 @@
 """``camo optimize``: run a :class:`optimizer.optimise.spec.RunSpec` into its run directory.
 
 :func:`run` takes a spec and runs its method: ``ours`` here (:func:`optimize`: Stage 1, then Stage 2 unless
-ablated), a baseline through :func:`optimizer.optimise.baselines.run_baseline`. The run directory (see
+ablated), a baseline through :func:`run_baseline` (what it computes: its
+:class:`~optimizer.optimise.method.Method` in :data:`optimizer.optimise.methods.METHODS`). The run directory (see
 CONTRIBUTING.md) is written through :mod:`optimizer.assets.rundir` (``config.toml`` = the spec + provenance,
 ``log.jsonl``, ``summary.json``) and :mod:`optimizer.assets.result` (maps, ``result.glb``, ``result.obj``,
 ``scene.xml``, ``pose.json``, previews, renders); ``checkpoint.npz`` (every ``checkpoint_every`` iterations;
@@ -21,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from camo_base import atomic, imaging
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 from camo_base.provenance import versions
 from optimizer.assets.rundir import CHECKPOINT, LOG, prepare_run_dir, write_config, write_log
 from optimizer.optimise.finish import finish
@@ -33,25 +34,36 @@ from optimizer.scenes.scenepack import ScenePack
 
 
 def run(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False, progress: bool = True,
-        threads: int | None = None) -> Path:
+        threads: int | None = None, accept_versions: bool = False) -> Path:
     """Run ``spec`` into the run directory ``out`` (validated first; CamoError, one line, for bad input).
 
     ``threads``: CPU threads of the LLVM backend (and torch, for GANmouflage); not part of the spec (it does not
     change the result), recorded in ``config.toml``'s ``[versions]``."""
     spec.validate()
     if spec.method == "ours":
-        return optimize(spec, out, resume=resume, overwrite=overwrite, progress=progress, threads=threads)
+        return optimize(spec, out, resume=resume, overwrite=overwrite, progress=progress, threads=threads,
+                        accept_versions=accept_versions)
     if resume:
-        raise CamoError(f"--resume: method {spec.method!r} is a one-shot baseline and keeps no checkpoint; run it again")
-    from optimizer.optimise.baselines import run_baseline
-
+        raise SettingError(f"{{0}}: method {spec.method!r} is a one-shot baseline and keeps no checkpoint; run it "
+                           "again", "resume")
     return run_baseline(spec, out, overwrite=overwrite, progress=progress, threads=threads)
 
 
-def appearance_for(ablate: set[str], base: AppearanceConfig | None = None) -> AppearanceConfig:
-    app = base or AppearanceConfig()
-    return dataclasses.replace(app, pose="pose" not in ablate, displacement="displacement" not in ablate,
-                               bsdf="bsdf" not in ablate, transmittance="transmittance" not in ablate)
+def run_baseline(spec: RunSpec, out: str | Path, overwrite: bool = False, progress: bool = True,
+                 threads: int | None = None) -> Path:
+    """Run the baseline of ``spec`` (its ``options`` are the method's; :data:`optimizer.optimise.methods.METHODS`
+    says what it computes) into the run directory ``out``. ``threads``: the LLVM backend's (and a torch method's)
+    thread count."""
+    from optimizer.optimise.baselines.common import run_directory
+
+    method = spec.method_info
+    if method.compute is None:
+        raise ValueError(f"run_baseline runs baselines; method {spec.method} runs through optimizer.optimise.run.run")
+    options = spec.options
+    if options is not None and threads is not None and hasattr(options, "threads"):
+        options = dataclasses.replace(options, threads=threads)
+    return run_directory(spec, out, lambda setup: method.compute(setup, options, progress), overwrite, progress,
+                         threads)
 
 
 def _read_log(path: Path, stage1_upto: int | None, stage2_upto: int | None) -> list[dict[str, Any]]:
@@ -83,7 +95,7 @@ def load_checkpoint(path: Path) -> dict[str, np.ndarray]:
 
 
 def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False,
-             progress: bool = True, threads: int | None = None) -> Path:
+             progress: bool = True, threads: int | None = None, accept_versions: bool = False) -> Path:
     """Run Stage 1 and, unless ablated, Stage 2 of ``spec`` (method ``ours``) into the run directory ``out``."""
     from optimizer import backend
     from optimizer.scenes.cameras import cameras
