@@ -8,7 +8,8 @@ Aggregation (per region and evaluation protocol = spp, resolution, jitter): the 
 the mean over the runs of one scene with the same method/ablation, then the mean over scenes. The spread is the
 sample standard deviation over scenes (n - 1), shown where there are at least two scenes. Rows follow the
 paper's Table II (Transparent, Random, GANmouflage, 2D Diffusion, w/o Pose, ..., Ours), whichever exist; the
-other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines.
+other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines (labels and
+order: :mod:`optimizer.assets.conditions`).
 
 Output (``--out DIR``)::
 
@@ -33,11 +34,13 @@ import numpy as np
 from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
+from evaluation.metrics.registry import METRICS, WEIGHT_FREE, table_metrics
+from optimizer.assets.conditions import condition_label, condition_order
 
-#: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
-TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
-                 ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓"), ("sifid_proxy", "SIFID-proxy↓"))
-HIGHER_IS_BETTER = {"psnr", "ssim"}
+#: Table columns: (metric, header), from the metric registry in its Table II order (the paper's five first, then
+#: the weight-free proxies and any other metric).
+TABLE_METRICS = tuple((m.name, m.header) for m in table_metrics())
+HIGHER_IS_BETTER = {n for n, m in METRICS.items() if m.higher_is_better}
 TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
 #: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
 #: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
@@ -46,52 +49,7 @@ TIME_COLUMNS = (("seconds_setup", "Setup s"), ("seconds_stage1", "Stage 1 s"), (
                 ("seconds_method", "Method s"), ("seconds_render", "Render s/view"))
 METRIC_TIME_HEADER = "{} s/img"
 
-#: Baseline methods (``camo optimize --method``) in the paper's order, with their Table II labels.
-BASELINES = {"transparent": "Transparent", "random": "Random [6]", "mean": "Mean [6]", "greedy": "Greedy [6]",
-             "ganmouflage": "GANmouflage [7]", "ganmouflage-paper": "GANmouflage [7] (paper settings)",
-             "diffusion2d": "2D Diffusion"}
-_BASELINE_ORDER = list(BASELINES)
-#: Ablations of our method in the paper's order.
-ABLATIONS = {"pose": "w/o Pose", "displacement": "w/o Displacement", "bsdf": "w/o BSDF (Only Albedo)",
-             "transmittance": "w/o Transmittance", "inpainting": "w/o Inpainting"}
-_ABL_NAMES = {"pose": "Pose", "displacement": "Displacement", "bsdf": "BSDF", "transmittance": "Transmittance",
-              "inpainting": "Inpainting"}
 REGION_TITLES = {"crop": "object crop (GANmouflage protocol)", "full": "full frame"}
-
-
-def _ablations(ablation: str) -> list[str]:
-    items = [a for a in str(ablation or "").split(",") if a and a != "none"]
-    order = list(ABLATIONS)
-    return sorted(items, key=lambda a: (order.index(a) if a in order else len(order), a))
-
-
-def method_label(method: str, ablation: str) -> str:
-    """The Table II row label of a method and its ablation (comma list or "none")."""
-    abl = _ablations(ablation)
-    m = str(method)
-    if m == "ours":
-        if not abl:
-            return "Ours"
-        if len(abl) == 1 and abl[0] in ABLATIONS:
-            return ABLATIONS[abl[0]]
-        return "w/o " + " + ".join(_ABL_NAMES.get(a, a) for a in abl)
-    base = BASELINES.get(m.lower(), m)
-    return base if not abl else f"{base} (w/o {' + '.join(_ABL_NAMES.get(a, a) for a in abl)})"
-
-
-def label_order(method: str, ablation: str) -> tuple:
-    """Sort key: baselines (paper order), other methods, single ablations (paper order), combined ones, Ours."""
-    abl = _ablations(ablation)
-    m = str(method).lower()
-    if m == "ours":
-        if not abl:
-            return (5, 0, "")
-        if len(abl) == 1 and abl[0] in ABLATIONS:
-            return (3, list(ABLATIONS).index(abl[0]), "")
-        return (4, len(abl), ",".join(abl))
-    if m in BASELINES:
-        return (0, _BASELINE_ORDER.index(m), ",".join(abl))
-    return (1, 0, m + "," + ",".join(abl))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -134,8 +92,8 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
         df[c] = pd.to_numeric(df[c], errors="coerce")  # "" in hand-made tables -> NaN
     ident = [c for c in df.columns if not str(c).startswith("seconds_") and c != "_eval_dir"]
     df = df.loc[~df[ident].astype(str).duplicated()].reset_index(drop=True)
-    df["label"] = [method_label(m, a) for m, a in zip(df["method"], df["ablation"])]
-    df["_order"] = [label_order(m, a) for m, a in zip(df["method"], df["ablation"])]
+    df["label"] = [condition_label(m, a) for m, a in zip(df["method"], df["ablation"])]
+    df["_order"] = [condition_order(m, a) for m, a in zip(df["method"], df["ablation"])]
     return df
 
 
@@ -224,7 +182,7 @@ def _fmt(metric: str, v: float) -> str:
         return "—"
     if math.isinf(v):
         return "inf"
-    return f"{v:.2f}" if metric == "psnr" else f"{v:.4f}"
+    return f"{v:.{METRICS[metric].decimals if metric in METRICS else 4}f}"
 
 
 def _best(values: dict[str, float], metric: str) -> set[str]:
@@ -382,7 +340,7 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics of the quality-vs-seconds plot, in this order (those computed).
-PLOT_METRICS = ("psnr", "ssim", "lpips_proxy", "lpips", "sifid", "sifid_proxy", "dreamsim")
+PLOT_METRICS = tuple(METRICS)
 
 
 def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool) -> list[int]:
@@ -535,7 +493,7 @@ def json_key(d: Any) -> str:
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics set against the observer's order (those computed), crop region.
-AGREEMENT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy", "lpips", "sifid", "dreamsim")
+AGREEMENT_METRICS = (*WEIGHT_FREE, *(n for n in METRICS if n not in WEIGHT_FREE))
 
 
 def load_simulated(eval_dirs: Sequence[str | Path]):
@@ -561,13 +519,13 @@ def load_simulated(eval_dirs: Sequence[str | Path]):
     if not views:
         return None, None
     v = pd.concat(views, ignore_index=True).drop_duplicates(["run", "scene", "method", "ablation", "view"])
-    v["label"] = [method_label(m, a) for m, a in zip(v["method"], v["ablation"])]
-    v["_order"] = [label_order(m, a) for m, a in zip(v["method"], v["ablation"])]
+    v["label"] = [condition_label(m, a) for m, a in zip(v["method"], v["ablation"])]
+    v["_order"] = [condition_order(m, a) for m, a in zip(v["method"], v["ablation"])]
     t = None
     if trials:
         t = pd.concat(trials, ignore_index=True).drop_duplicates(
             ["run", "scene", "method", "ablation", "view", "trial"])
-        t["label"] = [method_label(m, a) for m, a in zip(t["method"], t["ablation"])]
+        t["label"] = [condition_label(m, a) for m, a in zip(t["method"], t["ablation"])]
     return v, t
 
 

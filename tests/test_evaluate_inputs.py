@@ -214,7 +214,8 @@ def test_gltf_reader_node_transform_factors_and_extensions(tmp_path):
     uv = np.array([[0, 0], [1, 0], [0, 1]], np.float32)
     alb = np.full((2, 2, 3), 0.5, np.float32)
     js, bin_ = export.read_glb(_write(tmp_path / "t.glb", export.glb_bytes(
-        v, f, uv, alb, np.full((2, 2), 1.0), np.full((2, 2), 0.6), np.full((2, 2), 1.0), 1.33, y_up=False)))
+        v, f, uv, {"albedo": alb, "metallic": np.full((2, 2), 1.0), "roughness": np.full((2, 2), 0.6),
+                   "transmittance": np.full((2, 2), 1.0)}, 1.33, y_up=False)))
     js["asset"]["generator"] = "someone else"
     js["nodes"][0] = {"mesh": 0, "translation": [2.0, 3.0, 4.0], "scale": [2.0, 2.0, 2.0]}
     mat = js["materials"][0]

@@ -477,7 +477,7 @@ def test_black_albedo_under_transmission_has_finite_gradients_and_leaves_zero(gr
     a NaN rotation gradient every other step), were zeroed by the sanitiser and stayed at 0 for good.
 
     Expected: no non-finite gradient entry in any step, the albedo starts at ``ALBEDO_MIN`` (not 0) and moves."""
-    from optimizer.rendering.appearance import ALBEDO_MIN
+    from optimizer.scenes.bsdf_maps import ALBEDO_MIN
 
     pack, env, app, targets = grazing
     init = initial_values(app, pack.material)

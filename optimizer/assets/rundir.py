@@ -39,10 +39,11 @@ import numpy as np
 
 from camo_base import atomic
 from optimizer.assets.asset import Asset, check_maps
+from optimizer.scenes.bsdf_maps import MAPS
 from camo_base.errors import CamoError
 
 #: Files a run directory must have for its result to be read (besides config.toml).
-RESULT_FILES = ("maps/albedo.npy", "maps/metallic.npy", "maps/roughness.npy", "maps/transmittance.npy", "result.ply")
+RESULT_FILES = (*(f"maps/{name}.npy" for name, m in MAPS.items() if m.absent is None), "result.ply", "summary.json")
 CONFIG = "config.toml"
 SUMMARY = "summary.json"
 LOG = "log.jsonl"
@@ -385,9 +386,12 @@ class RunDir:
     def asset(self) -> Asset:
         """The result: ``result.ply`` (world space, pose and displacement applied) and ``maps/*.npy`` as rendered."""
         verts, faces, uvs = read_ply(self.path / "result.ply")
-        maps = {"albedo": read_map(self.path, "albedo", 3)}
-        for name in ("metallic", "roughness", "transmittance"):
-            maps[name] = read_map(self.path, name, 1)
+        maps = {}
+        for name, m in MAPS.items():
+            if m.absent is not None and not (self.path / "maps" / f"{name}.npy").is_file():
+                maps[name] = np.float32(m.absent)  # a run written before the map existed: the renderer's default
+            else:
+                maps[name] = read_map(self.path, name, m.channels)
         a = Asset(str(self.path), verts, faces, uvs, maps, float(self.app.eta), not self.app.bsdf, "clamp", "scene")
         check_maps(a, self.name, "{label}: maps/{name}.npy")
         return a

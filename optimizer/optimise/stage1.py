@@ -35,7 +35,8 @@ import numpy as np
 
 from optimizer.rendering import scene as scn
 from optimizer.optimise.adam import Adam, blur_texels, dr_numpy
-from optimizer.rendering.appearance import ALBEDO_MIN, MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_mesh, pose_record, world_positions
+from optimizer.rendering.appearance import AppearanceConfig, Geometry, clamp_projections, initial_values, object_mesh, pose_record, world_positions
+from optimizer.scenes.bsdf_maps import ALBEDO_MIN, MAPS
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
 from camo_base import seeds
@@ -288,10 +289,8 @@ class Stage1:
 
         keys["positions"] = find("vertex_positions")
         if self.app.bsdf:
-            keys["albedo"] = find("base_color.data")
-            keys["metallic"] = find("metallic.data")
-            keys["roughness"] = find("roughness.data")
-            keys["transmittance"] = find("spec_trans.data")
+            for name, m in MAPS.items():
+                keys[name] = find(f"{m.principled}.data")
         else:
             keys["albedo"] = find("reflectance.data")
         missing = [k for k, v in keys.items() if v is None]
@@ -312,12 +311,9 @@ class Stage1:
             dt = opt["translation"] if "translation" in opt else mi.Float(v["translation"])
             th = opt["rotation"] if "rotation" in opt else mi.Float(v["rotation"])
             out[keys["positions"]] = g.positions_dr(d, dt, th)
-        for name in MAPS:
+        for name, m in MAPS.items():
             if name in opt and name in keys:
-                value = opt[name]
-                if name == "roughness":
-                    value = scn.effective_roughness(value)
-                out[keys[name]] = value
+                out[keys[name]] = m.rendered(opt[name])  # (the roughness' safe minimum)
         return out
 
     def _apply(self) -> None:

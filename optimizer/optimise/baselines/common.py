@@ -53,6 +53,7 @@ import numpy as np
 
 from camo_base import seeds
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, initial_values, object_bsdf
+from optimizer.scenes.bsdf_maps import MAPS
 from optimizer.scenes.cameras import Camera
 from camo_base.errors import CamoError
 from optimizer.scenes.scenepack import ScenePack
@@ -194,16 +195,15 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
 
 
 def painted_values(setup: Setup, albedo: np.ndarray) -> dict[str, np.ndarray]:
-    """Parameters of a painted (Lambertian-like) object: ``albedo`` map, metallic 0, roughness 1, transmittance 0."""
+    """Parameters of a painted (Lambertian-like) object: the ``albedo`` map and every other BSDF map at its
+    ``painted`` value (:data:`optimizer.scenes.bsdf_maps.MAPS`: metallic 0, roughness 1, transmittance 0)."""
     vals = initial_values(setup.app, setup.pack.material)
     r = setup.app.map_resolution
     a = np.asarray(albedo, np.float32)
     if a.shape != (r, r, 3):
         raise ValueError(f"albedo map must be ({r}, {r}, 3), got {a.shape}")
-    vals["albedo"] = np.clip(a, 0.0, 1.0)
-    vals["metallic"] = np.zeros((r, r, 1), np.float32)
-    vals["roughness"] = np.ones((r, r, 1), np.float32)
-    vals["transmittance"] = np.zeros((r, r, 1), np.float32)
+    for name, m in MAPS.items():
+        vals[name] = np.clip(a, 0.0, 1.0) if m.painted is None else np.full((r, r, m.channels), m.painted, np.float32)
     return vals
 
 
