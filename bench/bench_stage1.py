@@ -59,7 +59,7 @@ def main() -> None:
     pl = plan(pack, env, app.planner_params())
     cams = cameras(pack)
     t = time.perf_counter()
-    s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=args.spp, iterations=args.iterations), app)
+    s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=args.spp, iterations=args.iterations), app).prepare()
     t_setup = time.perf_counter() - t
 
     # --- raw Mitsuba: the same scene and parameters, render + backward per view ---

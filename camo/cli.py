@@ -20,12 +20,17 @@ from typing import Callable, Sequence
 
 from camo.cli_common import load_scene_arg
 from camo_base.errors import CamoError, SettingError
+from camo_base.ranges import Range
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--resolution", type=int, help="image width = height in pixels (default: the pack's)")
-    p.add_argument("--spp", type=int, help="samples per pixel (default: the pack's)")
-    p.add_argument("--views", type=int, help="number of orbit views (default: the pack's)")
-    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend (default: all cores; env CAMO_THREADS)")
+    p.add_argument("--resolution", type=Range(int, 8, 8192).arg_type(),
+                   help="image width = height in pixels (default: the pack's)")
+    p.add_argument("--spp", type=Range(int, 1, 1 << 16).arg_type(),
+                   help="samples per pixel of this render (default: the pack's [render] spp; `camo optimize --spp` is "
+                        "a run's training spp)")
+    p.add_argument("--views", type=Range(int, 1, 1024).arg_type(), help="number of orbit views (default: the pack's)")
+    p.add_argument("--threads", type=Range(int, 1, 4096).arg_type(),
+                   help="CPU threads for the LLVM backend (default: all cores; env CAMO_THREADS)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = ssub.add_parser("render", help="render a scene's views (background, object, mask, depth) to a folder")
     p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
     _add_render_args(p)
     p.set_defaults(func=_scenes_render)
 

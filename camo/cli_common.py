@@ -7,19 +7,15 @@ from camo_base.errors import CamoError
 
 
 def _apply_overrides(pack, args):
+    """``camo scenes render``'s ``--resolution``, ``--spp`` (the render's own spp: the pack's ``[render] spp``) and
+    ``--views`` on a pack (their ranges are the flags' types)."""
     import dataclasses
 
-    if getattr(args, "resolution", None):
-        if args.resolution < 8:
-            raise CamoError(f"--resolution must be >= 8, got {args.resolution}")
+    if getattr(args, "resolution", None) is not None:
         pack.render = dataclasses.replace(pack.render, resolution=(args.resolution, args.resolution))
     if getattr(args, "spp", None) is not None:
-        if args.spp < 1:
-            raise CamoError(f"--spp must be >= 1, got {args.spp}")
         pack.render = dataclasses.replace(pack.render, spp=args.spp)
     if getattr(args, "views", None) is not None:
-        if args.views < 1:
-            raise CamoError(f"--views must be >= 1, got {args.views}")
         if pack.cameras.mode == "list":
             raise CamoError("--views only applies to orbit cameras")
         pack.cameras = dataclasses.replace(pack.cameras, views=args.views)
@@ -27,7 +23,7 @@ def _apply_overrides(pack, args):
 
 
 def load_scene_arg(name: str, args=None):
-    """Resolve a SCENE argument (built-in name or pack file) and apply CLI overrides."""
+    """Resolve a SCENE argument (built-in name or pack file) and apply ``camo scenes render``'s overrides."""
     from optimizer.scenes.builtin_scenes import resolve_scene
 
     pack = resolve_scene(name)

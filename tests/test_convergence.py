@@ -295,7 +295,7 @@ def tiny_box_stage(views: int):
     env = get_environment(pack.environment)
     app = AppearanceConfig(map_resolution=32, displacement_resolution=16)
     s1 = Stage1(pack, env, prepare_object(pack), cameras(pack), plan(pack, env, app.planner_params()),
-                Stage1Config(iterations=1, target_spp=8), app)
+                Stage1Config(iterations=1, target_spp=8), app).prepare()
     return s1, app, env
 
 

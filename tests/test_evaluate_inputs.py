@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from camo.cli import main
+from camo_base.errors import CamoError
 
 TINY = ["--iterations", "2", "--views", "4", "--resolution", "32", "--map-resolution", "32",
         "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "8", "--quiet",
@@ -496,9 +497,9 @@ def test_run_seconds_of_older_run_directories_come_from_log_jsonl(run, tmp_path)
     for st in (1, 2):
         assert s[f"stage{st}"] == pytest.approx(sum(r.get("seconds_total", r["seconds"]) for r in log
                                                     if r["stage"] == st), rel=1e-12)
-    (old / "summary.json").unlink()
-    s = open_run(old).seconds()
-    assert math.isnan(s["setup"]) and math.isnan(s["total"]) and s["stage1"] > 0
+    (old / "summary.json").unlink()  # a run that did not finish: incomplete (issue 27), whatever else it has
+    with pytest.raises(CamoError, match="incomplete run directory, missing summary.json"):
+        open_run(old)
 
 
 def test_baseline_runs_get_their_method_seconds(run, tmp_path):

@@ -196,7 +196,7 @@ def spec_of(*argv):
     return spec_of_args(build_parser().parse_args(["optimize", *argv]))
 
 
-PROVENANCE = ("versions", "plan", "fingerprint", "baseline")
+from optimizer.assets.rundir import PROVENANCE  # noqa: E402
 
 
 def test_config_toml_is_the_spec_and_holds_each_spp_once(run_dir):

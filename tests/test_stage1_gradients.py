@@ -31,7 +31,7 @@ def test_step_gradient_equals_per_view_reapplication(mi_backend):
     assert pl.integrator["type"] == "prb_projective"  # the per-view path (no batch sensor)
     cams = cameras(pack)
     s1 = Stage1(pack, env, prepare_object(pack, target_vertices=800), cams, pl,
-                Stage1Config(spp=2, target_spp=4, seed=0, silhouette_every=1), app)
+                Stage1Config(spp=2, target_spp=4, seed=0, silhouette_every=1), app).prepare()
 
     def take() -> dict[str, np.ndarray]:
         g = {n: np.array(dr.grad(s1.opt[n])).ravel().copy() for n in s1.opt.values}

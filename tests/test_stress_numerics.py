@@ -89,7 +89,7 @@ def stage1(pack, env, prepared, app, *, iterations=2, loss="gated", spp=4, targe
            targets=None, domain="object+shadow"):
     cfg = Stage1Config(iterations=iterations, spp=spp, target_spp=target_spp, seed=seed, loss=loss, domain=domain)
     return Stage1(pack, env, prepared, cameras(pack), plan(pack, env, app.planner_params()), cfg, app,
-                  initial=initial, targets=targets)
+                  initial=initial).prepare(targets=targets)
 
 
 def assert_step_sane(rec: dict) -> None:

@@ -42,7 +42,6 @@ DONE = "DONE"
 ERROR = "ERROR"
 ERROR_LOG = "error.log"
 CELL_LOCK = ".lock"
-CHECKPOINT = "checkpoint.npz"  # = optimizer.assets.rundir.CHECKPOINT (not imported: keep the workers' imports light)
 
 #: Test hook: a cell whose name contains this string kills its worker process (simulates a crash).
 CRASH_ENV = "CAMO_GRID_TEST_CRASH"
@@ -87,10 +86,14 @@ def read_done(cell_dir: Path, key: str) -> dict[str, Any] | None:
 
 
 def checkpoint_progress(run_dir: Path) -> str | None:
-    """``"stage S, iteration N"`` of a run directory's checkpoint, else None."""
-    p = Path(run_dir) / CHECKPOINT
-    if not p.is_file():
+    """``"stage S, iteration N"`` of the checkpoint a resume of a run directory would continue (its unfinished
+    staging folder's, else its own), else None."""
+    from optimizer.assets.rundir import CHECKPOINT, resumable
+
+    folder = resumable(run_dir)
+    if folder is None:
         return None
+    p = folder / CHECKPOINT
     try:
         import numpy as np
 
@@ -270,13 +273,15 @@ def run_cell(cell_dict: dict[str, Any], cell_dir: str, threads: int | None) -> d
 def _run(cell, cdir: Path, threads: int | None, t0: float) -> dict[str, Any]:
     from camo_base import atomic
 
+    from optimizer.assets.rundir import resumable, staging_dir
+
     run_dir = cell.run_dir(cdir)
     optimized = (cdir / OPTIMIZED).is_file()
     if optimized:
         mode = "evaluate"
-    elif (run_dir / CHECKPOINT).is_file() and cell.method == "ours":
+    elif resumable(run_dir) is not None and cell.method == "ours":
         mode = "resume"
-    elif run_dir.exists() and any(run_dir.iterdir()):
+    elif (run_dir.exists() and any(run_dir.iterdir())) or staging_dir(run_dir).exists():
         mode = "restart"
     else:
         mode = "fresh"
@@ -298,7 +303,8 @@ def _run(cell, cdir: Path, threads: int | None, t0: float) -> dict[str, Any]:
             try:
                 optimize_cell(cell, cdir, threads, mode)
             except CamoError as exc:
-                if mode != "resume" or not any(s in str(exc) for s in ("checkpoint", "--resume")):
+                refused = "resume" in getattr(exc, "names", ()) or "checkpoint" in str(exc)  # (not resumable)
+                if mode != "resume" or not refused:
                     raise
                 print(f"resume failed ({exc}); restarting the run", flush=True)
                 _append(cdir / ATTEMPTS, {"event": "restart", "reason": _one_line(exc), "time": _now()})
