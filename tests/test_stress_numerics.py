@@ -760,7 +760,7 @@ def test_mesh_preparation_is_exactly_scale_invariant(tmp_path):
     """Hard case: the same icosphere at 1, 1e-4 and 1e4 (after normalisation the vertices differ by 1 ulp).
 
     Expected: the prepared meshes are the same mesh (same faces, vertices and UVs up to round-off), so
-    the optimiser cannot tell the input's units apart. BUG (optimizer/scenes/mesh.py ``_split_to_count``):
+    the optimiser cannot tell the input's units apart. BUG (optimizer/scenes/mesh/remesh.py ``_split_to_count``):
     longest-edge refinement sorts edges by float length and cuts the list at the vertex budget; an
     icosphere has many equal-length edges, so 1-ulp differences decide which are split and the three
     inputs get three different tessellations (553 / 541 / 540 UV vertices, vertices up to 0.08 apart).

@@ -6,7 +6,7 @@ One representation, :class:`Asset`, whatever the source:
 * ``vertices (N, 3)`` float32 (Z-up, scene units once placed), ``faces (F, 3)`` int64, ``uvs (N, 2)`` float32 in
   **Mitsuba's convention** (``v = 0`` is the top row of the texture image; see :mod:`optimizer.assets.export`) or None;
 * ``maps``: the material **as rendered**: ``albedo`` linear RGB ``(H, W, 3)`` or ``(3,)``; ``metallic``,
-  ``roughness`` (the rendered roughness, i.e. after :func:`optimizer.rendering.scene.effective_roughness` for the
+  ``roughness`` (the rendered roughness, i.e. after :meth:`optimizer.scenes.bsdf_maps.BsdfMap.rendered` for the
   optimiser's maps) and ``transmittance`` ``(H, W, 1)`` or ``()``; all in [0, 1]. Maps may differ in size.
 * ``eta`` (index of refraction), ``lambertian`` (the albedo-only ablation renders a diffuse BSDF), ``wrap``
   (texture wrap mode: ``clamp``, ``repeat`` or ``mirror``).

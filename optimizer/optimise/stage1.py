@@ -65,7 +65,7 @@ class Stage1Settings:
     domain_dilate: float = 0.04  # fraction of the image's larger side
     shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
     silhouette_every: int = 4  # projective: the silhouette term on a random 1/N of the views per step, weighted
-    # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/schedule.PRESETS: the
+    # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/optimise/presets.py: the
     # default "fast" turns on the warm start)
     warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
     pose_search: int = 0  # > 0: try this many turns about the vertical axis first (optimizer/optimise/posesearch.py)
