@@ -57,8 +57,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="without --practice/--practice-scenes: N synthetic practice images (default 8; 0 = none)",
     )
     b.add_argument("--size", type=Range(int, 32, 4096).arg_type(), default=512, metavar="PX", help="stimulus width = height (default 512)")
-    b.add_argument("--views", type=Range(int, 1, 1024).arg_type(), default=8, help="views per run (default 8)")
-    b.add_argument("--spp", type=Range(int, 1, 2**20).arg_type(), default=64, help="samples per pixel (default 64)")
+    b.add_argument("--views", type=Range(int, 1, 256).arg_type(), default=8, help="views per run (default 8)")
+    b.add_argument("--spp", type=Range(int, 1, 65536).arg_type(), default=64, help="samples per pixel (default 64)")
     b.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0, help="placement and sampler seed (default 0)")
     b.add_argument(
         "--object-size",

@@ -177,7 +177,8 @@ class RunTransaction:
         except BlockingIOError:
             holder = os.pread(fd, 128, 0).decode(errors="replace").strip() or "another process"
             os.close(fd)
-            raise CamoError(f"{self.out} is being written by {holder}; wait for it or use another --out") from None
+            raise SettingError(f"{literal(self.out)} is being written by {literal(holder)}; wait for it or use "
+                               "another {0}", "out") from None
         except OSError:  # a file system without locks: run unlocked
             pass
         os.ftruncate(fd, 0)
