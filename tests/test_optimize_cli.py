@@ -563,3 +563,17 @@ def test_spec_reruns_a_run_from_its_config_toml(run_dir, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("camo: error:") and needle in err[0], (argv, err)
     assert not (tmp_path / "x").exists()
+
+
+def test_a_spec_built_in_python_has_no_preset_and_options_get_one():
+    """RunSpec() field by field holds the dataclass defaults (the paper's values): it is not labelled with a preset;
+    RunSpec.from_options applies one (default fast) and says so."""
+    from optimizer.optimise.spec import RunSpec
+    from optimizer.scenes.builtin_scenes import resolve_scene
+
+    plain = RunSpec(scene="gravel", pack=resolve_scene("gravel")).validate()
+    assert plain.preset is None and "preset" not in plain.to_dict()
+    assert RunSpec.from_dict(plain.to_dict()) == plain
+    assert RunSpec.from_options({"scene": "gravel"}).preset == "fast"
+    paper = RunSpec.from_options({"scene": "gravel"}, preset="paper")
+    assert paper.preset == "paper" and paper.stage1.iterations == 50 and paper.stage1.silhouette_every == 1

@@ -240,9 +240,10 @@ def _evaluate_values(table: dict[str, Any], parser: argparse.ArgumentParser, whe
                 raise CamoError(f"{where}: [evaluate] {raw_key} must be finite, got {value!r}")
             try:
                 v = act.type(str(value)) if act.type is not None else str(value)
-            except (argparse.ArgumentTypeError, TypeError, ValueError) as exc:
-                raise CamoError(f"{where}: [evaluate] {raw_key}: {_one_line(exc) or 'invalid value'}, "
-                                f"got {value!r}") from None
+            except argparse.ArgumentTypeError as exc:  # a Range: its message says the range and the value
+                raise CamoError(f"{where}: [evaluate] {raw_key}: {_one_line(exc)}") from None
+            except (TypeError, ValueError):
+                raise CamoError(f"{where}: [evaluate] {raw_key}: invalid value {value!r}") from None
             if act.choices is not None and v not in act.choices:
                 raise CamoError(f"{where}: [evaluate] {raw_key} must be one of {', '.join(map(str, act.choices))}, "
                                 f"got {v!r}")
