@@ -99,10 +99,23 @@ def _in_package(package: str, folder: Path) -> str:
     ''')
 
 
+#: A helper of the example scripts: the help text of a command, on one line.
+HELP_OF = textwrap.dedent('''
+    def help_of(*argv):
+        import contextlib, io
+        from camo.cli import main
+
+        text = io.StringIO()
+        with contextlib.redirect_stdout(text):
+            main([*argv, "--help"])
+        return " ".join(text.getvalue().split())
+''')
+
+
 def _run(tmp_path: Path, setup: str, body: str) -> dict:
     """Run ``setup`` then ``body`` in a fresh interpreter; ``body`` fills the dict ``out`` (returned)."""
     script = tmp_path / "example.py"
-    script.write_text(f"import json, sys\nsys.path.insert(0, {str(ROOT)!r})\n{setup}\nout = {{}}\n"
+    script.write_text(f"import json, sys\nsys.path.insert(0, {str(ROOT)!r})\n{setup}\n{HELP_OF}\nout = {{}}\n"
                       f"{textwrap.dedent(body)}\nprint('RESULT ' + json.dumps(out))\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=900,
@@ -132,19 +145,12 @@ def test_worked_example_a_new_baseline_is_one_module(tmp_path):
     (folder / "grey.py").write_text(BASELINE_MODULE)
     run, ev = tmp_path / "run", tmp_path / "eval"
     out = _run(tmp_path, _in_package("optimizer.optimise.baselines", folder), f'''
-        import contextlib, io
-        from camo.cli import main, build_parser
+        from camo.cli import main
         from camo.docs import methods_table
         from camo_base.errors import CamoError
         from optimizer.optimise.spec import RunSpec
 
-        text = io.StringIO()
-        with contextlib.redirect_stdout(text):
-            try:
-                main(["optimize", "--help"])
-            except SystemExit:
-                pass
-        out["help"] = " ".join(text.getvalue().split())
+        out["help"] = help_of("optimize")
         out["docs"] = methods_table()
         try:
             RunSpec.from_options({{"scene": "gravel", "method": "grey", "iterations": 3}})
@@ -171,20 +177,13 @@ def test_worked_example_a_new_metric_is_one_module(tmp_path):
     (folder / "mad.py").write_text(METRIC_MODULE)
     run, ev = tmp_path / "run", tmp_path / "eval"
     out = _run(tmp_path, _in_package("evaluation.metrics", folder), f'''
-        import contextlib, io
         import pandas as pd
         from camo.cli import main
         from camo.docs import metrics_table
         from evaluation.metrics import METRICS, WEIGHT_FREE, compute_metrics
         import numpy as np
 
-        text = io.StringIO()
-        with contextlib.redirect_stdout(text):
-            try:
-                main(["evaluate", "--help"])
-            except SystemExit:
-                pass
-        out["help"] = " ".join(text.getvalue().split())
+        out["help"] = help_of("evaluate")
         out["docs"] = metrics_table()
         out["weight_free"] = list(WEIGHT_FREE)
         a = np.zeros((8, 8, 3), np.float32)
@@ -208,20 +207,13 @@ def test_worked_example_a_new_metric_is_one_module(tmp_path):
 def test_worked_example_a_new_bsdf_map_is_one_record(tmp_path):
     run, ev = tmp_path / "run", tmp_path / "eval"
     out = _run(tmp_path, MAP_RECORD, f'''
-        import contextlib, io
         from camo.cli import main
         from camo.docs import maps_table
         from optimizer.assets.asset import load_asset
         from optimizer.assets.rundir import open_run
         from optimizer.optimise.spec import RunSpec
 
-        text = io.StringIO()
-        with contextlib.redirect_stdout(text):
-            try:
-                main(["optimize", "--help"])
-            except SystemExit:
-                pass
-        out["help"] = " ".join(text.getvalue().split())
+        out["help"] = help_of("optimize")
         out["docs"] = maps_table()
         spec = RunSpec.from_options({{"scene": "gravel", "init": "clearcoat=0.3"}})
         out["pack"] = spec.pack.material.clearcoat
