@@ -99,8 +99,9 @@ def test_cli_power_from_a_predicted_evaluation(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "mean vs ours" in out and (tmp_path / "pw" / "power.png").is_file()
     for argv in (["study", "power", "--out", str(tmp_path / "x")],  # no source
-                 ["study", "power", "--predicted", str(tmp_path), "--out", str(tmp_path / "x")],  # no parquet
-                 ["study", "power", "--predicted", str(ev), "--out", str(tmp_path / "x"), "--reps", "0"]):
+                 ["study", "power", "--predicted", str(tmp_path), "--out", str(tmp_path / "x")]):  # no parquet
         args = p.parse_args(argv)
         with pytest.raises(CamoError):
             args.func(args)
+    with pytest.raises(SystemExit):  # out of range: refused by the flag's type (tests/test_cli_ranges.py)
+        p.parse_args(["study", "power", "--predicted", str(ev), "--out", str(tmp_path / "x"), "--reps", "0"])

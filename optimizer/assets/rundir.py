@@ -688,7 +688,7 @@ def _check_complete(run_dir: Path, cfg: dict[str, Any]) -> None:
     if not isinstance(summary, dict):
         raise CamoError(f"{run_dir / SUMMARY}: not a JSON object")
     fp = (cfg.get("fingerprint") or {}).get("value") if isinstance(cfg.get("fingerprint"), dict) else None
-    if summary.get("fingerprint") and fp and summary["fingerprint"] != fp:
+    if cfg.get("spec_version") == CONFIG_VERSION and summary.get("fingerprint") and fp and summary["fingerprint"] != fp:
         raise CamoError(f"{run_dir}: incomplete run directory: summary.json is of another run than config.toml "
                         "(an interrupted overwrite?); run it again")
     counts = summary.get("iterations")
