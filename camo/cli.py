@@ -2,7 +2,7 @@
 
 ``camo doctor | scenes list | scenes render | plan`` live here; the other
 commands come from each package's ``register(subparsers)`` (``optimize``:
-:mod:`camo.optimize_cli`, ``evaluate`` / ``report``: :mod:`evaluation.cli`,
+:mod:`camo.optimize_cli`, ``evaluate`` / ``report``: :mod:`evaluation.cli`, ``video`` / ``view``: :mod:`camo.video_cli`,
 ``study ...``: :mod:`study_site.cli`, ``data ...``: :mod:`optimizer.scenes.data`,
 ``grid ...``: :mod:`camo.grid`), imported here by name like any other module.
 Helpers those modules share live in the leaf module :mod:`camo.cli_common`
@@ -60,12 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
     p.set_defaults(func=_plan, setting_names=lambda name, args: f"--{name}")
 
-    from camo import grid, optimize_cli
+    from camo import grid, optimize_cli, video_cli
     from evaluation import cli as evaluation_cli
     from optimizer.scenes import data
     from study_site import cli as study_cli
 
-    for module in (optimize_cli, evaluation_cli, study_cli, data, grid):
+    for module in (optimize_cli, evaluation_cli, video_cli, study_cli, data, grid):
         module.register(sub)
     return parser
 

@@ -15,4 +15,5 @@ RANGES: dict[str, Range] = {
     "threads": Range(int, 1, 4096),
     "observer_trials": Range(int, 0, 100_000),
     "seconds": Range(float, 0.0, None),
+    "env_width": Range(int, 64, 16384),  # the report viewer's panorama (evaluation.viewer: a multiple of 4, too)
 }

@@ -35,7 +35,7 @@ from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
 from evaluation.metrics.registry import METRICS, WEIGHT_FREE, table_metrics
-from optimizer.assets.conditions import condition_label, condition_order
+from optimizer.assets.conditions import condition
 
 #: Table columns: (metric, header), from the metric registry in its Table II order (the paper's five first, then
 #: the weight-free proxies and any other metric).
@@ -50,6 +50,17 @@ TIME_COLUMNS = (("seconds_setup", "Setup s"), ("seconds_stage1", "Stage 1 s"), (
 METRIC_TIME_HEADER = "{} s/img"
 
 REGION_TITLES = {"crop": "object crop (GANmouflage protocol)", "full": "full frame"}
+
+
+def method_label(method: str, ablation: str) -> str:
+    """The Table II row label of a method and its ablation (comma list or "none"): the condition's label
+    (:mod:`optimizer.assets.conditions`, the one source of labels shared with the study)."""
+    return condition(method, ablation).label
+
+
+def label_order(method: str, ablation: str) -> tuple:
+    """Sort key: baselines (paper order), other methods, single ablations (paper order), combined ones, Ours."""
+    return condition(method, ablation).order
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -92,8 +103,8 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
         df[c] = pd.to_numeric(df[c], errors="coerce")  # "" in hand-made tables -> NaN
     ident = [c for c in df.columns if not str(c).startswith("seconds_") and c != "_eval_dir"]
     df = df.loc[~df[ident].astype(str).duplicated()].reset_index(drop=True)
-    df["label"] = [condition_label(m, a) for m, a in zip(df["method"], df["ablation"])]
-    df["_order"] = [condition_order(m, a) for m, a in zip(df["method"], df["ablation"])]
+    df["label"] = [method_label(m, a) for m, a in zip(df["method"], df["ablation"])]
+    df["_order"] = [label_order(m, a) for m, a in zip(df["method"], df["ablation"])]
     return df
 
 
@@ -519,13 +530,13 @@ def load_simulated(eval_dirs: Sequence[str | Path]):
     if not views:
         return None, None
     v = pd.concat(views, ignore_index=True).drop_duplicates(["run", "scene", "method", "ablation", "view"])
-    v["label"] = [condition_label(m, a) for m, a in zip(v["method"], v["ablation"])]
-    v["_order"] = [condition_order(m, a) for m, a in zip(v["method"], v["ablation"])]
+    v["label"] = [method_label(m, a) for m, a in zip(v["method"], v["ablation"])]
+    v["_order"] = [label_order(m, a) for m, a in zip(v["method"], v["ablation"])]
     t = None
     if trials:
         t = pd.concat(trials, ignore_index=True).drop_duplicates(
             ["run", "scene", "method", "ablation", "view", "trial"])
-        t["label"] = [condition_label(m, a) for m, a in zip(t["method"], t["ablation"])]
+        t["label"] = [method_label(m, a) for m, a in zip(t["method"], t["ablation"])]
     return v, t
 
 
@@ -678,8 +689,13 @@ def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
     return md, ht
 
 
-def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
-    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
+def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None) -> dict[str, Path]:
+    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``.
+
+    ``sections(out)`` (optional, called once the evaluations have been read) returns further sections appended at
+    the end, each with ``md`` and ``html`` (lists of lines) and optionally ``style`` (CSS) and ``tail`` (HTML placed
+    before ``</body>``, e.g. scripts): the turntables and the interactive viewer of ``camo report``
+    (:mod:`evaluation.viewer`)."""
     from camo_base import atomic
 
     out = Path(out)
@@ -764,8 +780,15 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
              "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
              "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")
+    tail = ""
+    for sec in (sections(out) if sections is not None else ()):
+        md += list(sec.md)
+        ht += list(sec.html)
+        if getattr(sec, "style", "") and sec.style not in style:
+            style += sec.style
+        tail += getattr(sec, "tail", "") or ""
     page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>Camouflage benchmark</title>"
-            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + "\n</body></html>\n")
+            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + tail + "\n</body></html>\n")
     atomic.write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
     atomic.write_text(out / "report.html", page)
     return {"md": out / "report.md", "html": out / "report.html"}

@@ -189,8 +189,7 @@ def merge_results(grid: Grid, out: Path, st: dict[str, tuple[str, str]] | None =
     """Merge the finished cells' metrics into DIR/metrics.parquet/.csv and write DIR/report; rows or None."""
     import pandas as pd
 
-    from evaluation.report import write_report
-    from optimizer.assets.conditions import condition_label
+    from evaluation.report import method_label, write_report
 
     from camo_base import atomic
 
@@ -213,7 +212,7 @@ def merge_results(grid: Grid, out: Path, st: dict[str, tuple[str, str]] | None =
     if not frames:
         return None
     table = pd.concat(frames, ignore_index=True, sort=False)
-    table["label"] = [condition_label(m, a) for m, a in zip(table["method"], table["ablation"])]
+    table["label"] = [method_label(m, a) for m, a in zip(table["method"], table["ablation"])]
     with atomic.atomic_path(out / "metrics.parquet") as tmp:
         table.to_parquet(tmp, index=False)
     with atomic.atomic_path(out / "metrics.csv") as tmp:
