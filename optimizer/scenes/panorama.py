@@ -15,6 +15,16 @@ from typing import Any
 import numpy as np
 
 
+def equirect_directions(width: int, height: int) -> np.ndarray:
+    """World directions ``(H, W, 3)`` of an equirect panorama's pixel centres (rotation 0)."""
+    v = (np.arange(height) + 0.5) / height
+    u = (np.arange(width) + 0.5) / width
+    theta = np.pi * v[:, None]
+    phi = 2.0 * np.pi * u[None, :]
+    st = np.sin(theta)
+    return np.stack(np.broadcast_arrays(st * np.sin(phi), st * np.cos(phi), np.cos(theta)), axis=-1).astype(np.float32)
+
+
 def render_equirect(elements: dict[str, Any], origin, width: int = 512, spp: int = 32, seed: int = 0,
                     max_depth: int = 8) -> np.ndarray:
     """Path-trace an equirect panorama ``(width/2, width, 3)`` of a scene seen from ``origin``.
