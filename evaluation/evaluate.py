@@ -45,9 +45,6 @@ from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SEC
 from evaluation.inputs import Entry, InputSpec, resolve
 from evaluation.views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
 
-#: Metrics computed when --metrics is not given (plus the learned ones whose weights are given or found).
-DEFAULT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
-LEARNED = ("lpips", "sifid", "dreamsim")
 
 
 @dataclasses.dataclass
@@ -56,7 +53,7 @@ class EvalSettings:
     jitter: float = DEFAULT_JITTER
     spp: int = 64
     resolution: int | None = None  # default: the run's
-    metrics: Sequence[str] | None = None  # default: DEFAULT_METRICS + available learned metrics
+    metrics: Sequence[str] | None = None  # default: the weight-free metrics + the learned ones that can run
     seed: int = 0
     lpips_weights: str | None = None
     inception_weights: str | None = None
@@ -66,16 +63,14 @@ class EvalSettings:
     write_report: bool = True
 
     def validate(self) -> None:
-        if self.views is not None and self.views < 1:
-            raise CamoError(f"--views must be >= 1, got {self.views}")
-        if not math.isfinite(self.jitter) or self.jitter <= 0:
-            raise CamoError(f"--jitter must be > 0 (evaluation never uses the training cameras), got {self.jitter}")
-        if self.spp < 1:
-            raise CamoError(f"--spp must be >= 1, got {self.spp}")
-        if self.resolution is not None and self.resolution < 8:
-            raise CamoError(f"--resolution must be >= 8, got {self.resolution}")
-        if self.threads is not None and self.threads < 1:
-            raise CamoError(f"--threads must be >= 1, got {self.threads}")
+        """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
+        jitter must be > 0: evaluation never uses the training cameras)."""
+        from evaluation.ranges import RANGES
+
+        for name in ("views", "jitter", "spp", "resolution", "seed", "threads"):
+            v = getattr(self, name)
+            if v is not None:
+                RANGES[name].check(v, name)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -134,13 +129,12 @@ def parse_metrics(text: str | None) -> list[str] | None:
     return list(dict.fromkeys(names))
 
 
-#: The weights keys (see :func:`weights_of`) that a --*-weights option sets, per learned metric.
-GIVEN_KEYS = {"lpips": "lpips_trunk", "sifid": "sifid", "dreamsim": "dreamsim"}
-
-
 def given_learned(weights: dict[str, str]) -> list[str]:
-    """The learned metrics whose weights the user gave explicitly (they must load)."""
-    return [n for n in LEARNED if GIVEN_KEYS[n] in weights]
+    """The learned metrics whose weights the user gave explicitly (their ``Metric.weights_key`` is set by a
+    --*-weights option, :func:`weights_of`); they must load."""
+    from evaluation.metrics import LEARNED, METRICS
+
+    return [n for n in LEARNED if METRICS[n].weights_key in weights]
 
 
 def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> tuple[list[str], dict[str, str]]:
@@ -150,7 +144,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
     locally. A learned metric that is asked for by name, or whose weights were given, but cannot run is an
     error, not a skip.
     """
-    from evaluation.metrics import METRICS, metric_unavailable
+    from evaluation.metrics import LEARNED, METRICS, WEIGHT_FREE, metric_unavailable
 
     skipped: dict[str, str] = {}
     for name in given_learned(weights):
@@ -158,7 +152,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
         if why is not None:
             raise CamoError(f"{name} weights given but unusable: {why}")
     if requested is None:
-        names = list(DEFAULT_METRICS)
+        names = list(WEIGHT_FREE)
         for name in LEARNED:
             why = metric_unavailable(name, weights)
             if why is None:
@@ -181,7 +175,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
 
 def check_metrics_load(names: Sequence[str], weights: dict[str, str]) -> None:
     """Load every learned metric once on a dummy pair, so weights that do not load fail before any output."""
-    from evaluation.metrics import compute_metrics
+    from evaluation.metrics import LEARNED, compute_metrics
 
     learned = [n for n in LEARNED if n in names or n in given_learned(weights)]
     if learned:

@@ -8,7 +8,8 @@ Aggregation (per region and evaluation protocol = spp, resolution, jitter): the 
 the mean over the runs of one scene with the same method/ablation, then the mean over scenes. The spread is the
 sample standard deviation over scenes (n - 1), shown where there are at least two scenes. Rows follow the
 paper's Table II (Transparent, Random, GANmouflage, 2D Diffusion, w/o Pose, ..., Ours), whichever exist; the
-other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines.
+other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines (labels and
+order: :mod:`optimizer.assets.conditions`).
 
 Output (``--out DIR``)::
 
@@ -35,12 +36,13 @@ import numpy as np
 from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
+from evaluation.metrics.registry import METRICS, WEIGHT_FREE, table_metrics
 from optimizer.assets.conditions import condition
 
-#: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
-TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
-                 ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓"), ("sifid_proxy", "SIFID-proxy↓"))
-HIGHER_IS_BETTER = {"psnr", "ssim"}
+#: Table columns: (metric, header), from the metric registry in its Table II order (the paper's five first, then
+#: the weight-free proxies and any other metric).
+TABLE_METRICS = tuple((m.name, m.header) for m in table_metrics())
+HIGHER_IS_BETTER = {n for n, m in METRICS.items() if m.higher_is_better}
 TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
 #: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
 #: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
@@ -193,7 +195,7 @@ def _fmt(metric: str, v: float) -> str:
         return "—"
     if math.isinf(v):
         return "inf"
-    return f"{v:.2f}" if metric == "psnr" else f"{v:.4f}"
+    return f"{v:.{METRICS[metric].decimals if metric in METRICS else 4}f}"
 
 
 def _best(values: dict[str, float], metric: str) -> set[str]:
@@ -351,7 +353,7 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics of the quality-vs-seconds plot, in this order (those computed).
-PLOT_METRICS = ("psnr", "ssim", "lpips_proxy", "lpips", "sifid", "sifid_proxy", "dreamsim")
+PLOT_METRICS = tuple(METRICS)
 
 
 def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool) -> list[int]:
@@ -504,7 +506,7 @@ def json_key(d: Any) -> str:
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics set against the observer's order (those computed), crop region.
-AGREEMENT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy", "lpips", "sifid", "dreamsim")
+AGREEMENT_METRICS = (*WEIGHT_FREE, *(n for n in METRICS if n not in WEIGHT_FREE))
 
 
 def load_simulated(stimuli_dirs: Sequence[str | Path]):

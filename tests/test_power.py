@@ -144,6 +144,8 @@ def test_cli_power_from_predicted_stimuli(tmp_path, capsys):
     with pytest.raises(CamoError, match="build-stimuli"):
         args.func(args)
     assert not (tmp_path / "pw2").exists()
+    with pytest.raises(SystemExit):  # out of range: refused by the flag's type (tests/test_cli_ranges.py)
+        p.parse_args(["study", "power", "--predicted", str(stim), "--out", str(tmp_path / "x"), "--reps", "0"])
 
 
 def test_end_to_end_build_stimuli_to_power(tmp_path, capsys):
