@@ -349,3 +349,34 @@ def test_simulated_section_of_the_report_reads_the_stimulus_predictions(tmp_path
     assert simulated_section(df, [], out) == ([], [])
     with pytest.raises(CamoError, match="no observer predictions"):
         simulated_section(df, [tmp_path / "nothing"], out)
+
+
+def sky_scene(seed: int = 20, n: int = N) -> np.ndarray:
+    """A smooth sky (a blue gradient with a bright, compact sun glow at the upper left) over the grass texture."""
+    img = grass(seed, n)
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    hor = int(0.4 * n)
+    glow = np.exp(-((xx - 0.2 * n) ** 2 + (yy - 0.15 * n) ** 2) / (2 * (0.12 * n) ** 2))
+    sky = np.stack([0.35 + 0.2 * yy / hor, 0.5 + 0.2 * yy / hor, 0.8 + 0.1 * yy / hor], -1)
+    sky = np.clip(sky + 0.4 * glow[..., None] * np.array([1.0, 0.9, 0.6]), 0, 1)
+    img[:hor] = sky[:hor]
+    return img.astype(np.float32)
+
+
+def test_the_sky_and_its_glow_are_no_candidates():
+    """Objects rest on the ground: the sky (smooth, at the top) and the sun's glow in it are never verified; a
+    top-down view of ground alone has no sky; the object on the grass is found."""
+    from evaluation.observer import sky_map
+
+    bg = sky_scene()
+    m = evidence_maps(bg, background=bg)
+    hor = int(0.4 * N) * m.sky.shape[0] // N
+    assert m.sky[: hor - 2].mean() > 0.97 and m.sky[hor + 2:].mean() < 0.01
+    assert not evidence_maps(grass(21), background=grass(21)).sky.any()
+    glow = disc(0.2 * N, 0.15 * N, 0.15 * N)
+    res = simulate_search(bg, n=200, seed=6, mask=glow, background=bg)
+    assert res.found.mean() == 0.0 and res.clicked.mean() <= 0.25  # never on the glow; an empty scene mostly times out
+    mask = disc(180, 190, 14)
+    p = predict_stimulus(with_object(bg, mask, 0.3), mask, n=200, seed=6, background=bg)
+    assert p.p_found >= 0.95 and np.median(p.rt_found_s) < 3.0
+    assert not sky_map(np.zeros((40, 40, 3))).any()  # smooth from top to bottom: no ground, so no sky either
