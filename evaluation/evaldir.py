@@ -17,11 +17,12 @@ from camo_base.documents import read_json
 from camo_base.errors import CamoError
 
 #: The metric columns, one per metric of :data:`evaluation.metrics.METRICS` (NaN where not computed).
-METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim")
+METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_vgg", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim")
 #: Variant strings of the metrics that have one ("" where not computed).
-VARIANT_COLUMNS = ("lpips_variant", "lpips_proxy_variant", "sifid_variant", "sifid_proxy_variant", "dreamsim_variant")
+VARIANT_COLUMNS = ("lpips_variant", "lpips_vgg_variant", "lpips_proxy_variant", "sifid_variant", "sifid_proxy_variant",
+                   "dreamsim_variant")
 #: SHA-256 of the weight files behind each learned metric ("" where not computed).
-SHA_COLUMNS = ("lpips_weights_sha256", "sifid_weights_sha256", "dreamsim_weights_sha256")
+SHA_COLUMNS = ("lpips_weights_sha256", "lpips_vgg_weights_sha256", "sifid_weights_sha256", "dreamsim_weights_sha256")
 #: Columns that identify a row (input, view, region and the evaluation protocol). ``source``: ``run`` (a run
 #: directory), ``asset`` (a glTF/OBJ file placed in a scene) or ``triplets`` (given images; ``spp`` and ``jitter``
 #: are 0 and ``camera_set`` is ``images:<hash>``: nothing was rendered).
@@ -33,11 +34,19 @@ KEY_COLUMNS = ("run", "scene", "object", "method", "ablation", "view", "seed", "
 METHOD_SECONDS_COLUMNS = ("seconds_setup", "seconds_stage1", "seconds_stage2", "seconds_method")
 #: Seconds of each metric on this row's image pair (NaN where not computed).
 METRIC_SECONDS_COLUMNS = tuple(f"seconds_{m}" for m in METRIC_COLUMNS)
+#: Where the object gives itself away (:mod:`evaluation.giveaway`): the region's pixels split into the object (mask
+#: + 1-px ring), its cast shadow (darker with the object, outside it; noise-aware threshold ``shadow_threshold`` in
+#: sRGB luma) and the rest; per part the pixel count, its part of the region's mean squared error (sRGB [0, 1]; the
+#: three add up to the MSE) and of its LPIPS (from LPIPS's spatial map; the three add up to ``lpips``, NaN
+#: without LPIPS weights).
+SPLIT_PARTS = ("object", "shadow", "rest")
+SPLIT_COLUMNS = ("shadow_threshold", *(f"pixels_{p}" for p in SPLIT_PARTS), *(f"sqerr_{p}" for p in SPLIT_PARTS),
+                 *(f"lpips_{p}" for p in SPLIT_PARTS))
 #: Every column of metrics.parquet / metrics.csv, in order. ``seconds_render``: evaluation rendering of this view
 #: (with-object render + its share of the scene's background render; NaN for triplets), ``seconds_metrics``: all
 #: metrics of the row.
 COLUMNS = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels",
-           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, "seconds_render", "seconds_metrics",
+           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, *SPLIT_COLUMNS, "seconds_render", "seconds_metrics",
            *METRIC_SECONDS_COLUMNS, *METHOD_SECONDS_COLUMNS)
 SECONDS_COLUMNS = tuple(c for c in COLUMNS if c.startswith("seconds_"))
 REGIONS = ("full", "crop")

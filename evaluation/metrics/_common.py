@@ -39,6 +39,7 @@ MIN_SIZE = {
     "haarpsi": 16,
     "lpips_proxy": 16,
     "lpips": 32,
+    "lpips_vgg": 32,
     "sifid": 32,
     "sifid_proxy": 32,
     "dreamsim": 32,
@@ -132,6 +133,16 @@ def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torc
     return t
 
 
+def check_data_range(data_range: float, metric: str) -> None:
+    """CamoError (one line) unless ``data_range`` is a finite number > 0 (NaN, inf, 0, negatives, non-numbers)."""
+    try:
+        ok = math.isfinite(float(data_range)) and float(data_range) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise CamoError(f"{metric}: data_range must be a finite number > 0, got {data_range!r}")
+
+
 def check_size(t: torch.Tensor, metric: str, name: str = "image") -> None:
     """Raise CamoError when ``t``'s smaller side is below ``MIN_SIZE[metric]``."""
     need = MIN_SIZE[metric]
@@ -145,8 +156,7 @@ def prepare_pair(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Convert and check an image pair for ``metric``: same batch size (and size unless ``same_size=False``),
     at least ``MIN_SIZE[metric]`` px, values in ``[0, data_range]``. Both get the wider of the two dtypes."""
-    if data_range <= 0:
-        raise CamoError(f"{metric}: data_range must be > 0, got {data_range}")
+    check_data_range(data_range, metric)
     tx = to_batch(x, "x", data_range)
     ty = to_batch(y, "y", data_range)
     if same_size and tx.shape != ty.shape:

@@ -3,9 +3,11 @@
 ``weights`` (all keys optional; unset ones are looked up as :mod:`evaluation.metrics.weights` describes)::
 
     {
-        "lpips_net": "alex",          # or "vgg"
-        "lpips_trunk": PATH,          # torchvision AlexNet / VGG16 state dict
-        "lpips_lin": PATH,            # LPIPS v0.1 alex.pth / vgg.pth
+        "lpips_net": "alex",          # or "vgg": the net of the `lpips` metric (`lpips_vgg` is always VGG16)
+        "lpips_trunk": PATH,          # trunk of `lpips` (.safetensors or torchvision .pth)
+        "lpips_lin": PATH,            # LPIPS v0.1 heads of `lpips` (.safetensors or alex.pth / vgg.pth)
+        "lpips_vgg_trunk": PATH,      # the same for `lpips_vgg`
+        "lpips_vgg_lin": PATH,
         "sifid": PATH,                # Inception v3 state dict (torchvision key layout)
         "sifid_variant": "singan",    # or "pytorch-fid"
         "dreamsim": FOLDER,           # DreamSim cache_dir (required for dreamsim)
@@ -54,11 +56,22 @@ def _plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Callable:
     return run
 
 
-def _lpips(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-    net = weights.get("lpips_net", "alex")
-    model = load_lpips(net, weights.get("lpips_trunk"), weights.get("lpips_lin"))
-    sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
-    return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
+def lpips_files(name: str, weights: Mapping[str, Any]) -> tuple[str, Any, Any]:
+    """``(net, trunk path or None, heads path or None)`` of the LPIPS metric ``name`` (``lpips`` or
+    ``lpips_vgg``) from a weights mapping (None: the default lookup of :mod:`evaluation.metrics.weights`)."""
+    if name == "lpips_vgg":
+        return "vgg", weights.get("lpips_vgg_trunk"), weights.get("lpips_vgg_lin")
+    return weights.get("lpips_net", "alex"), weights.get("lpips_trunk"), weights.get("lpips_lin")
+
+
+def _lpips_metric(name: str) -> Callable:
+    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+        net, trunk, lin = lpips_files(name, weights)
+        model = load_lpips(net, trunk, lin)
+        sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
+        return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
+
+    return run
 
 
 def _sifid(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
@@ -84,8 +97,10 @@ METRICS: dict[str, MetricSpec] = {
                        "peak signal-to-noise ratio, data range 1"),
     "ssim": MetricSpec("ssim", _plain(ssim), True, False, "1", "[-1, 1]",
                        "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True"),
-    "lpips": MetricSpec("lpips", _lpips, False, True, "1", "[0, ~1]",
-                        "LPIPS v0.1 (AlexNet by default), local weights"),
+    "lpips": MetricSpec("lpips", _lpips_metric("lpips"), False, True, "1", "[0, ~1]",
+                        "LPIPS v0.1, AlexNet (the reference's default), installed weights"),
+    "lpips_vgg": MetricSpec("lpips_vgg", _lpips_metric("lpips_vgg"), False, True, "1", "[0, ~1]",
+                            "LPIPS v0.1, VGG16, installed weights"),
     "lpips_proxy": MetricSpec("lpips_proxy", _plain(lpips_proxy, "1-haarpsi"), False, False, "1", "[0, 1]",
                               "1 - HaarPSI; weight-free, NOT LPIPS, different scale"),
     "sifid": MetricSpec("sifid", _sifid, False, True, "feature units^2", "[0, inf)",
@@ -107,15 +122,16 @@ def metric_unavailable(name: str, weights: Optional[Mapping[str, Any]] = None) -
     if name not in METRICS:
         return f"unknown metric {name!r}"
     try:
-        if name == "lpips":
-            net = weights.get("lpips_net", "alex")
-            find_trunk_weights(net, weights.get("lpips_trunk"))
-            find_lpips_lin_weights(net, weights.get("lpips_lin"))
+        if name in ("lpips", "lpips_vgg"):
+            net, trunk, lin = lpips_files(name, weights)
+            find_trunk_weights(net, trunk)
+            find_lpips_lin_weights(net, lin)
         elif name == "sifid":
             find_trunk_weights("inception", weights.get("sifid"))
         elif name == "dreamsim":
             if not weights.get("dreamsim"):
-                return "DreamSim needs a local weights folder"
+                return ("DreamSim needs the optional 'dreamsim' package (pip install '.[dreamsim]') and a local "
+                        "weights folder (--dreamsim-weights DIR); no registry package ships its weights")
     except CamoError as exc:
         return str(exc)
     return None
