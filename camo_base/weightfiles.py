@@ -2,8 +2,8 @@
 
 Downloaded pickles are never given to :func:`pickle.load`: a pickle can name any importable callable and call
 it while loading (``os.system`` is one opcode away). :func:`load_numpy_pickle` admits exactly what a pickled dict
-of NumPy arrays needs -- ``numpy.ndarray``, ``numpy.dtype`` and NumPy's array reconstructor -- and refuses every
-other global in one line before anything is called; the result must be a (nested) dict of str -> numeric
+of NumPy arrays needs -- ``numpy.ndarray``, ``numpy.dtype`` and NumPy's two array reconstructors
+(:data:`ADMITTED_GLOBALS`) -- and refuses every other global in one line before anything is called; the result must be a (nested) dict of str -> numeric
 array, else it is refused too.
 
 :func:`safetensors_bytes` writes the `safetensors <https://github.com/huggingface/safetensors>`_ format (an
@@ -35,6 +35,8 @@ ADMITTED_GLOBALS = frozenset({
     ("numpy", "dtype"),
     ("numpy.core.multiarray", "_reconstruct"),
     ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.numeric", "_frombuffer"),  # protocol 5 arrays: np.frombuffer(buffer, dtype).reshape(shape)
+    ("numpy._core.numeric", "_frombuffer"),
 })
 
 #: Array dtypes admitted in a pickle (kinds): float, signed / unsigned int, bool. Object arrays are refused.
@@ -59,6 +61,12 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
             except ImportError:  # NumPy 1
                 from numpy.core.multiarray import _reconstruct
             return _reconstruct
+        if name == "_frombuffer":
+            try:
+                from numpy._core.numeric import _frombuffer
+            except ImportError:  # NumPy 1
+                from numpy.core.numeric import _frombuffer
+            return _frombuffer
         return getattr(np, name)
 
     def persistent_load(self, pid: Any) -> Any:

