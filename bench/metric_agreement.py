@@ -8,7 +8,8 @@ itself away (object / shadow / rest) per scene and method. Writes ``docs/results
         --out docs/results/metric_agreement.md --figure built-in:meadow --figure real_cross:real-sky-duck
 
 Reads the evaluation directories of the grids' finished cells (``cells/*/eval/*``; an unfinished grid gives what
-has finished, and the page says how many cells that is). Rows: the object crop (GANmouflage protocol). Every
+has finished, and the page says how many cells that is); the object / shadow / rest columns are recomputed from
+their saved renders with this checkout's ``evaluation/giveaway.py``. Rows: the object crop (GANmouflage protocol). Every
 metric is oriented as a distance (lower = hides better): PSNR and SSIM enter negated, so a positive correlation
 means agreement with LPIPS. Per scene, the correlations run over that scene's crop rows (every method's views);
 "pooled" runs over every row of the grid, and "methods pooled" over the per-run means (one point per scene and
@@ -40,13 +41,34 @@ def eval_dirs(grid: Path) -> list[Path]:
     return sorted(p.parent for p in grid.glob("cells/*/eval/*/metrics.parquet"))
 
 
+def resplit(df, dirs: list[Path]):
+    """Recompute the object / shadow / rest columns from the saved renders with this checkout's
+    evaluation/giveaway.py (so cells evaluated by an older version agree with the current definition)."""
+    import pandas as pd
+
+    from evaluation.giveaway import split_eval_dir
+    from evaluation.evaldir import SPLIT_COLUMNS
+    from evaluation.metrics import load_lpips, lpips
+
+    model = load_lpips("alex")
+    fn = lambda x, y: lpips(x, y, model).tolist()  # noqa: E731
+    parts = []
+    for d in dirs:
+        s = split_eval_dir(d, fn)
+        s["_eval_dir"] = str(d.resolve())
+        parts.append(s)
+    new = pd.concat(parts, ignore_index=True)
+    df = df.drop(columns=[c for c in SPLIT_COLUMNS if c in df.columns])
+    return df.merge(new, on=["_eval_dir", "run", "view", "region"], how="left")
+
+
 def load(grid: Path):
     from evaluation.report import load_metrics
 
     dirs = eval_dirs(grid)
     if not dirs:
         raise SystemExit(f"{grid}: no finished cells (cells/*/eval/*/metrics.parquet)")
-    df = load_metrics(dirs)
+    df = resplit(load_metrics(dirs), dirs)
     df = df.loc[(df["region"] == "crop") & (df["mask_pixels"] > 0) & df["lpips"].notna()]
     if df.empty:
         raise SystemExit(f"{grid}: no crop rows with LPIPS (were the cells evaluated with --metrics lpips,...?)")
@@ -129,7 +151,7 @@ def giveaway_rows(df) -> list[str]:
              "|---|---|---:|---:|---:|---:|"]
     for scene in sorted(df["scene"].unique()):
         for r in split_table(df, scene):
-            pct = lambda v: "—" if not math.isfinite(v) else f"{100 * v + 0.0:.0f}%"  # noqa: E731
+            pct = lambda v: "—" if not math.isfinite(v) else f"{100 * v + 0.0:.0f}%".replace("-0%", "0%")  # noqa: E731
             lines.append(f"| {scene} | {r['label']} | {r['lpips']:.3f} | {pct(r['px_shadow'])} | "
                          + " / ".join(pct(r[f"se_{p}"]) for p in ("object", "shadow", "rest")) + " | "
                          + " / ".join(pct(r[f"lpshare_{p}"]) for p in ("object", "shadow", "rest")) + " |")

@@ -174,3 +174,43 @@ def shares(row: Mapping[str, Any], what: str) -> dict[str, float]:
 def empty_split() -> dict[str, float]:
     """The split columns of a row without scores (the object not visible): NaN."""
     return {c: math.nan for c in SPLIT_COLUMNS}
+
+
+def split_eval_dir(eval_dir, lpips_fn: Callable[[np.ndarray, np.ndarray], Sequence[float]] | None = None):
+    """The split columns of an existing evaluation, recomputed from its saved 8-bit renders (``renders.json``) and
+    its regions (``metrics.parquet``): a DataFrame keyed by ``run``, ``view``, ``region`` with
+    :data:`~evaluation.evaldir.SPLIT_COLUMNS`. For evaluations written before the columns existed (or before a
+    change of this module); ``lpips_fn`` as in :func:`split_region`."""
+    from pathlib import Path
+
+    import pandas as pd
+
+    from camo_base.imaging import load_png
+    from evaluation.evaldir import renders_json
+
+    eval_dir = Path(eval_dir)
+    rows = pd.read_parquet(eval_dir / "metrics.parquet")
+    files = {(str(e["run"]), int(e["view"])): e for e in renders_json(eval_dir)}
+
+    def png(rel: str) -> np.ndarray:  # 8-bit values, as the metrics saw them
+        a = np.round(load_png(eval_dir / rel) * 255.0).astype(np.uint8)
+        return a if a.ndim == 3 else np.repeat(a[..., None], 3, axis=-1)
+
+    out = []
+    cache: dict[tuple[str, int], tuple] = {}
+    for r in rows.to_dict("records"):
+        key = (str(r["run"]), int(r["view"]))
+        if key not in files or int(r["region_height"]) == 0:
+            out.append({"run": key[0], "view": key[1], "region": r["region"], **empty_split()})
+            continue
+        if key not in cache:
+            e = files[key]
+            obj, bg = png(e["image"]), png(e["background"])
+            mask = png(e["mask"])[..., 0] >= 128
+            cache = {key: (obj, bg, mask, *shadow_mask(obj, bg, mask))}
+        obj, bg, mask, shadow, tau = cache[key]
+        y0, x0, h, w = (int(r[c]) for c in ("region_y0", "region_x0", "region_height", "region_width"))
+        sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+        split = split_region(obj[sl], bg[sl], mask[sl], shadow[sl], lpips_fn)
+        out.append({"run": key[0], "view": key[1], "region": r["region"], "shadow_threshold": tau, **split})
+    return pd.DataFrame(out)

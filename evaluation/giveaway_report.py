@@ -1,6 +1,6 @@
-"""The report's "Where the object gives itself away" section: per scene and method, the crop's squared error and
-LPIPS split into object / cast shadow / rest (the columns of :mod:`evaluation.giveaway`), and a figure of the
-LPIPS spatial map beside each render.
+"""Data and figures of the report's "Where the object gives itself away" section (:mod:`evaluation.report`
+writes the section): per scene and method, the crop's squared error and LPIPS split into object / cast shadow /
+rest (the columns of :mod:`evaluation.giveaway`), and a figure of the LPIPS spatial map beside each render.
 
 Table values (crop region): the mean over a run's views, then over the runs of a label (the report's
 aggregation). Shares are of the summed parts (``sqerr_*``: of the MSE; ``lpips_*``: Shapley parts of LPIPS).
@@ -10,8 +10,8 @@ so it needs the installed LPIPS weights; without them the section says so and sh
 
 from __future__ import annotations
 
-import html
 import math
+import re
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -52,7 +52,19 @@ def split_table(df, scene: str) -> list[dict[str, Any]]:
     return rows
 
 
-def _cells(rows: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
+def _load8(path: Path) -> np.ndarray | None:
+    """A saved render as the metrics saw it (8-bit values), or None when unreadable."""
+    from camo_base.errors import CamoError
+    from camo_base.imaging import load_png
+
+    try:
+        return np.round(load_png(path) * 255.0).astype(np.uint8)
+    except CamoError:
+        return None
+
+
+def split_cells(rows: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]:
+    """Header and text cells of a scene's give-away table (rows of :func:`split_table`)."""
     has_lpips = any(math.isfinite(r["lpips"]) for r in rows)
     header = ["Model", "pixels: object / shadow / rest", "sq. error: object / shadow / rest"]
     if has_lpips:
@@ -92,7 +104,6 @@ def heatmap_figure(df, eval_dirs: Sequence[str | Path], out: Path, scene: str) -
     from evaluation.evaldir import renders_json
     from evaluation.giveaway import object_region, shadow_mask
     from evaluation.metrics import apply_crop, load_lpips, lpips_map
-    from evaluation.report import _load_rgb, _safe
 
     try:
         model = load_lpips("alex")
@@ -120,10 +131,10 @@ def heatmap_figure(df, eval_dirs: Sequence[str | Path], out: Path, scene: str) -
             files = renders.get((r["_eval_dir"], r["run"], v), {})
             if not all(k in files for k in ("image", "background", "mask")):
                 continue
-            img, bg, m = (_load_rgb(files[k]) for k in ("image", "background", "mask"))
+            img, bg, m = (_load8(files[k]) for k in ("image", "background", "mask"))
             if img is None or bg is None or m is None:
                 continue
-            mask = m[..., 0] >= 128
+            mask = (m if m.ndim == 2 else m[..., 0]) >= 128
             shadow, _ = shadow_mask(img, bg, mask)
             rr = d.loc[(d["run"] == r["run"]) & (d["_eval_dir"] == r["_eval_dir"]) & (d["view"] == v)].iloc[0]
             box = (int(rr["region_y0"]), int(rr["region_x0"]), int(rr["region_height"]))
@@ -158,38 +169,8 @@ def heatmap_figure(df, eval_dirs: Sequence[str | Path], out: Path, scene: str) -
     if im is not None:
         cax = fig.add_axes((0.95, 0.1, 0.012, 0.8))
         fig.colorbar(im, cax=cax).ax.tick_params(labelsize=6)
-    path = out / "giveaway" / f"{_safe(scene)}.png"
+    path = out / "giveaway" / f"{re.sub(r'[^A-Za-z0-9._-]+', '_', scene).strip('_') or 'scene'}.png"
     with atomic.atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return path
-
-
-def giveaway_section(df, eval_dirs: Sequence[str | Path], out: Path, max_figures: int = 12) \
-        -> tuple[list[str], list[str], list[tuple[str, Path]]]:
-    """Markdown lines, HTML lines and the heat-map figures ``[(caption, path)]`` of the section (empty when no
-    evaluation has the split columns)."""
-    from evaluation.report import markdown_table, html_table
-
-    if "sqerr_object" not in df.columns or df["sqerr_object"].isna().all():
-        return [], [], []
-    md = ["## Where the object gives itself away", "", NOTE, ""]
-    ht = ["<h2>Where the object gives itself away</h2>", f"<p>{html.escape(NOTE)}</p>"]
-    figures = []
-    for scene in sorted(df["scene"].unique()):
-        rows = split_table(df, scene)
-        if not rows:
-            continue
-        header, cells = _cells(rows)
-        md += [f"### {scene}", "", markdown_table(header, [[(c, False) for c in r] for r in cells]), ""]
-        ht += [f"<h3>{html.escape(scene)}</h3>", html_table(header, [[(c, False) for c in r] for r in cells])]
-        if len(figures) < max_figures:
-            path = heatmap_figure(df, eval_dirs, out, scene)
-            if path is not None:
-                figures.append((f"{scene}: object crop and LPIPS spatial map per method (first {FIGURE_VIEWS} "
-                                "views; white contour = object, cyan = cast shadow; shared colour scale)", path))
-    if not figures:
-        why = "no LPIPS weights installed" if df["lpips"].isna().all() else "no renders found"
-        md += [f"(No LPIPS heat maps: {why}.)", ""]
-        ht += [f"<p>(No LPIPS heat maps: {html.escape(why)}.)</p>"]
-    return md, ht, figures

@@ -212,7 +212,7 @@ def summary(df, region: str = "crop"):
     import pandas as pd
 
     metrics = [m for m, _ in TABLE_METRICS]
-    d = df.loc[df["region"] == region]
+    d = _with_metric_columns(df.loc[df["region"] == region])
     if d.empty:
         return pd.DataFrame(columns=metrics + [f"{m}_std" for m in metrics] + ["scenes"])
     metrics = metrics + [c for c in SECONDS_COLUMNS if c in d.columns]
@@ -228,8 +228,14 @@ def summary(df, region: str = "crop"):
     return out.loc[sorted(out.index, key=lambda lab: order[lab])]
 
 
+def _with_metric_columns(d):
+    """``d`` with every table metric as a column (NaN where a hand-made or older table lacks it)."""
+    missing = [m for m, _ in TABLE_METRICS if m not in d.columns]
+    return d.assign(**{m: np.nan for m in missing}) if missing else d
+
+
 def per_scene(df, scene: str, region: str):
-    d = df.loc[(df["region"] == region) & (df["scene"] == scene)]
+    d = _with_metric_columns(df.loc[(df["region"] == region) & (df["scene"] == scene)])
     metrics = [m for m, _ in TABLE_METRICS] + [c for c in SECONDS_COLUMNS if c in d.columns]
     t = d.groupby(["label", "run"], sort=False)[metrics].mean().groupby(level="label", sort=False).mean()
     t["views"] = d.groupby("label", sort=False)["view"].nunique()
@@ -751,6 +757,38 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
     return md, ht
 
 
+def giveaway_section(df, eval_dirs: Sequence[str | Path], out: Path, max_figures: int = 12) \
+        -> tuple[list[str], list[str], list[tuple[str, Path]]]:
+    """Markdown lines, HTML lines and the LPIPS heat-map figures ``[(caption, path)]`` of the "Where the object
+    gives itself away" section (:mod:`evaluation.giveaway_report`); empty when no evaluation has the split
+    columns."""
+    from evaluation.giveaway_report import FIGURE_VIEWS, NOTE, heatmap_figure, split_cells, split_table
+
+    if "sqerr_object" not in df.columns or df["sqerr_object"].isna().all():
+        return [], [], []
+    md = ["## Where the object gives itself away", "", NOTE, ""]
+    ht = ["<h2>Where the object gives itself away</h2>", f"<p>{html.escape(NOTE)}</p>"]
+    figures = []
+    for scene in sorted(df["scene"].unique()):
+        rows = split_table(df, scene)
+        if not rows:
+            continue
+        header, cells = split_cells(rows)
+        table = [[(c, False) for c in r] for r in cells]
+        md += [f"### {scene}", "", markdown_table(header, table), ""]
+        ht += [f"<h3>{html.escape(scene)}</h3>", html_table(header, table)]
+        if len(figures) < max_figures:
+            path = heatmap_figure(df, eval_dirs, out, scene)
+            if path is not None:
+                figures.append((f"{scene}: object crop and LPIPS spatial map per method (first {FIGURE_VIEWS} "
+                                "views; white contour = object, cyan = cast shadow; shared colour scale)", path))
+    if not figures:
+        why = "no LPIPS weights installed" if df["lpips"].isna().all() else "no renders found"
+        md += [f"(No LPIPS heat maps: {why}.)", ""]
+        ht += [f"<p>(No LPIPS heat maps: {html.escape(why)}.)</p>"]
+    return md, ht, figures
+
+
 def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
                    alt: str | None = None) -> tuple[list[str], list[str]]:
     """Markdown and HTML lines of a report section of PNG figures ``[(caption, path under out)]``: Markdown links
@@ -855,8 +893,6 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     sim_md, sim_ht = simulated_section(df, eval_dirs)
     md += sim_md
     ht += sim_ht
-    from evaluation.giveaway_report import giveaway_section
-
     give_md, give_ht, heatmaps = giveaway_section(df, eval_dirs, out)
     md += give_md
     ht += give_ht

@@ -127,6 +127,13 @@ def test_metrics_table_schema_and_rows(eval_dir):
     assert (df["pixels_object"] >= df["mask_pixels"]).all() and (df["shadow_threshold"] >= 2 / 255).all()
     np.testing.assert_allclose(sum(df[f"sqerr_{p}"] for p in parts), 10 ** (-df["psnr"] / 10), rtol=1e-6)
     assert df[[f"lpips_{p}" for p in parts]].isna().all().all()  # no LPIPS weights: no LPIPS split
+    # the same columns recomputed from the saved renders (for evaluations written before them)
+    from evaluation.evaldir import SPLIT_COLUMNS
+    from evaluation.giveaway import split_eval_dir
+
+    again = split_eval_dir(eval_dir).set_index(["run", "view", "region"])
+    mine = df.set_index(["run", "view", "region"])[list(SPLIT_COLUMNS)]
+    pd.testing.assert_frame_equal(again.loc[mine.index, list(SPLIT_COLUMNS)], mine, check_dtype=False)
 
 
 def test_psnr_ssim_equal_skimage_on_saved_renders(eval_dir):
