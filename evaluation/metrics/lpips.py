@@ -226,23 +226,17 @@ def lpips(
 
 
 @metric_thread_policy
-def lpips_map(
-    x: ImageLike,
-    y: ImageLike,
-    model: Optional[LPIPSNet] = None,
-    net: str = "alex",
-    trunk: Optional[PathLike] = None,
-    lin: Optional[PathLike] = None,
-) -> torch.Tensor:
+def lpips_map(x: ImageLike, y: ImageLike, model: Optional[LPIPSNet] = None, **files) -> torch.Tensor:
     """The LPIPS spatial map ``(N, H, W)`` float32 of each pair: the reference's ``LPIPS(spatial=True)`` (each
     layer's distance map upsampled bilinearly, ``align_corners=False``, to the input size, and summed).
 
     Where the map is large the two images differ perceptually. Its mean is close to, but not exactly,
     :func:`lpips` (bilinear upsampling does not preserve a map's mean at the borders; on 64-96 px renders the two
-    differ by a few percent): split a score by region with the map's share, not its absolute sum. Same inputs and
-    weights as :func:`lpips`.
+    differ by a few percent). Its receptive fields are wide (16 px at AlexNet's relu5), so it shows *around* what
+    differs; :mod:`evaluation.giveaway` splits LPIPS by region with Shapley values instead. Same inputs as
+    :func:`lpips`; without ``model``, ``files`` (``net``, ``trunk``, ``lin``) say which weights to load.
     """
     x, y = prepare_pair(x, y, "lpips")
-    model = _model(model, net, trunk, lin)
+    model = _model(model, files.get("net", "alex"), files.get("trunk"), files.get("lin"))
     with torch.no_grad():
         return torch.cat([model.spatial(x[s], y[s])[:, 0] for s in chunks(x, LPIPS_CHUNK_PIXELS)])
