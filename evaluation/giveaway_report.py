@@ -75,7 +75,7 @@ def split_cells(rows: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]
                  " / ".join(_pct(r[f"se_{p}"]) for p in SPLIT_PARTS)]
         if has_lpips:
             cells += ["—" if not math.isfinite(r["lpips"]) else f"{r['lpips']:.4f}",
-                      " / ".join("—" if not math.isfinite(r[f"lp_{p}"]) else f"{r[f'lp_{p}']:.4f}"
+                      " / ".join("—" if not math.isfinite(r[f"lp_{p}"]) else f"{r[f'lp_{p}']:.4f}".replace("-0.0000", "0.0000")
                                  for p in SPLIT_PARTS),
                       " / ".join(_pct(r[f"lpshare_{p}"]) for p in SPLIT_PARTS)]
         out.append(cells)

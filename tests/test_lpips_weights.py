@@ -384,3 +384,20 @@ def test_manifest_is_valid_toml_with_licences_documented():
     doc = tomllib.loads(MANIFEST.read_text())
     assert doc["schema"] == 1 and len(doc["asset"]) == 4
     assert "BSD License" in MANIFEST.read_text() and "no licence file" in MANIFEST.read_text()
+
+
+def test_grid_run_refuses_lpips_without_weights_before_any_cell(tmp_path, monkeypatch, cli):
+    """A grid asking for LPIPS on a machine without the weights stops in one line naming the fix, before it
+    writes anything (not after hours of optimisation, cell by cell)."""
+    monkeypatch.setenv("CAMO_WEIGHTS", str(tmp_path / "none"))
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "no-torch-home"))
+    monkeypatch.setattr(weights_mod, "lpips_lin_candidates", lambda net: [])
+    grid = tmp_path / "g.toml"
+    grid.write_text('name = "g"\nscenes = ["gravel"]\nmethods = ["mean"]\n[evaluate]\nmetrics = ["lpips", "psnr"]\n')
+    out = tmp_path / "out"
+    rc, _, err = cli("grid", "run", str(grid), "--out", str(out))
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert "lpips" in err and "camo data fetch data_manifests/lpips_weights.toml" in err
+    assert not out.exists()
+    rc, out_text, _ = cli("grid", "run", str(grid), "--out", str(out), "--dry-run")  # a dry run only lists
+    assert rc == 0 and "1 cell(s)" in out_text

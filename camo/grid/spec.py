@@ -497,6 +497,30 @@ def cell_spec(parser: argparse.ArgumentParser, argv: list[str], where: str) -> d
         raise CamoError(f"{where}: {exc}") from None
 
 
+def check_metrics_available(grid: Grid) -> None:
+    """CamoError (one line, naming the fix) when a metric the grid's ``[evaluate]`` asks for cannot run on this
+    machine (e.g. ``lpips`` without its installed weights): checked before ``camo grid run`` starts any cell, so
+    a grid does not optimise for hours and then fail every evaluation. Loads nothing."""
+    from evaluation.evaluate import parse_metrics, select_metrics, weights_of, EvalSettings
+
+    from camo.cli import build_parser
+
+    parser = build_parser()
+    seen: set[tuple] = set()
+    for c in grid.cells:
+        if c.evaluate_argv in seen:
+            continue
+        seen.add(c.evaluate_argv)
+        ea = parse_command(parser, c.evaluate_command(Path("/nonexistent-camo-grid-cell"), None),
+                           f"{grid.path}: [evaluate]")
+        settings = EvalSettings(metrics=parse_metrics(ea.metrics), lpips_weights=ea.lpips_weights,
+                                inception_weights=ea.inception_weights, dreamsim_weights=ea.dreamsim_weights)
+        try:
+            select_metrics(settings.metrics, weights_of(settings))
+        except CamoError as exc:
+            raise CamoError(f"{grid.path}: [evaluate]: {exc}") from None
+
+
 def validate_cells(grid: Grid) -> None:
     """Run every cell's evaluation command line through the real `camo evaluate` checks (cheap: no rendering, no
     Mitsuba) so that bad settings fail before the first cell starts (the optimisation's are checked when its run
