@@ -38,7 +38,9 @@ def register(sub) -> None:
                    "lpips/sifid/dreamsim when their weights are given or found)")
     p.add_argument("--seed", type=int, default=0, help="camera jitter and sampler seed (same for every run)")
     p.add_argument("--lpips-weights", metavar="PATH",
-                   help="AlexNet trunk (torchvision .pth), or a folder with it and LPIPS v0.1 alex.pth")
+                   help="LPIPS weights other than the installed ones: an AlexNet trunk (torchvision layout, .pth or "
+                   ".safetensors), or a folder with the trunk and the v0.1 heads (alex.pth, or the files `camo data "
+                   "fetch data_manifests/lpips_weights.toml` lands)")
     p.add_argument("--inception-weights", metavar="PATH", help="Inception v3 state dict for SIFID")
     p.add_argument("--dreamsim-weights", metavar="PATH", help="DreamSim weights folder (its cache_dir)")
     p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")

@@ -93,11 +93,16 @@ class EvalSettings:
 
 
 def _lpips_paths(path: str) -> dict[str, str]:
-    """``--lpips-weights``: a trunk file (AlexNet, torchvision format; the v0.1 linear layers then come from an
-    installed lpips/torchmetrics wheel), or a folder holding the trunk file and ``alex.pth``."""
-    from evaluation.metrics.weights import TRUNK_FILE_PATTERNS
+    """``--lpips-weights``: a trunk file (AlexNet, torchvision layout, ``.pth`` or ``.safetensors``; the v0.1 heads
+    then come from the installed weights or an installed lpips/torchmetrics wheel), or a folder holding the trunk
+    and the heads: the files ``camo data fetch data_manifests/lpips_weights.toml`` lands, or a torchvision trunk
+    file and ``alex.pth``."""
+    from evaluation.metrics.weights import LPIPS_FILES, TRUNK_FILE_PATTERNS
 
     p = Path(path).expanduser()
+    installed = {part: p / name for part, name in LPIPS_FILES["alex"].items()}
+    if p.is_dir() and all(f.is_file() for f in installed.values()):
+        return {"lpips_trunk": str(installed["trunk"]), "lpips_lin": str(installed["lin"])}
     if p.is_dir():
         trunk = next((h for pat in TRUNK_FILE_PATTERNS["alex"] for h in sorted(p.glob(pat))), None)
         if trunk is None:
