@@ -35,7 +35,7 @@ def register(sub) -> None:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel of the evaluation renders (default 64)")
     p.add_argument("--resolution", type=int, help="image width = height in pixels (default: the run's)")
     p.add_argument("--metrics", help="comma list of metrics (default: psnr,ssim,lpips_proxy,sifid_proxy, plus "
-                   "lpips/sifid/dreamsim when their weights are given or found)")
+                   "lpips/sifid/dreamsim when their weights are given or installed; lpips_vgg on request)")
     p.add_argument("--seed", type=int, default=0, help="camera jitter and sampler seed (same for every run)")
     p.add_argument("--lpips-weights", metavar="PATH",
                    help="LPIPS weights other than the installed ones: an AlexNet trunk (torchvision layout, .pth or "
