@@ -85,6 +85,23 @@ def corr(a: np.ndarray, b: np.ndarray) -> tuple[float, float, int]:
     return float(kendalltau(a, b).statistic), float(spearmanr(a, b).statistic), int(len(a))
 
 
+def paired_z(views, a: str, b: str, metric: str) -> float:
+    """|mean / standard error| of the per-view difference of two methods (the same views): how clearly the two
+    differ on this metric beyond the view-to-view spread (NaN with fewer than 2 shared views)."""
+    va, vb = views.loc[a][metric], views.loc[b][metric]
+    shared = va.index.intersection(vb.index)
+    d = (va.loc[shared] - vb.loc[shared]).to_numpy(float)
+    d = d[np.isfinite(d)]
+    if len(d) < 2:
+        return math.nan
+    se = float(d.std(ddof=1)) / math.sqrt(len(d))
+    return math.inf if se == 0 else abs(float(d.mean())) / se
+
+
+#: A difference counts as clear beyond this many standard errors of the paired per-view difference.
+CLEAR_Z = 2.0
+
+
 def fmt(tau: float, rho: float) -> str:
     return "—" if not math.isfinite(tau) else f"{tau:+.2f} / {rho:+.2f}"
 
@@ -107,6 +124,7 @@ def agreement(df, name: str) -> tuple[list[str], list[dict]]:
             cells.append(fmt(tau, rho))
         lines.append(f"| {scene} | {len(d)} | " + " | ".join(cells) + " |")
         t = per_label.xs(scene, level="scene")
+        views = d.groupby(["label", "view"])[["lpips", *(m for m, _, _ in OTHERS)]].mean()
         for a, b in combinations(sorted(t.index), 2):
             dl = float(t.loc[a, "lpips"] - t.loc[b, "lpips"])
             for m, mname, sign in OTHERS:
@@ -116,7 +134,8 @@ def agreement(df, name: str) -> tuple[list[str], list[dict]]:
                     dis.append({"grid": name, "scene": scene, "metric": m, "name": mname, "lpips_says": better_l,
                                 "metric_says": better_m, "lpips": (float(t.loc[better_l, "lpips"]),
                                                                    float(t.loc[better_m, "lpips"])),
-                                "value": (float(t.loc[better_l, m]), float(t.loc[better_m, m]))})
+                                "value": (float(t.loc[better_l, m]), float(t.loc[better_m, m])),
+                                "z": (paired_z(views, a, b, "lpips"), paired_z(views, a, b, m))})
     pooled = [corr(df["lpips"].to_numpy(float), s * df[m].to_numpy(float)) for m, _, s in OTHERS]
     lines.append(f"| **pooled (every view)** | {len(df)} | " + " | ".join(fmt(t, r) for t, r, _ in pooled) + " |")
     runs = per_run.reset_index()
@@ -134,13 +153,18 @@ def pair_counts(df, dis: list[dict]) -> list[str]:
     pairs = sum(math.comb(len(per_label.xs(s, level="scene")), 2) for s in df["scene"].unique())
     out = []
     for m, name, _ in OTHERS:
-        k = sum(1 for x in dis if x["metric"] == m)
-        out.append(f"{name} {k} of {pairs}")
+        k = [x for x in dis if x["metric"] == m]
+        clear = sum(1 for x in k if min(x["z"]) >= CLEAR_Z)
+        out.append(f"{name} {len(k)} of {pairs} ({clear} clear on both)")
     return out
 
 
 def _v(m: str, v: float) -> str:
-    return f"{v:.2f}" if m == "psnr" else f"{v:.4f}"
+    return f"{v:.2f}" if m == "psnr" else f"{v:.5f}" if m == "sifid_proxy" else f"{v:.4f}"
+
+
+def _z(v: float) -> str:
+    return "—" if not math.isfinite(v) else ("∞" if math.isinf(v) else f"{v:.1f}")
 
 
 def giveaway_rows(df) -> list[str]:
@@ -189,12 +213,20 @@ def main(argv=None) -> int:
                + "; ".join(pair_counts(df, dis)) + ".", ""]
         pd_ = [x for x in dis if x["metric"] in PROXIES]
         if pd_:
-            md += [f"Where a proxy and LPIPS disagree about which method hides better ({name}):", "",
-                   "| scene | proxy | LPIPS says | proxy says | LPIPS (A / B) | proxy (A / B) |", "|---|---|---|---|---:|---:|"]
+            md += [f"Where a proxy and LPIPS disagree about which method hides better ({name}); z = |mean| / "
+                   "standard error of the two methods' per-view difference (the same views), for LPIPS and for the "
+                   f"proxy; **bold** rows: both differences clear (z >= {CLEAR_Z:g}), the rest are within the "
+                   "view-to-view spread of at least one of the two:", "",
+                   "| scene | proxy | LPIPS says | proxy says | LPIPS (A / B) | proxy (A / B) | z LPIPS / proxy |",
+                   "|---|---|---|---|---:|---:|---:|"]
             for x in pd_:
-                md.append(f"| {x['scene']} | {x['name']} | {x['lpips_says']} | {x['metric_says']} | "
-                          f"{x['lpips'][0]:.4f} / {x['lpips'][1]:.4f} | {_v(x['metric'], x['value'][0])} / "
-                          f"{_v(x['metric'], x['value'][1])} |")
+                cells = [x["scene"], x["name"], x["lpips_says"], x["metric_says"],
+                         f"{x['lpips'][0]:.4f} / {x['lpips'][1]:.4f}",
+                         f"{_v(x['metric'], x['value'][0])} / {_v(x['metric'], x['value'][1])}",
+                         f"{_z(x['z'][0])} / {_z(x['z'][1])}"]
+                if min(x["z"]) >= CLEAR_Z:
+                    cells = [f"**{c}**" for c in cells]
+                md.append("| " + " | ".join(cells) + " |")
             md.append("")
         md += [f"### Where the object gives itself away ({name})", "",
                "Shares of the crop's squared error and LPIPS (Shapley parts) in the object (mask + 1-px ring), its "
