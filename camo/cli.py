@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 from camo_base.errors import CamoError
 
 #: Modules that contribute subcommands through a ``register(subparsers)`` function.
-PLUGINS = ("camo.optimize_cli", "evaluation.cli", "study_site.cli", "optimizer.scenes.data", "camo.grid")
+PLUGINS = ("camo.optimize_cli", "evaluation.cli", "camo.video_cli", "study_site.cli", "optimizer.scenes.data", "camo.grid")
 
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:

@@ -145,15 +145,20 @@ def load_hdr_image(path: str | os.PathLike) -> np.ndarray:
         if not path.is_file():
             raise CamoError(f"HDR image not found: {path}")
         os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
-        import imageio.v3 as iio
+        import cv2
 
+        # OpenCV directly, unchanged depth: imageio's opencv plugin reads with IMREAD_COLOR, which tone-maps a
+        # Radiance file to 8 bit (values 0-255, not radiance).
         try:
             with quiet_stderr():
-                arr = np.asarray(iio.imread(path, extension=".hdr"), dtype=np.float32)
+                raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         except Exception:
-            raise CamoError(f"cannot read HDR image {path}: not a valid Radiance .hdr file") from None
-        if arr.ndim != 3 or arr.shape[2] < 3:
+            raw = None
+        if raw is None or raw.dtype != np.float32:
+            raise CamoError(f"cannot read HDR image {path}: not a valid Radiance .hdr file")
+        if raw.ndim != 3 or raw.shape[2] < 3:
             raise CamoError(f"cannot read HDR image {path}: not an RGB image")
+        arr = np.ascontiguousarray(raw[..., 2::-1])  # BGR -> RGB
         if not np.isfinite(arr).all():
             raise CamoError(f"HDR image {path} contains NaN or infinite pixels")
         return arr[..., :3]

@@ -56,6 +56,12 @@ def register(sub) -> None:
     p = sub.add_parser("report", help="merge evaluation directories into one Table II report")
     p.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate`")
     p.add_argument("--out", required=True, help="report folder (report.md, report.html, grids/)")
+    p.add_argument("--video", action="append", default=[], metavar="FILE",
+                   help="a `camo video` turntable to show and link as the path-traced reference (repeatable)")
+    p.add_argument("--no-viewer", action="store_true",
+                   help="no interactive 3D viewer section (it renders each scene's environment panorama once)")
+    p.add_argument("--env-width", type=int, default=1024, help="width of the viewer's environment panorama "
+                   "(default 1024)")
     p.set_defaults(func=run_report)
 
 
@@ -104,6 +110,12 @@ def run_evaluate(args) -> int:
 def run_report(args) -> int:
     from evaluation.report import write_report
 
-    paths = write_report(args.eval_dirs, args.out)
+    import sys
+
+    from evaluation.viewer import report_sections
+
+    sections = report_sections(args.eval_dirs, args.video, not args.no_viewer, args.env_width,
+                               say=lambda m: print(m, file=sys.stderr))
+    paths = write_report(args.eval_dirs, args.out, sections)
     print(f"wrote {paths['md']}")
     return 0

@@ -37,6 +37,7 @@ import numpy as np
 from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
+from optimizer.assets.conditions import condition
 
 #: Table columns: (metric, header). The paper's metrics first (LPIPS leads), then the weight-free proxies, which
 #: are cross-checks on their own scales. A column is shown when its metric was computed in some evaluation.
@@ -70,52 +71,18 @@ TIME_COLUMNS = (("seconds_setup", "Setup s"), ("seconds_stage1", "Stage 1 s"), (
                 ("seconds_method", "Method s"), ("seconds_render", "Render s/view"))
 METRIC_TIME_HEADER = "{} s/img"
 
-#: Baseline methods (``camo optimize --method``) in the paper's order, with their Table II labels.
-BASELINES = {"transparent": "Transparent", "random": "Random [6]", "mean": "Mean [6]", "greedy": "Greedy [6]",
-             "ganmouflage": "GANmouflage [7]", "ganmouflage-paper": "GANmouflage [7] (paper settings)",
-             "diffusion2d": "2D Diffusion"}
-_BASELINE_ORDER = list(BASELINES)
-#: Ablations of our method in the paper's order.
-ABLATIONS = {"pose": "w/o Pose", "displacement": "w/o Displacement", "bsdf": "w/o BSDF (Only Albedo)",
-             "transmittance": "w/o Transmittance", "inpainting": "w/o Inpainting"}
-_ABL_NAMES = {"pose": "Pose", "displacement": "Displacement", "bsdf": "BSDF", "transmittance": "Transmittance",
-              "inpainting": "Inpainting"}
 REGION_TITLES = {"crop": "object crop (GANmouflage protocol)", "full": "full frame"}
 
 
-def _ablations(ablation: str) -> list[str]:
-    items = [a for a in str(ablation or "").split(",") if a and a != "none"]
-    order = list(ABLATIONS)
-    return sorted(items, key=lambda a: (order.index(a) if a in order else len(order), a))
-
-
 def method_label(method: str, ablation: str) -> str:
-    """The Table II row label of a method and its ablation (comma list or "none")."""
-    abl = _ablations(ablation)
-    m = str(method)
-    if m == "ours":
-        if not abl:
-            return "Ours"
-        if len(abl) == 1 and abl[0] in ABLATIONS:
-            return ABLATIONS[abl[0]]
-        return "w/o " + " + ".join(_ABL_NAMES.get(a, a) for a in abl)
-    base = BASELINES.get(m.lower(), m)
-    return base if not abl else f"{base} (w/o {' + '.join(_ABL_NAMES.get(a, a) for a in abl)})"
+    """The Table II row label of a method and its ablation (comma list or "none"): the condition's label
+    (:mod:`optimizer.assets.conditions`, the one source of labels shared with the study)."""
+    return condition(method, ablation).label
 
 
 def label_order(method: str, ablation: str) -> tuple:
     """Sort key: baselines (paper order), other methods, single ablations (paper order), combined ones, Ours."""
-    abl = _ablations(ablation)
-    m = str(method).lower()
-    if m == "ours":
-        if not abl:
-            return (5, 0, "")
-        if len(abl) == 1 and abl[0] in ABLATIONS:
-            return (3, list(ABLATIONS).index(abl[0]), "")
-        return (4, len(abl), ",".join(abl))
-    if m in BASELINES:
-        return (0, _BASELINE_ORDER.index(m), ",".join(abl))
-    return (1, 0, m + "," + ",".join(abl))
+    return condition(method, ablation).order
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -805,8 +772,13 @@ def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
     return md, ht
 
 
-def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
-    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
+def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None) -> dict[str, Path]:
+    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``.
+
+    ``sections(out)`` (optional, called once the evaluations have been read) returns further sections appended at
+    the end, each with ``md`` and ``html`` (lists of lines) and optionally ``style`` (CSS) and ``tail`` (HTML placed
+    before ``</body>``, e.g. scripts): the turntables and the interactive viewer of ``camo report``
+    (:mod:`evaluation.viewer`)."""
     from camo_base import atomic
 
     out = Path(out)
@@ -904,8 +876,15 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
              "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
              "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")
+    tail = ""
+    for sec in (sections(out) if sections is not None else ()):
+        md += list(sec.md)
+        ht += list(sec.html)
+        if getattr(sec, "style", "") and sec.style not in style:
+            style += sec.style
+        tail += getattr(sec, "tail", "") or ""
     page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>Camouflage benchmark</title>"
-            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + "\n</body></html>\n")
+            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + tail + "\n</body></html>\n")
     atomic.write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
     atomic.write_text(out / "report.html", page)
     return {"md": out / "report.md", "html": out / "report.html"}

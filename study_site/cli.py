@@ -76,7 +76,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)
 
-    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, admin token)")
+    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, cookie key, admin token)")
     k.add_argument("path", metavar="FILE", help="new file (mode 0600); refuses to overwrite")
     k.set_defaults(func=cmd_make_key)
 
@@ -85,7 +85,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     s.add_argument("--db", required=True, metavar="URL", help="SQLAlchemy URL or a SQLite file path")
     s.add_argument("--host", default="127.0.0.1")
     s.add_argument("--port", type=int, default=5000)
-    s.add_argument("--threads", type=int, default=8, help="worker threads (waitress)")
+    s.add_argument("--threads", type=int, default=8, help="threads per worker process (default 8)")
+    s.add_argument(
+        "--workers", type=int, default=1,
+        help="worker processes (default 1: waitress in this process); 2 or more: gunicorn with that many "
+        "processes of --threads threads each (the production command; use a PostgreSQL --db)")
     s.add_argument(
         "--connections", type=int, default=1000, help="open client connections accepted at once (waitress)"
     )
@@ -95,6 +99,8 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="development: werkzeug's server, and an id key kept in the database when none is given",
     )
     s.add_argument("--id-key-file", metavar="FILE", help="participant-id HMAC key (`camo study make-key FILE`)")
+    s.add_argument("--secret-key-file", metavar="FILE",
+                   help="cookie-signing key (`camo study make-key FILE`; another key than --id-key-file)")
     s.add_argument("--admin-token-file", metavar="FILE", help="admin token (enables /admin/)")
     s.add_argument("--time-limit", type=float, metavar="S", help="seconds per trial (default 40)")
     s.add_argument("--practice-trials", type=int, metavar="N", help="practice trials (default 5)")
@@ -265,10 +271,15 @@ def cmd_serve(args) -> int:
         raise CamoError(f"{args.stimuli}: no such stimulus directory")
     if not 10 <= args.connections <= 100_000:
         raise CamoError("--connections must be 10-100000")
+    if not 1 <= args.workers <= 64:
+        raise CamoError("--workers must be 1-64")
+    if args.workers > 1 and args.dev:
+        raise CamoError("--workers needs the production server (gunicorn), not --dev")
     cfg = from_env()
     cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
     for flag, key in (
         ("id_key_file", "ID_HMAC_KEY_FILE"),
+        ("secret_key_file", "SECRET_KEY_FILE"),
         ("admin_token_file", "ADMIN_TOKEN_FILE"),
         ("time_limit", "TRIAL_TIME_LIMIT_S"),
         ("practice_trials", "PRACTICE_TRIALS"),
@@ -282,9 +293,43 @@ def cmd_serve(args) -> int:
             cfg[key] = v
     if args.dev:
         cfg["DEV"] = True
-    app = create_app(cfg)
+    app = create_app(cfg)  # every configuration error is a one-line refusal here, before any process starts
+    if args.workers > 1:
+        app.extensions["camo_study"].db.dispose()
+        serve_gunicorn(cfg, args.host, args.port, args.workers, args.threads, args.connections)
+        return 0
     serve_app(app, args.host, args.port, threads=args.threads, connections=args.connections, dev=args.dev)
     return 0
+
+
+def serve_gunicorn(cfg: dict, host: str, port: int, workers: int, threads: int, connections: int = 1000) -> None:
+    """The production server: gunicorn's master in this process, ``workers`` forked processes of ``threads``
+    threads each (``gthread``), each building its own app (own database pool) from ``cfg``. The same as
+    ``gunicorn -w WORKERS -k gthread --threads THREADS 'study_site.wsgi:app'`` with ``CAMO_STUDY_*`` variables."""
+    try:
+        from gunicorn.app.base import BaseApplication
+    except ImportError:
+        raise CamoError("--workers needs gunicorn: pip install gunicorn (or use --workers 1: waitress)") from None
+    if str(cfg.get("DATABASE_URL", "")).startswith("sqlite"):
+        print("note: several processes share one SQLite file (each commit waits for the others' locks); "
+              "PostgreSQL is the database for --workers > 1", file=sys.stderr)
+
+    class StudyServer(BaseApplication):
+        def load_config(self):
+            for k, v in {"bind": f"{host}:{port}", "workers": workers, "threads": threads, "worker_class": "gthread",
+                         "worker_connections": connections, "keepalive": 60, "timeout": 60, "graceful_timeout": 10,
+                         "accesslog": None, "errorlog": "-", "loglevel": "warning", "proc_name": "camo-study",
+                         "preload_app": False}.items():
+                self.cfg.set(k, v)
+
+        def load(self):
+            from study_site import create_app
+
+            return create_app(cfg)
+
+    print(f"study site on http://{host}:{port}/ (gunicorn, {workers} workers x {threads} threads)", file=sys.stderr,
+          flush=True)
+    StudyServer().run()
 
 
 def serve_app(app, host: str, port: int, threads: int = 8, connections: int = 1000, dev: bool = False) -> None:
@@ -341,12 +386,12 @@ def cmd_report(args) -> int:
     t = res["table"]
     for r in t.itertuples():
         print(
-            f"{r.method}: confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
-            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s"
+            f"{r.label} ({r.condition}): confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
+            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s (server clock)"
         )
     b = res.get("baselines")
     if b is not None:
-        a = b[b["method"] == "all"].iloc[0]
+        a = b[b["condition"] == "all"].iloc[0]
         print(
             f"baselines over {a.n_trials} formal trials: centre click {100 * a.centre_click_hit_rate:.1f} %, "
             f"last-practice location {100 * a.last_practice_hit_rate:.1f} %, object area share "

@@ -41,8 +41,8 @@ TESTS = {"p_fisher_holm": "confusion rate (Fisher, Holm)", "p_logrank_holm": "ti
 
 def cells_from_predicted(eval_dirs: Sequence[str | Path]) -> pd.DataFrame:
     """Per simulated trial ``scene, method, found, timed_out, rt_s, time_limit_s`` from evaluations'
-    ``simulated_trials.parquet`` (``method`` = the study's condition label: ``method`` or ``method+ablation``)."""
-    from study_site.stimuli import condition_label
+    ``simulated_trials.parquet`` (``method`` = the study's condition id, :mod:`optimizer.assets.conditions`)."""
+    from optimizer.assets.conditions import condition
 
     frames = []
     for d in eval_dirs:
@@ -55,7 +55,7 @@ def cells_from_predicted(eval_dirs: Sequence[str | Path]) -> pd.DataFrame:
             raise CamoError(f"{p}: cannot read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") \
                 from None
     t = pd.concat(frames, ignore_index=True)
-    t["method"] = [condition_label(m, a) for m, a in zip(t["method"], t["ablation"])]
+    t["method"] = [condition(m, a).id for m, a in zip(t["method"], t["ablation"])]
     return t[["scene", "method", "found", "timed_out", "rt_s", "time_limit_s"]].reset_index(drop=True)
 
 
@@ -67,6 +67,7 @@ def cells_from_pilot(db) -> pd.DataFrame:
     f = formal_trials(trials)
     if f.empty:
         raise CamoError("the pilot database has no analysed formal trials (completed participants)")
+    f = f.drop(columns=["method"]).rename(columns={"condition": "method"})  # cells are conditions
     return f[["scene", "method", "found", "timed_out", "rt_s", "time_limit_s"]].reset_index(drop=True)
 
 
@@ -92,7 +93,8 @@ def simulate_study(cells: pd.DataFrame | dict, n_participants: int, rng: np.rand
                 continue
             found, tout, rt, lim = arrays[(scene, m)]
             idx = rng.integers(len(found), size=sel.size)
-            parts.append(pd.DataFrame({"participant": pid[sel], "scene": scene, "method": m, "found": found[idx],
+            parts.append(pd.DataFrame({"participant": pid[sel], "scene": scene, "method": m, "condition": m,
+                                       "label": m, "found": found[idx],
                                        "timed_out": tout[idx], "rt_s": rt[idx], "time_limit_s": lim[idx]}))
     return pd.concat(parts, ignore_index=True)
 
@@ -119,7 +121,7 @@ def power_curve(cells: pd.DataFrame, participants: Sequence[int] = DEFAULT_PARTI
             for r in pw.itertuples():
                 for test in TESTS:
                     p = getattr(r, test)
-                    key = (r.method_a, r.method_b, test)
+                    key = (r.condition_a, r.condition_b, test)
                     hits[key] = hits.get(key, 0) + int(bool(np.isfinite(p) and p < alpha))
         for (a, b, test), k in hits.items():
             rows.append({"n_participants": int(n), "method_a": a, "method_b": b, "test": test, "power": k / reps,
@@ -197,15 +199,23 @@ def write_power(cells: pd.DataFrame, out: str | Path, participants: Sequence[int
              f"Holm over the pairs, target power {100 * target:.0f} %. Method: `study_site/power.py`.", "",
              "| Method | source trials | confusion rate |", "|---|---:|---:|"]
     for m, r in rates.iterrows():
-        lines.append(f"| {m} | {int(r.trials)} | {100 * r.confusion:.1f}% |")
+        lines.append(f"| {_label(m)} | {int(r.trials)} | {100 * r.confusion:.1f}% |")
     lines += ["", "| Pair | Test | Participants for target | Power at largest N |", "|---|---|---:|---:|"]
     for r in need.itertuples():
         n = f"{int(r.participants)}" if np.isfinite(r.participants) else f"> {r.max_n}"
-        lines.append(f"| {r.method_a} vs {r.method_b} | {TESTS[r.test]} | {n} | {100 * r.power_at_max_n:.0f}% "
+        lines.append(f"| {_label(r.method_a)} vs {_label(r.method_b)} | {TESTS[r.test]} | {n} | {100 * r.power_at_max_n:.0f}% "
                      f"(N = {r.max_n}) |")
     lines += ["", "![power curve](power.png)", ""]
     write_text(out / "power.md", "\n".join(lines))
     return {"curve": curve, "needed": need}
+
+
+def _label(cond_id: str) -> str:
+    """``label (id)`` of a condition id, for power.md."""
+    from optimizer.assets.conditions import label_of_id
+
+    lab = label_of_id(cond_id)
+    return lab if lab == cond_id else f"{lab} (`{cond_id}`)"
 
 
 def parse_participants(text: str) -> list[int]:

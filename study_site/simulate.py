@@ -1,7 +1,7 @@
 """Simulated participants through the live study site (``camo study simulate``).
 
 Each simulated participant is an HTTP client of the real site (loopback only): the landing link with a
-``PROLIFIC_PID`` (``sim-<seed>-<k>``), consent, the optional age bracket, instructions, ``/api/state``, then
+``PROLIFIC_PID`` (``sim-<seed>-<k>``), consent, the age bracket (required), instructions, ``/api/state``, then
 every trial -- practice and formal -- as the page runs it: the image is downloaded from its opaque URL, the
 simulated observer (:mod:`evaluation.observer`, one simulated search with the participant's own random stream)
 decides where and when to click from **the image alone**, ``POST /api/start`` starts the server's clock, the
@@ -199,7 +199,7 @@ class Participant(SiteClient):
                                "study site)")
         self.csrf = m.group(1)
         self.form("/consent", {"consent": "yes"})
-        ages = ["18-24", "25-34", "35-44", "45-54", "55-64", "65+", "prefer_not", ""]
+        ages = ["18-24", "25-34", "35-44", "45-54", "55-64", "65+"]  # required; adults only
         self.form("/about-you", {"age": ages[int(self.rng.integers(len(ages)))]})
         self.form("/instructions", {})
         st, data, _ = self.request("GET", "/api/state")

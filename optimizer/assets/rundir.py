@@ -332,6 +332,13 @@ class RunDir:
     def ablation_label(self) -> str:
         return ",".join(self.ablation) if self.ablation else "none"
 
+    @property
+    def condition(self):
+        """The run's condition (:mod:`optimizer.assets.conditions`): its id and label in every table."""
+        from optimizer.assets.conditions import condition
+
+        return condition(self.method, self.ablation)
+
     def summary(self) -> dict[str, Any]:
         """``summary.json`` ({} when absent; CamoError when unreadable)."""
         p = self.path / "summary.json"
@@ -382,6 +389,10 @@ class RunDir:
         out["total"] = float(sum(parts)) if all(math.isfinite(p) for p in parts) else math.nan
         return out
 
+    def recorded_plan(self) -> "RecordedPlan":
+        """What the run recorded about its effect plan (:func:`recorded_plan`)."""
+        return recorded_plan(self.config, self.summary())
+
     def asset(self) -> Asset:
         """The result: ``result.ply`` (world space, pose and displacement applied) and ``maps/*.npy`` as rendered."""
         verts, faces, uvs = read_ply(self.path / "result.ply")
@@ -391,6 +402,68 @@ class RunDir:
         a = Asset(str(self.path), verts, faces, uvs, maps, float(self.app.eta), not self.app.bsdf, "clamp", "scene")
         check_maps(a, self.name, "{label}: maps/{name}.npy")
         return a
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordedPlan:
+    """A run's effect plan as recorded, whatever layout wrote it (read by :func:`recorded_plan`).
+
+    ``training``: the integrator the run optimised with (``config.toml`` ``[plan].integrator``); ``render``: the
+    integrator of its final render (``summary.json`` ``final_render.integrator``, or a per-purpose integrator of a
+    ``plan`` record in ``summary.json``); ``reasons``: the planner's lines; ``raw``: every plan record found, by
+    source (``config`` / ``summary``), for readers that want more. ``None`` / empty where the run recorded none."""
+
+    training: dict[str, Any] | None
+    render: dict[str, Any] | None
+    reasons: tuple[str, ...]
+    raw: dict[str, Any]
+
+    @property
+    def max_depth(self) -> int | None:
+        """The deepest ``max_depth`` any recorded integrator names (None: none names one; -1 = unbounded)."""
+        depths = [_int(i.get("max_depth")) for i in (self.training, self.render) if isinstance(i, dict)]
+        depths = [d for d in depths if d is not None]
+        if not depths:
+            return None
+        return -1 if -1 in depths else max(depths)
+
+
+#: Keys a per-purpose plan record may use for the render of results (newest layouts first).
+_RENDER_PURPOSES = ("evaluate", "evaluation", "render", "final_render")
+
+
+def recorded_plan(config: dict[str, Any], summary: dict[str, Any]) -> RecordedPlan:
+    """The plan a run recorded, from its parsed ``config.toml`` and ``summary.json``: one reader, so a change of
+    what runs record (a measured planner adding its own ``plan`` record to ``summary.json``) is handled here.
+
+    ``summary.json``'s ``plan`` record (when present) wins over ``config.toml``'s ``[plan]`` table: it may name an
+    ``integrator`` and per-purpose records (``{"evaluate": {"integrator": {...}}, ...}``); the render integrator is
+    the first of those purposes found, else ``final_render.integrator``."""
+    cfg_plan = config.get("plan") if isinstance(config.get("plan"), dict) else {}
+    sum_plan = summary.get("plan") if isinstance(summary.get("plan"), dict) else {}
+    raw = {k: v for k, v in (("config", cfg_plan), ("summary", sum_plan)) if v}
+
+    def integrator_of(rec: Any) -> dict[str, Any] | None:
+        if isinstance(rec, dict) and isinstance(rec.get("integrator"), dict) and rec["integrator"].get("type"):
+            return dict(rec["integrator"])
+        if isinstance(rec, dict) and isinstance(rec.get("type"), str):
+            return dict(rec)
+        return None
+
+    training = integrator_of(sum_plan) or integrator_of(cfg_plan)
+    render = next((i for i in (integrator_of(sum_plan.get(p)) for p in _RENDER_PURPOSES) if i), None)
+    if render is None:
+        render = integrator_of(summary.get("final_render"))
+    reasons = sum_plan.get("reasons") or cfg_plan.get("reasons") or ()
+    reasons = tuple(str(r) for r in reasons) if isinstance(reasons, (list, tuple)) else (str(reasons),)
+    return RecordedPlan(training, render, reasons, raw)
+
+
+def _int(v: Any) -> int | None:
+    try:
+        return int(v) if v is not None and not isinstance(v, bool) else None
+    except (TypeError, ValueError):
+        return None
 
 
 def _num(v: Any, default: float = math.nan) -> float:

@@ -264,6 +264,8 @@ def run_pack(args) -> int:
     if other is not None:
         where[id(other)] = (Path(args.with_dest) if args.with_dest else dest, other_man.path)
 
+    if "script" in (a.kind, other.kind if other is not None else None):
+        raise CamoError(f"{args.name if a.kind == 'script' else other.name} is a script, not part of a scene pack")
     if a.kind == "mesh":
         mesh_asset, env_asset = a, other
         if other is not None and other.kind == "mesh":
