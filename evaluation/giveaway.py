@@ -28,16 +28,19 @@ values are exactly the per-part sums above: the two splits mean the same thing.
 709 luma of the sRGB values (in [0, 1]) and ``D = box3(L_without - L_with)`` the darkening averaged over 3x3
 pixels, a pixel outside the object is shadow when ``D > tau`` with
 
-    tau = max(SHADOW_SIGMAS * sigma, SHADOW_MIN_STEP),   sigma = 1.4826 * MAD(D over the pixels outside the object)
+    tau = max(SHADOW_SIGMAS * sigma, SHADOW_MIN_STEP),   sigma = 1.4826 * median(|D|) over the outside pixels with D < 0
 
 and the pixel itself darker (``L_without - L_with > 0``: the 3x3 average alone would widen the shadow by a pixel).
 
-``sigma`` is the robust (median absolute deviation) standard deviation of ``D`` itself, so it measures the render
-noise as it survives the 3x3 average, including any correlation between the two renders (camo renders both with
-the same sampler seed, so far from the object the noise cancels and sigma is ~0); the MAD ignores the shadow
-itself as long as it covers less than half of the outside. ``SHADOW_SIGMAS = 3`` lets through ~0.1 % of pure-noise
-pixels (one-sided Gaussian); ``SHADOW_MIN_STEP = 2/255`` is the smallest darkening counted at all: one 8-bit step
-of both images' rounding, plus one. The threshold is estimated on the full frame and used for both regions.
+``sigma`` is a robust standard deviation of ``D`` itself, so it measures the render noise as it survives the 3x3
+average, including any correlation between the two renders. It is taken from the pixels the object makes
+*brighter*: render noise is symmetric and a shadow only darkens, so the shadow does not inflate it, and pixels
+rendered identically in both images (camo renders both with the same sampler seed: far from the object the noise
+cancels exactly) do not deflate it; light the object throws on its surroundings brightens too and only makes the
+threshold more conservative. ``SHADOW_SIGMAS = 3`` lets through ~0.1 % of pure-noise pixels (one-sided Gaussian);
+``SHADOW_MIN_STEP = 2/255`` is the smallest darkening counted at all: one 8-bit step of both images' rounding, plus
+one. The threshold is estimated on the full frame and used for both regions. Soft, wide shadows (an object in a
+diffusely lit room) reach the floor only in patches: their mask is ragged at its edge.
 """
 
 from __future__ import annotations
@@ -56,6 +59,8 @@ SHADOW_SIGMAS = 3.0
 SHADOW_MIN_STEP = 2.0 / 255.0
 #: MAD -> standard deviation of a Gaussian.
 MAD_TO_SIGMA = 1.4826
+#: Fewest brightened pixels the noise estimate uses (below it: the 2/255 floor).
+MIN_NOISE_SAMPLES = 30
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -99,10 +104,20 @@ def shadow_mask(obj_srgb: np.ndarray, bg_srgb: np.ndarray, mask: np.ndarray) -> 
     raw = lb - lo
     dark = _box3(raw)
     outside = ~object_region(mask)
-    vals = dark[outside]
-    sigma = MAD_TO_SIGMA * float(np.median(np.abs(vals - np.median(vals)))) if vals.size else 0.0
-    tau = max(SHADOW_SIGMAS * sigma, SHADOW_MIN_STEP)
+    tau = noise_threshold(dark[outside])
     return (dark > tau) & (raw > 0) & outside, tau
+
+
+def noise_threshold(dark: np.ndarray) -> float:
+    """``max(3 sigma, 2/255)`` for the darkening values ``dark`` (3x3-averaged, outside the object): ``sigma`` is
+    ``1.4826 * median(|D|)`` over the *brightened* pixels (``D < 0``), whose values render noise alone makes --
+    noise is symmetric, a shadow only darkens -- so neither the shadow nor the exact zeros of pixels rendered
+    identically in both images (same sampler seed, far from the object) bias it; light the object throws on its
+    surroundings also brightens, which only raises the threshold. With fewer than
+    :data:`MIN_NOISE_SAMPLES` brightened pixels (a noise-free pair), the floor applies."""
+    neg = dark[dark < 0]
+    sigma = MAD_TO_SIGMA * float(np.median(-neg)) if neg.size >= MIN_NOISE_SAMPLES else 0.0
+    return max(SHADOW_SIGMAS * sigma, SHADOW_MIN_STEP)
 
 
 def _shapley(values: dict[frozenset, float], players: tuple[str, ...]) -> dict[str, float]:

@@ -84,7 +84,7 @@ def split_cells(rows: list[dict[str, Any]]) -> tuple[list[str], list[list[str]]]
 
 NOTE = ("Where the object gives itself away (object crop): its pixels split into the object (mask + 1-px ring), "
         "its cast shadow (darker with the object, outside it: 3x3-averaged luma darkening above max(3 sigma, 2/255), "
-        "sigma the robust noise of the darkening) and the rest; per part its share of the pixels, of the squared "
+        "sigma the render noise, estimated from the pixels the object brightens) and the rest; per part its share of the pixels, of the squared "
         "error (PSNR's MSE) and of LPIPS (Shapley parts: the LPIPS each part adds, averaged over the orders of "
         "adding them; they sum to the crop's LPIPS). Columns `pixels_*`, `sqerr_*`, `lpips_*` of metrics.parquet; "
         "definitions in evaluation/giveaway.py.")

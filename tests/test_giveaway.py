@@ -58,8 +58,39 @@ def test_shadow_mask_ignores_pure_noise_and_brightening():
     obj8, bg8, mask, _ = _scene(0.0, shadow_factor=1.3)  # light thrown on the ground: brighter, not a shadow
     found, _ = shadow_mask(obj8, bg8, mask)
     assert not found.any()
-    # robust estimate: the noise sigma the threshold used is the MAD of the darkening outside the object
+    # robust estimate: 1.4826 * median(|x|) of a half-normal sample is its sigma
     assert MAD_TO_SIGMA == pytest.approx(1 / 0.6745, rel=1e-3)
+
+
+def test_noise_near_the_object_only_is_measured_there():
+    """camo renders both images with the same sampler seed: far from the object they are identical, noise differs
+    only where paths meet the object. The threshold must follow that local noise, not the exact zeros around it."""
+    rng = np.random.default_rng(4)
+    obj8, bg8, mask, _ = _scene(0.0, shadow_factor=1.0)  # no shadow
+    near = np.zeros(mask.shape, bool)
+    near[15:65, 15:65] = True
+    noisy = obj8.astype(float) + np.where(near[..., None], 0.03 * 255 * rng.standard_normal(obj8.shape), 0)
+    obj_n = np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+    found, tau = shadow_mask(obj_n, bg8, mask)
+    luma_noise = 0.03 * float(np.linalg.norm([0.2126, 0.7152, 0.0722]))  # one image noisy, averaged over 9 px
+    assert tau == pytest.approx(SHADOW_SIGMAS * luma_noise / 3, rel=0.15)  # not the floor of the identical pixels
+    assert tau > 2.5 * SHADOW_MIN_STEP
+    assert found.sum() < 0.005 * (near & ~object_region(mask)).sum()
+    # and a real shadow in that noise is still found
+    obj_s, _, _, truth = _scene(0.0, shadow_factor=0.6)
+    obj_s = np.clip(np.round(obj_s.astype(float) + (noisy - obj8)), 0, 255).astype(np.uint8)
+    found, _ = shadow_mask(obj_s, bg8, mask)
+    t = truth & ~object_region(mask)
+    assert (found & t).sum() > 0.8 * t.sum()
+
+
+def test_light_thrown_by_the_object_raises_the_threshold_without_becoming_shadow():
+    obj8, bg8, mask, _ = _scene(0.01)
+    lit = obj8.astype(float)
+    lit[60:90, 5:30] *= 1.25  # a reflection on the ground
+    found, tau = shadow_mask(np.clip(lit, 0, 255).astype(np.uint8), bg8, mask)
+    _, tau0 = shadow_mask(obj8, bg8, mask)
+    assert not found[60:90, 5:30].any() and tau >= tau0
 
 
 def test_split_adds_up_and_shapley_equals_the_pixel_split_for_an_additive_metric():
