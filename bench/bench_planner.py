@@ -34,7 +34,7 @@ def time_gradient_pass(pack, env, prepared, cams, plan_, spp: int, reps: int) ->
     from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     s1 = Stage1(pack, env, prepared, cams, plan_, Stage1Config(spp=spp, target_spp=4),
-                AppearanceConfig(map_resolution=128, displacement_resolution=64))
+                AppearanceConfig(map_resolution=128, displacement_resolution=64)).prepare()
     s1.step()  # JIT compile
     t = time.perf_counter()
     for _ in range(reps):

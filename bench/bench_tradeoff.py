@@ -102,7 +102,7 @@ def main() -> None:
         pl = plan(pack, env, app.planner_params()) if planner else full_plan("optimize", geometry=True)
         cams = cameras(pack)
         held = jitter(cams, 0.25, pack.cameras.radius, seed=11)
-        s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=spp, target_spp=args.eval_spp, seed=0), app)
+        s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=spp, target_spp=args.eval_spp, seed=0), app).prepare()
         if not planner:
             wanted = (args.full_iterations,)
         elif (spp, res, planner) == base or args.grid == "full":

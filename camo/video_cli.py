@@ -7,6 +7,14 @@ from __future__ import annotations
 DEFAULT_FRAMES, DEFAULT_RESOLUTION, DEFAULT_SPP, DEFAULT_FPS = 120, 256, 64, 30.0
 
 
+def _r(kind: type, lo=None, hi=None, **kw):
+    """A flag's Range type (the limits of evaluation.turntable.check_settings / evaluation.viewer, which check the
+    settings again for callers of the library; a codec's own quality range is checked there)."""
+    from camo_base.ranges import Range
+
+    return Range(kind, lo, hi, **kw).arg_type()
+
+
 def register(sub) -> None:
     p = sub.add_parser("video", help="path-traced turntable video of run directories and assets (MP4 + animated "
                        "WebP/GIF), side by side with the background")
@@ -23,31 +31,31 @@ def register(sub) -> None:
                    help="the background (scene without the object) as the first panel; implied by two or more inputs")
     p.add_argument("--difference", action="store_true",
                    help="a second row: 4 x |panel - background| (sRGB) under each panel (implies --side-by-side)")
-    p.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help=f"frames of the orbit (default {DEFAULT_FRAMES})")
-    p.add_argument("--arc", type=float, default=360.0,
+    p.add_argument("--frames", type=_r(int, 2, 10000), default=DEFAULT_FRAMES, help=f"frames of the orbit (default {DEFAULT_FRAMES})")
+    p.add_argument("--arc", type=_r(float, 0.0, 360.0, lo_open=True), default=360.0,
                    help="degrees of azimuth covered (default 360: a seamless loop; less: both ends included)")
-    p.add_argument("--start", type=float, help="azimuth of the first frame in degrees (default: the rig's first "
+    p.add_argument("--start", type=_r(float, -3600.0, 3600.0), help="azimuth of the first frame in degrees (default: the rig's first "
                    "camera)")
-    p.add_argument("--elevation", type=float, help="camera elevation in degrees (default: the evaluation's)")
-    p.add_argument("--radius", type=float, help="orbit radius in scene units (default: the evaluation's)")
-    p.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION,
+    p.add_argument("--elevation", type=_r(float, -89.0, 89.0), help="camera elevation in degrees (default: the evaluation's)")
+    p.add_argument("--radius", type=_r(float, 0.0, 1e6, lo_open=True), help="orbit radius in scene units (default: the evaluation's)")
+    p.add_argument("--resolution", type=_r(int, 16, 4096), default=DEFAULT_RESOLUTION,
                    help=f"panel width = height in pixels (default {DEFAULT_RESOLUTION})")
-    p.add_argument("--spp", type=int, help=f"samples per pixel (default {DEFAULT_SPP}, the evaluation's)")
-    p.add_argument("--time-budget", type=float, metavar="SECONDS",
+    p.add_argument("--spp", type=_r(int, 1, 4096), help=f"samples per pixel (default {DEFAULT_SPP}, the evaluation's)")
+    p.add_argument("--time-budget", type=_r(float, 0.0, 1e7, lo_open=True), metavar="SECONDS",
                    help="choose the spp from a short pilot so that rendering fits in SECONDS (instead of --spp)")
-    p.add_argument("--seed", type=int, default=0, help="sampler seed (every panel of a frame shares it)")
-    p.add_argument("--fps", type=float, default=DEFAULT_FPS, help=f"frames per second (default {DEFAULT_FPS:g})")
+    p.add_argument("--seed", type=_r(int, 0, 2**31 - 1), default=0, help="sampler seed (every panel of a frame shares it)")
+    p.add_argument("--fps", type=_r(float, 1.0, 120.0), default=DEFAULT_FPS, help=f"frames per second (default {DEFAULT_FPS:g})")
     p.add_argument("--codec", default="h264", help="h264 (default; every browser), vp9 or av1")
-    p.add_argument("--quality", type=int, help="constant-quality value of the codec (crf; lower is better; "
+    p.add_argument("--quality", type=_r(int, 0, 63), help="constant-quality value of the codec (crf; lower is better; "
                    "defaults h264 18, vp9 30, av1 35)")
     p.add_argument("--preview", metavar="FILE", help="animated image for docs, .webp or .gif (default: OUT with "
                    ".webp)")
     p.add_argument("--no-preview", action="store_true", help="no animated image")
-    p.add_argument("--preview-width", type=int, default=480, help="animated image width in pixels (default 480)")
-    p.add_argument("--preview-frames", type=int, default=60,
+    p.add_argument("--preview-width", type=_r(int, 16, 4096), default=480, help="animated image width in pixels (default 480)")
+    p.add_argument("--preview-frames", type=_r(int, 1, 10000), default=60,
                    help="at most this many frames in the animated image (every k-th frame; default 60)")
     p.add_argument("--cache", metavar="DIR", help="frame cache (default: OUT.frames/); rerun to continue")
-    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
+    p.add_argument("--threads", type=_r(int, 1, 1024), help="CPU threads for the LLVM backend")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     p.set_defaults(func=run_video)
 
@@ -57,10 +65,10 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="where the page is written (default: RUN_DIR/viewer)")
     p.add_argument("--video", metavar="FILE", help="a `camo video` of this run to link as the path-traced reference "
                    "(default: RUN_DIR/turntable.mp4 when it exists)")
-    p.add_argument("--env-width", type=int, default=1024, help="width of the environment panorama (default 1024)")
-    p.add_argument("--port", type=int, default=8030, help="local port (default 8030; 0 = any free port)")
+    p.add_argument("--env-width", type=_r(int, 64, 16384), default=1024, help="width of the environment panorama (default 1024)")
+    p.add_argument("--port", type=_r(int, 0, 65535), default=8030, help="local port (default 8030; 0 = any free port)")
     p.add_argument("--no-serve", action="store_true", help="write the page and exit (it also opens from disk)")
-    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
+    p.add_argument("--threads", type=_r(int, 1, 1024), help="CPU threads for the LLVM backend")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_view)
 

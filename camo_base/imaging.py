@@ -57,11 +57,6 @@ def save_png(path: str | os.PathLike, img: np.ndarray) -> None:
         Image.fromarray(arr).save(tmp, format="PNG")
 
 
-def save_linear_preview(path: str | os.PathLike, radiance: np.ndarray, exposure: float = 1.0) -> None:
-    """Save linear radiance as an sRGB PNG preview (times ``exposure``, clipped)."""
-    save_png(path, linear_to_srgb(np.asarray(radiance) * exposure))
-
-
 def load_png(path: str | os.PathLike) -> np.ndarray:
     """Load a PNG as float32 in [0, 1] (sRGB values as stored), ``(H, W, 3)`` or ``(H, W)``."""
     from PIL import Image, UnidentifiedImageError

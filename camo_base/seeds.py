@@ -34,7 +34,8 @@ reproduce bit for bit (s = the run seed, e = the evaluation seed, i = iteration,
     evaluation_cameras  e                                         the jitter of the evaluation's novel views
     evaluation_render   (7919 e + 104729) & 0x7FFFFFFF            every evaluation render (all runs, background and
                                                                   with-object images alike)
-    observer            e + 7919 k                                the simulated observer on the k-th stimulus
+    observer            e + 7919 k                                the simulated observer on the k-th stimulus of a
+                                                                  stimulus set (e = the build-stimuli / predict seed)
     turntable_render    (7919 t + 611953 + f) & 0x7FFFFFFF        frame f of a turntable video (``camo video --seed
                                                                   t``): the background and every result's panel of
                                                                   that frame alike (common random numbers)

@@ -412,13 +412,11 @@ def glb_of(entry) -> bytes:
             raise CamoError(f"{entry.path}: no result.glb (a run directory of `camo optimize` writes one)")
         return p.read_bytes()
     from optimizer.assets.export import glb_bytes
+    from optimizer.scenes.bsdf_maps import MAPS
 
     a = entry.asset
-    m = a.maps
-    return glb_bytes(a.vertices, a.faces, a.uvs, m["albedo"], m["metallic"][..., 0] if m["metallic"].ndim == 3 else
-                     m["metallic"], m["roughness"][..., 0] if m["roughness"].ndim == 3 else m["roughness"],
-                     m["transmittance"][..., 0] if m["transmittance"].ndim == 3 else m["transmittance"], a.eta,
-                     name=entry.name)
+    maps = {k: v[..., 0] if not MAPS[k].colour and np.ndim(v) == 3 else v for k, v in a.maps.items() if k in MAPS}
+    return glb_bytes(a.vertices, a.faces, a.uvs, maps, a.eta, name=entry.name)
 
 
 def png_bytes(srgb: np.ndarray) -> bytes:

@@ -88,7 +88,8 @@ class SimStats:
 
 
 class ObserverCache:
-    """One :class:`evaluation.observer.Cells` per stimulus image (thread-safe; the map is computed once)."""
+    """One :class:`evaluation.observer.Cells` per stimulus image (thread-safe; the map is computed once), at the
+    display size the site gives that image (:func:`study_site.predict.display_deg`)."""
 
     def __init__(self, config):
         self.config = config
@@ -111,7 +112,10 @@ class ObserverCache:
                     return self.cells[key]
             with Image.open(io.BytesIO(png)) as im:
                 img = np.asarray(im.convert("RGB"))
-            c = make_cells(img, self.config)
+            from study_site.predict import REFERENCE_DEG, display_deg
+
+            deg = display_deg(img.shape[1], img.shape[0]) * self.config.display_deg / REFERENCE_DEG
+            c = make_cells(img, dataclasses.replace(self.config, display_deg=deg))
             with self.lock:
                 self.cells[key] = c
             return c
@@ -343,8 +347,9 @@ def parse_observer(text: str | None):
         if "=" not in item:
             raise CamoError(f"--observer expects KEY=VALUE,..., not {item!r}")
         k, v = (x.strip() for x in item.split("=", 1))
-        if k not in fields or k == "centre_sigmas_deg":
-            known = ", ".join(n for n in fields if n != "centre_sigmas_deg")
+        tuples = ("centre_sigmas_deg", "object_deg")
+        if k not in fields or k in tuples:
+            known = ", ".join(n for n in fields if n not in tuples)
             raise CamoError(f"--observer: unknown key {k!r}; known: {known}")
         if k in ("start", "saliency_model"):
             kw[k] = v

@@ -440,7 +440,6 @@ def test_cli_bad_input_raises_camoerror(tmp_path):
         ["study", "build-stimuli", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
         ["study", "serve", "--stimuli", str(tmp_path / "missing"), "--db", "sqlite:///x.db"],
         ["study", "serve", "--stimuli", str(tmp_path), "--db", str(tmp_path / "x.db")],  # no manifest
-        ["study", "serve", "--stimuli", str(tmp_path), "--db", "sqlite:///x.db", "--port", "70000"],
         ["study", "report", "--db", str(tmp_path / "none.sqlite"), "--out", str(tmp_path / "r")],
         ["study", "report", "--db", "nosuchdialect://x", "--out", str(tmp_path / "r")],
     ):
@@ -449,6 +448,8 @@ def test_cli_bad_input_raises_camoerror(tmp_path):
             args.func(args)
     with pytest.raises(SystemExit):
         p.parse_args(["study"])
+    with pytest.raises(SystemExit):  # out of range: refused by the flag's type (tests/test_cli_ranges.py)
+        p.parse_args(["study", "serve", "--stimuli", str(tmp_path), "--db", "sqlite:///x.db", "--port", "70000"])
 
 
 # ---------------------------------------------------------------------------

@@ -346,7 +346,7 @@ def test_time_budget_chooses_spp_from_a_pilot(runs, tmp_path, capsys):
 @pytest.mark.parametrize("extra, message", [
     (["--codec", "mpeg2"], "unknown --codec"),
     (["--codec", "vp9", "--out-suffix", ".mkv"], None),
-    (["--frames", "1"], "--frames must be an integer in [2, 10000]"),
+    (["--frames", "1"], "--frames: must be an integer in [2, 10000]"),
     (["--frames", "0"], "--frames"),
     (["--resolution", "8"], "--resolution"),
     (["--spp", "0"], "--spp"),

@@ -188,7 +188,7 @@ def test_report_shows_a_viewer_per_result(page_dir, browser, tmp_path):
     run, _ = page_dir
     ev = tmp_path / "eval"
     assert main(["evaluate", str(run), "--out", str(ev), "--spp", "4", "--views", "2", "--quiet",
-                 "--observer-trials", "0", "--metrics", "psnr"]) == 0
+                 "--metrics", "psnr"]) == 0
     rep = tmp_path / "report"
     assert main(["report", str(ev), "--out", str(rep), "--env-width", "256"]) == 0
     page, ids, requests, errors = _open(browser, (rep / "report.html").as_uri())

