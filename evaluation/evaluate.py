@@ -56,9 +56,7 @@ class EvalSettings:
     resolution: int | None = None  # default: the run's
     metrics: Sequence[str] | None = None  # default: the weight-free metrics + the learned ones that can run
     seed: int = 0
-    lpips_weights: str | None = None
-    inception_weights: str | None = None
-    dreamsim_weights: str | None = None
+    weights: dict[str, str] = dataclasses.field(default_factory=dict)  # {metric: path} (--weights NAME=PATH)
     threads: int | None = None
     progress: bool = True
     write_report: bool = True
@@ -79,44 +77,20 @@ class EvalSettings:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _lpips_paths(path: str) -> dict[str, str]:
-    """``--lpips-weights``: a trunk file (AlexNet, torchvision layout, ``.pth`` or ``.safetensors``; the v0.1 heads
-    then come from the installed weights or an installed lpips/torchmetrics wheel), or a folder holding the trunk
-    and the heads: the files ``camo data fetch data_manifests/lpips_weights.toml`` lands, or a torchvision trunk
-    file and ``alex.pth``."""
-    from evaluation.metrics.weights import LPIPS_FILES, TRUNK_FILE_PATTERNS
-
-    p = Path(path).expanduser()
-    installed = {part: p / name for part, name in LPIPS_FILES["alex"].items()}
-    if p.is_dir() and all(f.is_file() for f in installed.values()):
-        return {"lpips_trunk": str(installed["trunk"]), "lpips_lin": str(installed["lin"])}
-    if p.is_dir():
-        trunk = next((h for pat in TRUNK_FILE_PATTERNS["alex"] for h in sorted(p.glob(pat))), None)
-        if trunk is None:
-            raise CamoError(f"--lpips-weights {p}: no AlexNet trunk file ({', '.join(TRUNK_FILE_PATTERNS['alex'])}) in it")
-        out = {"lpips_trunk": str(trunk)}
-        if (p / "alex.pth").is_file():
-            out["lpips_lin"] = str(p / "alex.pth")
-        return out
-    if not p.is_file():
-        raise CamoError(f"--lpips-weights: file not found: {p}")
-    return {"lpips_trunk": str(p)}
-
-
 def weights_of(settings: EvalSettings) -> dict[str, str]:
+    """The weights entries of ``settings.weights`` (``{metric: path}``): each metric's ``Metric.from_path`` turns
+    its path into entries (:mod:`evaluation.metrics.registry`); CamoError (one line) for an unknown metric, a
+    metric that takes no weights, or a path that does not hold them."""
+    from evaluation.metrics import METRICS
+
     weights: dict[str, str] = {}
-    if settings.lpips_weights:
-        weights.update(_lpips_paths(settings.lpips_weights))
-    if settings.inception_weights:
-        p = Path(settings.inception_weights).expanduser()
-        if not p.is_file():
-            raise CamoError(f"--inception-weights: file not found: {p}")
-        weights["sifid"] = str(p)
-    if settings.dreamsim_weights:
-        p = Path(settings.dreamsim_weights).expanduser()
-        if not p.is_dir():
-            raise CamoError(f"--dreamsim-weights: folder not found: {p}")
-        weights["dreamsim"] = str(p)
+    for name, path in (settings.weights or {}).items():
+        if name not in METRICS:
+            raise CamoError(f"--weights {name}=...: unknown metric; known: {', '.join(METRICS)}")
+        if METRICS[name].from_path is None:
+            takes = ", ".join(n for n, m in METRICS.items() if m.from_path is not None)
+            raise CamoError(f"--weights {name}=...: {name} takes no weights (metrics that do: {takes})")
+        weights.update(METRICS[name].from_path(str(path)))
     return weights
 
 

@@ -324,6 +324,11 @@ def test_bad_input_is_one_line_exit_2_and_keeps_outputs(runs, eval_dir, tmp_path
         ([a, "--jitter", "0"], "--jitter"),
         ([a, "--inception-weights", str(bad_weights)], "cannot read"),
         ([a, "--lpips-weights", str(bad_weights)], "weights"),
+        ([a, "--weights", f"psnr={bad_weights}"], "psnr takes no weights"),
+        ([a, "--weights", f"colourfulness={bad_weights}"], "unknown metric"),
+        ([a, "--weights", "lpips"], "NAME=PATH"),
+        ([a, "--weights", f"sifid={bad_weights}", "--inception-weights", str(bad_weights)], "given twice"),
+        ([a, "--weights", f"dreamsim={tmp_path / 'nowhere'}"], "folder not found"),
         ([a, "--metrics", "dreamsim"], "DreamSim"),
         ([a, "--resolution", "16"], "too small"),
     ]
@@ -340,6 +345,21 @@ def test_bad_input_is_one_line_exit_2_and_keeps_outputs(runs, eval_dir, tmp_path
 
 
 # --- learned metrics (random weights in the real layouts; nothing is downloaded) -----------------------------
+
+
+def test_weights_option_is_the_metrics_from_path(tiny_metric_weights):
+    """``--weights NAME=PATH`` hands each path to its metric's ``from_path`` (the one place a learned metric's
+    weights option is written); the short flags are the same thing."""
+    from evaluation.cli import evaluation_settings
+    from evaluation.evaluate import weights_of
+    from evaluation.metrics import METRICS
+
+    lp, inc = tiny_metric_weights["lpips_dir"], tiny_metric_weights["sifid"]
+    long = weights_of(evaluation_settings({"weights": f"lpips={lp}, sifid={inc}"}))
+    short = weights_of(evaluation_settings({"lpips_weights": lp, "inception_weights": inc}))
+    assert long == short == {**METRICS["lpips"].from_path(lp), "sifid": inc}
+    assert long["lpips_trunk"].endswith("alexnet-test.pth") and long["lpips_lin"].endswith("alex.pth")
+    assert {n for n, m in METRICS.items() if m.from_path} == {n for n, m in METRICS.items() if m.needs_weights}
 
 
 def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights):

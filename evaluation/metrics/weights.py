@@ -55,15 +55,21 @@ LPIPS_FILES: dict[str, dict[str, str]] = {
     "alex": {"trunk": "lpips_alexnet_trunk.safetensors", "lin": "lpips_v0.1_alex_lin.safetensors"},
     "vgg": {"trunk": "lpips_vgg16_trunk.safetensors", "lin": "lpips_v0.1_vgg_lin.safetensors"},
 }
-#: Their pinned SHA-256 (= the manifest's ``sha256``; ``tests/test_lpips_weights.py`` checks that they agree).
-LPIPS_FILE_SHA256 = {
-    "lpips_alexnet_trunk.safetensors": "8f9b36c328266d6d436aee5fdd4a0710b6e50c2211e5f8d3b081aaf017a5ac92",
-    "lpips_vgg16_trunk.safetensors": "e42ead5e54aace01d3854185bda7d9cc4ed70bc7490470f28ff0dcc1ca3751b5",
-    "lpips_v0.1_alex_lin.safetensors": "90af7add77a25c1da9e7f7648e2ae11f814cef4b8b6a8ba868b72ae61fcdb552",
-    "lpips_v0.1_vgg_lin.safetensors": "1c564a1e9d84a690635f41aaa8a839911294fd57b9a427d880b904c4280d35aa",
-}
-#: The data manifest that installs them (relative to the repository).
+#: The data manifest that installs them (relative to the repository): the one place their pins are written.
 LPIPS_MANIFEST = "data_manifests/lpips_weights.toml"
+
+
+def _manifest_pins() -> dict[str, str]:
+    """``{landed file name: pinned SHA-256}`` of :data:`LPIPS_MANIFEST` (its ``filename`` / ``sha256`` keys)."""
+    import tomllib
+
+    text = (Path(__file__).resolve().parents[2] / LPIPS_MANIFEST).read_text(encoding="utf-8")
+    return {a["filename"]: a["sha256"] for a in tomllib.loads(text).get("asset", [])}
+
+
+#: Their pinned SHA-256, read from the manifest (``tests/test_lpips_weights.py`` checks it lands every file of
+#: :data:`LPIPS_FILES`).
+LPIPS_FILE_SHA256: dict[str, str] = _manifest_pins()
 
 _SHA_CACHE: dict[tuple[str, int, int], str] = {}
 _MODELS: dict[tuple, torch.nn.Module] = {}
