@@ -69,20 +69,14 @@ def lpips_rows() -> list[tuple[str, str]]:
 
 
 def _weights() -> list[tuple[str, str]]:
-    from evaluation.metrics.weights import find_trunk_weights
+    from evaluation.metrics import METRICS, metric_unavailable
 
     rows = lpips_rows()
-    try:
-        rows.append(("sifid inception", f"{find_trunk_weights('inception')}"))
-    except CamoError:
-        rows.append(("sifid inception", "not found  [SIFID needs a local Inception v3 state dict (--inception-weights "
-                     "or $TORCH_HOME/hub/checkpoints); no registry ships it: SIFID-proxy is reported]"))
-    try:
-        import dreamsim  # noqa: F401
-
-        rows.append(("dreamsim", "package installed; give --dreamsim-weights to use it"))
-    except ImportError:
-        rows.append(("dreamsim", "not installed  [optional: pip install '.[dreamsim]' and a local weights folder]"))
+    for name, m in METRICS.items():  # every learned metric of the registry: can it run here, else what it needs
+        if m.needs_weights:
+            why = metric_unavailable(name)
+            rows.append((f"metric {name}", "ok (its weights are found)" if why is None
+                         else f"not available here  [needs {m.needs or why}]"))
     try:
         from optimizer.optimise.inpaint import diffusers_status
 

@@ -138,12 +138,12 @@ def _from_path(path: str) -> dict[str, str]:
 
 
 def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
-    return None if weights.get("dreamsim") else DREAMSIM_NEEDS
+    return None if weights.get("dreamsim") else f"DreamSim needs {DREAMSIM_NEEDS}"
 
 
 #: What a user needs for DreamSim (one line).
-DREAMSIM_NEEDS = ("DreamSim needs the optional 'dreamsim' package (pip install '.[dreamsim]') and a local weights "
-                  "folder (--weights dreamsim=DIR); no registry package ships its weights")
+DREAMSIM_NEEDS = ("the optional 'dreamsim' package (pip install '.[dreamsim]') and a local weights folder "
+                  "(--weights dreamsim=DIR); no registry package ships its weights")
 
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("dreamsim", _compute, False, "1", "[0, 2]", "DreamSim (optional package, local weights folder)",
