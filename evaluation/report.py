@@ -49,6 +49,15 @@ TABLE_METRICS = tuple((m.name, m.header + (" (cross-check)" if m.cross_check els
 HIGHER_IS_BETTER = {n for n, m in METRICS.items() if m.higher_is_better}
 
 
+def inline_html(text: str) -> str:
+    """``text`` escaped for HTML, with the Markdown it uses in the report's notes (`code`, **bold**) as tags."""
+    import re
+
+    out = html.escape(text, quote=False)
+    out = re.sub(r"`([^`]+)`", r"<code>\1</code>", out)
+    return re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", out)
+
+
 def table_header(metrics) -> str:
     """The Markdown header line of a Table II over the metric columns ``metrics`` (names, in table order)."""
     names = dict(TABLE_METRICS)
@@ -833,12 +842,12 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
         method += (f" In {len(hidden)} view(s) the object is not visible at all (empty mask): their crop rows have "
                    "no scores and are left out of the crop means.")
     md += [intro, "", method, "", "## Settings", "", *settings, ""]
-    ht += [f"<p>{html.escape(intro)}</p>", f"<p>{html.escape(method)}</p>", "<h2>Settings</h2><ul>"]
-    ht += [f"<li>{html.escape(s.lstrip('- ').strip())}</li>" for s in settings] + ["</ul>"]
+    ht += [f"<p>{inline_html(intro)}</p>", f"<p>{inline_html(method)}</p>", "<h2>Settings</h2><ul>"]
+    ht += [f"<li>{inline_html(s.lstrip('- ').strip())}</li>" for s in settings] + ["</ul>"]
     if skipped:
         lines = [skipped_line(m, why, METRICS[m].needs if m in METRICS else "") for m, why in skipped.items()]
         md += ["## Skipped metrics", ""] + [f"- `{m}`: {line}" for m, line in zip(skipped, lines)] + [""]
-        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {html.escape(line)}</li>"
+        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {inline_html(line)}</li>"
                                                    for m, line in zip(skipped, lines)] + ["</ul>"]
 
     protos = protocols(df)
@@ -849,7 +858,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
                 "and triplets show the user's figure as Method s, else -); Render s/view: evaluation rendering per "
                 "view (with-object render + its share of the scene's background); `<metric> s/img`: one image pair.")
         md += [note, ""]
-        ht += [f"<p>{html.escape(note)}</p>"]
+        ht += [f"<p>{inline_html(note)}</p>"]
     for k, proto in enumerate(protos):
         sub = _protocol_rows(df, proto)
         ptitle = protocol_title(proto)
