@@ -27,7 +27,7 @@ from typing import Any, Mapping, Optional, Sequence
 from camo_base.errors import CamoError
 from camo_base.plugins import submodules
 
-from evaluation.metrics._common import ImageLike, Metric, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, prepare_pair, to_mask
 
 def _collect() -> dict[str, Metric]:
     found: dict[str, Metric] = {}
@@ -89,6 +89,7 @@ def compute_metrics(
     bg_srgb: ImageLike,
     names: Optional[Sequence[str]] = None,
     weights: Optional[Mapping[str, Any]] = None,
+    mask: Any = None,
 ) -> dict[str, Any]:
     """Compute the named metrics between the object view and the background (one score row).
 
@@ -97,6 +98,8 @@ def compute_metrics(
         bg_srgb: the same view without the object (same shape).
         names: metric names (keys of :data:`METRICS`); default: the weight-free ones (:data:`WEIGHT_FREE`).
         weights: where the learned metrics' weights are (see the module docstring).
+        mask: the object's pixels for the give-away measures (``Metric.masked``: ``detail_ratio``, ``tint``):
+            ``(H, W)`` / ``(N, H, W)`` bool or 0/1; None = the whole image. The other metrics ignore it.
 
     Returns:
         ``{name: value}`` (a float for a single image, a list of floats for a batch) plus, where it applies,
@@ -113,8 +116,12 @@ def compute_metrics(
     x, y = prepare_pair(obj_srgb, bg_srgb, "psnr")
     single = x.shape[0] == 1
     row: dict[str, Any] = {}
+    m = to_mask(mask, x, "mask") if any(METRICS[n].masked for n in names) else None
     for name in names:
-        values, extra = METRICS[name].compute(x, y, weights)
+        if METRICS[name].masked:
+            values, extra = METRICS[name].compute(x, y, weights, m)
+        else:
+            values, extra = METRICS[name].compute(x, y, weights)
         vals = [float(v) for v in values.detach().cpu().reshape(-1)]
         row[name] = vals[0] if single else vals
         for key, val in extra.items():

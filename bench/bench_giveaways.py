@@ -1,0 +1,107 @@
+"""Give-away measures at equal seconds: today's map update (per-texel Adam + ``--grad-blur 2``) against the
+"large steps" update (``--map-update large_steps``) and a lower transmittance start, on the six built-in scenes.
+
+    python bench/bench_giveaways.py --out /tmp/giveaways            # optimise (resumable), evaluate, print tables
+    python bench/bench_giveaways.py --out /tmp/giveaways --seconds 60 --eval-spp 512
+
+Every arm of a scene gets the same ``--time-budget`` in the same process sequence (the machine's load moves
+absolute seconds; compare arms within one run of this script). The Mean baseline is run once per scene for the
+contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same jittered views, common
+random numbers) at ``--eval-spp`` (converged: the render noise must not count against the material); the
+give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views. Prints one Markdown table
+of crop PSNR, LPIPS-proxy, detail ratio and tint per scene and arm, and their means.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+SCENES = ("meadow", "gravel", "split", "room", "occluded", "panorama")
+#: arm -> extra `camo optimize` flags (the default preset otherwise)
+ARMS = {
+    "today": [],
+    "large_steps": ["--map-update", "large_steps", "--grad-blur", "0"],
+    "large_steps_t0.3": ["--map-update", "large_steps", "--grad-blur", "0", "--init", "transmittance=0.3"],
+}
+SIZE = ["--views", "8", "--resolution", "64", "--map-resolution", "128", "--displacement-resolution", "64",
+        "--target-vertices", "3000"]
+
+
+def camo(*args: str) -> None:
+    cmd = [sys.executable, "-m", "camo.cli", *args]
+    print("$", " ".join(cmd), file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True)
+
+
+def optimise(out: Path, scenes, arms, seconds: float) -> None:
+    for scene in scenes:
+        for arm in [*arms, "mean"]:
+            run = out / "runs" / f"{scene}-{arm}"
+            if (run / "config.toml").is_file():
+                continue
+            if arm == "mean":
+                camo("optimize", scene, "--method", "mean", "--out", str(run), *SIZE, "--quiet")
+            else:
+                camo("optimize", scene, "--out", str(run), *SIZE, "--time-budget", str(seconds), *ARMS[arm],
+                     "--quiet")
+
+
+def evaluate(out: Path, scenes, arms, spp: int, views: int) -> None:
+    for scene in scenes:
+        ev = out / "eval" / scene
+        if (ev / "metrics.parquet").is_file():
+            continue
+        runs = [str(out / "runs" / f"{scene}-{a}") for a in [*arms, "mean"]]
+        camo("evaluate", *runs, "--out", str(ev), "--spp", str(spp), "--views", str(views),
+             "--metrics", "psnr,lpips_proxy,detail_ratio,tint", "--quiet")
+
+
+def table(out: Path, scenes, arms) -> str:
+    import pandas as pd
+
+    rows = []
+    for scene in scenes:
+        t = pd.read_parquet(out / "eval" / scene / "metrics.parquet")
+        t = t[t.region == "crop"]
+        for arm in [*arms, "mean"]:
+            r = t[t.run == f"{scene}-{arm}"]
+            rows.append({"scene": scene, "arm": arm, "psnr": r.psnr.mean(), "lpips_proxy": r.lpips_proxy.mean(),
+                         "detail_ratio": r.detail_ratio.mean(), "tint": r.tint.mean(),
+                         "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan")})
+    df = pd.DataFrame(rows)
+    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | detail ratio (1 best) | tint ΔE↓ | method s |",
+             "|---|---|---|---|---|---|---|"]
+    for r in df.itertuples():
+        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.detail_ratio:.2f} | "
+                     f"{r.tint:.2f} | {r.seconds:.0f} |")
+    for arm, g in df.groupby("arm", sort=False):
+        lines.append(f"| **mean** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | "
+                     f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.seconds.mean():.0f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--arms", default=",".join(ARMS))
+    ap.add_argument("--seconds", type=float, default=60.0, help="time budget of every optimised arm")
+    ap.add_argument("--eval-spp", type=int, default=512)
+    ap.add_argument("--eval-views", type=int, default=4)
+    ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
+    a = ap.parse_args(argv)
+    out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
+    if a.phase in ("all", "optimize"):
+        optimise(out, scenes, arms, a.seconds)
+    if a.phase in ("all", "evaluate"):
+        evaluate(out, scenes, arms, a.eval_spp, a.eval_views)
+    if a.phase in ("all", "evaluate", "table"):
+        print(table(out, scenes, arms))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
