@@ -2,7 +2,7 @@
 "large steps" update (``--map-update large_steps``) and a lower transmittance start, on the six built-in scenes.
 
     python bench/bench_giveaways.py --out /tmp/giveaways            # optimise (resumable), evaluate, print tables
-    python bench/bench_giveaways.py --out /tmp/giveaways --seconds 60 --eval-spp 512
+    python bench/bench_giveaways.py --out /tmp/giveaways --seconds 60 --eval-spp 1024 --docs docs/results
 
 Every arm of a scene gets the same ``--time-budget`` in the same process sequence (the machine's load moves
 absolute seconds; compare arms within one run of this script). The Mean baseline is run once per scene for the
@@ -83,6 +83,36 @@ def table(out: Path, scenes, arms) -> str:
     return "\n".join(lines)
 
 
+LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
+          "mean": "Mean"}
+
+
+def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path:
+    """One JPEG per scene: a row per evaluation view, columns background | each arm | Mean (the converged
+    evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible)."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    cols = [("background", f"{scene}-{arms[0]}", "bg")] + [(LABELS.get(a, a), f"{scene}-{a}", "obj")
+                                                           for a in [*arms, "mean"]]
+    views = sorted({p.name[:7] for p in (ev / "renders" / f"{scene}-{arms[0]}").glob("view_*_obj.png")})
+    tiles = [[np.asarray(Image.open(ev / "renders" / run / f"{v}_{kind}.png").convert("RGB")) for _, run, kind in cols]
+             for v in views]
+    h, w = tiles[0][0].shape[:2]
+    th, tw, pad, top = h * zoom, w * zoom, 4, 22
+    sheet = Image.new("RGB", (len(cols) * (tw + pad) + pad, top + len(views) * (th + pad) + pad), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for c, (label, _, _) in enumerate(cols):
+        draw.text((pad + c * (tw + pad) + 4, 5), label, fill=(0, 0, 0))
+    for r, row in enumerate(tiles):
+        for c, img in enumerate(row):
+            tile = Image.fromarray(img).resize((tw, th), Image.NEAREST)
+            sheet.paste(tile, (pad + c * (tw + pad), top + pad + r * (th + pad)))
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(dest, quality=92)
+    return dest
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
@@ -92,6 +122,7 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-spp", type=int, default=512)
     ap.add_argument("--eval-views", type=int, default=4)
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
+    ap.add_argument("--docs", help="also write the contact sheets and the table here (e.g. docs/results)")
     a = ap.parse_args(argv)
     out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
     if a.phase in ("all", "optimize"):
@@ -99,7 +130,13 @@ def main(argv=None) -> int:
     if a.phase in ("all", "evaluate"):
         evaluate(out, scenes, arms, a.eval_spp, a.eval_views)
     if a.phase in ("all", "evaluate", "table"):
-        print(table(out, scenes, arms))
+        text = table(out, scenes, arms)
+        print(text)
+        if a.docs:
+            docs = Path(a.docs)
+            for scene in scenes:
+                print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.jpg"))
+            (docs / "giveaways_table.md").write_text(text + "\n", encoding="utf-8")
     return 0
 
 
