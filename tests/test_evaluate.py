@@ -429,4 +429,4 @@ def test_giveaway_measures_recomputed_from_the_saved_png_and_mask(eval_dir):
         assert rows.loc[region, "tint"] == pytest.approx(want, rel=2e-3)
         assert rows.loc[region, "detail_ratio"] == pytest.approx(float(detail_ratio(x, y, m)), rel=1e-4, nan_ok=True)
     report = (eval_dir / "report.md").read_text()
-    assert "Detail→1" in report and "Tint↓" in report and "below 256" in report  # 8 spp: the noise warning
+    assert "Detail→1" in report and "Tint↓" in report and "below 1024" in report  # 8 spp: the noise warning

@@ -79,6 +79,6 @@ def detail_ratio(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> t
 
 
 METRICS = (Metric("detail_ratio", masked(detail_ratio), False, "ratio", "[0, inf), best 1",
-                  "give-away: high-frequency luma energy (mean |Laplacian|) inside the object's mask, with the object "
+                  "give-away: high-frequency luma energy (mean absolute Laplacian) inside the object's mask, with the object "
                   "over the background (1 = same texture, > 1 speckle, < 1 too smooth); measure at converged spp",
                   "Detail", decimals=2, order=200.0, table_order=200.0, masked=True, target=1.0),)
