@@ -116,7 +116,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
 
 
 def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path:
-    """One JPEG per scene: a row per evaluation view, columns background | each arm | Mean (the converged
+    """One PNG per scene: a row per evaluation view, columns background | each arm | Mean (the converged
     evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible)."""
     import numpy as np
     from PIL import Image, ImageDraw
@@ -137,7 +137,7 @@ def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path
             tile = Image.fromarray(img).resize((tw, th), Image.NEAREST)
             sheet.paste(tile, (pad + c * (tw + pad), top + pad + r * (th + pad)))
     dest.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(dest, quality=92)
+    sheet.save(dest, optimize=True)
     return dest
 
 
@@ -151,7 +151,8 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-spp", type=int, default=512)
     ap.add_argument("--eval-views", type=int, default=4)
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
-    ap.add_argument("--docs", help="also write the contact sheets and the table here (e.g. docs/results)")
+    ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
+                    "markers of giveaways.md) here, e.g. docs/results")
     a = ap.parse_args(argv)
     out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
     budget = ["--time-budget", str(a.seconds)] if a.seconds else ["--iterations", str(a.iterations)]
@@ -166,8 +167,12 @@ def main(argv=None) -> int:
         if a.docs:
             docs = Path(a.docs)
             for scene in scenes:
-                print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.jpg"))
-            (docs / "giveaways_table.md").write_text(text + "\n", encoding="utf-8")
+                print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.png"))
+            doc = docs / "giveaways.md"
+            start, end = "<!-- bench_giveaways: table -->", "<!-- /bench_giveaways -->"
+            body = doc.read_text(encoding="utf-8") if doc.is_file() else f"{start}\n{end}\n"
+            i, j = body.index(start) + len(start), body.index(end)
+            doc.write_text(body[:i] + "\n" + text + "\n" + body[j:], encoding="utf-8")  # the table between the markers
     return 0
 
 
