@@ -66,8 +66,9 @@ def _seconds_per_iteration(run: Path) -> float:
 
 
 def outside_share(ev: Path, run: str, row) -> float:
-    """Share of the crop's squared sRGB error outside the object's mask (its shadow, reflections and noise): a
-    stand-in until the object / shadow / rest split of issue 31 is on main."""
+    """Share of the crop's squared sRGB error outside the object's mask (its shadow, reflections and noise): the
+    stand-in for evaluations without the object / shadow / rest split (issue 31), whose shadow share
+    :func:`table` takes when the columns are there."""
     import numpy as np
     from PIL import Image
 
@@ -92,7 +93,11 @@ def table(out: Path, scenes, arms) -> str:
         t = t[t.region == "crop"]
         for arm in [*arms, "mean"]:
             r = t[t.run == f"{scene}-{arm}"]
-            outside = [outside_share(out / "eval" / scene, f"{scene}-{arm}", x) for x in r.itertuples()]
+            if "sqerr_shadow" in r.columns:  # issue 31's object / shadow / rest split: the shadow's share
+                parts = r[["sqerr_object", "sqerr_shadow", "sqerr_rest"]]
+                outside = list(r["sqerr_shadow"] / parts.sum(axis=1).clip(lower=1e-12))
+            else:
+                outside = [outside_share(out / "eval" / scene, f"{scene}-{arm}", x) for x in r.itertuples()]
             rows.append({"scene": scene, "arm": arm, "psnr": r.psnr.mean(), "lpips_proxy": r.lpips_proxy.mean(),
                          "outside": sum(outside) / len(outside) if outside else float("nan"),
                          "detail_ratio": r.detail_ratio.mean(), "tint": r.tint.mean(),
