@@ -38,6 +38,7 @@ from typing import Any, Callable
 import numpy as np
 
 from camo_base.errors import CamoError, SettingError
+from study_site.ranges import SIMULATE_RANGES
 
 CSRF_RE = re.compile(r'name="csrf_token" value="([^"]+)"')
 COOKIE = "camo_study"
@@ -272,12 +273,9 @@ def simulate(url: str, participants: int, concurrency: int = 20, seed: int = 0, 
     from evaluation.observer import ObserverConfig
 
     host, port = check_loopback(url)
-    if not 1 <= participants <= 10_000:
-        raise SettingError.of("participants", " must be 1-10000")
-    if not 1 <= concurrency <= 500:
-        raise SettingError.of("concurrency", " must be 1-500")
-    if not 1 <= max_seconds <= 86_400:
-        raise SettingError.of("max_seconds", " must be 1-86400")
+    for name, value in (("participants", participants), ("concurrency", concurrency), ("max_seconds", max_seconds),
+                        ("ramp", ramp_s)):
+        SIMULATE_RANGES[name].check(value, name)
     cfg = observer_config or ObserverConfig()
     cfg.validate()
     try:
