@@ -8,7 +8,8 @@ Every arm of a scene gets the same ``--time-budget`` in the same process sequenc
 absolute seconds; compare arms within one run of this script). The Mean baseline is run once per scene for the
 contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same jittered views, common
 random numbers) at ``--eval-spp`` (converged: the render noise must not count against the material); the
-give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views. Prints one Markdown table
+give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views; the shadow share is the
+shadow's part of the crop's squared error (:mod:`evaluation.giveaway`'s object / shadow / rest split). Prints one Markdown table
 of crop PSNR, LPIPS-proxy, detail ratio and tint per scene and arm, and their means.
 """
 
@@ -25,6 +26,7 @@ ARMS = {
     "today": [],
     "large_steps": ["--map-update", "large_steps", "--grad-blur", "0"],
     "large_steps_t0.3": ["--map-update", "large_steps", "--grad-blur", "0", "--init", "transmittance=0.3"],
+    "today_t0.3": ["--init", "transmittance=0.3"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -65,58 +67,49 @@ def _seconds_per_iteration(run: Path) -> float:
     return float(sorted(secs)[len(secs) // 2]) if secs else float("nan")  # median: the first one compiles
 
 
-def outside_share(ev: Path, run: str, row) -> float:
-    """Share of the crop's squared sRGB error outside the object's mask (its shadow, reflections and noise): the
-    stand-in for evaluations without the object / shadow / rest split (issue 31), whose shadow share
-    :func:`table` takes when the columns are there."""
-    import numpy as np
-    from PIL import Image
-
-    d = ev / "renders" / run
-    v = f"view_{int(row.view):02d}"
-    o, b = (np.asarray(Image.open(d / f"{v}_{k}.png").convert("RGB"), np.float64) / 255 for k in ("obj", "bg"))
-    m = np.asarray(Image.open(d / f"{v}_mask.png")) > 0
-    y0, x0, side = int(row.region_y0), int(row.region_x0), int(row.region_height)
-    e = ((o - b) ** 2).sum(-1)[y0:y0 + side, x0:x0 + side]
-    mm = m[y0:y0 + side, x0:x0 + side]
-    return float(e[~mm].sum() / max(e.sum(), 1e-12))
-
-
 def table(out: Path, scenes, arms) -> str:
     import pandas as pd
 
+    from evaluation.giveaway import split_eval_dir
+
     rows = []
     for scene in scenes:
-        if not (out / "eval" / scene / "metrics.parquet").is_file():
+        # eval/SCENE, and eval_*/SCENE for arms added later (same seed: the same cameras and render seeds)
+        evals = [d for d in sorted(out.glob(f"eval*/{scene}")) if (d / "metrics.parquet").is_file()]
+        if not evals:
             continue
-        t = pd.read_parquet(out / "eval" / scene / "metrics.parquet")
+        t = pd.concat([pd.read_parquet(d / "metrics.parquet") for d in evals])
         t = t[t.region == "crop"]
+        # the shadow's share of the crop's squared error: the object / shadow / rest split (evaluation.giveaway),
+        # recomputed from the saved renders so that evaluations made before the split had columns count too
+        split = pd.concat([split_eval_dir(d) for d in evals])
+        split = split[split.region == "crop"]
         for arm in [*arms, "mean"]:
             r = t[t.run == f"{scene}-{arm}"]
-            if "sqerr_shadow" in r.columns:  # issue 31's object / shadow / rest split: the shadow's share
-                parts = r[["sqerr_object", "sqerr_shadow", "sqerr_rest"]]
-                outside = list(r["sqerr_shadow"] / parts.sum(axis=1).clip(lower=1e-12))
-            else:
-                outside = [outside_share(out / "eval" / scene, f"{scene}-{arm}", x) for x in r.itertuples()]
+            if r.empty:
+                continue
+            sp = split[split.run == f"{scene}-{arm}"]
+            parts = sp[["sqerr_object", "sqerr_shadow", "sqerr_rest"]].sum(axis=1).clip(lower=1e-12)
             rows.append({"scene": scene, "arm": arm, "psnr": r.psnr.mean(), "lpips_proxy": r.lpips_proxy.mean(),
-                         "outside": sum(outside) / len(outside) if outside else float("nan"),
+                         "shadow": float((sp.sqerr_shadow / parts).mean()),
                          "detail_ratio": r.detail_ratio.mean(), "tint": r.tint.mean(),
                          "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
                          "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}")})
     df = pd.DataFrame(rows)
-    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | detail ratio (1 best) | tint ΔE↓ | outside share | method s | s / Stage 1 it |",
+    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | method s | s / Stage 1 it |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in df.itertuples():
         lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.detail_ratio:.2f} | "
-                     f"{r.tint:.2f} | {r.outside:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
+                     f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
     for arm, g in df.groupby("arm", sort=False):
-        lines.append(f"| **mean** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | "
-                     f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.outside.mean():.2f} | {g.seconds.mean():.0f} | "
+        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | "
+                     f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
                      f"{g.s_per_it.mean():.2f} |")
     return "\n".join(lines)
 
 
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
+          "today_t0.3": "ours, T0=0.3",
           "mean": "Mean"}
 
 
