@@ -119,6 +119,7 @@ def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path
     import numpy as np
     from PIL import Image, ImageDraw
 
+    arms = [a for a in arms if (ev / "renders" / f"{scene}-{a}").is_dir()]  # the arms this evaluation has
     cols = [("background", f"{scene}-{arms[0]}", "bg")] + [(LABELS.get(a, a), f"{scene}-{a}", "obj")
                                                            for a in [*arms, "mean"]]
     views = sorted({p.name[:7] for p in (ev / "renders" / f"{scene}-{arms[0]}").glob("view_*_obj.png")})
