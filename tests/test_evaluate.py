@@ -270,7 +270,7 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert len(merged) == 16 + 4  # the repeated evaluation is de-duplicated
     md = (out / "report.md").read_text()
     # only computed metrics get a column (no weights here: no LPIPS, SIFID, DreamSim), the proxies as cross-checks
-    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy"]) in md
+    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy", "detail_ratio", "tint"]) in md
     assert "SIFID-proxy↓ (cross-check)" in md and "| LPIPS↓ |" not in md and "**LPIPS was not computed**" in md
     assert "- `lpips`: " in md and "camo data fetch data_manifests/lpips_weights.toml" in md  # what it needs
     assert "| Ours |" in md and "| w/o Pose + Displacement |" in md
