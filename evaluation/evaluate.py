@@ -37,7 +37,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 
 from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SECONDS_COLUMNS,  # noqa: F401 (re-exported)
                                 METRIC_COLUMNS, METRIC_SECONDS_COLUMNS, REGIONS, SECONDS_COLUMNS, SHA_COLUMNS,
@@ -86,10 +86,10 @@ def weights_of(settings: EvalSettings) -> dict[str, str]:
     weights: dict[str, str] = {}
     for name, path in (settings.weights or {}).items():
         if name not in METRICS:
-            raise CamoError(f"--weights {name}=...: unknown metric; known: {', '.join(METRICS)}")
+            raise SettingError.of("weights", f" {name}=...: unknown metric; known: {', '.join(METRICS)}")
         if METRICS[name].from_path is None:
             takes = ", ".join(n for n, m in METRICS.items() if m.from_path is not None)
-            raise CamoError(f"--weights {name}=...: {name} takes no weights (metrics that do: {takes})")
+            raise SettingError.of("weights", f" {name}=...: {name} takes no weights (metrics that do: {takes})")
         weights.update(METRICS[name].from_path(str(path)))
     return weights
 
@@ -102,7 +102,7 @@ def parse_metrics(text: str | None) -> list[str] | None:
         return None
     names = [t.strip() for t in text.split(",") if t.strip()]
     if not names:
-        raise CamoError("--metrics is empty; give a comma list, e.g. psnr,ssim,lpips_proxy")
+        raise SettingError.of("metrics", " is empty; give a comma list, e.g. psnr,ssim,lpips_proxy")
     bad = [n for n in names if n not in METRICS]
     if bad:
         raise CamoError(f"unknown metric(s) {', '.join(bad)}; known: {', '.join(METRICS)}")
@@ -146,7 +146,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
                 raise CamoError(f"unknown metric {name!r}; known: {', '.join(METRICS)}")
             why = metric_unavailable(name, weights)
             if why is not None:
-                raise CamoError(f"--metrics {name}: {why}")
+                raise SettingError.of("metrics", f" {name}: {why}")
         for name in METRICS:
             if name not in names:
                 skipped[name] = "not requested (--metrics)"
@@ -326,7 +326,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     say = log or ((lambda s: print(s, file=sys.stderr)) if settings.progress else (lambda s: None))
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise CamoError(f"--out {out} exists and is not a folder")
+        raise SettingError.of("out", f" {out} exists and is not a folder")
     settings.validate()
     weights = weights_of(settings)
     names, skipped = select_metrics(settings.metrics, weights)

@@ -36,7 +36,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 
 from evaluation.evaldir import SECONDS_COLUMNS
 from evaluation.metrics.registry import METRICS, table_metrics
@@ -593,7 +593,7 @@ def load_simulated(stimuli_dirs: Sequence[str | Path]):
         d = Path(d)
         p, q = d / "predicted.parquet", d / "predicted_trials.parquet"
         if not p.is_file() or not q.is_file():
-            raise CamoError(f"--stimuli {d}: no observer predictions (run `camo study predict {d}`)")
+            raise SettingError.of("stimuli", f" {d}: no observer predictions (run `camo study predict {d}`)")
         try:
             v, t = pd.read_parquet(p), pd.read_parquet(q)
             c = d / "predicted_config.json"
@@ -823,7 +823,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
 
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise CamoError(f"--out {out} exists and is not a folder")
+        raise SettingError.of("out", f" {out} exists and is not a folder")
     from evaluation.metrics import METRICS
 
     df = load_metrics(eval_dirs)

@@ -15,7 +15,7 @@ import time
 
 from camo_base.errors import CamoError
 from camo_base.ranges import Range
-from study_site.ranges import ADULT_AGE, CONFIG_RANGES, SIMULATE_RANGES
+from study_site.ranges import ADULT_AGE, CONFIG_RANGES, POWER_RANGES, SIMULATE_RANGES, STIMULI_RANGES
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -53,14 +53,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--synthetic-practice",
-        type=Range(int, 0, 200).arg_type(),
+        type=STIMULI_RANGES["synthetic_practice"].arg_type(),
         default=8,
         metavar="N",
         help="without --practice/--practice-scenes: N synthetic practice images (default 8; 0 = none)",
     )
-    b.add_argument("--size", type=Range(int, 32, 4096).arg_type(), default=512, metavar="PX", help="stimulus width = height (default 512)")
-    b.add_argument("--views", type=Range(int, 1, 256).arg_type(), default=8, help="views per run (default 8)")
-    b.add_argument("--spp", type=Range(int, 1, 65536).arg_type(), default=64, help="samples per pixel (default 64)")
+    b.add_argument("--size", type=STIMULI_RANGES["size"].arg_type(), default=512, metavar="PX", help="stimulus width = height (default 512)")
+    b.add_argument("--views", type=STIMULI_RANGES["views"].arg_type(), default=8, help="views per run (default 8)")
+    b.add_argument("--spp", type=STIMULI_RANGES["spp"].arg_type(), default=64, help="samples per pixel (default 64)")
     b.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0, help="placement and sampler seed (default 0)")
     b.add_argument(
         "--object-size",
@@ -68,7 +68,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="LO,HI",
         help="object extent as a fraction of the frame width, drawn uniformly (default 0.10,0.30)",
     )
-    b.add_argument("--margin", type=Range(float, 0.0, 0.2).arg_type(), default=0.02, help="object kept this share of the frame inside (0.02)")
+    b.add_argument("--margin", type=STIMULI_RANGES["margin"].arg_type(), default=0.02, help="object kept this share of the frame inside (0.02)")
     b.add_argument("--threads", type=Range(int, 1, 4096).arg_type(), default=None, help="render threads (default: CAMO_THREADS or all cores)")
     b.add_argument(
         "--copy",
@@ -150,9 +150,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     w.add_argument("--out", required=True, metavar="DIR")
     w.add_argument("--participants", default="10,20,30,40,60,80,100,150,200,300", metavar="N,...",
                    help="numbers of participants to simulate (default 10,20,30,40,60,80,100,150,200,300)")
-    w.add_argument("--reps", type=Range(int, 1, 100_000).arg_type(), default=200, help="simulated studies per number (default 200)")
-    w.add_argument("--alpha", type=Range(float, 0.0, 1.0, lo_open=True, hi_open=True).arg_type(), default=0.05, help="significance level after Holm (default 0.05)")
-    w.add_argument("--target", type=Range(float, 0.0, 1.0, lo_open=True, hi_open=True).arg_type(), default=0.8, help="power wanted (default 0.8)")
+    w.add_argument("--reps", type=POWER_RANGES["reps"].arg_type(), default=200, help="simulated studies per number (default 200)")
+    w.add_argument("--alpha", type=POWER_RANGES["alpha"].arg_type(), default=0.05, help="significance level after Holm (default 0.05)")
+    w.add_argument("--target", type=POWER_RANGES["target"].arg_type(), default=0.8, help="power wanted (default 0.8)")
     w.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
     w.add_argument("--quiet", action="store_true", help="no progress bar")
     w.set_defaults(func=cmd_power)

@@ -43,7 +43,8 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
+from study_site.ranges import POWER_RANGES
 
 #: Search times are rounded to this grid (seconds) before the log-rank test: ~800 distinct times in a 40 s trial
 #: instead of one per simulated trial (20,000 for a scene's 5 methods x 20 stimuli x 200 trials), which made the
@@ -239,10 +240,8 @@ def power_curve(cells: pd.DataFrame, participants: Sequence[int] = DEFAULT_PARTI
     power, reps``), vectorised over the replicates (module docstring). ``progress``: a bar on stderr."""
     if cells["method"].nunique() < 2:
         raise CamoError("power needs at least two methods")
-    if reps < 1:
-        raise CamoError("--reps must be >= 1")
-    if not 0 < alpha < 1:
-        raise CamoError("--alpha must be in (0, 1)")
+    POWER_RANGES["reps"].check(reps, "reps")
+    POWER_RANGES["alpha"].check(alpha, "alpha")
     rng = np.random.default_rng(seed)
     arrays = _cell_arrays(cells)
     arrays = {k: (f, to, np.round(rt / TIME_BIN_S) * TIME_BIN_S, lim) for k, (f, to, rt, lim) in arrays.items()}
@@ -326,11 +325,10 @@ def write_power(cells: pd.DataFrame, out: str | Path, participants: Sequence[int
     """Run :func:`power_curve` and write ``power.csv``, ``power_needed.csv``, ``power.md``, ``power.png``."""
     from camo_base.atomic import atomic_path, write_text
 
-    if not 0 < target < 1:
-        raise CamoError("--target must be in (0, 1)")
+    POWER_RANGES["target"].check(target, "target")
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise CamoError(f"--out {out} exists and is not a folder")
+        raise SettingError.of("out", f" {out} exists and is not a folder")
     curve = power_curve(cells, participants, reps, alpha, seed, progress)
     need = participants_needed(curve, target)
     out.mkdir(parents=True, exist_ok=True)
@@ -380,7 +378,8 @@ def parse_participants(text: str) -> list[int]:
     try:
         ns = sorted({int(x) for x in text.split(",") if x.strip()})
     except ValueError:
-        raise CamoError(f"--participants must be a comma list of integers, not {text!r}") from None
-    if not ns or ns[0] < 2 or ns[-1] > 100_000:
-        raise CamoError("--participants must list numbers of participants between 2 and 100000")
+        raise SettingError.of("participants", f" must be a comma list of integers, not {text!r}") from None
+    rng = POWER_RANGES["participants"]
+    if not ns or not all(rng.contains(n) for n in ns):
+        raise SettingError.of("participants", f" must list numbers of participants, each {rng.describe()}")
     return ns

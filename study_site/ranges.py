@@ -1,5 +1,6 @@
 """The range of every numeric study setting, written once: the site's config check (:func:`study_site.config.resolve`),
-the simulated participants (:func:`study_site.simulate.run_simulation`) and the flags of ``camo study`` that set them
+the simulated participants (:func:`study_site.simulate.run_simulation`), the stimulus builder, the power analysis
+and the flags of ``camo study`` that set them
 parse with these (a light module: ``camo --help`` imports nothing heavy).
 
 >>> CONFIG_RANGES["PRACTICE_TRIALS"].describe()
@@ -29,4 +30,22 @@ SIMULATE_RANGES: dict[str, Range] = {
     "concurrency": Range(int, 1, 500),
     "max_seconds": Range(float, 1.0, 86_400.0),
     "ramp": Range(float, 0.0, 86_400.0),
+}
+
+# camo study build-stimuli (study_site.render_stimuli.build_stimuli)
+STIMULI_RANGES: dict[str, Range] = {
+    "size": Range(int, 32, 4096),
+    "views": Range(int, 1, 256),
+    "spp": Range(int, 1, 65536),
+    "margin": Range(float, 0.0, 0.2),
+    "object_size": Range(float, 0.01, 0.8),  # each end of LO,HI (and LO <= HI)
+    "synthetic_practice": Range(int, 0, 200),
+}
+
+# camo study power (study_site.power)
+POWER_RANGES: dict[str, Range] = {
+    "reps": Range(int, 1, 100_000),
+    "alpha": Range(float, 0.0, 1.0, lo_open=True, hi_open=True),
+    "target": Range(float, 0.0, 1.0, lo_open=True, hi_open=True),
+    "participants": Range(int, 2, 100_000),  # each number of the list
 }

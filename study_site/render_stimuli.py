@@ -42,7 +42,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
+from study_site.ranges import STIMULI_RANGES
 
 from study_site.stimuli import (
     StimulusWriter,
@@ -217,17 +218,11 @@ def render_stimuli(
     log = log or (lambda msg: print(msg, file=sys.stderr))
     if not eval_dirs:
         raise CamoError("build-stimuli needs at least one EVAL_DIR")
-    if not 32 <= size <= 4096:
-        raise CamoError(f"--size must be 32-4096 px, not {size}")
-    if not 1 <= views <= 256:
-        raise CamoError(f"--views must be 1-256, not {views}")
-    if not 1 <= spp <= 65536:
-        raise CamoError(f"--spp must be 1-65536, not {spp}")
+    for name, value in (("size", size), ("views", views), ("spp", spp), ("margin", margin)):
+        STIMULI_RANGES[name].check(value, name)
     lo, hi = object_frac
-    if not (0.01 <= lo <= hi <= 0.8):
-        raise CamoError(f"--object-size must be LO,HI with 0.01 <= LO <= HI <= 0.8, not {lo},{hi}")
-    if not 0.0 <= margin <= 0.2:
-        raise CamoError(f"--margin must be 0-0.2, not {margin}")
+    if not (STIMULI_RANGES["object_size"].contains(lo) and STIMULI_RANGES["object_size"].contains(hi) and lo <= hi):
+        raise SettingError.of("object_size", f" must be LO,HI with 0.01 <= LO <= HI <= 0.8, not {lo},{hi}")
     writer = StimulusWriter(out_dir, force)
 
     # every input (run directory or asset, :class:`evaluation.inputs.Entry`) is read and checked before anything

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from camo_base.atomic import atomic_path, write_json
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 from evaluation.evaldir import read_renders
 from optimizer.assets.conditions import condition
 
@@ -464,9 +464,9 @@ def practice_split(
     named = {s.strip() for s in (practice_scenes or []) if s.strip()}
     unknown = sorted(named - formal_scenes - practice_dir_scenes)
     if unknown:
-        raise CamoError(f"--practice-scenes: no such scene {', '.join(unknown)} (scenes: {', '.join(sorted(formal_scenes))})")
+        raise SettingError.of("practice_scenes", f": no such scene {', '.join(unknown)} (scenes: {', '.join(sorted(formal_scenes))})")
     if named and named >= formal_scenes:
-        raise CamoError("--practice-scenes names every scene: no formal scene would be left")
+        raise SettingError.of("practice_scenes", " names every scene: no formal scene would be left")
     check_no_leak(formal_scenes - named, practice_dir_scenes, "--practice")
     return named
 
