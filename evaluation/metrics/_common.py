@@ -29,24 +29,6 @@ ImageLike = Union[torch.Tensor, np.ndarray]
 #: Out-of-range values up to this far outside ``[0, data_range]`` are clamped; further ones are rejected.
 RANGE_TOL = 1e-4
 
-#: Smallest image side (pixels) each metric accepts; smaller images raise CamoError.
-#: psnr: any size. ssim: the 11x11 window must fit once. haarpsi / lpips_proxy: the coarsest Haar filter
-#: (8x8 after the 2x subsampling). lpips: AlexNet needs 31 px to reach relu5 (32 for both nets).
-#: sifid: the Inception stem (stride 2, two valid 3x3 convs) must leave at least 2x2 positions; the proxy
-#: uses the same floor so both SIFIDs accept the same crops. dreamsim resizes to 224 px.
-MIN_SIZE = {
-    "psnr": 1,
-    "ssim": 11,
-    "haarpsi": 16,
-    "lpips_proxy": 16,
-    "lpips": 32,
-    "lpips_vgg": 32,
-    "sifid": 32,
-    "sifid_proxy": 32,
-    "dreamsim": 32,
-    "detail_ratio": 3,
-    "tint": 1,
-}
 
 
 def metric_threads() -> int:
@@ -144,9 +126,9 @@ def check_data_range(data_range: float, metric: str) -> None:
         raise CamoError(f"{metric}: data_range must be a finite number > 0, got {data_range!r}")
 
 
-def check_size(t: torch.Tensor, metric: str, name: str = "image", min_size: Optional[int] = None) -> None:
-    """Raise CamoError when ``t``'s smaller side is below ``min_size`` (default ``MIN_SIZE[metric]``, else 1)."""
-    need = min_size if min_size is not None else MIN_SIZE.get(metric, 1)
+def check_size(t: torch.Tensor, metric: str, name: str = "image", min_size: int = 1) -> None:
+    """Raise CamoError when ``t``'s smaller side is below ``min_size`` (each metric module's ``MIN_SIDE``)."""
+    need = min_size
     h, w = int(t.shape[-2]), int(t.shape[-1])
     if min(h, w) < need:
         raise CamoError(f"{metric}: {name} is {h}x{w} px; this metric needs at least {need}x{need} px")
@@ -154,10 +136,10 @@ def check_size(t: torch.Tensor, metric: str, name: str = "image", min_size: Opti
 
 def prepare_pair(
     x: ImageLike, y: ImageLike, metric: str, data_range: float = 1.0, same_size: bool = True,
-    min_size: Optional[int] = None,
+    min_size: int = 1,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Convert and check an image pair for ``metric``: same batch size (and size unless ``same_size=False``),
-    at least ``min_size`` px (default ``MIN_SIZE[metric]``, else 1), values in ``[0, data_range]``. Both get the
+    at least ``min_size`` px (the metric module's ``MIN_SIDE``), values in ``[0, data_range]``. Both get the
     wider of the two dtypes."""
     check_data_range(data_range, metric)
     tx = to_batch(x, "x", data_range)
@@ -238,6 +220,9 @@ class Metric:
     needs: str = ""
     by_default: bool = True
     cross_check: bool = False
+    #: smallest image side (px) it accepts (its module's ``MIN_SIDE``, with the reason); evaluation checks every
+    #: crop against it before rendering
+    min_size: int = 1
     from_path: Optional[Callable[[str], dict[str, str]]] = None
 
     @property

@@ -20,6 +20,10 @@ LUMA = (0.2126, 0.7152, 0.0722)
 EPS = 1.0 / 255.0
 
 
+#: Smallest image side (px) this module's metrics accept: the 3x3 Laplacian must fit once.
+MIN_SIDE = 3
+
+
 def _laplacian_energy(x: torch.Tensor) -> torch.Tensor:
     """``|Laplacian|`` of the luma of ``x`` ``(N, 3, H, W)`` -> ``(N, 1, H, W)`` (kornia's 3x3 8-neighbour kernel,
     unnormalised, reflected edges)."""
@@ -70,7 +74,7 @@ def detail_ratio(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> t
         >>> round(float(detail_ratio(bg, bg)), 3), round(float(detail_ratio(obj, bg)), 1)
         (1.0, 303.8)
     """
-    x, y = prepare_pair(x, y, "detail_ratio")
+    x, y = prepare_pair(x, y, "detail_ratio", min_size=MIN_SIDE)
     m = interior(to_mask(mask, x, "detail_ratio"))
     n = m.sum(dim=(1, 2, 3)).to(x.dtype)
     ex = (_laplacian_energy(x) * m).sum(dim=(1, 2, 3)) / n
@@ -81,4 +85,4 @@ def detail_ratio(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> t
 METRICS = (Metric("detail_ratio", masked(detail_ratio), False, "ratio", "[0, inf), best 1",
                   "give-away: high-frequency luma energy (mean absolute Laplacian) inside the object's mask, with the object "
                   "over the background (1 = same texture, > 1 speckle, < 1 too smooth); measure at converged spp",
-                  "Detail", decimals=2, order=200.0, table_order=200.0, masked=True, target=1.0),)
+                  "Detail", decimals=2, order=200.0, table_order=200.0, masked=True, target=1.0, min_size=MIN_SIDE),)

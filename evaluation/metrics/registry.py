@@ -50,6 +50,8 @@ METRICS: dict[str, Metric] = _collect()
 WEIGHT_FREE = tuple(n for n, s in METRICS.items() if not s.needs_weights)
 #: Metrics that need local weights and are computed by default when their weights are given or found.
 LEARNED = tuple(n for n, s in METRICS.items() if s.needs_weights and s.by_default)
+#: Smallest image side (px) each metric accepts, from its record (its module's ``MIN_SIDE``, with the reason).
+MIN_SIZE: dict[str, int] = {n: s.min_size for n, s in METRICS.items()}
 #: Metrics computed only when asked for by name (``--metrics``), e.g. ``lpips_vgg``.
 ON_REQUEST = tuple(n for n, s in METRICS.items() if not s.by_default)
 

@@ -49,6 +49,11 @@ _STEM = (  # name, in, out, stride, padding
 )
 
 
+#: Smallest image side (px) this module's metrics accept: the Inception stem (stride 2, two valid 3x3 convs)
+#: must leave at least 2x2 positions.
+MIN_SIDE = 32
+
+
 class BasicConv2d(nn.Module):
     """torchvision's Inception ``BasicConv2d``: 3x3 conv without bias, BatchNorm (eps 0.001), ReLU."""
 
@@ -139,7 +144,7 @@ def sifid(
     Returns:
         ``(N,)`` float64, squared feature units, >= 0; 0 for identical images.
     """
-    x, y = prepare_pair(x, y, "sifid", same_size=False)
+    x, y = prepare_pair(x, y, "sifid", same_size=False, min_size=MIN_SIDE)
     if model is None:
         model = load_sifid_inception(weights, variant)
     with torch.no_grad():
@@ -171,4 +176,5 @@ METRICS = (Metric("sifid", _compute, False, "feature units^2", "[0, inf)",
                   "SinGAN SIFID, 64-dim Inception block-0 features, local weights", "SIFID", needs_weights=True,
                   order=4, table_order=1, variant=True, weights_key="sifid", unavailable=_unavailable, from_path=_from_path,
                   needs="a local Inception v3 state dict (--weights sifid=FILE, or torchvision's "
-                        "inception_v3_google-*.pth in $TORCH_HOME/hub/checkpoints); no registry package ships it"),)
+                        "inception_v3_google-*.pth in $TORCH_HOME/hub/checkpoints); no registry package ships it",
+                  min_size=MIN_SIDE),)

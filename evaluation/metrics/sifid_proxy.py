@@ -39,6 +39,10 @@ _OPPONENT = (
 )
 
 
+#: Smallest image side (px) this module's metrics accept: the same floor as SIFID, so both accept the same crops.
+MIN_SIDE = 32
+
+
 def gaussian_derivative_kernels(sigma: float, dtype=torch.float32) -> torch.Tensor:
     """Sampled 1-D Gaussian and its first two derivatives, ``(3, 2r + 1)`` with ``r = ceil(4 sigma)``.
 
@@ -138,7 +142,7 @@ def sifid_proxy(x: ImageLike, y: ImageLike) -> torch.Tensor:
         ``(N,)`` float64, squared feature units (sRGB units squared), >= 0; 0 for identical images; flat images
         are fine (zero texture covariance).
     """
-    x, y = prepare_pair(x, y, "sifid_proxy", same_size=False)
+    x, y = prepare_pair(x, y, "sifid_proxy", same_size=False, min_size=MIN_SIDE)
     with torch.no_grad():
         return frechet_of_feature_maps(proxy_features(x), proxy_features(y))
 
@@ -147,4 +151,4 @@ def sifid_proxy(x: ImageLike, y: ImageLike) -> torch.Tensor:
 METRICS = (Metric("sifid_proxy", plain(sifid_proxy, SIFID_PROXY_VARIANT), False, "feature units^2", "[0, inf)",
                   "SIFID statistics over weight-free DoG texture energy + opponent colour; cross-check, NOT SIFID",
                   "SIFID-proxy", order=5, table_order=6, variant=True,
-                  cross_check=True),)
+                  cross_check=True, min_size=MIN_SIDE),)

@@ -14,6 +14,10 @@ SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 
 
+#: Smallest image side (px) this module's metrics accept: the 11x11 Gaussian window must fit once.
+MIN_SIDE = 11
+
+
 def gaussian_window_1d(win_size: int = SSIM_WIN, sigma: float = SSIM_SIGMA, dtype=torch.float32) -> torch.Tensor:
     """Normalised sampled Gaussian ``(win_size,)``, centred, summing to 1 (as ``scipy.ndimage.gaussian_filter``)."""
     r = win_size // 2
@@ -72,7 +76,7 @@ def ssim_map(
     The moments are computed from images shifted by their per-channel mean (SSIM's variances and covariance are
     shift invariant) so that float32 keeps about 1e-6 of accuracy on near-flat images.
     """
-    x, y = prepare_pair(x, y, "ssim", data_range)
+    x, y = prepare_pair(x, y, "ssim", data_range, min_size=MIN_SIDE)
     return torch.cat([_ssim_map(x[s], y[s], data_range, k1, k2) for s in chunks(x)], dim=0)
 
 
@@ -94,11 +98,11 @@ def ssim(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Tensor:
         ``(N,)`` tensor (dtype of the input: float32, or float64 for float64 input), dimensionless, in ``[-1, 1]``.
         Constant and black images are well defined (1 when equal, no NaN: both denominators are >= C1 C2 > 0).
     """
-    x, y = prepare_pair(x, y, "ssim", data_range)
+    x, y = prepare_pair(x, y, "ssim", data_range, min_size=MIN_SIDE)
     return torch.cat([_ssim_map(x[s], y[s], data_range, SSIM_K1, SSIM_K2).mean(dim=(1, 2, 3)) for s in chunks(x)])
 
 
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("ssim", plain(ssim), True, "1", "[-1, 1]",
                   "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True", "SSIM", order=1,
-                  table_order=3),)
+                  table_order=3, min_size=MIN_SIDE),)

@@ -14,6 +14,10 @@ import torch
 from evaluation.metrics._common import ImageLike, Metric, metric_thread_policy, masked, prepare_pair, to_mask
 
 
+#: Smallest image side (px) this module's metrics accept: any size.
+MIN_SIDE = 1
+
+
 @metric_thread_policy
 def tint(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> torch.Tensor:
     r"""CIE 1976 :math:`\Delta E^*_{ab}` between the mean CIELAB colours of ``x`` and ``y`` inside ``mask``.
@@ -44,7 +48,7 @@ def tint(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> torch.Ten
     """
     import kornia
 
-    x, y = prepare_pair(x, y, "tint")
+    x, y = prepare_pair(x, y, "tint", min_size=MIN_SIDE)
     m = to_mask(mask, x, "tint").to(x.dtype)
     n = m.sum(dim=(1, 2, 3))
     lx = (kornia.color.rgb_to_lab(x) * m).sum(dim=(2, 3)) / n[:, None]
@@ -55,4 +59,4 @@ def tint(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> torch.Ten
 METRICS = (Metric("tint", masked(tint), False, "ΔE*ab", "[0, ~100]",
                   "give-away: CIELAB ΔE*ab between the mean colours inside the object's mask, with the object and "
                   "without (the colour cast; texture and speckle cancel in the means)", "Tint", decimals=2,
-                  order=201.0, table_order=201.0, masked=True),)
+                  order=201.0, table_order=201.0, masked=True, min_size=MIN_SIDE),)
