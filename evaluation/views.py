@@ -130,17 +130,28 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 # --------------------------------------------------------------------------------------------------------------
 
 
-def evaluation_plan(pack, env):
-    """The planner's ``purpose="evaluate"`` path tracer, planned for a transmissive, metallic object.
+def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True):
+    """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
-    Every method of a scene must be rendered by the same integrator (the background is shared, and a
-    shallower path tracer for an opaque result would bias the comparison), so the plan does not depend on
-    the particular result: it is deep enough for the most demanding material any method may produce.
-    """
-    from optimizer.rendering.planner import plan
+    Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
+    path tracer for an opaque result would bias the comparison), so the plan does not depend on the particular
+    result: with ``cams`` (the evaluation cameras) and ``measured``, the planner's pilot renders the pack's object
+    made fully transmissive (the deepest light transport any result can have: light through it onto the ground,
+    light seen through it) from those cameras, and keeps every bounce whose light over the whole frame is above
+    0.3 x the noise at ``spp`` (:class:`optimizer.rendering.planner.Planner`, purpose ``evaluate``; stream
+    ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce)."""
+    from camo_base import seeds
+    from optimizer.rendering.planner import Planner, plan
 
-    worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=1.0))
-    return plan(worst, env, set(), "evaluate")
+    worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
+    if cams is None or not measured:
+        return plan(worst, env, set(), "evaluate")
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+
+    mesh = static_object_fn(worst, prepare_object(worst))
+    planner = Planner()
+    pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
+    return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
 
 
 def render_seed(seed: int) -> int:
@@ -163,6 +174,8 @@ class ObjectRenders:
     coverage: np.ndarray  # (V, H, W) float32
     mask: np.ndarray  # (V, H, W) bool (coverage >= 0.5)
     seconds: float
+    region: np.ndarray | None = None  # (V, H, W) bool: the pixels rendered (the rest is the background's), or None
+    region_seconds: float = 0.0  # of ``seconds``: finding the region
 
 
 class ViewRenderer:
@@ -192,13 +205,27 @@ class ViewRenderer:
             self.background_renders += 1
         return self.cache[key]
 
-    def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict) -> ObjectRenders:
+    def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
+                    background: Background | None = None, region_threshold: float | None = None) -> ObjectRenders:
+        """The scene with the object ``mesh_fn()``. With ``background`` (the same cameras, spp, integrator and seed)
+        only the region the object can change is rendered (:func:`optimizer.rendering.region.regions`, threshold
+        ``region_threshold`` in sRGB, default half an 8-bit step); every other pixel is the background's, which the
+        same random numbers would have drawn there (``tests/test_region.py``)."""
         from optimizer.rendering import scene as scn
+        from optimizer.rendering.region import RegionSettings, THRESHOLD, regions
         from optimizer.rendering.render import coverage_and_depth, render_shaded
 
         t = time.perf_counter()
         mesh = mesh_fn()
-        img = render_shaded(env.build(), mesh, cams, integrator, self.spp, render_seed(self.seed))
         sc = scn.build_scene(env.build(), mesh)
         cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
-        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t)
+        masks, t_region = None, 0.0
+        if background is not None and integrator.get("type") == "path":
+            t0 = time.perf_counter()
+            settings = RegionSettings(threshold=max(THRESHOLD, float(region_threshold or 0.0)))
+            masks = regions(env.build, mesh, cams, cov, settings, render_seed(self.seed),
+                            int(integrator.get("max_depth", 12)), int(integrator.get("rr_depth", 5))).masks
+            t_region = time.perf_counter() - t0
+        img = render_shaded(env.build(), mesh, cams, integrator, self.spp, render_seed(self.seed), masks,
+                            None if masks is None else background.image)
+        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, masks, t_region)

@@ -236,9 +236,9 @@ def render_stimuli(
     backend.init(threads=threads)
     renderer = ViewRenderer(spp, seed)
     skipped = 0
+    plans: dict[str, Any] = {}  # one evaluation plan per scene (its pilot on the scene's first placed cameras)
     for e, practice, ev in jobs:
         env = get_environment(e.pack.environment)
-        plan = evaluation_plan(e.pack, env)
         jitter = float(ev.get("jitter", DEFAULT_JITTER))
         ev_seed = int(ev.get("seed", 0))
         base = evaluation_cameras(e.pack, views, jitter, ev_seed, (size, size)).cams
@@ -251,10 +251,14 @@ def render_stimuli(
             cams.append(new)
             draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
                           "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
+        if e.scene not in plans:
+            plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed)
+        plan = plans[e.scene]
         log(f"rendering {e.name} ({e.kind}, {e.scene}, {e.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
             + (" [practice]" if practice else ""))
         bg = renderer.background(e.pack, env, cams, plan.integrator)
-        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator)
+        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator, bg if plan.region else None,
+                                    plan.region_threshold)
         for v in range(len(cams)):
             mask = objr.mask[v]
             if not mask.any():

@@ -89,7 +89,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
     from optimizer.scenes.cameras import cameras
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import full_plan, plan
+    from optimizer.optimise.planning import checkpoint_entry, config_record, narrowed, run_plan
 
     if spec.method != "ours":
         raise ValueError(f"optimize runs method ours, not {spec.method!r} (use run)")
@@ -122,15 +122,19 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
     t_setup = time.perf_counter()
     prepared = prepare_object(pack)
     app = spec.appearance
-
-    def plan_for(a: AppearanceConfig):
-        params = a.planner_params()
-        return plan(pack, env, params, "optimize", spec.shadow_gradients) if spec.planner else \
-            full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
-
-    pl = plan_for(app)
     cams = cameras(pack)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
+    # the effect plan: the pilot on this scene and start (or the checkpoint's plan when resuming)
+    pl = run_plan(spec, pack, env, prepared, cams, app.planner_params(), say, state)
+    env = pl.environment(env)
+
+    def plan_for(a: AppearanceConfig):
+        if not spec.planner:
+            from optimizer.rendering.planner import full_plan
+
+            return full_plan("optimize", geometry=bool({"pose", "displacement"} & a.planner_params()))
+        return narrowed(pl, pack, env, a.planner_params(), spec.shadow_gradients)
+
     advice = dict(pl.reasons).get("initial roughness")
     if rough_note:
         say(f"note: {rough_note}")
@@ -163,7 +167,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
         history = _read_log(out / LOG, s1.iteration if resume_stage == 1 else None,
                             int(state["iteration"]) if resume_stage == 2 else None)
         s1.elapsed = stage_seconds(history, 1)
-    plan_record = {"integrator": pl.integrator, "reasons": [f"{k}: {v}" for k, v in pl.reasons],
+    plan_record = {**config_record(pl),
                    # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
                    "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp}
     if rough_note:
@@ -174,6 +178,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
 
     def held(extra=None):  # checkpoint entries: a stage's own, the held-out views' best iterate, the searches' choices
         turn = {"pose_search/info": np.array(json.dumps(s1.pose_search_info.to_dict()))} if s1.pose_search_info else {}
+        turn.update(checkpoint_entry(pl))
         if s1.start_search_info:
             turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
         return {**(extra or {}), **(hold.state() if hold is not None else {}), **turn}
@@ -222,7 +227,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info, values=values,
                holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
-               start=s1.start_search_info)
+               start=s1.start_search_info, plan=pl)
     return out
 
 
@@ -386,7 +391,7 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
-               holdout: dict[str, Any] | None = None, pose=None, start=None) -> None:
+               holdout: dict[str, Any] | None = None, pose=None, start=None, plan=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
     the result's parameters (default: the last stage's current ones); ``holdout``, ``pose`` and ``start``: the
     held-out views', the turn search's and the start search's records for ``summary.json``."""
@@ -408,4 +413,5 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
            extra={"preset": spec.preset, "time_budget": spec.time_budget,
                   "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout,
                   "pose_search": pose.to_dict() if pose is not None else None,
-                  "start_search": start.to_dict() if start is not None else None})
+                  "start_search": start.to_dict() if start is not None else None,
+                  "plan": plan.to_dict() if plan is not None else None})

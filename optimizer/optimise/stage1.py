@@ -122,29 +122,56 @@ def target_seed(seed: int) -> int:
     return seeds.seed("targets", seed)
 
 
-def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: dict, cfg: Stage1Config
-                   ) -> tuple[Targets, np.ndarray]:
+def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: dict, cfg: Stage1Config,
+                   region: bool = False, region_threshold: float | None = None) -> tuple[Targets, np.ndarray]:
     """Background targets, coverage, depth and loss domain of every view, and the initial render ``(V, H, W, 3)``
     of the object ``obj_mesh`` (its initial appearance; it marks the object+shadow domain). Stage 1 and every
-    baseline render them here, so a baseline and ``ours`` with the same settings see bit-identical targets."""
-    bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
-    init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
+    baseline render them here, so a baseline and ``ours`` with the same settings see bit-identical targets.
+
+    ``region`` (a measured plan): the initial render covers only the region the object can change
+    (:func:`optimizer.rendering.region.regions`), the rest is the background target (the same seed: the same
+    paths)."""
     sc_obj = scn.build_scene(env.build(), obj_mesh)
     sc_bg = scn.build_scene(env.build())
-    cov, depth, dom = [], [], []
+    cov, depth = [], []
+    for c in cams:
+        cov.append(coverage_and_depth(sc_obj, c, obj_mesh)[0])
+        depth.append(coverage_and_depth(sc_bg, c)[1])
+    coverage = np.stack(cov)
+    bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
+    masks = None
+    if region and integrator.get("type") == "path":
+        from optimizer.rendering.region import THRESHOLD, RegionSettings, regions
+
+        rs = RegionSettings(threshold=max(THRESHOLD, float(region_threshold or 0.0)))
+        masks = regions(env.build, obj_mesh, cams, coverage, rs, seed=target_seed(cfg.seed),
+                        max_depth=int(integrator["max_depth"]), rr_depth=int(integrator["rr_depth"])).masks
+    init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed), masks,
+                         bg if masks is not None else None)
     px = max(1, round(cfg.domain_dilate * max(cams[0].width, cams[0].height)))
-    for i, c in enumerate(cams):
-        cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
-        _, d = coverage_and_depth(sc_bg, c)
-        cov.append(cv)
-        depth.append(d)
-        dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
-    return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth)), init
+    dom = [influence_domain(bg[i], init[i], coverage[i], cfg.shadow_threshold, px) for i in range(len(cams))]
+    return Targets(bg, coverage, np.stack(dom), np.stack(depth)), init
+
+
+def training_windows(domain: np.ndarray, mode: str) -> list[tuple[int, int, int, int]] | None:
+    """Per view, the window ``(x0, y0, x1, y1)`` of the training render: the bounding box of the loss domain
+    ``(V, H, W)`` (pixels outside it weigh 0 in the loss, so the loss and its gradient are those of the full frame;
+    the silhouette pass is splatted into the window, :func:`optimizer.rendering.projective.silhouette_pass`).
+    None (full frames) for ``mode == "frame"``; a view with an empty domain keeps a 1 x 1 window."""
+    from optimizer.rendering.region import bbox
+
+    if mode == "frame":
+        return None
+    out = []
+    for d in domain:
+        b = bbox(np.asarray(d) > 0)
+        out.append(b if b is not None else (0, 0, 1, 1))
+    return out
 
 
 def shading_integrator(plan: Plan) -> dict:
-    """The plain path tracer matching a training plan's depth (targets, final renders)."""
-    return {"type": "path", "max_depth": plan.max_depth, "rr_depth": plan.max_depth}
+    """The plain path tracer matching a training plan's depth and Russian roulette (targets, final renders)."""
+    return plan.shading_integrator()
 
 
 class Stage1:
@@ -200,11 +227,15 @@ class Stage1:
         self._warm = bool(cfg.warm_start and initial is None)
         self.values, self.warm_start_info = self._prepare(self.values)
         self._make_optimiser()
+        # the window of each view the loss reads (its domain's bounding box): training renders only it
+        self.windows = training_windows(self.targets.domain, cfg.domain) if getattr(plan, "region", False) else None
+        self._batched = uses_batch(plan.integrator) and self.windows is None
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
-        self._bg = [mi.TensorXf(self.targets.background[v]) for v in range(len(cams))]
-        self._w = [self.targets.domain[v] for v in range(len(cams))] if cfg.domain != "frame" else [None] * len(cams)
+        self._bg = [mi.TensorXf(self.window(v, self.targets.background[v])) for v in range(len(cams))]
+        self._w = [self.window(v, self.targets.domain[v]) for v in range(len(cams))] if cfg.domain != "frame" else \
+            [None] * len(cams)
         dr.eval()
 
     # --- set-up -------------------------------------------------------------
@@ -218,7 +249,7 @@ class Stage1:
             values, info = warm_start_albedo(
                 values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
-                self._log, cache=self._warm_cache)
+                self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False))
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info
@@ -266,14 +297,24 @@ class Stage1:
 
     def _targets(self) -> Targets:
         targets, self.initial_render = render_targets(self.env, self.cams, self._object(), self.shading_integrator(),
-                                                      self.cfg)
+                                                      self.cfg, region=getattr(self.plan, "region", False),
+                                                      region_threshold=getattr(self.plan, "region_threshold", None))
         return targets
 
+    def window(self, view: int, image: np.ndarray) -> np.ndarray:
+        """The part of a full-frame ``image`` (``(H, W, ...)``) of ``view`` that its training render covers."""
+        if self.windows is None:
+            return image
+        x0, y0, x1, y1 = self.windows[view]
+        return image[y0:y1, x0:x1]
+
     def _training_scene(self):
-        if uses_batch(self.plan.integrator):
+        if self._batched:
             sensors = [scn.batch(self.cams, self.cfg.spp)]
         else:
-            sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
+            sensors = [scn.perspective(c, self.cfg.spp, sample_border=True,
+                                       crop=None if self.windows is None else self.windows[v])
+                       for v, c in enumerate(self.cams)]
         self.scene_integrator, self.render_spp = training_integrator(
             self.plan, self.cfg.spp, (self.cams[0].width, self.cams[0].height))
         return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.scene_integrator))
@@ -390,7 +431,7 @@ class Stage1:
         # read-back per view would stall the pipeline.
         photo, lum, chroma = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
         has_terms = False
-        if uses_batch(self.plan.integrator):
+        if self._batched:
             self._apply()
             s, sg = self._seeds(0)
             img = mi.render(self.scene, self.params, spp=self.render_spp, seed=s, seed_grad=sg)

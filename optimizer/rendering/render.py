@@ -37,10 +37,25 @@ def uses_batch(integrator: dict[str, Any]) -> bool:
     return integrator.get("type") not in PROJECTIVE
 
 
-def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0) -> np.ndarray:
-    """Render every view; returns ``(V, H, W, 3)`` linear radiance."""
+def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,
+                  masks: np.ndarray | None = None, fill: np.ndarray | None = None) -> np.ndarray:
+    """Render every view; returns ``(V, H, W, 3)`` linear radiance.
+
+    A ``path`` integrator renders through :mod:`optimizer.rendering.tracer` (Mitsuba's ``path`` estimator with
+    per-pixel random streams: renders with and without the object share their random numbers at one seed, and a
+    render of some pixels equals those pixels of the full frame): only the pixels where ``masks (V, H, W)`` is set
+    are rendered, the others are copied from ``fill (V, H, W, 3)`` (typically the background render of the same
+    seed). Other integrators render through ``mi.render`` (``masks`` must be None)."""
     import mitsuba as mi
 
+    if integrator.get("type") == "path":
+        from optimizer.rendering.tracer import render_views
+
+        sc = scn.build_scene(elements, obj, [scn.batch(cams, spp)])
+        return render_views(sc, len(cams), cams[0].width, cams[0].height, spp, seed,
+                            int(integrator.get("max_depth", 12)), int(integrator.get("rr_depth", 5)), masks, fill)
+    if masks is not None:
+        raise ValueError(f"a masked render needs the path integrator, not {integrator.get('type')!r}")
     if uses_batch(integrator):
         sc = scn.build_scene(elements, obj, [scn.batch(cams, spp)], integrator)
         img = np.asarray(mi.render(sc, spp=spp, seed=seed), dtype=np.float32)
