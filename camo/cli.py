@@ -168,11 +168,12 @@ def _plan(args) -> int:
         pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
     elif args.purpose == "optimize":
         from optimizer.optimise.planning import measure_plan
+        from optimizer.optimise.run import appearance_for
         from optimizer.rendering.placement import prepare_object
         from optimizer.scenes.cameras import cameras
 
         spp = {"training": args.spp or 4, "targets": args.target_spp}
-        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), params, args.seed, spp,
+        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), appearance_for(ablate), args.seed, spp,
                           args.shadow_gradients)
     else:
         from evaluation.views import evaluation_cameras, evaluation_plan

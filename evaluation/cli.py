@@ -51,6 +51,9 @@ def register(sub) -> None:
     p.add_argument("--no-planner", action="store_true",
                    help="full path tracing of every full frame (max_depth 12) instead of the measured plan (a pilot "
                    "per scene picks the depth; only the region each object can change is rendered)")
+    p.add_argument("--no-noise-match", action="store_true",
+                   help="the same spp everywhere (default: pixels where the render with the object is noisier than "
+                   "the background get more samples, up to 8x, so noise does not give the object away)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_evaluate)
 
@@ -96,7 +99,8 @@ def run_evaluate(args) -> int:
                             metrics=parse_metrics(args.metrics), seed=args.seed, lpips_weights=args.lpips_weights,
                             inception_weights=args.inception_weights, dreamsim_weights=args.dreamsim_weights,
                             threads=args.threads, progress=not args.quiet, observer_trials=args.observer_trials,
-                            observer_saliency=args.observer_saliency, planner=not args.no_planner)
+                            observer_saliency=args.observer_saliency, planner=not args.no_planner,
+                            noise_match=not args.no_noise_match)
     evaluate(input_specs(args), args.out, settings)
     print(f"wrote {args.out}")
     return 0

@@ -70,6 +70,7 @@ class EvalSettings:
     observer_trials: int = 100  # simulated observer trials per view (evaluation.observer); 0 = no prediction
     observer_saliency: str | None = None  # a local TorchScript saliency network for the observer's map
     planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
+    noise_match: bool = True  # more samples where the object's render is noisier than the background's
 
     def validate(self) -> None:
         if self.views is not None and self.views < 1:
@@ -373,7 +374,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         load_saliency_model(settings.observer_saliency)
 
     _plan_jobs(jobs, settings, say)
-    renderer = ViewRenderer(settings.spp, settings.seed)
+    renderer = ViewRenderer(settings.spp, settings.seed, noise_match=settings.noise_match)
     rows: list[dict[str, Any]] = []
     entries: list[dict[str, Any]] = []
     scenes: dict[str, dict[str, Any]] = {}
@@ -416,7 +417,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
         objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator,
-                                    bg if j.plan.region else None, j.plan.region_threshold)
+                                    bg if j.plan.region_search else None, j.plan.region_threshold)
         cam_key = ec.key()
         scenes.setdefault(bg.key, {
             "scene": e.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),
@@ -442,6 +443,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
                         "background_key": bg.key, "object_render_seconds": objr.seconds,
                         "region_seconds": objr.region_seconds,
                         "region_share": None if objr.region is None else float(objr.region.mean()),
+                        "noise_match": None if objr.noise is None else objr.noise.to_dict(),
                         "seconds": _plain_seconds(secs), "warnings": warnings, **e.placement})
         for wmsg in warnings:
             say(f"warning: {wmsg}")

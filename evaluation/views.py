@@ -21,7 +21,11 @@ renderer's affine map once before the BSDF applies it again, so the BSDF renders
 
 Variance: the background and the with-object render of a view use the same sampler seed (common random
 numbers). Paths that never meet the object then give identical radiance in both images, so the metrics see
-the object's effect (and its shadow) rather than two independent noise patterns.
+the object's effect (and its shadow) rather than two independent noise patterns. Only the region the object can
+change is rendered with it (the rest is the background's: the same paths). With noise matching
+(``ViewRenderer(noise_match=True)``, the default of ``camo evaluate`` and ``camo study build-stimuli``) pixels
+where the object's render is noisier than the background's get more samples (:mod:`optimizer.rendering.noise`), so
+an object cannot be found by its fireflies.
 
 Images are linear float32 ``(V, H, W, 3)``; masks ``(V, H, W)`` bool; depth ``(V, H, W)`` float32 in scene
 units (0 = miss).
@@ -35,6 +39,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,6 +51,8 @@ from optimizer.assets.rundir import RunDir, open_run
 
 #: The paper's evaluation jitter: up to +-0.25 units per axis at radius 4.
 DEFAULT_JITTER = 0.25
+#: Vertices of the object the evaluation's pilot renders (at the pilot's ~48 pixels).
+PILOT_VERTICES = 4000
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -148,7 +155,9 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
         return plan(worst, env, set(), "evaluate")
     from optimizer.rendering.placement import prepare_object, static_object_fn
 
-    mesh = static_object_fn(worst, prepare_object(worst))
+    # the pilot renders at ~48 px: a light mesh will do (and it is prepared once, then cached)
+    mesh = static_object_fn(worst, prepare_object(worst, target_vertices=min(worst.object.target_vertices,
+                                                                             PILOT_VERTICES)))
     planner = Planner()
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
     return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
@@ -166,6 +175,7 @@ class Background:
     depth: np.ndarray  # (V, H, W)
     seconds: float
     key: str
+    lum2: np.ndarray | None = None  # (V, H, W) mean squared luminance per sample (noise matching), or None
 
 
 @dataclasses.dataclass
@@ -176,15 +186,19 @@ class ObjectRenders:
     seconds: float
     region: np.ndarray | None = None  # (V, H, W) bool: the pixels rendered (the rest is the background's), or None
     region_seconds: float = 0.0  # of ``seconds``: finding the region
+    noise: Any = None  # optimizer.rendering.noise.NoiseMatch when the noise was matched
 
 
 class ViewRenderer:
     """Evaluation renders with a background cache (one entry per scene, camera set, spp, integrator, seed)."""
 
-    def __init__(self, spp: int, seed: int = 0, ss: int = 4):
-        self.spp, self.seed, self.ss = int(spp), int(seed), int(ss)
+    def __init__(self, spp: int, seed: int = 0, ss: int = 4, noise_match: bool = False):
+        """``noise_match``: renders with an object get more samples where they are noisier than the background
+        (:mod:`optimizer.rendering.noise`; needs a ``path`` integrator and the background of the same seed)."""
+        self.spp, self.seed, self.ss, self.noise_match = int(spp), int(seed), int(ss), bool(noise_match)
         self.cache: dict[str, Background] = {}
         self.background_renders = 0  # how many times a background was actually rendered
+        self.region_cache: dict[str, dict] = {}  # per background: the region pass' renders without the object
 
     def _key(self, pack, cams: list[Camera], integrator: dict) -> str:
         blob = json.dumps({"env": dataclasses.asdict(pack.environment), "cams": [dataclasses.astuple(c) for c in cams],
@@ -198,10 +212,16 @@ class ViewRenderer:
         key = self._key(pack, cams, integrator)
         if key not in self.cache:
             t = time.perf_counter()
-            img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
+            lum2 = None
+            if self.noise_match and integrator.get("type") == "path":
+                from optimizer.rendering.render import render_moments
+
+                img, lum2 = render_moments(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
+            else:
+                img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
             sc = scn.build_scene(env.build())
             depth = np.stack([coverage_and_depth(sc, c, None, self.ss)[1] for c in cams])
-            self.cache[key] = Background(img, depth, time.perf_counter() - t, key)
+            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, lum2)
             self.background_renders += 1
         return self.cache[key]
 
@@ -212,20 +232,33 @@ class ViewRenderer:
         ``region_threshold`` in sRGB, default half an 8-bit step); every other pixel is the background's, which the
         same random numbers would have drawn there (``tests/test_region.py``)."""
         from optimizer.rendering import scene as scn
-        from optimizer.rendering.region import RegionSettings, THRESHOLD, regions
-        from optimizer.rendering.render import coverage_and_depth, render_shaded
+        from optimizer.rendering.render import PathRenderer, coverage_and_depth, render_shaded, render_with_region
 
         t = time.perf_counter()
         mesh = mesh_fn()
         sc = scn.build_scene(env.build(), mesh)
         cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
-        masks, t_region = None, 0.0
-        if background is not None and integrator.get("type") == "path":
-            t0 = time.perf_counter()
-            settings = RegionSettings(threshold=max(THRESHOLD, float(region_threshold or 0.0)))
-            masks = regions(env.build, mesh, cams, cov, settings, render_seed(self.seed),
-                            int(integrator.get("max_depth", 12)), int(integrator.get("rr_depth", 5))).masks
-            t_region = time.perf_counter() - t0
-        img = render_shaded(env.build(), mesh, cams, integrator, self.spp, render_seed(self.seed), masks,
-                            None if masks is None else background.image)
-        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, masks, t_region)
+        seed = render_seed(self.seed)
+        path = integrator.get("type") == "path"
+        match_noise = self.noise_match and path and background is not None and background.lum2 is not None
+        region, t_region, lum2 = None, 0.0, None
+        if background is not None and path:
+            out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.image, cov,
+                                     region_threshold, moments=match_noise,
+                                     cache=self.region_cache.setdefault(background.key, {}))
+            img, reg = out[0], out[1]
+            lum2 = out[2] if match_noise else None
+            region, t_region = reg.masks, reg.seconds
+        elif match_noise:
+            img, lum2 = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(moments=True)
+        else:
+            img = render_shaded(env.build(), mesh, cams, integrator, self.spp, seed)
+        matched = None
+        if match_noise:
+            from optimizer.rendering.noise import match
+
+            more = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)
+            img, matched = match(lambda sel, spp, first: more(sel, None, spp, first), img, lum2, background.image,
+                                 background.lum2, region if region is not None else np.ones(img.shape[:3], bool),
+                                 self.spp)
+        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched)

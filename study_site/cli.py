@@ -73,6 +73,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="copy the evaluation renders as they are instead (object where the evaluation had it: at the frame "
         "centre); needed for evaluations holding 2D triplets",
     )
+    b.add_argument("--no-noise-match", action="store_true",
+                   help="the same spp everywhere (default: more samples, up to 8x, where the render with the object is "
+                   "noisier than the background, so noise does not give the object away)")
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)
 
@@ -231,6 +234,7 @@ def cmd_build_stimuli(args) -> int:
             args.eval_dirs, args.out, practice_dirs=args.practice, practice_scenes=scenes, size=args.size,
             views=args.views, spp=args.spp, seed=args.seed, object_frac=_pair(args.object_size, "--object-size"),
             margin=args.margin, synthetic_practice_n=args.synthetic_practice, threads=args.threads, force=args.force,
+            noise_match=not args.no_noise_match,
         )
     print(f"{args.out}: {summarize(manifest)}")
     return 0

@@ -20,40 +20,27 @@ def env_of(name: str) -> Environment:
 ALL = {"albedo", "pose", "displacement", "bsdf", "transmittance"}
 
 
-def test_full_method_outdoors_uses_prb_projective_for_transmission():
-    pack = builtin_scenes.get("meadow")
-    p = plan(pack, env_of("meadow"), ALL)
-    assert p.integrator["type"] == "prb_projective"
-    assert p.integrator["sppi"] == 0 and p.integrator["max_depth"] == 6 == p.integrator["rr_depth"]
-    assert not p.batch
+def test_without_a_pilot_every_bounce_is_kept_and_russian_roulette_stays_on():
+    """The rule-based plan drops nothing it has not measured: depth 12, Russian roulette from 5 (never
+    rr_depth = max_depth, which would turn it off)."""
+    for name in builtin_scenes.names():
+        for purpose in ("optimize", "render", "evaluate"):
+            p = plan(builtin_scenes.get(name), env_of(name), ALL, purpose=purpose)
+            assert p.max_depth == 12 and p.rr_depth == 5
+            assert p.integrator.get("rr_depth", 5) == 5 and p.integrator.get("max_depth", 12) == 12
+            assert not p.region and not p.measured
 
 
-def test_opaque_object_in_open_scene_uses_direct_projective():
-    pack = builtin_scenes.get("meadow")
-    pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    p = plan(pack, env_of("meadow"), ALL - {"transmittance"})
-    assert p.integrator == {"type": "direct_projective", "sppi": 0}
-    assert p.max_depth == 2
-
-
-def test_opaque_object_indoors_keeps_interreflection():
-    pack = builtin_scenes.get("room")
-    pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    p = plan(pack, env_of("room"), {"albedo", "pose", "bsdf"})
-    assert p.integrator["type"] == "prb_projective" and p.integrator["max_depth"] == 4
+def test_geometry_gradients_need_a_projective_integrator():
+    p = plan(builtin_scenes.get("meadow"), env_of("meadow"), ALL)
+    assert p.integrator["type"] == "prb_projective" and p.integrator["sppi"] == 0 and not p.batch
+    assert plan(builtin_scenes.get("meadow"), env_of("meadow"), ALL, max_depth=2).integrator == \
+        {"type": "direct_projective", "sppi": 0}
 
 
 def test_material_only_uses_prb_and_batch():
-    pack = builtin_scenes.get("gravel")
-    p = plan(pack, env_of("gravel"), {"albedo", "bsdf", "transmittance"})
-    assert p.integrator["type"] == "prb" and p.batch and p.integrator["max_depth"] == 6
-
-
-def test_albedo_only_opaque_is_shallow():
-    pack = builtin_scenes.get("gravel")
-    pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    p = plan(pack, env_of("gravel"), {"albedo"})
-    assert p.integrator == {"type": "prb", "max_depth": 3, "rr_depth": 3}
+    p = plan(builtin_scenes.get("gravel"), env_of("gravel"), {"albedo", "bsdf", "transmittance"})
+    assert p.integrator == {"type": "prb", "max_depth": 12, "rr_depth": 5} and p.batch
 
 
 def test_shadow_gradients_turn_indirect_visibility_on():
@@ -67,8 +54,8 @@ def test_rendering_uses_path_tracing(purpose):
     pack = builtin_scenes.get("occluded")
     p = plan(pack, env_of("occluded"), ALL, purpose=purpose)
     assert p.integrator["type"] == "path" and p.batch
-    assert p.integrator["max_depth"] == 6
     assert any(k == "emitters" and "sun" in v for k, v in p.reasons)
+    assert p.shading_integrator() == {"type": "path", "max_depth": 12, "rr_depth": 5}
 
 
 def test_training_integrator_gives_silhouettes_a_per_view_budget():
@@ -83,7 +70,7 @@ def test_training_integrator_gives_silhouettes_a_per_view_budget():
     assert silhouette_samples(256, 256, 4) == 2 * silhouette_samples(128, 128, 4)  # grows like the outline
     on = plan(pack, env_of("meadow"), ALL, shadow_gradients=True)
     assert training_integrator(on, 4, (32, 32))[0]["sppi"] == 4
-    prb = dataclasses.replace(p, integrator={"type": "prb", "max_depth": 3, "rr_depth": 3})
+    prb = dataclasses.replace(p, integrator={"type": "prb", "max_depth": 3, "rr_depth": 5})
     assert training_integrator(prb, 4, (32, 32)) == (prb.integrator, 4)
     full = training_integrator(full_plan(), 4, (32, 32))[0]  # the bench's reference keeps Mitsuba's pass
     assert full["type"] == "prb_projective" and full["sppp"] == 4 and "silhouette_samples" not in full

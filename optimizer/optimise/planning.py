@@ -1,10 +1,11 @@
 """A run's effect plan: the pilot on the run's own scene, starting object and stages, decided once and recorded.
 
-``ours`` and every baseline plan the same way (:func:`run_plan`): the pilot renders the object with the pack's
-starting material at its initial pose from the run's training cameras (stream ``pilot`` of
-:mod:`camo_base.seeds`, the targets' numbers), and :class:`optimizer.rendering.planner.Planner` decides for the full
-parameter set of ``ours`` at the largest spp the plan's depth serves (the targets'), so a baseline and ``ours``
-with the same settings render bit-identical targets. ``spec.planner = False`` (``--no-planner``) is full path
+``ours`` and every baseline plan the same way (:func:`run_plan`): the pilot renders the starting object (the
+appearance's initial values from the pack's material, at its initial pose) from the run's training cameras (stream
+``pilot`` of :mod:`camo_base.seeds`, the targets' numbers), and :class:`optimizer.rendering.planner.Planner` decides
+for the optimised parameters at the largest spp the plan's depth serves (the targets'). Baselines plan the full
+parameter set of ``ours`` with its starting values, so a baseline and ``ours`` with the same settings (no ablation)
+render bit-identical targets; an ablation (``--ablate transmittance``: an opaque start) is planned as what it is. ``spec.planner = False`` (``--no-planner``) is full path
 tracing (:func:`optimizer.rendering.planner.full_plan`). The plan travels in the checkpoint (``plan/json``): a
 resumed run takes it from there and does not run the pilot again.
 """
@@ -31,9 +32,11 @@ def stage_spp(spec) -> dict[str, int]:
     return out
 
 
-def run_plan(spec, pack, env, prepared, cams, params: set[str], log=lambda s: None,
+def run_plan(spec, pack, env, prepared, cams, app: AppearanceConfig, log=lambda s: None,
              state: dict[str, np.ndarray] | None = None) -> Plan:
-    """The plan of a run (module doc) for the optimised ``params``; from ``state`` (a checkpoint) when it holds one."""
+    """The plan of a run (module doc) of appearance ``app`` (its optimised parameters and starting values); from
+    ``state`` (a checkpoint) when it holds one."""
+    params = app.planner_params()
     if not spec.planner:
         return full_plan("optimize", geometry=bool({"pose", "displacement"} & set(params)))
     if state is not None and CHECKPOINT_KEY in state:
@@ -43,28 +46,26 @@ def run_plan(spec, pack, env, prepared, cams, params: set[str], log=lambda s: No
             from camo_base.errors import CamoError
 
             raise CamoError("checkpoint is corrupt: bad plan/json") from None
-    return measure_plan(pack, env, prepared, cams, params, spec.seed, stage_spp(spec), spec.shadow_gradients, log)
+    return measure_plan(pack, env, prepared, cams, app, spec.seed, stage_spp(spec), spec.shadow_gradients, log)
 
 
-def measure_plan(pack, env, prepared, cams, params: set[str], seed: int, spp: dict[str, int],
+def measure_plan(pack, env, prepared, cams, app: AppearanceConfig, seed: int, spp: dict[str, int],
                  shadow_gradients: bool = False, log=lambda s: None) -> Plan:
-    """Run the pilot on ``pack``'s starting object (the full parameter set of ``ours``, the pack's material, its
-    initial pose) seen from ``cams`` and plan ``params`` for the stages' ``spp`` (module doc)."""
-    full = AppearanceConfig()  # the full parameter set: one plan for every method
-    geometry = Geometry.build(prepared, pack.object, full)
-    values = initial_values(full, pack.material)
+    """Run the pilot on the starting object of appearance ``app`` (its initial values from the pack's material, the
+    initial pose) seen from ``cams`` and plan ``app``'s optimised parameters for the stages' ``spp`` (module doc)."""
+    params = app.planner_params()
+    geometry = Geometry.build(prepared, pack.object, app)
+    values = initial_values(app, pack.material)
 
     def mesh():
-        return object_mesh(geometry, values, full)
+        return object_mesh(geometry, values, app)
 
     planner = Planner()
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("pilot", seed),
-                          geometry=bool({"pose", "displacement"} & full.planner_params()), size=pack.object.size)
-    pl = planner.plan(pack, env, full.planner_params(), "optimize", pilot, spp, shadow_gradients)
+                          geometry=bool({"pose", "displacement"} & params), size=pack.object.size)
+    pl = planner.plan(pack, env, params, "optimize", pilot, spp, shadow_gradients)
     log(f"plan: pilot {pilot.seconds:.1f} s; max_depth {pl.max_depth}, Russian roulette from {pl.rr_depth}, "
         f"region {pilot.to_dict()['region_share']:.0%} of the pilot's frames")
-    if set(params) != full.planner_params():
-        pl = narrowed(pl, pack, env, params, shadow_gradients)
     return pl
 
 
@@ -78,6 +79,7 @@ def narrowed(pl: Plan, pack, env, params: set[str], shadow_gradients: bool) -> P
     base.reasons += [r for r in pl.reasons if r[0] == "region"]
     base.region, base.effects, base.spp, base.pilot, base.curve = pl.region, pl.effects, pl.spp, pl.pilot, pl.curve
     base.drop_emitters, base.region_threshold = list(pl.drop_emitters), pl.region_threshold
+    base.region_search = pl.region_search
     return base
 
 

@@ -125,7 +125,7 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
     cams = cameras(pack)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
     # the effect plan: the pilot on this scene and start (or the checkpoint's plan when resuming)
-    pl = run_plan(spec, pack, env, prepared, cams, app.planner_params(), say, state)
+    pl = run_plan(spec, pack, env, prepared, cams, app, say, state)
     env = pl.environment(env)
 
     def plan_for(a: AppearanceConfig):

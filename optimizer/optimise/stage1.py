@@ -129,8 +129,8 @@ def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: d
     baseline render them here, so a baseline and ``ours`` with the same settings see bit-identical targets.
 
     ``region`` (a measured plan): the initial render covers only the region the object can change
-    (:func:`optimizer.rendering.region.regions`), the rest is the background target (the same seed: the same
-    paths)."""
+    (:func:`optimizer.rendering.region.render_region`; threshold ``region_threshold``), the rest is the background
+    target (the same seed: the same paths)."""
     sc_obj = scn.build_scene(env.build(), obj_mesh)
     sc_bg = scn.build_scene(env.build())
     cov, depth = [], []
@@ -139,15 +139,13 @@ def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: d
         depth.append(coverage_and_depth(sc_bg, c)[1])
     coverage = np.stack(cov)
     bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
-    masks = None
     if region and integrator.get("type") == "path":
-        from optimizer.rendering.region import THRESHOLD, RegionSettings, regions
+        from optimizer.rendering.render import render_with_region
 
-        rs = RegionSettings(threshold=max(THRESHOLD, float(region_threshold or 0.0)))
-        masks = regions(env.build, obj_mesh, cams, coverage, rs, seed=target_seed(cfg.seed),
-                        max_depth=int(integrator["max_depth"]), rr_depth=int(integrator["rr_depth"])).masks
-    init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed), masks,
-                         bg if masks is not None else None)
+        init = render_with_region(env.build, obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed), bg,
+                                  coverage, region_threshold)[0]
+    else:
+        init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
     px = max(1, round(cfg.domain_dilate * max(cams[0].width, cams[0].height)))
     dom = [influence_domain(bg[i], init[i], coverage[i], cfg.shadow_threshold, px) for i in range(len(cams))]
     return Targets(bg, coverage, np.stack(dom), np.stack(depth)), init
@@ -297,7 +295,7 @@ class Stage1:
 
     def _targets(self) -> Targets:
         targets, self.initial_render = render_targets(self.env, self.cams, self._object(), self.shading_integrator(),
-                                                      self.cfg, region=getattr(self.plan, "region", False),
+                                                      self.cfg, region=getattr(self.plan, "region_search", False),
                                                       region_threshold=getattr(self.plan, "region_threshold", None))
         return targets
 
@@ -420,12 +418,26 @@ class Stage1:
         t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps)
         return t.total, t
 
-    def step(self) -> dict[str, Any]:
+    def gradient(self) -> tuple[float, dict[str, np.ndarray]]:
+        """The photometric loss of this iteration's renders and its gradient with respect to every trainable
+        parameter (NumPy arrays shaped like the values; raw: before sanitising, blurring and Adam), without taking a
+        step (the bench's probe; the seeds are this iteration's, so the result is what :meth:`step` would use)."""
+        import drjit as dr
+
+        photo, _, _, _ = self._photometric_backward(self.views_for_step())
+        out = {}
+        for name in self.opt.values:
+            x = self.opt[name]
+            out[name] = dr_numpy(dr.grad(x)).reshape(self.values[name].shape)
+            dr.clear_grad(x)
+        return photo, out
+
+    def _photometric_backward(self, views: list[int]) -> tuple[float, float, float, bool]:
+        """Render ``views`` with the current parameters, evaluate the loss (Eq. 10) and back-propagate it into the
+        parameters' gradients; returns ``(loss, luminance term, chroma term, has_terms)``."""
         import drjit as dr
         import mitsuba as mi
 
-        t0 = time.perf_counter()
-        views = self.views_for_step()
         V = len(views)
         # Loss terms stay Dr.Jit values (detached) and are read back once, after all views: a
         # read-back per view would stall the pipeline.
@@ -466,7 +478,13 @@ class Stage1:
             dr.schedule(photo, lum, chroma)
             if dr.grad_enabled(total):
                 dr.backward(total)
-        photo, lum, chroma = float(photo[0]), float(lum[0]), float(chroma[0])
+        return float(photo[0]), float(lum[0]), float(chroma[0]), has_terms
+
+    def step(self) -> dict[str, Any]:
+        import drjit as dr
+
+        t0 = time.perf_counter()
+        photo, lum, chroma, has_terms = self._photometric_backward(self.views_for_step())
         disp = 0.0
         if "displacement" in self.opt:
             l_disp = self.app.displacement_weight * dr.mean(dr.abs(self.opt["displacement"].array))

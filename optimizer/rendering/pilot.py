@@ -62,7 +62,11 @@ def srgb_slope(y: np.ndarray) -> np.ndarray:
 
 
 class Pilot:
-    """The pilot's renders of one scene, object and stage (module doc); :func:`run_pilot` makes one."""
+    """The pilot's renders of one scene, object and stage (module doc); :func:`run_pilot` makes one.
+
+    Each render is two independent halves (samples ``0 .. spp/2 - 1`` and ``spp/2 .. spp - 1`` of the same
+    streams): a squared mean is estimated without its noise as the product of the halves' means
+    (``E[a b] = E[a] E[b]`` for independent halves), as :func:`optimizer.optimise.holdout.split_error` does."""
 
     def __init__(self, settings: PilotSettings, names: list[str], obj: np.ndarray, bg: np.ndarray,
                  coverage: np.ndarray, emitters: list[str], seconds: float, vertices: float,
@@ -70,7 +74,8 @@ class Pilot:
         self.settings = settings
         self.names = names
         self.index = {n: i for i, n in enumerate(names)}
-        self.obj, self.bg = obj, bg  # (V, h, w, R) mean records with and without the object
+        self.halves = {"obj": obj, "bg": bg}  # (2, V, h, w, R) mean records of each half, with / without the object
+        self.obj, self.bg = obj.mean(0), bg.mean(0)  # (V, h, w, R) over both halves
         self.coverage = coverage  # (V, h, w) object coverage at the pilot's resolution
         self.emitters = emitters
         self.seconds = seconds
@@ -106,32 +111,41 @@ class Pilot:
 
         return np.stack([dilate_px(c, 1) for c in self.changed])
 
+    def _tails(self, rec: np.ndarray, sel: np.ndarray) -> np.ndarray:
+        """``(N, K)``: per selected pixel, the light that needs a depth above M = 1..K."""
+        m = np.stack([self.channel(rec, f"m{i}")[sel] for i in range(1, self.K + 1)], -1)
+        return m.sum(-1, keepdims=True) - np.cumsum(m, -1)
+
     # -- figures -----------------------------------------------------------------------------------------------
-    def depth_figures(self, pixels: np.ndarray | None = None, with_object: bool = True) -> DepthFigures:
-        """:class:`DepthFigures` over ``pixels`` (``(V, h, w)`` bool; None: all) of the render with (or without) the
-        object."""
+    def depth_figures(self, pixels: np.ndarray | None = None, with_object: bool = True,
+                      difference: bool = False) -> DepthFigures:
+        """:class:`DepthFigures` over ``pixels`` (``(V, h, w)`` bool; None: all) of the render with (or without)
+        the object. ``difference``: the bias is that of the object's *effect* (the render with the object minus
+        the one without, the same random numbers): what a loss or a metric comparing the two sees, since the light
+        both lack cancels."""
         rec = self.obj if with_object else self.bg
         sel = np.ones(rec.shape[:3], bool) if pixels is None else np.asarray(pixels, bool)
-        N = self.settings.spp
         K = self.K
         y = self.luminance(rec)[sel]
         s2 = srgb_slope(y) ** 2
         m = np.stack([self.channel(rec, f"m{i}")[sel] for i in range(1, K + 1)], -1)
         q = np.stack([self.channel(rec, f"q{i}")[sel] for i in range(1, K + 1)], -1)
-        t = np.stack([self.channel(rec, f"t{i}")[sel] for i in range(1, K + 1)], -1)
         n = np.stack([self.channel(rec, f"n{i}")[sel] for i in range(K)], -1)
         partial = np.cumsum(m, -1)
-        tail = y[:, None] - partial
         var = np.maximum(q - partial ** 2, 0.0)
-        tail_var = np.maximum(t - tail ** 2, 0.0)
-        bias2 = np.maximum(tail ** 2 - tail_var / N, 0.0)  # unbiased estimate of the squared mean tail
-        bounce2 = m ** 2
+        key = "obj" if with_object else "bg"
+        a, b = (self._tails(h, sel) for h in self.halves[key])
+        if difference:
+            a = a - self._tails(self.halves["bg"][0], sel)
+            b = b - self._tails(self.halves["bg"][1], sel)
         cnt = max(int(sel.sum()), 1)
+        bias2 = (s2[:, None] * a * b).sum(0) / cnt  # E[a b] = squared mean: the halves are independent
+        ma, mb = (np.stack([self.channel(h, f"m{i}")[sel] for i in range(1, K + 1)], -1) for h in self.halves[key])
         return DepthFigures(
-            bias=np.sqrt((s2[:, None] * bias2).sum(0) / cnt),
+            bias=np.sqrt(np.maximum(bias2, 0.0)),
             variance=(s2[:, None] * var).sum(0) / cnt,
             cost=np.cumsum(n, -1).sum(0) / cnt,
-            bounce=np.sqrt((s2[:, None] * bounce2).sum(0) / cnt),
+            bounce=np.sqrt(np.maximum((s2[:, None] * ma * mb).sum(0) / cnt, 0.0)),
             pixels=int(sel.sum()),
         )
 
@@ -167,6 +181,11 @@ class Pilot:
             var = np.maximum(self.channel(rec, f"q{self.K}")[sel] - y ** 2, 0.0)
             out.append(float(np.sqrt(np.mean(srgb_slope(y) ** 2 * var))) if y.size else 0.0)
         return out[0], out[1]
+
+    def cost_share(self, pixels: np.ndarray) -> float:
+        """The share of a full render's cost (path vertices per sample, with the object) that ``pixels`` hold."""
+        n = sum(self.channel(self.obj, f"n{k}") for k in range(self.K))
+        return float(n[np.asarray(pixels, bool)].sum() / max(float(n.sum()), 1e-12))
 
     def seconds_per_vertex(self) -> float:
         return self.seconds / max(self.vertices, 1.0)
@@ -229,12 +248,17 @@ def run_pilot(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object], ca
     sc_obj = scn.build_scene(elements_fn(), mesh, [scn.batch(picked, settings.spp)])
     sc_bg = scn.build_scene(elements_fn(), None, [scn.batch(picked, settings.spp)])
     names = record_names(settings.max_depth, len(sc_obj.emitters()))
-    _, obj = render_views(sc_obj, V, w, h, settings.spp, seed, settings.max_depth, settings.rr_depth, record=True)
-    _, bg = render_views(sc_bg, V, w, h, settings.spp, seed, settings.max_depth, settings.rr_depth, record=True)
+    half = max(1, settings.spp // 2)
+
+    def halves(sc):
+        return np.stack([render_views(sc, V, w, h, half, seed, settings.max_depth, settings.rr_depth, record=True,
+                                      first_sample=i * half)[1] for i in range(2)])
+
+    obj, bg = halves(sc_obj), halves(sc_bg)
     sc_cov = scn.build_scene(elements_fn(), mesh)
     coverage = np.stack([coverage_and_depth(sc_cov, c, mesh, 2)[0] for c in picked])
     n_idx = [names.index(f"n{k}") for k in range(settings.max_depth)]
-    vertices = float((obj[..., n_idx].sum() + bg[..., n_idx].sum()) * settings.spp)
+    vertices = float((obj[..., n_idx].sum() + bg[..., n_idx].sum()) * half)
     seconds = time.perf_counter() - t0
     sens = None
     if geometry:

@@ -1,24 +1,25 @@
-"""The region of each view an object can change: its silhouette, its shadows, the light it casts or blocks.
+"""Render only what an object can change: its silhouette, its shadows, the light it casts or blocks.
 
-A render with the object only needs these pixels: every other pixel equals the background render (the same
-random numbers draw the same paths there, :mod:`optimizer.rendering.tracer`). A region is the union of
+A render with the object needs only the pixels the object changes: every other pixel equals the background
+render of the same seed (the same random numbers draw the same paths there, :mod:`optimizer.rendering.tracer`).
+:func:`render_region` renders, at full resolution and the stage's spp,
 
-* the object's **coverage** (pixels it is seen in);
-* a **geometric bound on hard shadows**: for every compact light (the sun, an area light, a sun-like spot of an
-  envmap: the directions of the scene's emitter samples that carry most of the light, seen from the object) rays
-  from points of the object's bounding box, cast away from the light, hit the receivers where the box's shadow
-  falls; the convex hull of their projections and of the box's projection is filled. It holds however long the
-  shadow (a low sun) and wherever it falls (ground, walls);
-* the **measured change**: the object's effect ``|srgb(with) - srgb(without)|`` from a low-resolution pair of renders
-  sharing their random numbers, box-filtered (3 x 3) and thresholded at ``threshold`` (sRGB, default half an 8-bit
-  step): soft shadows under a sky, light the object reflects onto its surroundings, its colour on the ground;
+1. a **start**: the object's coverage and a **geometric bound on its hard shadows** -- for every compact light
+   (the sun, an area light, a sun-like spot of an envmap, a directional light: the emitter samples seen from the
+   object that carry most of the light in a small solid angle, :func:`compact_lights`) rays from points of the
+   object's bounding box cast away from the light hit the receivers where the box's shadow falls, and the convex
+   hull of their projections and of the box's projection is filled. It holds however long the shadow (a low sun)
+   and wherever it falls (ground, walls) -- dilated by ``margin`` (a fraction of the image's larger side);
+2. then **grows** it: wherever the rendered set's outer border shows a change ``|srgb(with) - srgb(without)|``
+   (box-filtered over the rendered pixels, 3 x 3) above ``threshold`` (default half an 8-bit step), a ring around
+   those border pixels is rendered too (``ring`` of the image's larger side, doubling at every step; once the region
+   holds 3/4 of the frames, the rest), until the border is quiet: soft shadows under a sky, light the object
+   reflects onto its surroundings, its colour on the ground.
 
-dilated by ``margin`` (a fraction of the image's larger side). What the region leaves out is, by construction,
-an effect below ``threshold`` (measured at the pilot's resolution: the margin covers what that resolution
-blurs); tests/test_region.py checks a converged region render against the full frame and a sun 8 degrees
-above the horizon.
-
-Masks are ``(H, W)`` bool at the views' resolution.
+Every rendered pixel is exact; what is left out changes the image by less than ``threshold`` at the border it was
+grown to (a change that is not connected to the object's region -- its reflection in a distant mirror -- is not
+searched for). tests/test_region.py checks a converged region render against the full frame under a sun 8 degrees
+above the horizon. Masks are ``(H, W)`` bool at the views' resolution.
 """
 
 from __future__ import annotations
@@ -32,8 +33,13 @@ from optimizer.scenes.cameras import Camera
 
 #: An effect below this (sRGB, [0, 1]) is left to the background render: half an 8-bit step.
 THRESHOLD = 0.5 / 255
-#: Dilation of the region, as a fraction of the image's larger side.
+#: Dilation of the region's start, as a fraction of the image's larger side.
 MARGIN = 0.03
+#: What the first growth step adds around a border pixel that still changes, same units; each further step
+#: doubles it.
+RING = 0.06
+#: Once the region holds this share of the frames and still grows, the rest is rendered in one step.
+FULL_SHARE = 0.75
 #: Emitter directions (seen from the object) with at least this share of the brightest one's radiance form the
 #: bright set; it is a compact light (hard shadows, covered by the geometric bound) when its solid angle is below
 #: ``COMPACT_SOLID_ANGLE`` sr (the sun: 7e-5 sr; the room's lamp seen from the object: ~0.3 sr; an overcast sky: ~3).
@@ -43,20 +49,19 @@ COMPACT_SOLID_ANGLE = 1.0
 
 @dataclasses.dataclass(frozen=True)
 class RegionSettings:
-    resolution: float = 0.5  # the measured change is rendered at this fraction of the views' resolution
-    min_size: int = 32  # ... and at least this many pixels on the shorter side
-    spp: int = 8
-    threshold: float = THRESHOLD
-    margin: float = MARGIN
+    threshold: float = THRESHOLD  # sRGB change that keeps a region growing
+    margin: float = MARGIN  # dilation of the start, a fraction of the image's larger side
+    ring: float = RING  # what one growth step adds around a changing border pixel, same units
+    max_steps: int = 8
     light_samples: int = 1024  # emitter samples from the object's centre that find the compact lights
 
 
 @dataclasses.dataclass
 class Regions:
-    masks: np.ndarray  # (V, H, W) bool
+    masks: np.ndarray  # (V, H, W) bool: the pixels rendered
     coverage_share: list[float]  # per view: share of the frame the object covers
     bound_share: list[float]  # ... its geometric shadow bound covers
-    measured_share: list[float]  # ... the measured change covers (before dilation)
+    steps: int  # growth steps taken
     lights: list[list[float]]  # compact light directions used by the bound (towards the light)
     seconds: float = 0.0
 
@@ -69,8 +74,7 @@ class Regions:
 
     def to_dict(self) -> dict:
         return {"share": [round(x, 4) for x in self.share], "coverage_share": [round(x, 4) for x in self.coverage_share],
-                "bound_share": [round(x, 4) for x in self.bound_share],
-                "measured_share": [round(x, 4) for x in self.measured_share],
+                "bound_share": [round(x, 4) for x in self.bound_share], "steps": self.steps,
                 "lights": [[round(c, 4) for c in d] for d in self.lights], "seconds": round(self.seconds, 3)}
 
 
@@ -153,7 +157,7 @@ def compact_lights(scene_bg, centre: np.ndarray, samples: int = 1024, share: flo
     """Unit directions ``(K, 3)`` from ``centre`` towards the scene's compact lights (hard shadows). Emitter samples
     (visibility ignored) whose radiance is at least ``share`` of the brightest form the bright set; it is a compact
     light when its solid angle (estimated as the sum of ``1 / (pdf N)`` over its samples) is below
-    ``max_solid_angle`` sr. A sun gives one direction, an area light the spread of its own, a sky or an even
+    ``max_solid_angle`` sr. Delta lights (directional, point) are compact. A sun gives one direction, an area light the spread of its own, a sky or an even
     envmap none (their shadows are soft: the measured change finds them). Near-identical directions (within ~1
     degree) are merged, at most 64 kept."""
     import drjit as dr
@@ -172,12 +176,17 @@ def compact_lights(scene_bg, centre: np.ndarray, samples: int = 1024, share: flo
     ok = np.isfinite(radiance) & (radiance > 0) & (pdf > 0) & np.all(np.isfinite(d), 1)
     if not ok.any():
         return np.zeros((0, 3))
+    delta = np.asarray(ds.delta)[ok]
     radiance, d, pdf = radiance[ok], d[ok], pdf[ok]
-    bright = radiance >= share * radiance.max()
-    if float(np.sum(1.0 / (pdf[bright] * samples))) > max_solid_angle:
-        return np.zeros((0, 3))
+    # a delta light (directional, point) is compact whatever the rest; the others by their bright set's solid angle
+    keep = delta.copy()
+    area = ~delta
+    if area.any():
+        bright = area & (radiance >= share * radiance[area].max())
+        if float(np.sum(1.0 / (pdf[bright] * samples))) <= max_solid_angle:
+            keep |= bright
     out: list[np.ndarray] = []
-    for v in d[bright][np.argsort(-radiance[bright])]:
+    for v in d[keep][np.argsort(-radiance[keep])]:
         if all(float(v @ o) < 0.99985 for o in out):
             out.append(v)
         if len(out) >= 64:
@@ -217,52 +226,6 @@ def mesh_bounds(mesh) -> tuple[np.ndarray, np.ndarray]:
     return v.min(0), v.max(0)
 
 
-def measured_change(elements_fn, mesh, cams: Sequence[Camera], settings: RegionSettings, seed: int,
-                    max_depth: int, rr_depth: int = 5, sure: Sequence[np.ndarray] | None = None) -> np.ndarray:
-    """``(V, h, w)`` bool at the region pass's resolution: pixels whose box-filtered (3 x 3) sRGB change with the
-    object exceeds ``settings.threshold``, from renders with and without ``mesh`` that share their random numbers.
-
-    Two passes: all pixels at ``settings.spp``, then the candidates (a filtered change above half the threshold,
-    outside ``sure``, the pixels already in the region, ``(V, h, w)``) again at 8 x the spp. A sparse few paths
-    that meet the object (a ground pixel's bounce) make single-pass estimates noisy far from it; the second pass
-    keeps only what holds up at 8 x the samples."""
-    from scipy.ndimage import uniform_filter
-
-    from camo_base.imaging import linear_to_srgb
-    from optimizer.rendering import scene as scn
-    from optimizer.rendering.tracer import render_views
-
-    low = [low_res(c, settings) for c in cams]
-    V, h, w = len(low), low[0].height, low[0].width
-    sc_obj = scn.build_scene(elements_fn(), mesh, [scn.batch(low, settings.spp)])
-    sc_bg = scn.build_scene(elements_fn(), None, [scn.batch(low, settings.spp)])
-
-    def change(spp, masks=None, fill=None):
-        a = render_views(sc_obj, V, w, h, spp, seed, max_depth, rr_depth, masks, None if fill is None else fill[0])
-        b = render_views(sc_bg, V, w, h, spp, seed, max_depth, rr_depth, masks, None if fill is None else fill[1])
-        return a, b
-
-    def filtered(a, b):
-        d = np.abs(linear_to_srgb(np.clip(a, 0, None)) - linear_to_srgb(np.clip(b, 0, None))).max(-1)
-        return np.stack([uniform_filter(x, 3) for x in d])
-
-    a, b = change(settings.spp)
-    d = filtered(a, b)
-    sure_low = np.zeros_like(d, bool) if sure is None else np.asarray(sure, bool)
-    candidates = (d > settings.threshold / 2) & ~sure_low
-    if candidates.any():
-        redo = np.stack([dilate_px(c, 1) for c in candidates])
-        a, b = change(settings.spp * 8, redo, (a, b))
-        d = filtered(a, b)
-    return d > settings.threshold
-
-
-def low_res(cam: Camera, settings: RegionSettings) -> Camera:
-    s = max(settings.resolution, settings.min_size / max(1, min(cam.width, cam.height)))
-    s = min(s, 1.0)
-    return dataclasses.replace(cam, width=max(1, round(cam.width * s)), height=max(1, round(cam.height * s)))
-
-
 def resize_any(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Resize a bool mask to ``shape``: a target pixel is set when any source pixel it overlaps is set."""
     h, w = mask.shape
@@ -284,39 +247,77 @@ def resize_all(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return ~resize_any(~mask, shape)
 
 
-def regions(elements_fn, mesh, cams: Sequence[Camera], coverage: np.ndarray | None = None,
-            settings: RegionSettings = RegionSettings(), seed: int = 0, max_depth: int = 12,
-            rr_depth: int = 5) -> Regions:
-    """The region of every view in which ``mesh`` (an ``mi.Mesh`` placed in the scene of ``elements_fn()``) can
-    change the image (module doc). ``coverage (V, H, W)``: the object's coverage when already known (else it is
-    ray cast)."""
+def start_masks(scene_bg, mesh, cams: Sequence[Camera], coverage: np.ndarray, settings: RegionSettings,
+                seed: int = 0, cache: dict | None = None) -> tuple[np.ndarray, list[float], list, np.ndarray]:
+    """``(start, bound_share, lights, bounds)``: per view the object's coverage and its hard-shadow bound, dilated by
+    ``settings.margin`` (``(V, H, W)`` bool). ``cache``: a dict kept across objects of one scene (the compact
+    lights are found once)."""
+    lo, hi = mesh_bounds(mesh)
+    lights = cache.get("lights") if cache is not None else None
+    if lights is None:
+        lights = compact_lights(scene_bg, (lo + hi) / 2.0, settings.light_samples, seed=seed)
+        if cache is not None:
+            cache["lights"] = lights
+    hits = shadow_points(scene_bg, lo, hi, lights)
+    bounds = np.stack([geometric_bound(c, lo, hi, hits) for c in cams])
+    px = max(1, round(settings.margin * max(cams[0].width, cams[0].height)))
+    start = np.stack([dilate_px((coverage[v] > 0) | bounds[v], px) for v in range(len(cams))])
+    return start, [float(b.mean()) for b in bounds], lights, bounds
+
+
+def border(rendered: np.ndarray, width: int = 2) -> np.ndarray:
+    """The outer ``width``-pixel band of a set of pixels ``(H, W)`` (the frame's edge is not a border)."""
+    from scipy.ndimage import binary_erosion
+
+    return rendered & ~binary_erosion(rendered, iterations=width, border_value=1)
+
+
+def change(image: np.ndarray, background: np.ndarray, rendered: np.ndarray) -> np.ndarray:
+    """``(H, W)``: the sRGB change ``max_c |srgb(image) - srgb(background)|`` box-filtered (3 x 3) over the rendered
+    pixels only (pixels not rendered neither count nor dilute)."""
+    from scipy.ndimage import uniform_filter
+
+    from camo_base.imaging import linear_to_srgb
+
+    d = np.abs(linear_to_srgb(np.clip(image, 0, None)) - linear_to_srgb(np.clip(background, 0, None))).max(-1)
+    w = rendered.astype(np.float64)
+    num = uniform_filter(d * w, 3)
+    den = uniform_filter(w, 3)
+    return np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
+
+
+def render_region(render, background: np.ndarray, scene_bg, mesh, cams: Sequence[Camera], coverage: np.ndarray,
+                  settings: RegionSettings = RegionSettings(), seed: int = 0,
+                  cache: dict | None = None) -> tuple[np.ndarray, Regions]:
+    """The render with the object ``mesh`` over the region it can change (module doc), the rest the
+    ``background (V, H, W, 3)`` (the same spp and seed); returns ``(image, regions)``.
+
+    ``render(masks, fill)`` renders the pixels ``masks (V, H, W)`` with the object (same spp and seed as the
+    background), copying ``fill`` elsewhere; ``scene_bg``: the scene without the object (its emitters and
+    receivers); ``coverage (V, H, W)``: the object's pixel coverage."""
     import time
 
-    from optimizer.rendering import scene as scn
-    from optimizer.rendering.render import coverage_and_depth
-
     t0 = time.perf_counter()
-    sc_bg = scn.build_scene(elements_fn())
-    lo, hi = mesh_bounds(mesh)
-    lights = compact_lights(sc_bg, (lo + hi) / 2.0, settings.light_samples, seed=seed)
-    hits = shadow_points(sc_bg, lo, hi, lights)
-    if coverage is None:
-        sc_obj = scn.build_scene(elements_fn(), mesh)
-        coverage = np.stack([coverage_and_depth(sc_obj, c, mesh)[0] for c in cams])
-    bounds = [geometric_bound(c, lo, hi, hits) for c in cams]
-    low = [low_res(c, settings) for c in cams]
-    sure = [resize_all((coverage[v] > 0) | bounds[v], (low[v].height, low[v].width)) for v in range(len(cams))]
-    measured = measured_change(elements_fn, mesh, cams, settings, seed, max_depth, rr_depth, sure)
-    masks, cov_s, bound_s, meas_s = [], [], [], []
-    for v, c in enumerate(cams):
-        shape = (c.height, c.width)
-        cov = coverage[v] > 0
-        bound = bounds[v]
-        meas = resize_any(measured[v], shape)
-        px = max(1, round(settings.margin * max(shape)))
-        masks.append(dilate_px(cov | bound | meas, px))
-        cov_s.append(float(cov.mean()))
-        bound_s.append(float(bound.mean()))
-        meas_s.append(float(meas.mean()))
-    return Regions(np.stack(masks), cov_s, bound_s, meas_s, [list(map(float, d)) for d in lights],
-                   time.perf_counter() - t0)
+    V = len(cams)
+    todo, bound_share, lights, _ = start_masks(scene_bg, mesh, cams, coverage, settings, seed, cache)
+    ring = max(1, round(settings.ring * max(cams[0].width, cams[0].height)))
+    rendered = np.zeros_like(todo)
+    image = np.array(background, np.float32, copy=True)
+    steps = 0
+    while todo.any() and steps < settings.max_steps:
+        image = render(todo, image)
+        rendered |= todo
+        steps += 1
+        hot = np.zeros_like(todo)
+        for v in range(V):
+            edge = border(rendered[v])
+            if edge.any():
+                hot[v] = edge & (change(image[v], background[v], rendered[v]) > settings.threshold)
+        if not hot.any():
+            break
+        if rendered.mean() > FULL_SHARE or steps == settings.max_steps - 1:
+            todo = ~rendered  # nearly everything changes: the rest in one go
+        else:
+            todo = np.stack([dilate_px(h, ring << (steps - 1)) for h in hot]) & ~rendered  # rings double
+    return image, Regions(rendered, [float((c > 0).mean()) for c in coverage], bound_share, steps,
+                          [list(map(float, d)) for d in lights], time.perf_counter() - t0)

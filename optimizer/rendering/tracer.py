@@ -23,7 +23,6 @@ over the samples (see :data:`RECORD`):
               ``m1 + ... + mM`` of the same samples;
 ``q{M}``      the square of that partial sum per sample (mean minus squared mean: the per-sample variance of a
               render at ``max_depth = M``);
-``t{M}``      the square of the rest, ``m{M+1} + ...`` per sample (the noise of the bias estimate);
 ``n{k}``      1 for each sample still traced when vertex ``k`` is searched (a render at ``max_depth = M`` casts
               ``n0 + ... + n{M-1}`` rays of each kind per sample: the cost model);
 ``via``       light that reached a surface of the environment by way of the object (colour bleeding, light the
@@ -52,10 +51,9 @@ def record_names(max_depth: int, emitters: int) -> list[str]:
     """Names of the ``record=True`` outputs, in order (module doc)."""
     m = [f"m{i}" for i in range(1, max_depth + 1)]
     q = [f"q{i}" for i in range(1, max_depth + 1)]
-    t = [f"t{i}" for i in range(1, max_depth + 1)]
     n = [f"n{i}" for i in range(max_depth)]
     e = [f"e{i}" for i in range(min(max(emitters, 1), MAX_EMITTERS))]
-    return m + q + t + n + ["via", "via_t", "via_t2", "seen_t", "seen_t2"] + e
+    return m + q + n + ["via", "via_t", "via_t2", "seen_t", "seen_t2"] + e
 
 
 def pixel_rng(pixel, sample, key: int):
@@ -184,20 +182,18 @@ def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False):
         return L, None
     _, A, alive, (c_via, c_via_t, c_seen_t), E = out[11:]
     partial = dr.zeros(mi.Float, n)
-    total = sum(A[1:K + 1], dr.zeros(mi.Float, n))
-    squares, tails = [], []
+    squares = []
     for m in range(1, K + 1):
         partial = partial + A[m]
         squares.append(partial * partial)
-        rest = total - partial
-        tails.append(rest * rest)
-    return L, list(A[1:K + 1]) + squares + tails + list(alive) + [c_via, c_via_t, c_via_t * c_via_t, c_seen_t,
-                                                                    c_seen_t * c_seen_t] + list(E)
+    return L, list(A[1:K + 1]) + squares + list(alive) + [c_via, c_via_t, c_via_t * c_via_t, c_seen_t,
+                                                          c_seen_t * c_seen_t] + list(E)
 
 
-def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int):
+def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, first_sample: int = 0):
     """Camera rays for ``spp`` samples of each pixel in ``pixels`` (flat row-major indices of the full
-    ``width x height`` film), sample-major within a pixel, and their random streams (:func:`pixel_rng`)."""
+    ``width x height`` film), sample-major within a pixel, samples ``first_sample`` to ``first_sample + spp - 1``,
+    and their random streams (:func:`pixel_rng`)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -205,7 +201,7 @@ def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int):
     n = dr.width(pix) * spp
     lane = dr.arange(mi.UInt32, n)
     p = dr.gather(mi.UInt32, pix, lane // spp)
-    rng = pixel_rng(p, lane % spp, key)
+    rng = pixel_rng(p, lane % spp + dr.opaque(mi.UInt32, int(first_sample)), key)
     x = mi.Float(p % width)
     y = mi.Float(p // width)
     ux = rng.next_float32()
@@ -216,44 +212,61 @@ def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int):
 
 
 def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed: int, max_depth: int,
-                  rr_depth: int = 5, record: bool = False, chunk: int = 1 << 22):
-    """Mean radiance ``(N, 3)`` float32 of the pixels ``pixels`` (flat indices into ``width x height``) and, with
-    ``record``, the mean records ``(N, R)`` float32 of :func:`record_names` (else None). Pixels are rendered in
-    chunks of at most ``chunk`` samples (each pixel's samples stay in one chunk; the result does not depend on
-    the chunking). ``seed`` keys the random streams (:func:`pixel_rng`)."""
+                  rr_depth: int = 5, record: bool = False, chunk: int = 1 << 22, first_sample: int = 0,
+                  moments: bool = False):
+    """``(rgb, records, lum2)``: the mean radiance ``(N, 3)`` float32 of the pixels ``pixels`` (flat indices into
+    ``width x height``); with ``record``, the mean records ``(N, R)`` float32 of :func:`record_names` (else None);
+    with ``moments``, the mean squared luminance per sample ``(N,)`` (its per-sample variance is ``lum2 - Y^2``; else
+    None). Samples ``first_sample`` to ``first_sample + spp - 1`` of each pixel are traced (a later call with
+    ``first_sample = spp`` adds new ones). Pixels are rendered in chunks of at most ``chunk`` samples (each pixel's
+    samples stay in one chunk; the result does not depend on the chunking). ``seed`` keys the random streams
+    (:func:`pixel_rng`)."""
     import drjit as dr
     import mitsuba as mi
 
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
     if pixels.size == 0:
-        return np.zeros((0, 3), np.float32), (np.zeros((0, 0), np.float32) if record else None)
+        return (np.zeros((0, 3), np.float32), np.zeros((0, 0), np.float32) if record else None,
+                np.zeros(0, np.float32) if moments else None)
     per = max(1, chunk // max(int(spp), 1))
     key = int(seed) & 0xFFFFFFFF
-    rgb_parts, rec_parts = [], []
+    rgb_parts, rec_parts, m2_parts = [], [], []
     with dr.suspend_grad():
         for start in range(0, pixels.size, per):
             part = pixels[start:start + per]
-            ray, weight, rng = pixel_rays(sensor, width, height, part, int(spp), key)
+            ray, weight, rng = pixel_rays(sensor, width, height, part, int(spp), key, first_sample)
             L, rec = trace(scene, ray, rng, max_depth, rr_depth, record)
             L = L * weight
             dr.eval(L, rec)  # one launch of the path loop for every output (a block sum would evaluate each alone)
-            sums = [dr.block_sum(L[c], spp) for c in range(3)] + ([dr.block_sum(r, spp) for r in rec] if record else [])
+            sums = [dr.block_sum(L[c], spp) for c in range(3)]
+            if moments:
+                y = LUMA[0] * L[0] + LUMA[1] * L[1] + LUMA[2] * L[2]
+                sums.append(dr.block_sum(y * y, spp))
+            if record:
+                sums += [dr.block_sum(r, spp) for r in rec]
             dr.eval(*sums)
             rgb = np.stack([np.asarray(x) for x in sums[:3]], -1) / spp
             rgb_parts.append(rgb.astype(np.float32))
+            k = 3
+            if moments:
+                m2_parts.append(np.asarray(sums[3]).astype(np.float32) / spp)
+                k = 4
             if record:
-                rec_parts.append(np.stack([np.asarray(x) for x in sums[3:]], -1).astype(np.float32) / spp)
-    return np.concatenate(rgb_parts), (np.concatenate(rec_parts) if record else None)
+                rec_parts.append(np.stack([np.asarray(x) for x in sums[k:]], -1).astype(np.float32) / spp)
+    return (np.concatenate(rgb_parts), np.concatenate(rec_parts) if record else None,
+            np.concatenate(m2_parts) if moments else None)
 
 
 def render_views(scene, views: int, width: int, height: int, spp: int, seed: int, max_depth: int,
                  rr_depth: int = 5, masks: np.ndarray | None = None, fill: np.ndarray | None = None,
-                 record: bool = False):
+                 record: bool = False, moments: bool = False, first_sample: int = 0):
     """Every view of ``scene``'s first sensor, a ``batch`` sensor of ``views`` views of ``width x height``
     (:func:`optimizer.rendering.scene.batch`; its film is ``views * width`` wide, and pixel ``p`` of that film is
     the key of its random streams): ``(V, H, W, 3)`` float32 linear radiance. Only the pixels where ``masks
     (V, H, W)`` is set are rendered (None: all), the others copied from ``fill (V, H, W, 3)`` (zeros when None).
-    With ``record``, also the mean records ``(V, H, W, R)`` of :func:`record_names` (zeros outside ``masks``)."""
+    With ``record`` and/or ``moments``, a tuple: the image, then the mean records ``(V, H, W, R)`` of
+    :func:`record_names` and/or the mean squared luminance ``(V, H, W)`` (zeros outside ``masks``).
+    ``first_sample``: see :func:`render_pixels`."""
     V, H, W = int(views), int(height), int(width)
     wide = np.zeros((H, V * W), bool)
     if masks is None:
@@ -264,14 +277,22 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
             raise ValueError(f"masks must be {(V, H, W)}, got {m.shape}")
         wide = m.transpose(1, 0, 2).reshape(H, V * W)
     idx = np.flatnonzero(wide.ravel())
-    rgb, rec = render_pixels(scene, scene.sensors()[0], V * W, H, idx, spp, seed, max_depth, rr_depth, record)
+    rgb, rec, m2 = render_pixels(scene, scene.sensors()[0], V * W, H, idx, spp, seed, max_depth, rr_depth, record,
+                                 first_sample=first_sample, moments=moments)
     out = np.zeros((H * V * W, 3), np.float32)
     if fill is not None:
         out[:] = np.asarray(fill, np.float32).transpose(1, 0, 2, 3).reshape(H * V * W, 3)
     out[idx] = rgb
     img = out.reshape(H, V, W, 3).transpose(1, 0, 2, 3).copy()
-    if not record:
+    if not record and not moments:
         return img
-    recs = np.zeros((H * V * W, rec.shape[1] if rec.size else 0), np.float32)
-    recs[idx] = rec
-    return img, recs.reshape(H, V, W, -1).transpose(1, 0, 2, 3).copy()
+    res = [img]
+    if record:
+        recs = np.zeros((H * V * W, rec.shape[1] if rec.size else 0), np.float32)
+        recs[idx] = rec
+        res.append(recs.reshape(H, V, W, -1).transpose(1, 0, 2, 3).copy())
+    if moments:
+        mm = np.zeros(H * V * W, np.float32)
+        mm[idx] = m2
+        res.append(mm.reshape(H, V, W).transpose(1, 0, 2).copy())
+    return tuple(res)

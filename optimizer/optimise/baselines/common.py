@@ -177,7 +177,7 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
     env = env if env is not None else get_environment(pack.environment)
     full = AppearanceConfig()  # the planner sees the full parameter set: one renderer for every method
     cams = cameras(pack)
-    pl = run_plan(spec, pack, env, prepared, cams, full.planner_params(), say)
+    pl = run_plan(spec, pack, env, prepared, cams, full, say)
     env = pl.environment(env)
     integ = shading_integrator(pl)
     app = dataclasses.replace(spec.appearance, pose=False, displacement=False, bsdf=True, transmittance=True)
@@ -189,7 +189,7 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
 
     obj = scn.object_mesh(geometry.positions_np(), geometry.faces, geometry.uvs, object_bsdf(init_vals, init_app))
     say("rendering background targets and the loss domain")
-    targets, init = render_targets(env, cams, obj, integ, stage1, region=pl.region, region_threshold=pl.region_threshold)
+    targets, init = render_targets(env, cams, obj, integ, stage1, region=pl.region_search, region_threshold=pl.region_threshold)
     return Setup(pack, env, cams, pl, integ, app, geometry, targets, init, stage1, say, seed=spec.seed)
 
 
