@@ -41,7 +41,7 @@ def main() -> None:
     from camo.cli import parse_ablate
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import plan
+    from optimizer.optimise.planning import measure_plan
     from optimizer.rendering.render import uses_batch
     from optimizer.optimise.run import appearance_for
     from optimizer.optimise.stage1 import Stage1, Stage1Config
@@ -55,8 +55,8 @@ def main() -> None:
     t = time.perf_counter()
     prepared = prepare_object(pack, target_vertices=args.target_vertices)
     t_mesh = time.perf_counter() - t
-    pl = plan(pack, env, app.planner_params())
     cams = cameras(pack)
+    pl = measure_plan(pack, env, prepared, cams, app, 0, {"training": args.spp, "targets": 64})  # a run's plan
     t = time.perf_counter()
     s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=args.spp, iterations=args.iterations), app)
     t_setup = time.perf_counter() - t

@@ -416,8 +416,8 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
             f"{ec.cams[0].width}x{ec.cams[0].height} px, {settings.spp} spp")
         bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
-        objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator,
-                                    bg if j.plan.region_search else None, j.plan.region_threshold)
+        objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator, bg,
+                                    j.plan.region_threshold if j.plan.region_search else None)
         cam_key = ec.key()
         scenes.setdefault(bg.key, {
             "scene": e.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),

@@ -48,6 +48,7 @@ from optimizer.scenes.cameras import Camera
 from camo_base import seeds
 from camo_base.errors import CamoError
 from optimizer.assets.rundir import RunDir, open_run
+from optimizer.rendering.noise import GROUPS
 
 #: The paper's evaluation jitter: up to +-0.25 units per axis at radius 4.
 DEFAULT_JITTER = 0.25
@@ -175,7 +176,7 @@ class Background:
     depth: np.ndarray  # (V, H, W)
     seconds: float
     key: str
-    lum2: np.ndarray | None = None  # (V, H, W) mean squared luminance per sample (noise matching), or None
+    groups: np.ndarray | None = None  # (G, V, H, W, 3) means of groups of its samples (noise matching), or None
 
 
 @dataclasses.dataclass
@@ -212,25 +213,27 @@ class ViewRenderer:
         key = self._key(pack, cams, integrator)
         if key not in self.cache:
             t = time.perf_counter()
-            lum2 = None
-            if self.noise_match and integrator.get("type") == "path":
-                from optimizer.rendering.render import render_moments
+            groups = None
+            if self.noise_match and integrator.get("type") == "path" and self.spp % GROUPS == 0:
+                from optimizer.rendering.render import PathRenderer
 
-                img, lum2 = render_moments(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
+                img, groups = PathRenderer(env.build(), None, cams, integrator, self.spp,
+                                           render_seed(self.seed))(groups=GROUPS)
             else:
                 img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
             sc = scn.build_scene(env.build())
             depth = np.stack([coverage_and_depth(sc, c, None, self.ss)[1] for c in cams])
-            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, lum2)
+            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, groups)
             self.background_renders += 1
         return self.cache[key]
 
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
                     background: Background | None = None, region_threshold: float | None = None) -> ObjectRenders:
-        """The scene with the object ``mesh_fn()``. With ``background`` (the same cameras, spp, integrator and seed)
-        only the region the object can change is rendered (:func:`optimizer.rendering.region.regions`, threshold
-        ``region_threshold`` in sRGB, default half an 8-bit step); every other pixel is the background's, which the
-        same random numbers would have drawn there (``tests/test_region.py``)."""
+        """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
+        ``region_threshold`` (sRGB) only the region the object can change is rendered
+        (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
+        random numbers drew there (``tests/test_region.py``). With noise matching, pixels where the render is
+        noisier than the background get more samples (:mod:`optimizer.rendering.noise`)."""
         from optimizer.rendering import scene as scn
         from optimizer.rendering.render import PathRenderer, coverage_and_depth, render_shaded, render_with_region
 
@@ -240,17 +243,17 @@ class ViewRenderer:
         cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
         seed = render_seed(self.seed)
         path = integrator.get("type") == "path"
-        match_noise = self.noise_match and path and background is not None and background.lum2 is not None
-        region, t_region, lum2 = None, 0.0, None
-        if background is not None and path:
+        match_noise = self.noise_match and path and background is not None and background.groups is not None
+        g = GROUPS if match_noise else 1
+        region, t_region, groups = None, 0.0, None
+        if background is not None and path and region_threshold is not None:
             out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.image, cov,
-                                     region_threshold, moments=match_noise,
-                                     cache=self.region_cache.setdefault(background.key, {}))
+                                     region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}))
             img, reg = out[0], out[1]
-            lum2 = out[2] if match_noise else None
+            groups = out[2] if match_noise else None
             region, t_region = reg.masks, reg.seconds
         elif match_noise:
-            img, lum2 = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(moments=True)
+            img, groups = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(groups=g)
         else:
             img = render_shaded(env.build(), mesh, cams, integrator, self.spp, seed)
         matched = None
@@ -258,7 +261,7 @@ class ViewRenderer:
             from optimizer.rendering.noise import match
 
             more = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)
-            img, matched = match(lambda sel, spp, first: more(sel, None, spp, first), img, lum2, background.image,
-                                 background.lum2, region if region is not None else np.ones(img.shape[:3], bool),
+            img, matched = match(lambda sel, spp, first: more(sel, None, spp, first), img, groups,
+                                 background.groups, region if region is not None else np.ones(img.shape[:3], bool),
                                  self.spp)
         return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched)

@@ -260,8 +260,8 @@ def render_stimuli(
         log(f"rendering {e.name} ({e.kind}, {e.scene}, {e.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
             + (" [practice]" if practice else ""))
         bg = renderer.background(e.pack, env, cams, plan.integrator)
-        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator, bg if plan.region_search else None,
-                                    plan.region_threshold)
+        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator, bg,
+                                    plan.region_threshold if plan.region_search else None)
         for v in range(len(cams)):
             mask = objr.mask[v]
             if not mask.any():

@@ -182,3 +182,127 @@ def test_a_sun_baked_into_a_panorama_is_flagged_like_the_sun(tmp_path, mi_backen
         xml.write_text(f'''<scene version="3.0.0"><emitter type="envmap">
             <string name="filename" value="{_pano(tmp_path, spot)}"/></emitter></scene>''')
         assert xml_environment(xml).compact_envmap_light is want
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the measured planner (a pilot on the actual scene)
+# --------------------------------------------------------------------------------------------------------------
+
+def _measured(name, ablate=(), spp=None, cams_res=48):
+    from optimizer.optimise.planning import measure_plan
+    from optimizer.optimise.run import appearance_for
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.scenes.cameras import cameras
+
+    pack = builtin_scenes.get(name)
+    pack.object = dataclasses.replace(pack.object, target_vertices=2000)
+    env = env_of(name)
+    return measure_plan(pack, env, prepare_object(pack), cameras(pack, (cams_res, cams_res)), appearance_for(set(ablate)),
+                        0, spp or {"training": 4, "targets": 64})
+
+
+def _check_depth_rule(p):
+    """The chosen depth is the shallowest whose dropped light is below 0.3 x the noise at the largest spp (or the
+    transmissive floor), as the plan's own figures say."""
+    bounce = {e.name: e for e in p.effects if e.name.startswith("bounce ")}
+    assert all(e.kept == (int(e.name.split()[1]) <= p.max_depth) for e in bounce.values())
+    rest = [e for e in p.effects if e.name.startswith("bounces ")]
+    assert all(not e.kept for e in rest)
+    assert p.integrator.get("max_depth", 2) == p.max_depth and p.rr_depth == 5
+    assert "rr_depth = max_depth would turn it off" in dict(p.reasons)["rr_depth"]
+
+
+@pytest.mark.slow
+def test_measured_plans_follow_the_light_transport(mi_backend):
+    """A transmissive start keeps the transmissive chains (depth >= 4) and measures them; an opaque start in the
+    open drops them; every decision comes with its measured contribution."""
+    transmissive = _measured("meadow")
+    opaque = _measured("meadow", ablate=("transmittance",))
+    room = _measured("room", ablate=("transmittance",))
+    for p in (transmissive, opaque, room):
+        _check_depth_rule(p)
+        assert p.measured and p.region and p.pilot["seconds"] > 0 and p.curve["rows"]
+        assert {"training", "targets"} <= set(p.spp) and p.spp["training"]["noise"] > p.spp["targets"]["noise"]
+    assert transmissive.max_depth >= 4 > opaque.max_depth
+    chains = next(e for e in transmissive.effects if "transmissive chains" in e.name)
+    assert chains.kept and chains.contribution > 0
+    assert next(e for e in opaque.effects if "transmissive chains" in e.name).contribution == 0.0
+    # the shadow's share of the pose response is measured and reported with the indirect-visibility decision
+    shadow = next(e for e in transmissive.effects if e.name.startswith("indirect visibility"))
+    assert not shadow.kept and "%" in shadow.name
+    text = transmissive.describe()
+    assert "measured effects" in text and "accuracy vs seconds" in text and "needs" in text
+
+
+def test_pilot_bias_predicts_the_renders(mi_backend):
+    """The pilot's bias of stopping at depth 3 (its two halves' product, sRGB to first order) matches the RMS
+    difference of renders at depth 3 and 12 that share their samples (1024 spp, the same pixels and views)."""
+    from camo_base.imaging import linear_to_srgb
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.pilot import PilotSettings, pick_views, pilot_camera, run_pilot
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.rendering.tracer import render_views
+    from optimizer.scenes.cameras import cameras
+
+    pack = builtin_scenes.get("room")
+    pack.object = dataclasses.replace(pack.object, target_vertices=2000)
+    env = env_of("room")
+    mesh = static_object_fn(pack, prepare_object(pack))
+    cams = cameras(pack, (32, 32))
+    settings = PilotSettings(views=2, resolution=24, spp=128)
+    pilot = run_pilot(env.build, mesh, cams, settings, seed=3)
+    predicted = pilot.depth_figures(None).bias[2]  # max_depth 3
+    picked = [pilot_camera(cams[i], 24) for i in pick_views(cams, 2)]
+    sc = scn.build_scene(env.build(), mesh(), [scn.batch(picked, 1024)])
+    w, h = picked[0].width, picked[0].height
+    deep, short = (render_views(sc, 2, w, h, 1024, 9, d, 12) for d in (12, 3))  # no roulette before 12: same paths
+    enc = lambda x: linear_to_srgb(np.clip(x, 0, None)).astype(np.float64)  # noqa: E731
+    from optimizer.rendering.tracer import LUMA
+
+    actual = float(np.sqrt(np.mean((enc(deep @ np.asarray(LUMA)) - enc(short @ np.asarray(LUMA))) ** 2)))
+    assert actual > 1.0 / 255
+    assert 0.75 < predicted / actual < 1.33, (predicted * 255, actual * 255)
+
+
+def test_plan_survives_its_record(mi_backend):
+    from optimizer.rendering.planner import Plan
+
+    p = _measured("gravel")
+    back = Plan.from_dict(p.to_dict())
+    assert back.to_dict() == p.to_dict()
+    assert back.describe() == p.describe()
+
+
+def test_an_emitter_below_the_noise_is_dropped(mi_backend):
+    """A second light contributing nothing measurable (1e-7 of the sun) is dropped; the plan's environment builds
+    without it. A second light that matters stays."""
+    import trimesh
+
+    mi, _ = mi_backend
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.planner import Planner
+    from optimizer.scenes.cameras import Camera
+
+    def env_with(level):
+        def build():
+            return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
+                               "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.4, 0.4, 0.4]}}},
+                    "sun": {"type": "directional", "direction": [-0.5, -0.2, -0.8],
+                            "irradiance": {"type": "rgb", "value": [3.0, 3.0, 3.0]}},
+                    "fill": {"type": "constant", "radiance": {"type": "rgb", "value": [level] * 3}}}
+        return Environment("test", "test", build, ("sun", "sky"))
+
+    box = trimesh.creation.box(extents=[0.5, 0.5, 0.8])
+    v = (np.asarray(box.vertices) + [0, 0, 0.4]).astype(np.float32)
+
+    def mesh():
+        return scn.object_mesh(v, np.asarray(box.faces), None, {"type": "diffuse"}, smooth=False)
+
+    cams = [Camera((3.0, -2.0, 1.5), (0.0, 0.0, 0.4), 40.0, 32, 32), Camera((-2.5, -2.5, 1.8), (0.0, 0.0, 0.4), 40.0, 32, 32)]
+    pack = builtin_scenes.get("meadow")
+    planner = Planner()
+    for level, dropped in ((3e-7, True), (0.3, False)):
+        env = env_with(level)
+        p = planner.plan(pack, env, {"albedo"}, "optimize", planner.pilot(env, mesh, cams, seed=1), {"targets": 64})
+        assert (p.drop_emitters == ["fill"]) is dropped, (level, p.drop_emitters)
+        assert ("fill" in p.environment(env).build()) is not dropped

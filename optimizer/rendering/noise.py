@@ -3,21 +3,29 @@
 A transmissive or glossy object under a compact light brings paths of high variance (light through it onto the
 ground, the sun seen through it or mirrored in it): at the same spp its pixels and their surroundings are noisier
 than the same pixels of the background render, and at 64 spp a participant can find it by its fireflies (measured
-on the demo's result on meadow: RMS noise on the object 4.3/255 against 2.7/255 in the background, and 5 pixels in
+on the demo's result on meadow: RMS noise on the object 4.2/255 against 2.7/255 in the background, and 4 pixels in
 1000 off by more than 20/255 against none). A uniform spp cannot fix that (both noises fall alike), so the noise is
 matched per pixel:
 
-1. the with-object render at ``spp`` (the pixels the object can change) keeps each pixel's per-sample variance
-   (:func:`optimizer.rendering.render.render_moments`), as does the background render;
-2. both variances, in sRGB (the encoding's slope at each pixel's value), are box-filtered over ``window`` pixels
-   (a variance from one pixel's samples is itself too noisy, fireflies most of all);
-3. a pixel whose with-object variance exceeds the background's by a factor ``r > 1.1`` gets ``k - 1`` times ``spp``
-   further samples (new ones: samples ``spp`` to ``k spp - 1``), ``k`` the power of two at or above ``r / 1.1``, at
-   most ``max_factor``: its mean over ``k spp`` samples has (within 10 %) the background's noise.
+1. each render (with the object: its region; the background: every pixel) keeps the means of ``GROUPS`` groups of
+   its samples (:func:`optimizer.rendering.tracer.render_pixels`, no extra cost): the variance of their 8-bit sRGB
+   values over the groups, divided by ``GROUPS``, estimates the noise the saved image shows -- in the encoding that
+   is seen, clipping included (a per-sample variance in linear units misjudges fireflies both ways: it misses the
+   rare ones and overrates the clipped ones);
+2. both are pooled over the ``window x window`` pixels around each pixel, **leaving the pixel itself out**: a pixel's
+   extra samples are decided by its neighbours' samples, never its own (a pixel given more samples because its own
+   samples came out bright would be diluted exactly there: biased low). The neighbours' streams are independent of
+   its own, so the estimate stays unbiased;
+3. a pixel whose noise variance exceeds the background's by ``r > 1.1`` gets ``k - 1`` times ``spp`` further samples
+   (samples ``spp`` to ``k spp - 1`` of its stream), ``k`` the power of two at or above ``r / 1.1``, at most
+   ``max_factor``: its mean over ``k spp`` samples has (within 10 %) the background's noise.
 
-The estimate stays unbiased (more samples of the same estimator), the first ``spp`` samples of every pixel are the
-background's (common random numbers are kept where the object does not matter: there ``k = 1``). What remains
-above the background's noise (pixels that hit ``max_factor``) is reported.
+The first ``spp`` samples of every pixel are the background's (common random numbers are kept where the object does
+not matter: there ``k = 1``). What remains above the background's noise (pixels that hit ``max_factor``) is
+reported. What it cannot do: light through a near-specular surface (roughness below ~0.1) straight from the sun is
+rarer than one in a few thousand samples and far brighter than the rest; 8x the samples do not tame it. Noise
+matching is for the rough transmission and gloss the optimiser produces (the built-in scenes start at roughness 0.5
+under compact lights, ``optimizer.rendering.planner.GLINT_ROUGHNESS``).
 """
 
 from __future__ import annotations
@@ -28,14 +36,15 @@ import numpy as np
 
 MAX_FACTOR = 8
 WINDOW = 5
-#: A variance ratio up to this is left alone (its estimate from one render is not finer than that).
+GROUPS = 4
+#: A noise-variance ratio up to this is left alone (its estimate is not finer than that).
 TOLERANCE = 1.1
 
 
 @dataclasses.dataclass
 class NoiseMatch:
     factor: np.ndarray  # (V, H, W) int: total spp / base spp per pixel (1 outside the region)
-    ratio: np.ndarray  # (V, H, W) float: with-object / background per-sample variance (filtered), before matching
+    ratio: np.ndarray  # (N,) float: with-object / background noise variance (pooled) in the region, before matching
     extra_samples: float  # extra samples as a share of one full-frame render at the base spp
     seconds: float
 
@@ -48,25 +57,39 @@ class NoiseMatch:
                 "seconds": round(self.seconds, 3)}
 
 
-def srgb_variance(image: np.ndarray, lum2: np.ndarray) -> np.ndarray:
-    """Per-sample variance of a pixel's sRGB value (first order: the encoding's slope at its luminance) from the mean
-    image ``(..., 3)`` and the mean squared luminance ``(...)``."""
-    from optimizer.rendering.pilot import srgb_slope
-    from optimizer.rendering.tracer import LUMA
+def display_variance(groups: np.ndarray) -> np.ndarray:
+    """``(V, H, W)``: the noise variance of the saved 8-bit sRGB image (units of 1/255, mean over channels)
+    estimated from the means of ``G`` groups of its samples ``(G, V, H, W, 3)``: their variance over the groups
+    (``ddof = 1``) divided by ``G``."""
+    from camo_base.imaging import linear_to_srgb
 
-    y = np.asarray(image, np.float64) @ np.asarray(LUMA)
-    return srgb_slope(np.clip(y, 0, None)) ** 2 * np.maximum(np.asarray(lum2, np.float64) - y * y, 0.0)
+    e = np.round(np.clip(linear_to_srgb(np.clip(groups, 0, None)), 0, 1) * 255.0)
+    g = e.shape[0]
+    return (e.var(0, ddof=1) / g).mean(-1)
+
+
+def pooled(values: np.ndarray, window: int) -> np.ndarray:
+    """The mean of ``values (V, H, W)`` over each pixel's ``window x window`` neighbourhood without the pixel itself
+    (at the frame's edge, over the neighbours that exist)."""
+    from scipy.ndimage import uniform_filter
+
+    n = float(window * window)
+    ones = np.ones(values.shape[1:])
+    out = []
+    for v in values:
+        s = uniform_filter(v.astype(np.float64), window, mode="constant") * n - v
+        c = uniform_filter(ones, window, mode="constant") * n - 1.0
+        out.append(s / np.maximum(c, 1.0))
+    return np.stack(out)
 
 
 def factors(obj_var: np.ndarray, bg_var: np.ndarray, region: np.ndarray, window: int = WINDOW,
             max_factor: int = MAX_FACTOR) -> tuple[np.ndarray, np.ndarray]:
-    """``(factor, ratio)`` per pixel ``(V, H, W)`` (see the module doc)."""
-    from scipy.ndimage import uniform_filter
-
-    o = np.stack([uniform_filter(v, window) for v in obj_var])
-    b = np.stack([uniform_filter(v, window) for v in bg_var])
-    ratio = np.where(region, o / np.maximum(b, 1e-12), 1.0)
-    ratio = np.where(region & (b <= 1e-12) & (o <= 1e-12), 1.0, ratio)
+    """``(factor, ratio)`` per pixel ``(V, H, W)`` from the noise variances with and without the object (module
+    doc; the region's pixels only, 1 elsewhere)."""
+    o, b = pooled(obj_var, window), pooled(bg_var, window)
+    ratio = np.where(region, o / np.maximum(b, 1e-6), 1.0)
+    ratio = np.where(region & (b <= 1e-6) & (o <= 1e-6), 1.0, ratio)
     k = np.ones(ratio.shape, np.int64)
     for f in (2, 4, 8, 16, 32):
         if f > max_factor:
@@ -75,16 +98,16 @@ def factors(obj_var: np.ndarray, bg_var: np.ndarray, region: np.ndarray, window:
     return np.where(region, k, 1), ratio
 
 
-def match(render_more, image: np.ndarray, lum2: np.ndarray, bg_image: np.ndarray, bg_lum2: np.ndarray,
-          region: np.ndarray, spp: int, window: int = WINDOW, max_factor: int = MAX_FACTOR
-          ) -> tuple[np.ndarray, NoiseMatch]:
-    """The with-object ``image`` with its noise matched to the background's (module doc). ``render_more(masks, spp,
-    first_sample)`` renders further samples of the pixels in ``masks`` (``(V, H, W, 3)`` means of those samples);
-    ``lum2`` / ``bg_lum2``: mean squared luminance per sample of the two renders at ``spp``."""
+def match(render_more, image: np.ndarray, groups: np.ndarray, bg_groups: np.ndarray, region: np.ndarray, spp: int,
+          window: int = WINDOW, max_factor: int = MAX_FACTOR) -> tuple[np.ndarray, NoiseMatch]:
+    """The with-object ``image`` (``spp`` samples) with its noise matched to the background's (module doc).
+    ``groups`` / ``bg_groups``: ``(G, V, H, W, 3)`` group means of the two renders (the with-object one over
+    ``region``); ``render_more(masks, spp, first_sample)`` renders further samples of the pixels in ``masks`` (their
+    means)."""
     import time
 
     t0 = time.perf_counter()
-    k, ratio = factors(srgb_variance(image, lum2), srgb_variance(bg_image, bg_lum2), region, window, max_factor)
+    k, ratio = factors(display_variance(groups), display_variance(bg_groups), region, window, max_factor)
     out = np.array(image, np.float32, copy=True)
     extra = 0
     for f in sorted(set(np.unique(k).tolist()) - {1}):

@@ -53,16 +53,17 @@ class PathRenderer:
         self.scene = scn.build_scene(elements, obj, [scn.batch(self.cams, self.spp)])
 
     def __call__(self, masks: np.ndarray | None = None, fill: np.ndarray | None = None, spp: int | None = None,
-                 first_sample: int = 0, moments: bool = False):
+                 first_sample: int = 0, moments: bool = False, groups: int = 1):
         """``(V, H, W, 3)`` linear radiance: the pixels where ``masks (V, H, W)`` is set (None: all), the others
         copied from ``fill`` (zeros when None); samples ``first_sample`` on, ``spp`` of them (default the
-        renderer's). ``moments``: ``(image, lum2)``, with the mean squared luminance per sample ``(V, H, W)``."""
+        renderer's). ``moments``: also the mean squared luminance per sample ``(V, H, W)``; ``groups`` > 1: also the
+        means of that many consecutive groups of samples ``(G, V, H, W, 3)`` (a tuple after the image)."""
         from optimizer.rendering.tracer import render_views
 
         c = self.cams[0]
         return render_views(self.scene, len(self.cams), c.width, c.height, self.spp if spp is None else int(spp),
                             self.seed, self.max_depth, self.rr_depth, masks, fill, moments=moments,
-                            first_sample=first_sample)
+                            first_sample=first_sample, groups=groups)
 
 
 def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,
@@ -90,21 +91,22 @@ def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict,
 
 def render_with_region(elements_fn, mesh, cams: Sequence[Camera], integrator: dict, spp: int, seed: int,
                        background: np.ndarray, coverage: np.ndarray, threshold: float | None = None,
-                       moments: bool = False, cache: dict | None = None):
+                       groups: int = 1, cache: dict | None = None):
     """The render with the object ``mesh`` over the region it can change
     (:func:`optimizer.rendering.region.render_region`), the rest from ``background`` (same spp and seed); returns
-    ``(image, regions)`` or, with ``moments``, ``(image, regions, lum2)`` (lum2 0 outside the region).
-    ``elements_fn()``: fresh environment elements; ``cache``: a dict kept across objects of one scene."""
+    ``(image, regions)`` or, with ``groups`` > 1, ``(image, regions, group_means)`` (``(G, V, H, W, 3)``, zeros
+    outside the region). ``elements_fn()``: fresh environment elements; ``cache``: a dict kept across objects of
+    one scene."""
     from optimizer.rendering.region import THRESHOLD, RegionSettings, render_region
 
     r = PathRenderer(elements_fn(), mesh, cams, integrator, spp, seed)
-    lum2 = np.zeros(np.asarray(background).shape[:3], np.float32)
+    grouped = np.zeros((groups, *np.asarray(background).shape), np.float32) if groups > 1 else None
 
     def render(masks, fill):
-        if not moments:
+        if grouped is None:
             return r(masks, fill)
-        img, l2 = r(masks, fill, moments=True)
-        lum2[masks] = l2[masks]
+        img, g = r(masks, fill, groups=groups)
+        grouped[:, masks] = g[:, masks]
         return img
 
     sc_bg = cache.get("scene") if cache is not None else None
@@ -114,17 +116,7 @@ def render_with_region(elements_fn, mesh, cams: Sequence[Camera], integrator: di
             cache["scene"] = sc_bg
     settings = RegionSettings(threshold=max(THRESHOLD, float(threshold or 0.0)))
     img, reg = render_region(render, background, sc_bg, mesh, cams, coverage, settings, seed, cache)
-    return (img, reg, lum2) if moments else (img, reg)
-
-
-def render_moments(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,
-                   masks: np.ndarray | None = None, fill: np.ndarray | None = None,
-                   first_sample: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`render_shaded` for a ``path`` integrator, with the mean squared luminance per sample ``(V, H, W)``
-    beside the image (the per-sample variance is ``lum2 - Y^2``); ``first_sample``: render samples from that index
-    on (new samples for the same pixels, :func:`optimizer.rendering.tracer.render_pixels`)."""
-    return PathRenderer(elements, obj, cams, integrator, spp, seed)(masks, fill, first_sample=first_sample,
-                                                                   moments=True)
+    return (img, reg, grouped) if grouped is not None else (img, reg)
 
 
 def split_batch(img: np.ndarray, views: int) -> np.ndarray:

@@ -213,24 +213,28 @@ def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, firs
 
 def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed: int, max_depth: int,
                   rr_depth: int = 5, record: bool = False, chunk: int = 1 << 22, first_sample: int = 0,
-                  moments: bool = False):
-    """``(rgb, records, lum2)``: the mean radiance ``(N, 3)`` float32 of the pixels ``pixels`` (flat indices into
-    ``width x height``); with ``record``, the mean records ``(N, R)`` float32 of :func:`record_names` (else None);
-    with ``moments``, the mean squared luminance per sample ``(N,)`` (its per-sample variance is ``lum2 - Y^2``; else
-    None). Samples ``first_sample`` to ``first_sample + spp - 1`` of each pixel are traced (a later call with
-    ``first_sample = spp`` adds new ones). Pixels are rendered in chunks of at most ``chunk`` samples (each pixel's
-    samples stay in one chunk; the result does not depend on the chunking). ``seed`` keys the random streams
-    (:func:`pixel_rng`)."""
+                  moments: bool = False, groups: int = 1):
+    """``(rgb, records, lum2, group_rgb)``: the mean radiance ``(N, 3)`` float32 of the pixels ``pixels`` (flat
+    indices into ``width x height``); with ``record``, the mean records ``(N, R)`` float32 of :func:`record_names`
+    (else None); with ``moments``, the mean squared luminance per sample ``(N,)`` (its per-sample variance is
+    ``lum2 - Y^2``; else None); with ``groups`` > 1 (dividing ``spp``), the means of the ``groups`` consecutive
+    groups of samples ``(N, groups, 3)`` (their mean is ``rgb``; else None). Samples ``first_sample`` to
+    ``first_sample + spp - 1`` of each pixel are traced (a later call with ``first_sample = spp`` adds new ones).
+    Pixels are rendered in chunks of at most ``chunk`` samples (each pixel's samples stay in one chunk; the result
+    does not depend on the chunking). ``seed`` keys the random streams (:func:`pixel_rng`)."""
     import drjit as dr
     import mitsuba as mi
 
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
+    groups = int(groups)
+    if groups < 1 or spp % groups:
+        raise ValueError(f"groups must divide spp ({spp}), got {groups}")
     if pixels.size == 0:
         return (np.zeros((0, 3), np.float32), np.zeros((0, 0), np.float32) if record else None,
-                np.zeros(0, np.float32) if moments else None)
+                np.zeros(0, np.float32) if moments else None, np.zeros((0, groups, 3), np.float32) if groups > 1 else None)
     per = max(1, chunk // max(int(spp), 1))
     key = int(seed) & 0xFFFFFFFF
-    rgb_parts, rec_parts, m2_parts = [], [], []
+    rgb_parts, rec_parts, m2_parts, grp_parts = [], [], [], []
     with dr.suspend_grad():
         for start in range(0, pixels.size, per):
             part = pixels[start:start + per]
@@ -238,6 +242,11 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
             L, rec = trace(scene, ray, rng, max_depth, rr_depth, record)
             L = L * weight
             dr.eval(L, rec)  # one launch of the path loop for every output (a block sum would evaluate each alone)
+            if groups > 1:
+                g = [dr.block_sum(L[c], spp // groups) for c in range(3)]
+                dr.eval(*g)
+                grp = np.stack([np.asarray(x) for x in g], -1).reshape(-1, groups, 3) / (spp // groups)
+                grp_parts.append(grp.astype(np.float32))
             sums = [dr.block_sum(L[c], spp) for c in range(3)]
             if moments:
                 y = LUMA[0] * L[0] + LUMA[1] * L[1] + LUMA[2] * L[2]
@@ -254,19 +263,19 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
             if record:
                 rec_parts.append(np.stack([np.asarray(x) for x in sums[k:]], -1).astype(np.float32) / spp)
     return (np.concatenate(rgb_parts), np.concatenate(rec_parts) if record else None,
-            np.concatenate(m2_parts) if moments else None)
+            np.concatenate(m2_parts) if moments else None, np.concatenate(grp_parts) if groups > 1 else None)
 
 
 def render_views(scene, views: int, width: int, height: int, spp: int, seed: int, max_depth: int,
                  rr_depth: int = 5, masks: np.ndarray | None = None, fill: np.ndarray | None = None,
-                 record: bool = False, moments: bool = False, first_sample: int = 0):
+                 record: bool = False, moments: bool = False, first_sample: int = 0, groups: int = 1):
     """Every view of ``scene``'s first sensor, a ``batch`` sensor of ``views`` views of ``width x height``
     (:func:`optimizer.rendering.scene.batch`; its film is ``views * width`` wide, and pixel ``p`` of that film is
     the key of its random streams): ``(V, H, W, 3)`` float32 linear radiance. Only the pixels where ``masks
     (V, H, W)`` is set are rendered (None: all), the others copied from ``fill (V, H, W, 3)`` (zeros when None).
-    With ``record`` and/or ``moments``, a tuple: the image, then the mean records ``(V, H, W, R)`` of
-    :func:`record_names` and/or the mean squared luminance ``(V, H, W)`` (zeros outside ``masks``).
-    ``first_sample``: see :func:`render_pixels`."""
+    With ``record``, ``moments`` and/or ``groups`` > 1, a tuple: the image, then the mean records ``(V, H, W, R)`` of
+    :func:`record_names`, the mean squared luminance ``(V, H, W)`` and/or the group means ``(G, V, H, W, 3)`` (zeros
+    outside ``masks``). ``first_sample``, ``groups``: see :func:`render_pixels`."""
     V, H, W = int(views), int(height), int(width)
     wide = np.zeros((H, V * W), bool)
     if masks is None:
@@ -277,14 +286,14 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
             raise ValueError(f"masks must be {(V, H, W)}, got {m.shape}")
         wide = m.transpose(1, 0, 2).reshape(H, V * W)
     idx = np.flatnonzero(wide.ravel())
-    rgb, rec, m2 = render_pixels(scene, scene.sensors()[0], V * W, H, idx, spp, seed, max_depth, rr_depth, record,
-                                 first_sample=first_sample, moments=moments)
+    rgb, rec, m2, grp = render_pixels(scene, scene.sensors()[0], V * W, H, idx, spp, seed, max_depth, rr_depth,
+                                      record, first_sample=first_sample, moments=moments, groups=groups)
     out = np.zeros((H * V * W, 3), np.float32)
     if fill is not None:
         out[:] = np.asarray(fill, np.float32).transpose(1, 0, 2, 3).reshape(H * V * W, 3)
     out[idx] = rgb
     img = out.reshape(H, V, W, 3).transpose(1, 0, 2, 3).copy()
-    if not record and not moments:
+    if not record and not moments and groups <= 1:
         return img
     res = [img]
     if record:
@@ -295,4 +304,8 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
         mm = np.zeros(H * V * W, np.float32)
         mm[idx] = m2
         res.append(mm.reshape(H, V, W).transpose(1, 0, 2).copy())
+    if groups > 1:
+        gg = np.zeros((H * V * W, groups, 3), np.float32)
+        gg[idx] = grp
+        res.append(gg.reshape(H, V, W, groups, 3).transpose(3, 1, 0, 2, 4).copy())
     return tuple(res)
