@@ -17,9 +17,11 @@ DEMO_OURS_OPT ?= --displacement-resolution 128 --spp 4
 # Each demo step prints the wall-clock seconds it took.
 TIMED        = bash .ci/timed
 DEMO_BASELINES ?= mean random
+# The demo's turntable (camo video): background | Mean | ours, sized for about a minute on 2 cores.
+DEMO_VIDEO_OPT ?= --frames 48 --resolution 96 --spp 8 --fps 24 --preview-frames 24
 STAMP       := $(VENV)/.installed
 
-.PHONY: install demo test test-slow test-all bench clean
+.PHONY: install viewer-js demo readme-media test test-slow test-all bench clean
 
 install: $(STAMP)
 
@@ -32,7 +34,11 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/camo doctor
 	touch $(STAMP)
 
-demo: install
+# The interactive viewer's JavaScript (@google/model-viewer, pinned in data_manifests/viewer.toml), served locally.
+viewer-js: install
+	$(BIN)/camo data fetch data_manifests/viewer.toml --dest data/vendor --quiet
+
+demo: install viewer-js
 	$(TIMED) "render the scene" $(BIN)/camo scenes render $(DEMO_SCENE) --out $(DEMO_OUT)/scene --views 8 --spp 32
 	$(TIMED) "optimise: ours" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/ours $(DEMO_OPT) $(DEMO_OURS_OPT)
 	$(TIMED) "optimise: ours without Stage 2" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/no-inpainting \
@@ -40,19 +46,25 @@ demo: install
 	for m in $(DEMO_BASELINES); do \
 	  $(TIMED) "baseline: $$m" $(BIN)/camo optimize $(DEMO_SCENE) --method $$m --out $(DEMO_OUT)/runs/$$m $(DEMO_OPT) || exit 1; done
 	$(TIMED) "evaluate on novel views" $(BIN)/camo evaluate $(DEMO_OUT)/runs/* --out $(DEMO_OUT)/eval --views 8 --spp 64
-	$(TIMED) "report" $(BIN)/camo report $(DEMO_OUT)/eval --out $(DEMO_OUT)/report
-	@echo "demo done: previews in $(DEMO_OUT)/runs/*/previews, report in $(DEMO_OUT)/report/report.html"
+	$(TIMED) "turntable: background | Mean | ours" $(BIN)/camo video $(DEMO_OUT)/runs/mean $(DEMO_OUT)/runs/ours \
+	  --out $(DEMO_OUT)/turntable.mp4 $(DEMO_VIDEO_OPT)
+	$(TIMED) "report" $(BIN)/camo report $(DEMO_OUT)/eval --out $(DEMO_OUT)/report --video $(DEMO_OUT)/turntable.mp4
+	@echo "demo done: previews in $(DEMO_OUT)/runs/*/previews, report in $(DEMO_OUT)/report/report.html, turntable $(DEMO_OUT)/turntable.mp4"
 
-test: install
-	bash .ci/system-deps chromium
+# The README's animated turntable (docs/results/turntable_meadow.webp): the demo's preview.
+readme-media: demo
+	cp $(DEMO_OUT)/turntable.webp docs/results/turntable_meadow.webp
+
+test: install viewer-js
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q
 
-test-slow: install
-	bash .ci/system-deps chromium
+test-slow: install viewer-js
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: install
-	bash .ci/system-deps chromium
+test-all: install viewer-js
+	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
 clean:

@@ -211,12 +211,12 @@ def bench_gradient(name: str, args) -> dict:
     ref_plan = Plan({"type": "prb", "max_depth": 12, "rr_depth": 5}, False, 12, "", [], rr_depth=5)
     base_cfg = Stage1Config(spp=args.train_spp, target_spp=args.target_spp, seed=args.seed)
     # the targets (background, domain) once, rendered with the plan's depth as a run would
-    first = Stage1(pack, env, prepared, cams, plan, base_cfg, app)
+    first = Stage1(pack, env, prepared, cams, plan, base_cfg, app).prepare()
     targets, values = first.targets, first.current_values()
 
     def stage(pl: Plan, spp: int) -> Stage1:
         return Stage1(pack, env, prepared, cams, pl, dataclasses.replace(base_cfg, spp=spp), app,
-                      initial=values, targets=targets)
+                      initial=values).prepare(targets=targets)
 
     def maps_vector(g: dict[str, np.ndarray]) -> np.ndarray:
         # as Adam sees them in the fast preset: blurred by --grad-blur texels (AppearanceConfig.grad_blur)

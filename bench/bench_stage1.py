@@ -38,19 +38,20 @@ def main() -> None:
     from optimizer import backend
     from optimizer.scenes import builtin_scenes
     from optimizer.scenes.cameras import cameras
-    from camo.cli import parse_ablate
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
     from optimizer.optimise.planning import measure_plan
     from optimizer.rendering.render import uses_batch
-    from optimizer.optimise.run import appearance_for
+    from optimizer.assets.conditions import ablated_switches, parse_ablations
+    from optimizer.rendering.appearance import AppearanceConfig
     from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     info = backend.init()
     pack = builtin_scenes.get(args.scene)
     pack.cameras = dataclasses.replace(pack.cameras, views=args.views)
     pack.render = dataclasses.replace(pack.render, resolution=(args.resolution, args.resolution))
-    app = dataclasses.replace(appearance_for(parse_ablate(args.ablate)), map_resolution=args.map_resolution)
+    app = dataclasses.replace(AppearanceConfig(), **ablated_switches(parse_ablations(args.ablate)),
+                              map_resolution=args.map_resolution)
     env = get_environment(pack.environment)
     t = time.perf_counter()
     prepared = prepare_object(pack, target_vertices=args.target_vertices)
@@ -58,7 +59,7 @@ def main() -> None:
     cams = cameras(pack)
     pl = measure_plan(pack, env, prepared, cams, app, 0, {"training": args.spp, "targets": 64})  # a run's plan
     t = time.perf_counter()
-    s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=args.spp, iterations=args.iterations), app)
+    s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=args.spp, iterations=args.iterations), app).prepare()
     t_setup = time.perf_counter() - t
 
     # --- raw Mitsuba: the same scene and parameters, render + backward per view ---

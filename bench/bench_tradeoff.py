@@ -104,7 +104,7 @@ def main() -> None:
         pl = measure_plan(pack, env, prepared, cams, app, 0, {"training": spp, "targets": args.eval_spp}) if planner \
             else full_plan("optimize", geometry=True)
         held = jitter(cams, 0.25, pack.cameras.radius, seed=11)
-        s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=spp, target_spp=args.eval_spp, seed=0), app)
+        s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=spp, target_spp=args.eval_spp, seed=0), app).prepare()
         if not planner:
             wanted = (args.full_iterations,)
         elif (spp, res, planner) == base or args.grid == "full":

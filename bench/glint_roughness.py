@@ -99,6 +99,7 @@ def scene_report(name: str, spp: int, roughness: tuple[float, ...]) -> dict:
     import mitsuba as mi
 
     from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.bsdf_maps import material_values
     from optimizer.rendering import scene as scn
     from optimizer.scenes.cameras import Camera, cameras, object_centre
     from optimizer.scenes.environments import get_environment
@@ -122,7 +123,7 @@ def scene_report(name: str, spp: int, roughness: tuple[float, ...]) -> dict:
     m = pack.material
     rows = []
     for r in roughness:
-        bsdf = scn.principled(m.albedo, m.metallic, r, m.transmittance)
+        bsdf = scn.principled({**material_values(m), "roughness": r})
         elements = env.build()
         elements["probe"] = facet(centre, h, 0.25, bsdf)
         sc = scn.build_scene(elements, None, [scn.perspective(cam, spp)], integ)

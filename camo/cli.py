@@ -1,35 +1,40 @@
 """The ``camo`` command line: one CLI, subcommands per package.
 
 ``camo doctor | scenes list | scenes render | plan`` live here; the other
-commands come from the modules in :data:`PLUGINS` (``optimize``, ``evaluate`` /
-``report``, ``study ...``, ``data ...``). Every handler takes the parsed
-arguments and returns an exit code; a :class:`CamoError` becomes one line on
-stderr and exit code 2.
+commands come from each package's ``register(subparsers)`` (``optimize``:
+:mod:`camo.optimize_cli`, ``evaluate`` / ``report``: :mod:`evaluation.cli`, ``video`` / ``view``: :mod:`camo.video_cli`,
+``study ...``: :mod:`study_site.cli`, ``data ...``: :mod:`optimizer.scenes.data`,
+``grid ...``: :mod:`camo.grid`), imported here by name like any other module.
+Helpers those modules share live in the leaf module :mod:`camo.cli_common`
+(nothing imports this module back). Every handler takes the parsed arguments
+and returns an exit code; a :class:`CamoError` becomes one line on stderr and
+exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 from typing import Callable, Sequence
 
-from camo_base.errors import CamoError
-
-#: Modules that contribute subcommands through a ``register(subparsers)`` function.
-PLUGINS = ("camo.optimize_cli", "evaluation.cli", "study_site.cli", "optimizer.scenes.data", "camo.grid")
-
+from camo.cli_common import load_scene_arg
+from camo_base.errors import CamoError, SettingError
+from camo_base.ranges import Range
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--resolution", type=int, help="image width = height in pixels (default: the pack's)")
-    p.add_argument("--spp", type=int, help="samples per pixel (default: the pack's)")
-    p.add_argument("--views", type=int, help="number of orbit views (default: the pack's)")
-    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend (default: all cores; env CAMO_THREADS)")
+    p.add_argument("--resolution", type=Range(int, 8, 8192).arg_type(),
+                   help="image width = height in pixels (default: the pack's)")
+    p.add_argument("--spp", type=Range(int, 1, 1 << 16).arg_type(),
+                   help="samples per pixel of this render (default: the pack's [render] spp; `camo optimize --spp` is "
+                        "a run's training spp)")
+    p.add_argument("--views", type=Range(int, 1, 1024).arg_type(), help="number of orbit views (default: the pack's)")
+    p.add_argument("--threads", type=Range(int, 1, 4096).arg_type(),
+                   help="CPU threads for the LLVM backend (default: all cores; env CAMO_THREADS)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="camo", description="3D camouflage: optimise, evaluate, study.")
+    parser = CamoArgumentParser(prog="camo", description="3D camouflage: optimise, evaluate, study.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
@@ -44,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = ssub.add_parser("render", help="render a scene's views (background, object, mask, depth) to a folder")
     p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
     _add_render_args(p)
     p.set_defaults(func=_scenes_render)
 
@@ -52,27 +57,30 @@ def build_parser() -> argparse.ArgumentParser:
                        "measured contributions and the accuracy-vs-seconds curve")
     p.add_argument("scene", help="built-in scene name or scene pack .toml")
     p.add_argument("--purpose", choices=("optimize", "render", "evaluate"), default="optimize")
-    p.add_argument("--ablate", default="", help="comma list of parameters switched off: pose,displacement,bsdf,transmittance")
+    p.add_argument("--ablate", default="", help="comma list of parts switched off (the ablations of camo optimize)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
-    p.add_argument("--spp", type=int, help="optimize: training spp (default 4); evaluate/render: the renders' spp "
-                   "(default 64)")
-    p.add_argument("--target-spp", type=int, default=64, help="optimize: the targets' spp (default 64)")
-    p.add_argument("--resolution", type=int, help="image width = height in pixels (default: the pack's)")
-    p.add_argument("--views", type=int, help="number of orbit views (default: the pack's)")
-    p.add_argument("--seed", type=int, default=0, help="the run's (or evaluation's) seed: the pilot's random numbers")
+    p.add_argument("--spp", type=Range(int, 1, 1 << 16).arg_type(),
+                   help="optimize: training spp (default 4); evaluate/render: the renders' spp (default 64)")
+    p.add_argument("--target-spp", type=Range(int, 1, 1 << 16).arg_type(), default=64,
+                   help="optimize: the targets' spp (default 64)")
+    p.add_argument("--resolution", type=Range(int, 8, 8192).arg_type(),
+                   help="image width = height in pixels (default: the pack's)")
+    p.add_argument("--views", type=Range(int, 1, 1024).arg_type(), help="number of orbit views (default: the pack's)")
+    p.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0,
+                   help="the run's (or evaluation's) seed: the pilot's random numbers")
     p.add_argument("--png", metavar="FILE", help="also draw the accuracy-vs-seconds curve to FILE (PNG)")
     p.add_argument("--no-pilot", action="store_true", help="print the rule-based plan only (what correctness "
                    "requires, every bounce kept)")
-    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend (default: all cores)")
-    p.set_defaults(func=_plan)
+    p.add_argument("--threads", type=Range(int, 1, 4096).arg_type(),
+                   help="CPU threads for the LLVM backend (default: all cores)")
+    p.set_defaults(func=_plan, setting_names=lambda name, args: f"--{name}")
 
-    for name in PLUGINS:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:  # a package installed without that part
-            if exc.name != name:
-                raise
-            continue
+    from camo import grid, optimize_cli, video_cli
+    from evaluation import cli as evaluation_cli
+    from optimizer.scenes import data
+    from study_site import cli as study_cli
+
+    for module in (optimize_cli, evaluation_cli, video_cli, study_cli, data, grid):
         module.register(sub)
     return parser
 
@@ -91,34 +99,6 @@ def _scenes_list(args) -> int:
     return 0
 
 
-def _apply_overrides(pack, args):
-    import dataclasses
-
-    if getattr(args, "resolution", None):
-        if args.resolution < 8:
-            raise CamoError(f"--resolution must be >= 8, got {args.resolution}")
-        pack.render = dataclasses.replace(pack.render, resolution=(args.resolution, args.resolution))
-    if getattr(args, "spp", None) is not None:
-        if args.spp < 1:
-            raise CamoError(f"--spp must be >= 1, got {args.spp}")
-        pack.render = dataclasses.replace(pack.render, spp=args.spp)
-    if getattr(args, "views", None) is not None:
-        if args.views < 1:
-            raise CamoError(f"--views must be >= 1, got {args.views}")
-        if pack.cameras.mode == "list":
-            raise CamoError("--views only applies to orbit cameras")
-        pack.cameras = dataclasses.replace(pack.cameras, views=args.views)
-    return pack
-
-
-def load_scene_arg(name: str, args=None):
-    """Resolve a SCENE argument (built-in name or pack file) and apply CLI overrides."""
-    from optimizer.scenes.builtin_scenes import resolve_scene
-
-    pack = resolve_scene(name)
-    return _apply_overrides(pack, args) if args is not None else pack
-
-
 def _scenes_render(args) -> int:
     from optimizer import backend
     from optimizer.assets.export_views import render_scene_to_dir
@@ -130,32 +110,21 @@ def _scenes_render(args) -> int:
     return 0
 
 
-def parse_ablate(text: str) -> set[str]:
-    allowed = {"pose", "displacement", "bsdf", "transmittance", "inpainting"}
-    items = {t.strip() for t in text.split(",") if t.strip()}
-    bad = items - allowed
-    if bad:
-        raise CamoError(f"unknown --ablate item(s) {', '.join(sorted(bad))}; allowed: {', '.join(sorted(allowed))}")
-    return items
-
-
 def _plan(args) -> int:
     import dataclasses
 
-    from optimizer.scenes.environments import get_environment
+    from optimizer.assets.conditions import ABLATIONS, ablated_switches, parse_ablations
+    from optimizer.rendering.appearance import AppearanceConfig
     from optimizer.rendering.planner import curve_png, plan
+    from optimizer.scenes.environments import get_environment
 
     pack = load_scene_arg(args.scene, args)
-    ablate = parse_ablate(args.ablate)
-    params = {"albedo", "pose", "displacement", "bsdf", "transmittance"} - ablate
-    if "bsdf" in ablate:
-        params.discard("transmittance")
-    if "transmittance" in ablate:
-        pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    for flag in ("spp", "target_spp"):
-        v = getattr(args, flag)
-        if v is not None and v < 1:
-            raise CamoError(f"--{flag.replace('_', '-')} must be >= 1, got {v}")
+    ablate = parse_ablations(args.ablate)
+    app = AppearanceConfig(**ablated_switches(ablate))
+    params = app.planner_params()
+    pins = {k: v for a in ablate for k, v in ABLATIONS[a].pins}  # (as camo optimize pins them)
+    if pins:
+        pack.material = dataclasses.replace(pack.material, **pins)
     if args.png and not args.png.lower().endswith(".png"):
         raise CamoError(f"--png {args.png}: the file name must end in .png")
     from optimizer import backend
@@ -168,13 +137,11 @@ def _plan(args) -> int:
         pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
     elif args.purpose == "optimize":
         from optimizer.optimise.planning import measure_plan
-        from optimizer.optimise.run import appearance_for
         from optimizer.rendering.placement import prepare_object
         from optimizer.scenes.cameras import cameras
 
         spp = {"training": args.spp or 4, "targets": args.target_spp}
-        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), appearance_for(ablate), args.seed, spp,
-                          args.shadow_gradients)
+        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), app, args.seed, spp, args.shadow_gradients)
     else:
         from evaluation.views import evaluation_cameras, evaluation_plan
         from optimizer.scenes.cameras import cameras
@@ -194,14 +161,30 @@ def _plan(args) -> int:
     return 0
 
 
+class CamoArgumentParser(argparse.ArgumentParser):
+    """argparse's parser with camo's error convention: one line ``camo: error: COMMAND: ...``, exit code 2 (argparse
+    prints the usage above its error; ``--help`` shows it)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        command = self.prog.removeprefix("camo").strip()
+        where = f"{command}: " if command else ""
+        self.exit(2, f"camo: error: {where}{' '.join(message.split())} (see: {self.prog} --help)\n")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad command line (2, one line printed)
+        return int(exc.code or 0) if isinstance(exc.code, int) else 2
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return int(func(args) or 0)
     except CamoError as exc:
-        print(f"camo: error: {exc}", file=sys.stderr)
+        rename = getattr(args, "setting_names", None)
+        message = exc.renamed(lambda n: rename(n, args)) if rename is not None and isinstance(exc, SettingError) \
+            else str(exc)
+        print(f"camo: error: {message}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("camo: interrupted", file=sys.stderr)

@@ -111,6 +111,31 @@ def _real_packs_report() -> None:
         print(f"  present: {names}")
 
 
+def _video_status() -> str:
+    try:
+        import av
+
+        from evaluation.video import CODECS
+
+        have = []
+        for c in CODECS.values():
+            try:
+                av.codec.Codec(c.encoder, "w")
+                have.append(c.name)
+            except Exception:  # this FFmpeg build lacks the encoder
+                pass
+        return f"PyAV {av.__version__}, encoders: {', '.join(have) or 'none'}"
+    except ImportError as exc:
+        return f"PyAV not installed ({exc}); pip install av"
+
+
+def _viewer_status() -> str:
+    from evaluation.viewer import FETCH_COMMAND, viewer_script
+
+    p = viewer_script()
+    return f"@google/model-viewer pinned copy at {p}" if p else f"JavaScript not fetched: {FETCH_COMMAND}"
+
+
 def run_doctor() -> int:
     ok = _renderer()
     try:
@@ -125,5 +150,7 @@ def run_doctor() -> int:
     for label, status in _weights():
         _line(f"  {label}", status)
     _real_packs_report()
+    _line("video (camo video)", _video_status())
+    _line("viewer (camo view)", _viewer_status())
     print("status:", "ok" if ok else "the renderer cannot run; see above")
     return 0 if ok else 1

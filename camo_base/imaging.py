@@ -57,11 +57,6 @@ def save_png(path: str | os.PathLike, img: np.ndarray) -> None:
         Image.fromarray(arr).save(tmp, format="PNG")
 
 
-def save_linear_preview(path: str | os.PathLike, radiance: np.ndarray, exposure: float = 1.0) -> None:
-    """Save linear radiance as an sRGB PNG preview (times ``exposure``, clipped)."""
-    save_png(path, linear_to_srgb(np.asarray(radiance) * exposure))
-
-
 def load_png(path: str | os.PathLike) -> np.ndarray:
     """Load a PNG as float32 in [0, 1] (sRGB values as stored), ``(H, W, 3)`` or ``(H, W)``."""
     from PIL import Image, UnidentifiedImageError
@@ -145,15 +140,20 @@ def load_hdr_image(path: str | os.PathLike) -> np.ndarray:
         if not path.is_file():
             raise CamoError(f"HDR image not found: {path}")
         os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
-        import imageio.v3 as iio
+        import cv2
 
+        # OpenCV directly, unchanged depth: imageio's opencv plugin reads with IMREAD_COLOR, which tone-maps a
+        # Radiance file to 8 bit (values 0-255, not radiance).
         try:
             with quiet_stderr():
-                arr = np.asarray(iio.imread(path, extension=".hdr"), dtype=np.float32)
+                raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         except Exception:
-            raise CamoError(f"cannot read HDR image {path}: not a valid Radiance .hdr file") from None
-        if arr.ndim != 3 or arr.shape[2] < 3:
+            raw = None
+        if raw is None or raw.dtype != np.float32:
+            raise CamoError(f"cannot read HDR image {path}: not a valid Radiance .hdr file")
+        if raw.ndim != 3 or raw.shape[2] < 3:
             raise CamoError(f"cannot read HDR image {path}: not an RGB image")
+        arr = np.ascontiguousarray(raw[..., 2::-1])  # BGR -> RGB
         if not np.isfinite(arr).all():
             raise CamoError(f"HDR image {path} contains NaN or infinite pixels")
         return arr[..., :3]

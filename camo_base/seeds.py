@@ -34,7 +34,11 @@ reproduce bit for bit (s = the run seed, e = the evaluation seed, i = iteration,
     evaluation_cameras  e                                         the jitter of the evaluation's novel views
     evaluation_render   (7919 e + 104729) & 0x7FFFFFFF            every evaluation render (all runs, background and
                                                                   with-object images alike)
-    observer            e + 7919 k                                the simulated observer on the k-th stimulus
+    observer            e + 7919 k                                the simulated observer on the k-th stimulus of a
+                                                                  stimulus set (e = the build-stimuli / predict seed)
+    turntable_render    (7919 t + 611953 + f) & 0x7FFFFFFF        frame f of a turntable video (``camo video --seed
+                                                                  t``): the background and every result's panel of
+                                                                  that frame alike (common random numbers)
 
 ``warm_start``, ``initial_render``, ``pose_search`` and ``pilot`` (the effect planner's pilot renders) are other
 names of ``targets`` (:data:`ALIASES`): they must share its numbers; ``evaluation_pilot`` (the evaluation's pilot)
@@ -68,7 +72,7 @@ class Stream:
     """One named stream: ``((run * s + sum(k * index) + offset) & mask) ^ xor) & mask`` (mask None: no mask).
 
     ``indices`` names the per-use counters the stream takes (``iteration``, ``view``, ``stimulus``) with their
-    multipliers; ``source`` says whose seed ``s`` is (``"run"`` or ``"evaluation"``); ``kind`` is ``"int"`` (a
+    multipliers; ``source`` says whose seed ``s`` is (``"run"``, ``"evaluation"`` or ``"video"``); ``kind`` is ``"int"`` (a
     sampler seed) or ``"entropy"`` (a NumPy ``SeedSequence`` entropy list, :func:`entropy`)."""
 
     name: str
@@ -104,6 +108,8 @@ STREAMS: dict[str, Stream] = {s.name: s for s in (
     Stream("evaluation_cameras", "jitter of the evaluation's novel views", source="evaluation"),
     Stream("evaluation_render", "every evaluation render", run=7919, offset=104729, mask=MASK31, source="evaluation"),
     Stream("observer", "the simulated observer, per stimulus", indices=(("stimulus", 7919),), source="evaluation"),
+    Stream("turntable_render", "every panel of one turntable frame (evaluation/turntable.py)", run=7919,
+           offset=611953, indices=(("frame", 1),), mask=MASK31, source="video"),
 )}
 
 #: Other names of a stream (the same numbers by design).
@@ -135,7 +141,7 @@ def _linear(st: Stream, base: int, index: dict[str, Any]) -> int:
 
 def seed(name: str, base: int, **index: int) -> int:
     """Sampler seed of stream ``name`` for seed ``base`` (the run's or the evaluation's) and its indices
-    (``iteration=``, ``view=``, ``stimulus=``; absent indices count as 0)."""
+    (``iteration=``, ``view=``, ``stimulus=``, ``frame=``; absent indices count as 0)."""
     st = stream(name)
     if st.kind != "int":
         raise ValueError(f"seed stream {name!r} is a NumPy entropy list: use seeds.entropy or seeds.generator")

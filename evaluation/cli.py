@@ -3,9 +3,19 @@
 
 from __future__ import annotations
 
+from typing import Any, Mapping
+
+from camo_base.helptext import Deferred
+from evaluation.ranges import RANGES
+
 #: = evaluation.views.DEFAULT_JITTER (the paper's +-0.25 at radius 4); repeated here so that building the
 #: parser imports neither numpy nor the evaluation modules.
 DEFAULT_JITTER = 0.25
+
+def _metrics_help() -> str:
+    from evaluation.metrics.registry import metrics_help
+
+    return metrics_help()
 
 
 def register(sub) -> None:
@@ -21,33 +31,26 @@ def register(sub) -> None:
                    "directory (its scene and cameras); for --triplets: the scene label")
     p.add_argument("--method", help="method label of --asset / --triplets (a run directory's comes from its "
                    "config.toml)")
-    p.add_argument("--seconds", type=float, help="what producing --asset / --triplets cost, in seconds (report column)")
+    p.add_argument("--seconds", type=RANGES["seconds"].arg_type(), help="what producing --asset / --triplets cost, in seconds (report column)")
     p.add_argument("--placement", default="auto", choices=("auto", "scene", "pack"),
                    help="--asset coordinates: scene = already in scene coordinates (camo's result.glb/obj), pack = "
                    "normalised and posed by the scene's [object] (size, rotation, translation); auto (default): "
                    "scene for files camo wrote, else pack")
     p.add_argument("--out", required=True, help="evaluation directory (metrics, renders, report)")
-    p.add_argument("--views", type=int, help="evaluation views per run (default: the number of training views; "
+    p.add_argument("--views", type=RANGES["views"].arg_type(), help="evaluation views per run (default: the number of training views; "
                    "more repeats the jitter)")
-    p.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
+    p.add_argument("--jitter", type=RANGES["jitter"].arg_type(), default=DEFAULT_JITTER,
                    help=f"camera offset bound per axis at radius 4, scaled with the radius (default {DEFAULT_JITTER}; "
                    "must be > 0)")
-    p.add_argument("--spp", type=int, default=64, help="samples per pixel of the evaluation renders (default 64)")
-    p.add_argument("--resolution", type=int, help="image width = height in pixels (default: the run's)")
-    p.add_argument("--metrics", help="comma list of metrics (default: psnr,ssim,lpips_proxy,sifid_proxy, plus "
-                   "lpips/sifid/dreamsim when their weights are given or found)")
-    p.add_argument("--seed", type=int, default=0, help="camera jitter and sampler seed (same for every run)")
+    p.add_argument("--spp", type=RANGES["spp"].arg_type(), default=64, help="samples per pixel of the evaluation renders (default 64)")
+    p.add_argument("--resolution", type=RANGES["resolution"].arg_type(), help="image width = height in pixels (default: the run's)")
+    p.add_argument("--metrics", help=Deferred(_metrics_help))  # (the registry imports torch: only for --help)
+    p.add_argument("--seed", type=RANGES["seed"].arg_type(), default=0, help="camera jitter and sampler seed (same for every run)")
     p.add_argument("--lpips-weights", metavar="PATH",
                    help="AlexNet trunk (torchvision .pth), or a folder with it and LPIPS v0.1 alex.pth")
     p.add_argument("--inception-weights", metavar="PATH", help="Inception v3 state dict for SIFID")
     p.add_argument("--dreamsim-weights", metavar="PATH", help="DreamSim weights folder (its cache_dir)")
-    p.add_argument("--threads", type=int, help="CPU threads for the LLVM backend")
-    p.add_argument("--observer-trials", type=int, default=100, metavar="N",
-                   help="simulated observer trials per view for the report's predicted Table I (default 100; 0 = "
-                   "none; docs/observer.md)")
-    p.add_argument("--observer-saliency", metavar="FILE",
-                   help="the observer's map from a local TorchScript saliency / camouflaged-object-detection network "
-                   "instead of the weight-free one (never downloaded)")
+    p.add_argument("--threads", type=RANGES["threads"].arg_type(), help="CPU threads for the LLVM backend")
     p.add_argument("--no-planner", action="store_true",
                    help="full path tracing of every full frame (max_depth 12) instead of the measured plan (a pilot "
                    "per scene picks the depth; only the region each object can change is rendered)")
@@ -55,11 +58,23 @@ def register(sub) -> None:
                    help="the same spp everywhere (default: pixels where the render with the object is noisier than "
                    "the background get more samples, up to 8x, so noise does not give the object away)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=run_evaluate)
+    p.set_defaults(func=run_evaluate, setting_names=lambda name, args: "--" + name.replace("_", "-")
+                   if name in SETTINGS or name == "metrics" else name)
 
     p = sub.add_parser("report", help="merge evaluation directories into one Table II report")
     p.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate`")
     p.add_argument("--out", required=True, help="report folder (report.md, report.html, grids/)")
+    p.add_argument("--stimuli", nargs="+", default=[], metavar="STIMULI_DIR",
+                   help="stimulus sets built from these evaluations (`camo study build-stimuli`): adds the simulated "
+                   "observer's predicted Table I on them, its agreement with the metrics and the predicted power "
+                   "curve (docs/observer.md)")
+    p.add_argument("--video", action="append", default=[], metavar="FILE",
+                   help="a `camo video` turntable to show and link as the path-traced reference (repeatable)")
+    p.add_argument("--no-viewer", action="store_true",
+                   help="no interactive 3D viewer section (it renders each scene's environment panorama once)")
+    p.add_argument("--env-width", type=RANGES["env_width"].arg_type(), default=1024,
+                   help="width of the viewer's environment panorama "
+                   "(default 1024)")
     p.set_defaults(func=run_report)
 
 
@@ -88,20 +103,26 @@ def input_specs(args) -> list:
     return specs
 
 
+#: ``camo evaluate`` options that are :class:`evaluation.evaluate.EvalSettings` fields of the same name.
+SETTINGS = ("views", "jitter", "spp", "resolution", "seed", "lpips_weights", "inception_weights", "dreamsim_weights",
+            "threads")
+
+
+def evaluation_settings(values: Mapping[str, Any]):
+    """The :class:`evaluation.evaluate.EvalSettings` of ``camo evaluate`` option values (``{dest: value}``, as the
+    parser or a grid's ``[evaluate]`` table gives them; absent ones take the flags' defaults)."""
+    from evaluation.evaluate import EvalSettings, parse_metrics
+
+    kw = {k: values[k] for k in SETTINGS if values.get(k) is not None}
+    return EvalSettings(**kw, metrics=parse_metrics(values.get("metrics")), progress=not values.get("quiet", False),
+                        planner=not values.get("no_planner", False),
+                        noise_match=not values.get("no_noise_match", False))
+
+
 def run_evaluate(args) -> int:
-    from evaluation.evaluate import EvalSettings, evaluate, parse_metrics
-    from evaluation.inputs import finite_seconds
+    from evaluation.evaluate import evaluate
 
-    if args.seconds is not None:
-        finite_seconds(args.seconds, "--seconds")
-
-    settings = EvalSettings(views=args.views, jitter=args.jitter, spp=args.spp, resolution=args.resolution,
-                            metrics=parse_metrics(args.metrics), seed=args.seed, lpips_weights=args.lpips_weights,
-                            inception_weights=args.inception_weights, dreamsim_weights=args.dreamsim_weights,
-                            threads=args.threads, progress=not args.quiet, observer_trials=args.observer_trials,
-                            observer_saliency=args.observer_saliency, planner=not args.no_planner,
-                            noise_match=not args.no_noise_match)
-    evaluate(input_specs(args), args.out, settings)
+    evaluate(input_specs(args), args.out, evaluation_settings(vars(args)))
     print(f"wrote {args.out}")
     return 0
 
@@ -109,6 +130,12 @@ def run_evaluate(args) -> int:
 def run_report(args) -> int:
     from evaluation.report import write_report
 
-    paths = write_report(args.eval_dirs, args.out)
+    import sys
+
+    from evaluation.viewer import report_sections
+
+    sections = report_sections(args.eval_dirs, args.video, not args.no_viewer, args.env_width,
+                               say=lambda m: print(m, file=sys.stderr))
+    paths = write_report(args.eval_dirs, args.out, sections, stimuli_dirs=args.stimuli)
     print(f"wrote {paths['md']}")
     return 0

@@ -16,12 +16,6 @@ from camo_base import atomic
 from camo_base.documents import read_json
 from camo_base.errors import CamoError
 
-#: The metric columns, one per metric of :data:`evaluation.metrics.METRICS` (NaN where not computed).
-METRIC_COLUMNS = ("psnr", "ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim")
-#: Variant strings of the metrics that have one ("" where not computed).
-VARIANT_COLUMNS = ("lpips_variant", "lpips_proxy_variant", "sifid_variant", "sifid_proxy_variant", "dreamsim_variant")
-#: SHA-256 of the weight files behind each learned metric ("" where not computed).
-SHA_COLUMNS = ("lpips_weights_sha256", "sifid_weights_sha256", "dreamsim_weights_sha256")
 #: Columns that identify a row (input, view, region and the evaluation protocol). ``source``: ``run`` (a run
 #: directory), ``asset`` (a glTF/OBJ file placed in a scene) or ``triplets`` (given images; ``spp`` and ``jitter``
 #: are 0 and ``camera_set`` is ``images:<hash>``: nothing was rendered).
@@ -31,15 +25,43 @@ KEY_COLUMNS = ("run", "scene", "object", "method", "ablation", "view", "seed", "
 #: ``seconds_stage2`` from a run directory (:meth:`optimizer.assets.rundir.RunDir.seconds`), ``seconds_method`` their sum
 #: or the user's ``seconds`` for an asset or triplets (NaN when unknown).
 METHOD_SECONDS_COLUMNS = ("seconds_setup", "seconds_stage1", "seconds_stage2", "seconds_method")
-#: Seconds of each metric on this row's image pair (NaN where not computed).
-METRIC_SECONDS_COLUMNS = tuple(f"seconds_{m}" for m in METRIC_COLUMNS)
-#: Every column of metrics.parquet / metrics.csv, in order. ``seconds_render``: evaluation rendering of this view
-#: (with-object render + its share of the scene's background render; NaN for triplets), ``seconds_metrics``: all
-#: metrics of the row.
-COLUMNS = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels",
-           *METRIC_COLUMNS, *VARIANT_COLUMNS, *SHA_COLUMNS, "seconds_render", "seconds_metrics",
-           *METRIC_SECONDS_COLUMNS, *METHOD_SECONDS_COLUMNS)
-SECONDS_COLUMNS = tuple(c for c in COLUMNS if c.startswith("seconds_"))
+
+
+def _metric_columns() -> dict[str, tuple[str, ...]]:
+    """The columns made from the metric registry (:data:`evaluation.metrics.METRICS`, in its order):
+
+    * ``METRIC_COLUMNS``: one per metric (NaN where not computed);
+    * ``VARIANT_COLUMNS``: ``{name}_variant`` of the metrics that have one ("" where not computed);
+    * ``SHA_COLUMNS``: ``{name}_weights_sha256``, the SHA-256 of the weight files behind each learned metric;
+    * ``METRIC_SECONDS_COLUMNS``: seconds of each metric on the row's image pair;
+    * ``COLUMNS``: every column of metrics.parquet / metrics.csv, in order (``seconds_render``: evaluation rendering
+      of this view -- with-object render + its share of the scene's background render; NaN for triplets --,
+      ``seconds_metrics``: all metrics of the row);
+    * ``SECONDS_COLUMNS``: the ``seconds_*`` columns."""
+    from evaluation.metrics import METRICS
+
+    metric = tuple(METRICS)
+    variant = tuple(f"{n}_variant" for n, m in METRICS.items() if m.variant)
+    sha = tuple(f"{n}_weights_sha256" for n, m in METRICS.items() if m.needs_weights)
+    metric_seconds = tuple(f"seconds_{n}" for n in metric)
+    columns = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels", *metric,
+               *variant, *sha, "seconds_render", "seconds_metrics", *metric_seconds, *METHOD_SECONDS_COLUMNS)
+    return {"METRIC_COLUMNS": metric, "VARIANT_COLUMNS": variant, "SHA_COLUMNS": sha,
+            "METRIC_SECONDS_COLUMNS": metric_seconds, "COLUMNS": columns,
+            "SECONDS_COLUMNS": tuple(c for c in columns if c.startswith("seconds_"))}
+
+
+def __getattr__(name: str):
+    """The column lists of :func:`_metric_columns`, made on first use (the metric registry imports torch; reading
+    renders.json does not need it)."""
+    if name in ("METRIC_COLUMNS", "VARIANT_COLUMNS", "SHA_COLUMNS", "METRIC_SECONDS_COLUMNS", "COLUMNS",
+                "SECONDS_COLUMNS"):
+        cols = _metric_columns()
+        globals().update(cols)
+        return cols[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 REGIONS = ("full", "crop")
 IMAGE_ENCODING = "srgb8"  # linear -> sRGB (IEC 61966-2-1, clipped to [0, 1]) -> 8 bit, as in the PNGs
 

@@ -18,9 +18,6 @@ Output (EVAL_DIR, every file written atomically; see CONTRIBUTING.md)::
     renders/<run>/view_XX_{obj,bg}.png  (sRGB 8 bit), view_XX_mask.png (0/255),
                   view_XX_{obj,bg}.npy (linear float32), view_XX_depth.npy (background depth, scene units)
     eval_config.toml               resolved settings, seed, cameras, integrator, skipped metrics, versions
-    simulated.parquet/.csv, simulated_trials.parquet, simulated_config.json
-                                   the simulated observer's predictions per view and per simulated trial
-                                   (evaluation.observer; --observer-trials 0 skips them)
     report.md, report.html, grids/ (evaluation.report)
 
 Bad input (a missing run directory, a folder without config.toml, an unknown metric, ``--views 0``,
@@ -48,9 +45,6 @@ from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SEC
 from evaluation.inputs import Entry, InputSpec, resolve
 from evaluation.views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
 
-#: Metrics computed when --metrics is not given (plus the learned ones whose weights are given or found).
-DEFAULT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy")
-LEARNED = ("lpips", "sifid", "dreamsim")
 
 
 @dataclasses.dataclass
@@ -59,7 +53,7 @@ class EvalSettings:
     jitter: float = DEFAULT_JITTER
     spp: int = 64
     resolution: int | None = None  # default: the run's
-    metrics: Sequence[str] | None = None  # default: DEFAULT_METRICS + available learned metrics
+    metrics: Sequence[str] | None = None  # default: the weight-free metrics + the learned ones that can run
     seed: int = 0
     lpips_weights: str | None = None
     inception_weights: str | None = None
@@ -67,24 +61,18 @@ class EvalSettings:
     threads: int | None = None
     progress: bool = True
     write_report: bool = True
-    observer_trials: int = 100  # simulated observer trials per view (evaluation.observer); 0 = no prediction
-    observer_saliency: str | None = None  # a local TorchScript saliency network for the observer's map
     planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
     noise_match: bool = True  # more samples where the object's render is noisier than the background's
 
     def validate(self) -> None:
-        if self.views is not None and self.views < 1:
-            raise CamoError(f"--views must be >= 1, got {self.views}")
-        if not math.isfinite(self.jitter) or self.jitter <= 0:
-            raise CamoError(f"--jitter must be > 0 (evaluation never uses the training cameras), got {self.jitter}")
-        if self.spp < 1:
-            raise CamoError(f"--spp must be >= 1, got {self.spp}")
-        if self.resolution is not None and self.resolution < 8:
-            raise CamoError(f"--resolution must be >= 8, got {self.resolution}")
-        if self.threads is not None and self.threads < 1:
-            raise CamoError(f"--threads must be >= 1, got {self.threads}")
-        if not 0 <= self.observer_trials <= 100_000:
-            raise CamoError(f"--observer-trials must be 0-100000, got {self.observer_trials}")
+        """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
+        jitter must be > 0: evaluation never uses the training cameras)."""
+        from evaluation.ranges import RANGES
+
+        for name in ("views", "jitter", "spp", "resolution", "seed", "threads"):
+            v = getattr(self, name)
+            if v is not None:
+                RANGES[name].check(v, name)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -143,13 +131,12 @@ def parse_metrics(text: str | None) -> list[str] | None:
     return list(dict.fromkeys(names))
 
 
-#: The weights keys (see :func:`weights_of`) that a --*-weights option sets, per learned metric.
-GIVEN_KEYS = {"lpips": "lpips_trunk", "sifid": "sifid", "dreamsim": "dreamsim"}
-
-
 def given_learned(weights: dict[str, str]) -> list[str]:
-    """The learned metrics whose weights the user gave explicitly (they must load)."""
-    return [n for n in LEARNED if GIVEN_KEYS[n] in weights]
+    """The learned metrics whose weights the user gave explicitly (their ``Metric.weights_key`` is set by a
+    --*-weights option, :func:`weights_of`); they must load."""
+    from evaluation.metrics import LEARNED, METRICS
+
+    return [n for n in LEARNED if METRICS[n].weights_key in weights]
 
 
 def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> tuple[list[str], dict[str, str]]:
@@ -159,7 +146,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
     locally. A learned metric that is asked for by name, or whose weights were given, but cannot run is an
     error, not a skip.
     """
-    from evaluation.metrics import METRICS, metric_unavailable
+    from evaluation.metrics import LEARNED, METRICS, WEIGHT_FREE, metric_unavailable
 
     skipped: dict[str, str] = {}
     for name in given_learned(weights):
@@ -167,7 +154,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
         if why is not None:
             raise CamoError(f"{name} weights given but unusable: {why}")
     if requested is None:
-        names = list(DEFAULT_METRICS)
+        names = list(WEIGHT_FREE)
         for name in LEARNED:
             why = metric_unavailable(name, weights)
             if why is None:
@@ -190,7 +177,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
 
 def check_metrics_load(names: Sequence[str], weights: dict[str, str]) -> None:
     """Load every learned metric once on a dummy pair, so weights that do not load fail before any output."""
-    from evaluation.metrics import compute_metrics
+    from evaluation.metrics import LEARNED, compute_metrics
 
     learned = [n for n in LEARNED if n in names or n in given_learned(weights)]
     if learned:
@@ -368,10 +355,6 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     _check_sizes(jobs, names)
     backend.init(threads=settings.threads)
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
-    if settings.observer_saliency and settings.observer_trials > 0:
-        from evaluation.observer import load_saliency_model
-
-        load_saliency_model(settings.observer_saliency)
 
     _plan_jobs(jobs, settings, say)
     renderer = ViewRenderer(settings.spp, settings.seed, noise_match=settings.noise_match)
@@ -463,15 +446,6 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     write_renders(out, entries)
     write_eval_config(out / "eval_config.toml", settings, names, skipped, weights, per_run, list(scenes.values()),
                       renderer, time.perf_counter() - t_all)
-    if settings.observer_trials > 0:  # predicted Table I: the report's "simulated" section
-        from evaluation.observer import predict_eval_dir
-
-        t_obs = time.perf_counter()
-        from evaluation.observer import ObserverConfig
-
-        predict_eval_dir(out, n=settings.observer_trials, seed=settings.seed,
-                         config=ObserverConfig(start="random", saliency_model=settings.observer_saliency or ""))
-        say(f"simulated observer: {settings.observer_trials} trials per view in {time.perf_counter() - t_obs:.1f} s")
     if settings.write_report:
         from evaluation.report import write_report
 

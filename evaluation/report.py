@@ -8,13 +8,16 @@ Aggregation (per region and evaluation protocol = spp, resolution, jitter): the 
 the mean over the runs of one scene with the same method/ablation, then the mean over scenes. The spread is the
 sample standard deviation over scenes (n - 1), shown where there are at least two scenes. Rows follow the
 paper's Table II (Transparent, Random, GANmouflage, 2D Diffusion, w/o Pose, ..., Ours), whichever exist; the
-other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines.
+other Owens et al. baselines (Mean, Greedy) sit beside Random, unknown methods after the baselines (labels and
+order: :mod:`optimizer.assets.conditions`).
 
 Output (``--out DIR``)::
 
     report.md      Markdown: settings, Table II (crop and full frame), per-scene tables, skipped metrics, the
-                   simulated observer's predicted Table I next to the metrics (when the evaluations have
-                   simulated.parquet; :mod:`evaluation.observer`) and where its order disagrees with theirs, grids
+                   simulated observer's predicted Table I next to the metrics and the paper's human Table I (with
+                   ``stimuli_dirs``: the stimulus sets built from these evaluations, whose predicted.parquet the
+                   observer wrote; :mod:`evaluation.observer`), where its order disagrees with theirs, the
+                   predicted power curve, grids
     report.html    the same, self-contained (grids embedded as base64 PNG)
     grids/<scene>__<camera set>.png   per view: background | each method
 """
@@ -33,11 +36,13 @@ import numpy as np
 from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
+from evaluation.metrics.registry import METRICS, WEIGHT_FREE, table_metrics
+from optimizer.assets.conditions import condition
 
-#: Table columns: (metric, header). The paper's five first, then the weight-free proxies.
-TABLE_METRICS = (("lpips", "LPIPS↓"), ("sifid", "SIFID↓"), ("dreamsim", "DreamSim↓"), ("ssim", "SSIM↑"),
-                 ("psnr", "PSNR↑"), ("lpips_proxy", "LPIPS-proxy↓"), ("sifid_proxy", "SIFID-proxy↓"))
-HIGHER_IS_BETTER = {"psnr", "ssim"}
+#: Table columns: (metric, header), from the metric registry in its Table II order (the paper's five first, then
+#: the weight-free proxies and any other metric).
+TABLE_METRICS = tuple((m.name, m.header) for m in table_metrics())
+HIGHER_IS_BETTER = {n for n, m in METRICS.items() if m.higher_is_better}
 TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
 #: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
 #: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
@@ -46,52 +51,18 @@ TIME_COLUMNS = (("seconds_setup", "Setup s"), ("seconds_stage1", "Stage 1 s"), (
                 ("seconds_method", "Method s"), ("seconds_render", "Render s/view"))
 METRIC_TIME_HEADER = "{} s/img"
 
-#: Baseline methods (``camo optimize --method``) in the paper's order, with their Table II labels.
-BASELINES = {"transparent": "Transparent", "random": "Random [6]", "mean": "Mean [6]", "greedy": "Greedy [6]",
-             "ganmouflage": "GANmouflage [7]", "ganmouflage-paper": "GANmouflage [7] (paper settings)",
-             "diffusion2d": "2D Diffusion"}
-_BASELINE_ORDER = list(BASELINES)
-#: Ablations of our method in the paper's order.
-ABLATIONS = {"pose": "w/o Pose", "displacement": "w/o Displacement", "bsdf": "w/o BSDF (Only Albedo)",
-             "transmittance": "w/o Transmittance", "inpainting": "w/o Inpainting"}
-_ABL_NAMES = {"pose": "Pose", "displacement": "Displacement", "bsdf": "BSDF", "transmittance": "Transmittance",
-              "inpainting": "Inpainting"}
 REGION_TITLES = {"crop": "object crop (GANmouflage protocol)", "full": "full frame"}
 
 
-def _ablations(ablation: str) -> list[str]:
-    items = [a for a in str(ablation or "").split(",") if a and a != "none"]
-    order = list(ABLATIONS)
-    return sorted(items, key=lambda a: (order.index(a) if a in order else len(order), a))
-
-
 def method_label(method: str, ablation: str) -> str:
-    """The Table II row label of a method and its ablation (comma list or "none")."""
-    abl = _ablations(ablation)
-    m = str(method)
-    if m == "ours":
-        if not abl:
-            return "Ours"
-        if len(abl) == 1 and abl[0] in ABLATIONS:
-            return ABLATIONS[abl[0]]
-        return "w/o " + " + ".join(_ABL_NAMES.get(a, a) for a in abl)
-    base = BASELINES.get(m.lower(), m)
-    return base if not abl else f"{base} (w/o {' + '.join(_ABL_NAMES.get(a, a) for a in abl)})"
+    """The Table II row label of a method and its ablation (comma list or "none"): the condition's label
+    (:mod:`optimizer.assets.conditions`, the one source of labels shared with the study)."""
+    return condition(method, ablation).label
 
 
 def label_order(method: str, ablation: str) -> tuple:
     """Sort key: baselines (paper order), other methods, single ablations (paper order), combined ones, Ours."""
-    abl = _ablations(ablation)
-    m = str(method).lower()
-    if m == "ours":
-        if not abl:
-            return (5, 0, "")
-        if len(abl) == 1 and abl[0] in ABLATIONS:
-            return (3, list(ABLATIONS).index(abl[0]), "")
-        return (4, len(abl), ",".join(abl))
-    if m in BASELINES:
-        return (0, _BASELINE_ORDER.index(m), ",".join(abl))
-    return (1, 0, m + "," + ",".join(abl))
+    return condition(method, ablation).order
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -224,7 +195,7 @@ def _fmt(metric: str, v: float) -> str:
         return "—"
     if math.isinf(v):
         return "inf"
-    return f"{v:.2f}" if metric == "psnr" else f"{v:.4f}"
+    return f"{v:.{METRICS[metric].decimals if metric in METRICS else 4}f}"
 
 
 def _best(values: dict[str, float], metric: str) -> set[str]:
@@ -382,7 +353,7 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics of the quality-vs-seconds plot, in this order (those computed).
-PLOT_METRICS = ("psnr", "ssim", "lpips_proxy", "lpips", "sifid", "sifid_proxy", "dreamsim")
+PLOT_METRICS = tuple(METRICS)
 
 
 def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool) -> list[int]:
@@ -586,40 +557,41 @@ def json_key(d: Any) -> str:
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics set against the observer's order (those computed), crop region.
-AGREEMENT_METRICS = ("psnr", "ssim", "lpips_proxy", "sifid_proxy", "lpips", "sifid", "dreamsim")
+AGREEMENT_METRICS = (*WEIGHT_FREE, *(n for n in METRICS if n not in WEIGHT_FREE))
 
 
-def load_simulated(eval_dirs: Sequence[str | Path]):
-    """``(per view, per simulated trial)`` predictions of the evaluations that have them (``simulated.parquet``,
-    written by ``camo evaluate``), with Table II labels; ``(None, None)`` when none has."""
+def load_simulated(stimuli_dirs: Sequence[str | Path]):
+    """``(per stimulus, per simulated trial, observer config)`` of the formal stimuli of the stimulus sets that
+    have predictions (``predicted.parquet``, written by ``camo study build-stimuli`` / ``camo study predict``),
+    with Table II labels; ``(None, None, {})`` when none has. A set given without predictions is a CamoError."""
+    import json
+
     import pandas as pd
 
-    views, trials = [], []
-    for d in eval_dirs:
+    views, trials, cfg = [], [], {}
+    for d in stimuli_dirs:
         d = Path(d)
-        p, q = d / "simulated.parquet", d / "simulated_trials.parquet"
-        if not p.is_file():
-            continue
+        p, q = d / "predicted.parquet", d / "predicted_trials.parquet"
+        if not p.is_file() or not q.is_file():
+            raise CamoError(f"--stimuli {d}: no observer predictions (run `camo study predict {d}`)")
         try:
-            v = pd.read_parquet(p)
-            t = pd.read_parquet(q) if q.is_file() else None
+            v, t = pd.read_parquet(p), pd.read_parquet(q)
+            c = d / "predicted_config.json"
+            cfg = cfg or (json.loads(c.read_text(encoding="utf-8")) if c.is_file() else {})
         except Exception as exc:  # pyarrow raises several types for a corrupt file
             raise CamoError(f"{p}: cannot read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") \
                 from None
+        v = v[~v["practice"].astype(bool)]
         views.append(v)
-        if t is not None:
-            trials.append(t)
+        trials.append(t[t["id"].isin(set(v["id"]))])
     if not views:
-        return None, None
-    v = pd.concat(views, ignore_index=True).drop_duplicates(["run", "scene", "method", "ablation", "view"])
-    v["label"] = [method_label(m, a) for m, a in zip(v["method"], v["ablation"])]
-    v["_order"] = [label_order(m, a) for m, a in zip(v["method"], v["ablation"])]
-    t = None
-    if trials:
-        t = pd.concat(trials, ignore_index=True).drop_duplicates(
-            ["run", "scene", "method", "ablation", "view", "trial"])
-        t["label"] = [method_label(m, a) for m, a in zip(t["method"], t["ablation"])]
-    return v, t
+        return None, None, {}
+    v = pd.concat(views, ignore_index=True).drop_duplicates("id")
+    v["label"] = [method_label(m, a or "none") for m, a in zip(v["method"], v["ablation"])]
+    v["_order"] = [label_order(m, a or "none") for m, a in zip(v["method"], v["ablation"])]
+    t = pd.concat(trials, ignore_index=True).drop_duplicates(["id", "trial"])
+    t["label"] = t["id"].map(v.set_index("id")["label"])
+    return v, t, cfg
 
 
 def _kendall(a: Sequence[float], b: Sequence[float]) -> float:
@@ -669,14 +641,14 @@ def observer_agreement(df, views) -> tuple[list[dict[str, Any]], list[dict[str, 
     return taus, dis
 
 
-def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], list[str]]:
-    """Markdown and HTML lines of the report's "Simulated observer" section (empty when no evaluation has
-    predictions)."""
-    import json
+def simulated_section(df, stimuli_dirs: Sequence[str | Path], out: Path | None = None
+                      ) -> tuple[list[str], list[str]]:
+    """Markdown and HTML lines of the report's "Simulated observer" section: the observer's predicted Table I on
+    the stimuli of ``stimuli_dirs`` (what participants see), the paper's human Table I beside it, Kendall's tau
+    of its method order against each metric's per scene, and the predicted power curve (empty without sets)."""
+    from evaluation.observer import HUMAN_VISIBLE, PAPER_TABLE_I, predicted_table
 
-    from evaluation.observer import predicted_table
-
-    views, trials = load_simulated(eval_dirs)
+    views, trials, cfg = load_simulated(stimuli_dirs)
     if views is None or views.empty:
         return [], []
     t = predicted_table(views, by=("label",), trials=trials)
@@ -685,44 +657,41 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
     crop = summary(df, "crop")
     shown = [(m, h) for m, h in TABLE_METRICS if m in crop.columns and crop[m].notna().any()]
     header = ["Model", "Pred. conf. rate", "P(miss)", "P(timeout)", "Avg. time (s)", "Med. time (s)",
-              "Avg. time, all (s)", "Easy views", "Views"] + [f"{h} (crop)" for _, h in shown]
+              "Avg. time, all (s)", "Easy stimuli", "Stimuli", "Human conf. (paper)", "Human avg. / med. (s)"] + \
+        [f"{h} (crop)" for _, h in shown]
     rows = []
     for lab in t.index:
         r = t.loc[lab]
+        hum = PAPER_TABLE_I.get(str(lab))
         cells = [(str(lab), False), (f"{100 * r.confusion_rate:.1f}%", False), (f"{100 * r.p_miss:.1f}%", False),
                  (f"{100 * r.p_timeout:.1f}%", False), (_fmt_seconds(r.mean_time_found_s), False),
                  (_fmt_seconds(r.median_time_found_s), False), (_fmt_seconds(r.mean_time_all_s), False),
-                 (str(int(r.easy_views)), False), (str(int(r.n_views)), False)]
+                 (str(int(r.easy_views)), False), (str(int(r.n_views)), False),
+                 (f"{100 * hum[0]:.1f}%" if hum else "—", False),
+                 (f"{hum[1]:.2f} / {hum[2]:.2f}" if hum else "—", False)]
         for m, _ in shown:
             cells.append((_fmt(m, float(crop.loc[lab, m])) if lab in crop.index else "—", False))
         rows.append(cells)
-    cfg = {}
-    for d in eval_dirs:
-        p = Path(d) / "simulated_config.json"
-        if p.is_file():
-            try:
-                cfg = json.loads(p.read_text(encoding="utf-8"))
-            except ValueError:
-                pass
-            break
     obs = cfg.get("observer", {})
+    lo, hi = HUMAN_VISIBLE["mean_time_s"]
     note = (f"Predicted by the simulated observer (`evaluation/observer.py`, docs/observer.md; "
-            f"{cfg.get('trials_per_view', '?')} simulated trials per view, image height = "
-            f"{obs.get('display_deg', '?')} deg, time limit {obs.get('time_limit_s', '?')} s, first fixation "
-            f"{obs.get('start', '?')}) on the evaluation renders: confusion rate = not found (a click off the object "
-            "or a timeout); times over the simulated finds (Avg./Med.) and over all trials with timeouts at the "
-            "limit. Easy views: found with p >= 0.95 within a median 2 s. The observer is not fitted to human data: "
-            "it ranks; absolute figures are indicative. Evaluation renders have the object at the image centre "
-            "(hence a random first fixation); `camo study build-stimuli` places it at random.")
+            f"{cfg.get('trials_per_stimulus', '?')} simulated trials per stimulus, image height "
+            f"{obs.get('display_deg', '?')} deg for a square stimulus, time limit {obs.get('time_limit_s', '?')} s) on "
+            f"the formal stimuli of {len(list(stimuli_dirs))} stimulus set(s) -- the images participants see, object "
+            "off-centre: confusion rate = not found (a click off the object or a timeout); times over the simulated "
+            "finds (Avg./Med.) and over all trials with timeouts at the limit. Easy stimuli: found with p >= 0.95 "
+            "within a median 2 s. Human figures: the paper's Table I (other stimuli; rows it has). Human range for "
+            f"plainly visible objects: confusion <= {100 * HUMAN_VISIBLE['max_confusion']:.0f} %, mean time "
+            f"{lo:g}-{hi:g} s.")
     taus, dis = observer_agreement(df, views)
     md = ["## Simulated observer: predicted Table I", "", note, "", markdown_table(header, rows), ""]
     ht = ["<h2>Simulated observer: predicted Table I</h2>", f"<p>{html.escape(note)}</p>", html_table(header, rows)]
     easy = views.loc[(views["p_found"] >= 0.95) & (views["median_time_found_s"] <= 2.0)]
     if len(easy):
-        items = [f"{r.run} view {int(r.view)} (p found {r.p_found:.2f}, median {r.median_time_found_s:.2f} s)"
+        items = [f"{r.run} view {r.view} (p found {r.p_found:.2f}, median {r.median_time_found_s:.2f} s)"
                  for r in easy.sort_values(["scene", "run", "view"]).itertuples()]
-        md += ["Easy views (fix or drop before a study): " + "; ".join(items) + ".", ""]
-        ht += [f"<p>Easy views (fix or drop before a study): {html.escape('; '.join(items))}.</p>"]
+        md += ["Easy stimuli (fix or drop before a study): " + "; ".join(items) + ".", ""]
+        ht += [f"<p>Easy stimuli (fix or drop before a study): {html.escape('; '.join(items))}.</p>"]
     if taus:
         names = dict(TABLE_METRICS)
         metrics = list(dict.fromkeys(x["metric"] for x in taus))
@@ -752,6 +721,23 @@ def simulated_section(df, eval_dirs: Sequence[str | Path]) -> tuple[list[str], l
                 f"{html.escape(x['better_by_observer'])}</li>" for x in dis] + ["</ul>"]
         else:
             md += ["The observer and every metric order the methods alike in every scene.", ""]
+    for i, d in enumerate(stimuli_dirs):
+        png = Path(d) / "predicted_power" / "power.png"
+        if out is not None and png.is_file():
+            import shutil
+
+            from camo_base import atomic
+
+            dest = out / "plots" / f"power_predicted_{i}.png"
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            with atomic.atomic_path(dest) as tmp:
+                shutil.copyfile(png, tmp)
+            cap = (f"Predicted power curve (`camo study power` on {Path(d).name}'s predictions; Fisher on the "
+                   "confusion rate and log-rank on time to find, Holm; study_site/power.py)")
+            md += ["### Predicted power", "", cap, "", f"![power curve]({dest.relative_to(out).as_posix()})", ""]
+            data = base64.b64encode(dest.read_bytes()).decode("ascii")
+            ht += ["<h3>Predicted power</h3>", f"<figure><img src=\"data:image/png;base64,{data}\" alt=\"power curve\">"
+                   f"<figcaption>{html.escape(cap)}</figcaption></figure>"]
     return md, ht
 
 
@@ -771,8 +757,15 @@ def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
     return md, ht
 
 
-def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, Path]:
-    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``."""
+def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None,
+                 stimuli_dirs: Sequence[str | Path] = ()) -> dict[str, Path]:
+    """Write ``report.md``, ``report.html`` and ``grids/`` for the evaluations in ``eval_dirs`` into ``out``.
+
+    ``stimuli_dirs``: stimulus sets built from these evaluations (``camo study build-stimuli``): the simulated
+    observer's section on their predictions. ``sections(out)`` (optional, called once the evaluations have been
+    read) returns further sections appended at the end, each with ``md`` and ``html`` (lists of lines) and
+    optionally ``style`` (CSS) and ``tail`` (HTML placed before ``</body>``, e.g. scripts): the turntables and the
+    interactive viewer of ``camo report`` (:mod:`evaluation.viewer`)."""
     from camo_base import atomic
 
     out = Path(out)
@@ -847,7 +840,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
                 cap += f"; without seconds, not plotted: {', '.join(missing)}"
             plots.append((cap, path))
 
-    sim_md, sim_ht = simulated_section(df, eval_dirs)
+    sim_md, sim_ht = simulated_section(df, stimuli_dirs, out)
     md += sim_md
     ht += sim_ht
     plan_md, plan_ht = plans_section(eval_dirs)
@@ -860,8 +853,15 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path) -> dict[str, 
     style = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;"
              "margin:1em 0;}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right;}td:first-child,"
              "th:first-child{text-align:left;}img{max-width:100%;}figure{margin:1em 0;}")
+    tail = ""
+    for sec in (sections(out) if sections is not None else ()):
+        md += list(sec.md)
+        ht += list(sec.html)
+        if getattr(sec, "style", "") and sec.style not in style:
+            style += sec.style
+        tail += getattr(sec, "tail", "") or ""
     page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>Camouflage benchmark</title>"
-            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + "\n</body></html>\n")
+            f"<style>{style}</style></head><body>\n" + "\n".join(ht) + tail + "\n</body></html>\n")
     atomic.write_text(out / "report.md", "\n".join(md).rstrip() + "\n")
     atomic.write_text(out / "report.html", page)
     return {"md": out / "report.md", "html": out / "report.html"}

@@ -46,7 +46,7 @@ import numpy as np
 from optimizer.assets.asset import Asset
 from optimizer.scenes.cameras import Camera
 from camo_base import seeds
-from camo_base.errors import CamoError
+from camo_base.errors import SettingError
 from optimizer.assets.rundir import RunDir, open_run
 from optimizer.rendering.noise import GROUPS
 
@@ -59,10 +59,6 @@ PILOT_VERTICES = 4000
 # --------------------------------------------------------------------------------------------------------------
 # run directories and assets (read by optimizer.assets.rundir / optimizer.assets.asset; thin names kept for callers)
 # --------------------------------------------------------------------------------------------------------------
-
-#: What evaluation knows about one run directory (:class:`optimizer.assets.rundir.RunDir`).
-RunInfo = RunDir
-
 
 def load_run(path: str | Path) -> RunDir:
     """Read a run directory's config (:func:`optimizer.assets.rundir.open_run`); CamoError for anything missing."""
@@ -111,12 +107,12 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
     from optimizer.scenes.cameras import cameras, evenly_spaced, jitter as jitter_cams, rig_radius
 
     if not (isinstance(jitter, (int, float)) and math.isfinite(jitter)) or jitter <= 0:
-        raise CamoError(f"--jitter must be > 0 (evaluation never uses the training cameras), got {jitter}")
+        raise SettingError(f"{{0}} must be > 0 (evaluation never uses the training cameras), got {jitter}", "jitter")
     training = cameras(pack, resolution)
     n_train = len(training)
     views = n_train if views is None else views
     if views < 1:
-        raise CamoError(f"--views must be >= 1, got {views}")
+        raise SettingError(f"{{0}} must be >= 1, got {views}", "views")
     radius = rig_radius(pack, training)
     repeats = max(1, math.ceil(views / n_train))
     moved = jitter_cams(training, float(jitter), radius, seeds.seed("evaluation_cameras", int(seed)), repeats=repeats)

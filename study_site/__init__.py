@@ -53,6 +53,13 @@ MISSING_ID_KEY = (
 )
 
 
+MISSING_SECRET_KEY = (
+    "SECRET_KEY (the cookie-signing key) is not set: make a key file outside the database with `camo study make-key "
+    "/path/cookie.key` and pass --secret-key-file /path/cookie.key (or set CAMO_STUDY_SECRET_KEY_FILE); --dev keeps a "
+    "key in the database (development only)"
+)
+
+
 def id_key_of(cfg: Mapping[str, Any], db) -> str:
     """The participant-id HMAC key: configured (env/file), or in DEV mode one kept in the database."""
     if cfg.get("ID_HMAC_KEY"):
@@ -83,6 +90,14 @@ def create_app(config: Mapping[str, Any] | None = None):
         raise CamoError(MISSING_ID_KEY)
     if cfg["ID_HMAC_KEY"] and len(str(cfg["ID_HMAC_KEY"])) < 32:
         raise CamoError("ID_HMAC_KEY must be at least 32 characters (`camo study make-key FILE` makes one)")
+    if cfg["SECRET_KEY_FILE"] and not cfg["SECRET_KEY"]:
+        cfg["SECRET_KEY"] = read_secret_file(cfg["SECRET_KEY_FILE"], "SECRET_KEY", min_len=32)
+    if not cfg["SECRET_KEY"] and not cfg["DEV"]:
+        raise CamoError(MISSING_SECRET_KEY)
+    if cfg["SECRET_KEY"] and len(str(cfg["SECRET_KEY"])) < 32:
+        raise CamoError("SECRET_KEY must be at least 32 characters (`camo study make-key FILE` makes one)")
+    if cfg["SECRET_KEY"] and cfg["ID_HMAC_KEY"] and str(cfg["SECRET_KEY"]) == str(cfg["ID_HMAC_KEY"]):
+        raise CamoError("SECRET_KEY and ID_HMAC_KEY must be different keys (make two with `camo study make-key`)")
     stimuli = StimulusSet(cfg["STIMULI_DIR"])
     if cfg["PRACTICE_TRIALS"] > 0 and not stimuli.practice_pool():
         raise CamoError(
@@ -100,11 +115,16 @@ def create_app(config: Mapping[str, Any] | None = None):
         pool_size=cfg["DB_POOL_SIZE"],
     )
     cfg["DATABASE_URL"] = url
-    cfg["SECRET_KEY"] = cfg["SECRET_KEY"] or db.setting("secret_key")
+    if not cfg["SECRET_KEY"]:  # DEV only (refused above otherwise)
+        log.warning("DEV mode: SECRET_KEY not configured; using a cookie key kept in the database (not for real studies)")
+        cfg["SECRET_KEY"] = db.setting("secret_key")
     id_key = id_key_of(cfg, db)
     db.setting("assign_lock", lambda: "1")
+    db.put_setting("clock_tolerance_ms", f"{cfg['CLOCK_TOLERANCE_MS']:g}")  # stated in Table I
     app.config.from_mapping(cfg)
     app.config["PERMANENT_SESSION_LIFETIME"] = timedelta(days=2)
+    # a study takes minutes: no new signed cookie on every API call (saves signing + compressing per request)
+    app.config["SESSION_REFRESH_EACH_REQUEST"] = False
     app.config["TEMPLATES_AUTO_RELOAD"] = False
     app.extensions["camo_study"] = StudyState(
         db=db,
@@ -117,6 +137,10 @@ def create_app(config: Mapping[str, Any] | None = None):
         consent_paragraphs=_consent_paragraphs(cfg["CONSENT_FILE"]),
     )
     app.jinja_env.globals["age_brackets"] = age_brackets(cfg["MIN_AGE"])
+    # stimulus images: static, immutable, content-hash ETags, before Flask (study_site.serving)
+    from study_site.serving import StaticStimuli
+
+    app.wsgi_app = StaticStimuli(app.wsgi_app, stimuli.static_files())
     app.register_blueprint(views.bp)
     app.register_blueprint(admin.bp)
     app.jinja_env.globals["csrf_token"] = csrf_token
@@ -143,7 +167,7 @@ def create_app(config: Mapping[str, Any] | None = None):
         h.setdefault("X-Content-Type-Options", "nosniff")
         h.setdefault("Referrer-Policy", "no-referrer")
         h.setdefault("X-Frame-Options", "DENY")
-        if resp.mimetype != "image/png" and not request.path.startswith("/static/"):
+        if not resp.mimetype.startswith("image/") and not request.path.startswith("/static/"):
             h["Cache-Control"] = "no-store"
         if resp.status_code == 429:
             h.setdefault("Retry-After", "1")

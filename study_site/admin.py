@@ -14,6 +14,7 @@ from datetime import timedelta
 from flask import Blueprint, Response, abort, current_app, redirect, render_template, request, session, url_for
 from sqlalchemy import func, select
 
+from optimizer.assets.conditions import parse_id
 from study_site.db import Participant, PlanItem, Trial, utcnow
 from study_site.security import check_csrf
 
@@ -76,23 +77,23 @@ def progress():
         done = dict(
             ((sc, m), n)
             for sc, m, n in s.execute(
-                select(Trial.scene, Trial.method, func.count())
+                select(Trial.scene, Trial.condition, func.count())
                 .join(Participant, Participant.id == Trial.participant_id)
                 .where(Trial.practice.is_(False), Participant.completed_at.is_not(None))
-                .group_by(Trial.scene, Trial.method)
+                .group_by(Trial.scene, Trial.condition)
             )
         )
         active = dict(
             ((sc, m), n)
             for sc, m, n in s.execute(
-                select(PlanItem.scene, PlanItem.method, func.count())
+                select(PlanItem.scene, PlanItem.condition, func.count())
                 .join(Participant, Participant.id == PlanItem.participant_id)
                 .where(
                     PlanItem.practice.is_(False),
                     Participant.completed_at.is_(None),
                     Participant.last_seen_at >= now - hold,
                 )
-                .group_by(PlanItem.scene, PlanItem.method)
+                .group_by(PlanItem.scene, PlanItem.condition)
             )
         )
         parts = s.execute(
@@ -107,7 +108,7 @@ def progress():
         n_trials = s.scalar(select(func.count()).select_from(Trial))
     pool = state.stimuli.formal_pool()
     scenes = sorted(pool)
-    methods = sorted({m for sc in pool.values() for m in sc})
+    methods = sorted({m for sc in pool.values() for m in sc}, key=lambda c: parse_id(c).order)
     rows = [
         {
             "scene": sc,
@@ -122,6 +123,7 @@ def progress():
         "admin.html",
         rows=rows,
         methods=methods,
+        labels=[parse_id(m).label for m in methods],
         totals=totals,
         participants=dict(zip(["started", "consented", "in_task", "completed", "declined"], parts)),
         n_trials=n_trials,

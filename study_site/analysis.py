@@ -27,9 +27,18 @@ Definitions (formal trials only; practice trials are stored but never analysed):
 By default only participants who completed the study are analysed
 (``include_incomplete=True`` adds the formal trials of the others).
 
-Trial clock: the deadline lives on the server. A click that arrived after the limit
-(``late``) is stored as a timeout; a click faster than ``RT_FLOOR_MS`` (``too_fast``) is
-stored but **excluded** from Table I (the report says how many). ``starts > 1`` marks a
+Conditions: every row of Table I is a condition (:mod:`optimizer.assets.conditions`: the run's method and
+its ablations), keyed by its id (``condition``, e.g. ``ours-without-inpainting``) and shown with its label
+(``label``, e.g. ``w/o Inpainting``), both stored with every trial when it was assigned -- the same id and
+label as in the stimuli manifest and the evaluation report's Table II.
+
+Trial clock: every time in Table I is the **server's** (``server_rt_ms``: from the arrival of the trial's
+first start request to the arrival of the answer; one network round trip more than the page saw). The
+page's own ``rt_ms`` is kept in ``trials.csv`` (``page_rt_s``) but decides nothing: a page claiming more
+than the server measured is refused when the answer arrives, one claiming less by more than
+``CLOCK_TOLERANCE_MS`` is flagged ``clock_mismatch`` (counted in the report). A click that arrived after the
+limit (``late``) is stored as a timeout; an answer faster than ``RT_FLOOR_MS`` on the server's clock
+(``too_fast``) is stored but **excluded** from Table I (the report says how many). ``starts > 1`` marks a
 trial whose page was reloaded (its time counts from the first showing).
 
 Location baselines (``stimuli_dir`` given): for the analysed formal trials, the hit rate a
@@ -102,12 +111,14 @@ def two_proportion_z(k1: int, n1: int, k2: int, n2: int) -> tuple[float, float]:
 
 
 def bootstrap_confusion(
-    formal: pd.DataFrame, methods: list[str], n_boot: int = 2000, seed: int = 0, conf: float = 0.95
+    formal: pd.DataFrame, methods: list[str], n_boot: int = 2000, seed: int = 0, conf: float = 0.95,
+    by: str = "condition",
 ) -> dict[str, tuple[float, float]]:
-    """Participant-level percentile bootstrap CI of each method's confusion rate.
+    """Participant-level percentile bootstrap CI of each condition's confusion rate (``methods``: values of
+    column ``by``).
 
     Each replicate draws participants with replacement (multinomial weights) and
-    recomputes ``sum(not found) / sum(trials)`` per method over the drawn participants.
+    recomputes ``sum(not found) / sum(trials)`` per condition over the drawn participants.
     """
     parts = sorted(formal["participant"].unique())
     if not parts or n_boot <= 0:
@@ -116,7 +127,7 @@ def bootstrap_confusion(
     midx = {m: j for j, m in enumerate(methods)}
     n = np.zeros((len(parts), len(methods)))
     k = np.zeros((len(parts), len(methods)))
-    for (p, m), g in formal.groupby(["participant", "method"]):
+    for (p, m), g in formal.groupby(["participant", by]):
         n[pidx[p], midx[m]] = len(g)
         k[pidx[p], midx[m]] = int((~g["found"]).sum())
     rng = np.random.default_rng(seed)
@@ -161,11 +172,23 @@ def resolve_db_url(db: str, must_exist: bool = False) -> str:
     return db
 
 
+def stored_setting(db, key: str, default: str | None = None) -> str | None:
+    """A value of the study database's ``settings`` table (``default`` when absent)."""
+    from sqlalchemy import select
+
+    from study_site.db import Setting
+
+    with _engine(db).connect() as c:
+        v = c.execute(select(Setting.value).where(Setting.key == key)).scalar()
+    return default if v is None else v
+
+
 def load_tables(db) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``(trials, participants)`` DataFrames from a study database (URL, path or Engine).
 
     ``trials``: every stored trial (practice included, ``practice`` flag) with derived
-    ``rt_s``, ``found``, ``time_on_trial_s`` and the participant's ``completed`` flag.
+    ``rt_s`` (the server's clock), ``page_rt_s`` (the page's claim), ``found``, ``time_on_trial_s`` and the
+    participant's ``completed`` flag.
     ``participants``: one row per participant (HMAC id only) with trial counts.
     """
     from sqlalchemy import inspect, select
@@ -192,10 +215,13 @@ def load_tables(db) -> tuple[pd.DataFrame, pd.DataFrame]:
     )
     trials = trials.drop(columns=["id"])
     participants["completed"] = participants["completed_at"].notna()
-    for col in ("hit", "timed_out", "practice", "late", "too_fast"):
+    for col in ("hit", "timed_out", "practice", "late", "too_fast", "clock_mismatch"):
         trials[col] = trials[col].fillna(False).astype(bool)
-    trials["rt_s"] = trials["rt_ms"].astype(float) / 1000.0
-    trials["found"] = trials["hit"] & ~trials["timed_out"] & (trials["rt_s"] <= trials["time_limit_s"])
+    trials["page_rt_s"] = trials["rt_ms"].astype(float) / 1000.0
+    # the server's clock decides; a row without it (none is written so) would fall back to the page's
+    trials["rt_s"] = trials["server_rt_ms"].astype(float).fillna(trials["rt_ms"].astype(float)) / 1000.0
+    # lateness was decided on the server when the answer arrived (limit + DEADLINE_GRACE_S): late is a timeout
+    trials["found"] = trials["hit"] & ~trials["timed_out"]
     trials["time_on_trial_s"] = np.where(trials["timed_out"], trials["time_limit_s"], trials["rt_s"])
     trials = trials.merge(participants[["participant", "completed"]], on="participant", how="left")
     counts = trials.groupby("participant").agg(
@@ -223,7 +249,7 @@ def formal_trials(trials: pd.DataFrame, include_incomplete: bool = False, keep_t
 
 
 def location_baselines(trials: pd.DataFrame, formal: pd.DataFrame, stimuli_dir) -> pd.DataFrame:
-    """Per method (and ``all``): hit rate of a click at the image centre and at the participant's last
+    """Per condition (and ``all``): hit rate of a click at the image centre and at the participant's last
     practice object's position (centroid, as a fraction of the image), over the trials in ``formal``;
     next to the formal stimuli's mean object area share."""
     from study_site.stimuli import StimulusSet
@@ -248,13 +274,16 @@ def location_baselines(trials: pd.DataFrame, formal: pd.DataFrame, stimuli_dir) 
         lp_hit = ss.hit(st, min(st.width - 1, int(lp[0] * st.width)), min(st.height - 1, int(lp[1] * st.height))) \
             if lp else math.nan
         share = float(ss.mask(st).mean())
-        rows.append({"method": r.method, "centre": centre, "last_practice": lp_hit, "share": share})
-    df = pd.DataFrame(rows, columns=["method", "centre", "last_practice", "share"])
+        rows.append({"condition": r.condition, "label": r.label, "centre": centre, "last_practice": lp_hit,
+                     "share": share})
+    df = pd.DataFrame(rows, columns=["condition", "label", "centre", "last_practice", "share"])
     out = []
-    for m, g in [("all", df)] + list(df.groupby("method")):
+    order = conditions_in_order(df) if len(df) else []
+    for m, g in [("all", df)] + [(c, df[df["condition"] == c]) for c in order]:
         lp = g["last_practice"].dropna()
         out.append({
-            "method": m,
+            "condition": m,
+            "label": "All" if m == "all" else g["label"].iloc[0],
             "n_trials": len(g),
             "centre_click_hit_rate": float(g["centre"].mean()) if len(g) else math.nan,
             "last_practice_hit_rate": float(lp.astype(float).mean()) if len(lp) else math.nan,
@@ -266,6 +295,13 @@ def location_baselines(trials: pd.DataFrame, formal: pd.DataFrame, stimuli_dir) 
 # ---------------------------------------------------------------------------
 # Table I, Kaplan-Meier, pairwise tests
 # ---------------------------------------------------------------------------
+
+
+def conditions_in_order(formal: pd.DataFrame) -> list[str]:
+    """The condition ids of ``formal`` in the paper's table order (:attr:`Condition.order`)."""
+    from optimizer.assets.conditions import parse_id
+
+    return sorted(formal["condition"].unique(), key=lambda c: (parse_id(c).order, c))
 
 
 def durations(formal: pd.DataFrame, miss_censor: str = "limit") -> tuple[np.ndarray, np.ndarray]:
@@ -286,14 +322,14 @@ def durations(formal: pd.DataFrame, miss_censor: str = "limit") -> tuple[np.ndar
 def table_i(
     formal: pd.DataFrame, n_boot: int = 2000, seed: int = 0, miss_censor: str = "limit"
 ) -> pd.DataFrame:
-    """Table I per method (see the module docstring for every definition)."""
+    """Table I per condition, in the paper's order (see the module docstring for every definition)."""
     from lifelines import KaplanMeierFitter
 
-    methods = sorted(formal["method"].unique())
+    methods = conditions_in_order(formal)
     boot = bootstrap_confusion(formal, methods, n_boot=n_boot, seed=seed)
     rows = []
     for m in methods:
-        g = formal[formal["method"] == m]
+        g = formal[formal["condition"] == m]
         n = len(g)
         k = int((~g["found"]).sum())
         lo, hi = wilson_ci(k, n)
@@ -302,7 +338,8 @@ def table_i(
         kmf = KaplanMeierFitter().fit(d, e)
         rows.append(
             {
-                "method": m,
+                "condition": m,
+                "label": str(g["label"].iloc[0]),
                 "n_trials": n,
                 "n_participants": int(g["participant"].nunique()),
                 "n_found": n - k,
@@ -324,14 +361,15 @@ def table_i(
 
 
 def pairwise_tests(formal: pd.DataFrame, miss_censor: str = "limit") -> pd.DataFrame:
-    """Every pair of methods: z-test and Fisher on not-found counts, log-rank on time-to-find; Holm per family."""
+    """Every pair of conditions: z-test and Fisher on not-found counts, log-rank on time-to-find; Holm per family."""
     from lifelines.statistics import logrank_test
     from scipy.stats import fisher_exact
 
-    methods = sorted(formal["method"].unique())
+    methods = conditions_in_order(formal)
+    labels = formal.drop_duplicates("condition").set_index("condition")["label"]
     rows = []
     for a, b in combinations(methods, 2):
-        ga, gb = formal[formal["method"] == a], formal[formal["method"] == b]
+        ga, gb = formal[formal["condition"] == a], formal[formal["condition"] == b]
         na, nb = len(ga), len(gb)
         ka, kb = int((~ga["found"]).sum()), int((~gb["found"]).sum())
         z, pz = two_proportion_z(ka, na, kb, nb)
@@ -345,8 +383,10 @@ def pairwise_tests(formal: pd.DataFrame, miss_censor: str = "limit") -> pd.DataF
             chi2, plr = math.nan, math.nan
         rows.append(
             {
-                "method_a": a,
-                "method_b": b,
+                "condition_a": a,
+                "condition_b": b,
+                "label_a": labels[a],
+                "label_b": labels[b],
                 "n_a": na,
                 "n_b": nb,
                 "confusion_a": ka / na if na else math.nan,
@@ -363,7 +403,7 @@ def pairwise_tests(formal: pd.DataFrame, miss_censor: str = "limit") -> pd.DataF
     df = pd.DataFrame(
         rows,
         columns=[
-            "method_a", "method_b", "n_a", "n_b", "confusion_a", "confusion_b", "diff", "z", "p_z",
+            "condition_a", "condition_b", "label_a", "label_b", "n_a", "n_b", "confusion_a", "confusion_b", "diff", "z", "p_z",
             "fisher_odds_ratio", "p_fisher", "logrank_chi2", "p_logrank",
         ],
     )
@@ -373,7 +413,7 @@ def pairwise_tests(formal: pd.DataFrame, miss_censor: str = "limit") -> pd.DataF
 
 
 def plot_km(formal: pd.DataFrame, path: str | Path, miss_censor: str = "limit") -> None:
-    """Kaplan-Meier curves 'share still hidden' vs seconds per method (95% CI bands) as a PNG."""
+    """Kaplan-Meier curves 'share still hidden' vs seconds per condition (95% CI bands) as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -382,13 +422,14 @@ def plot_km(formal: pd.DataFrame, path: str | Path, miss_censor: str = "limit") 
 
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=150)
     limit = float(formal["time_limit_s"].max())
-    for m in sorted(formal["method"].unique()):
-        g = formal[formal["method"] == m]
+    for m in conditions_in_order(formal):
+        g = formal[formal["condition"] == m]
         d, e = durations(g, miss_censor)
-        KaplanMeierFitter(label=f"{m} (n={len(g)})").fit(d, e).plot_survival_function(ax=ax, ci_show=True)
-    ax.set_xlim(0, limit)
+        KaplanMeierFitter(label=f"{g['label'].iloc[0]} (n={len(g)})").fit(d, e).plot_survival_function(
+            ax=ax, ci_show=True)
+    ax.set_xlim(0, max(limit, float(formal["rt_s"].max())))
     ax.set_ylim(0, 1.02)
-    ax.set_xlabel("time since image onset (s)")
+    ax.set_xlabel("time since image onset (s, server clock)")
     ax.set_ylabel("share of trials with the object not yet found")
     ax.set_title("Time to find (Kaplan-Meier; misses and timeouts censored)")
     ax.grid(alpha=0.3)
@@ -424,13 +465,13 @@ def table_markdown(table: pd.DataFrame, participants: pd.DataFrame, formal: pd.D
         f"({'all with formal trials' if meta['include_incomplete'] else 'completed only'}); "
         f"formal trials: {len(formal)}; time limit: {', '.join(f'{t:g}' for t in sorted(formal['time_limit_s'].unique()))} s.",
         "",
-        "| Method | Trials | Conf. rate | Wilson 95% CI | Bootstrap 95% CI | Avg. time (s) | Med. time (s) "
+        "| Condition | Id | Trials | Conf. rate | Wilson 95% CI | Bootstrap 95% CI | Avg. time (s) | Med. time (s) "
         "| Avg. time, all (s) | Med. time, all (s) | KM median (s) |",
-        "|---|---:|---:|---|---|---:|---:|---:|---:|---:|",
+        "|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in table.itertuples():
         lines.append(
-            f"| {r.method} | {r.n_trials} | {_pct(r.confusion_rate)} | "
+            f"| {r.label} | `{r.condition}` | {r.n_trials} | {_pct(r.confusion_rate)} | "
             f"{_pct(r.confusion_wilson_lo)} - {_pct(r.confusion_wilson_hi)} | "
             f"{_pct(r.confusion_boot_lo)} - {_pct(r.confusion_boot_hi)} | "
             f"{_sec(r.mean_time_found_s)} | {_sec(r.median_time_found_s)} | "
@@ -443,6 +484,12 @@ def table_markdown(table: pd.DataFrame, participants: pd.DataFrame, formal: pd.D
         "- *Conf. rate*: share of formal trials where the object was not found (a click off the object or a "
         "timeout). Wilson CI treats trials as independent; the bootstrap CI resamples participants "
         f"({meta['n_boot']} replicates, seed {meta['seed']}).",
+        "- *Times*: the **server's clock** (`server_rt_ms`): from the arrival of the trial's start request to the "
+        "arrival of the answer, so one network round trip more than the participant's screen showed "
+        f"({meta.get('clock_note', 'page clock not compared')}). The page's own time (`rt_ms`) decides nothing; a page "
+        f"claiming more time than the server measured was refused, {meta.get('n_clock_mismatch', 0)} analysed "
+        f"trial(s) whose page claimed more than {meta.get('clock_tolerance_ms', 1000):g} ms less than the server "
+        "measured are flagged `clock_mismatch` and counted at the server's time.",
         "- *Avg./Med. time*: over correct finds only (time from image onset to the correct click).",
         "- *Avg./Med. time, all*: over all formal trials, timeouts counted at the time limit and misses at their "
         "click time.",
@@ -453,7 +500,8 @@ def table_markdown(table: pd.DataFrame, participants: pd.DataFrame, formal: pd.D
     ]
     n_fast = meta.get("n_too_fast", 0)
     lines += [
-        f"- Excluded: {n_fast} formal trial(s) answered faster than the plausible floor (`too_fast`). "
+        f"- Excluded: {n_fast} formal trial(s) answered faster than the plausible floor on the server's clock "
+        "(`too_fast`). "
         f"Clicks after the deadline are counted as timeouts ({meta.get('n_late', 0)} `late`); "
         f"{meta.get('n_reloaded', 0)} trial(s) were shown again after a reload (the deadline held).",
     ]
@@ -466,12 +514,12 @@ def table_markdown(table: pd.DataFrame, participants: pd.DataFrame, formal: pd.D
             "Hit rate of a participant who clicks the image centre, or where the object was in their last practice "
             "image, on the same formal trials; mean share of the image the object covers.",
             "",
-            "| Method | Trials | Centre click | Last-practice location | Object area share |",
+            "| Condition | Trials | Centre click | Last-practice location | Object area share |",
             "|---|---:|---:|---:|---:|",
         ]
         for r in base.itertuples():
             lines.append(
-                f"| {r.method} | {r.n_trials} | {_pct(r.centre_click_hit_rate)} | {_pct(r.last_practice_hit_rate)} | "
+                f"| {r.label} | {r.n_trials} | {_pct(r.centre_click_hit_rate)} | {_pct(r.last_practice_hit_rate)} | "
                 f"{_pct(r.mean_area_share)} |"
             )
     ages = participants.loc[participants["participant"].isin(formal["participant"].unique()), "age_bracket"]
@@ -482,6 +530,15 @@ def table_markdown(table: pd.DataFrame, participants: pd.DataFrame, formal: pd.D
         for age, n in counts.sort_index().items():
             lines.append(f"| {age} | {n} | {100 * n / len(ages):.1f}% |")
     return "\n".join(lines) + "\n"
+
+
+def clock_note(formal: pd.DataFrame) -> str:
+    """How far the page's clock was below the server's on these trials (median and 95th percentile, ms)."""
+    d = (formal["rt_s"] - formal["page_rt_s"]).dropna() * 1000.0
+    if d.empty:
+        return "page clock not compared"
+    return (f"server minus page: median {d.median():.0f} ms, 95th percentile {d.quantile(0.95):.0f} ms over "
+            f"{len(d)} trials")
 
 
 def write_report(
@@ -513,7 +570,10 @@ def write_report(
     meta = {"n_boot": n_boot, "seed": seed, "include_incomplete": include_incomplete, "miss_censor": miss_censor,
             "n_too_fast": int(all_formal["too_fast"].astype(bool).sum()),
             "n_late": int(formal["late"].astype(bool).sum()),
-            "n_reloaded": int((formal["starts"].fillna(1) > 1).sum()), "baselines": baselines}
+            "n_reloaded": int((formal["starts"].fillna(1) > 1).sum()), "baselines": baselines,
+            "n_clock_mismatch": int(formal["clock_mismatch"].sum()),
+            "clock_tolerance_ms": float(stored_setting(db, "clock_tolerance_ms", "1000")),
+            "clock_note": clock_note(formal)}
     write_text(out / "table_i.md", table_markdown(table, participants, formal, meta))
     if baselines is not None:
         with atomic_path(out / "baselines.csv") as tmp:

@@ -27,16 +27,16 @@ from study_site.stimuli import Stimulus, StimulusSet
 
 
 def cell_counts(s: Session, now: datetime, hold_s: float, exclude_participant: int | None = None) -> dict:
-    """``{(scene, condition): n}`` of formal plan items that currently hold a cell."""
+    """``{(scene, condition id): n}`` of formal plan items that currently hold a cell."""
     cutoff = now - timedelta(seconds=hold_s)
     q = (
-        select(PlanItem.scene, PlanItem.method, func.count())
+        select(PlanItem.scene, PlanItem.condition, func.count())
         .join(Participant, Participant.id == PlanItem.participant_id)
         .where(
             PlanItem.practice.is_(False),
             or_(Participant.completed_at.is_not(None), Participant.last_seen_at >= cutoff),
         )
-        .group_by(PlanItem.scene, PlanItem.method)
+        .group_by(PlanItem.scene, PlanItem.condition)
     )
     if exclude_participant is not None:
         q = q.where(Participant.id != exclude_participant)
@@ -86,8 +86,10 @@ def create_plan(s: Session, p: Participant, stimuli: StimulusSet, n_practice: in
             run=st.run,
             scene=st.scene,
             object=st.object,
-            method=st.condition,
+            method=st.method,
             ablation=st.ablation,
+            condition=st.condition,
+            label=st.label,
             view=st.view,
             width=st.width,
             height=st.height,

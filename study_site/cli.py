@@ -11,8 +11,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 
 from camo_base.errors import CamoError
+from camo_base.ranges import Range
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -50,23 +52,23 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     b.add_argument(
         "--synthetic-practice",
-        type=int,
+        type=Range(int, 0, 200).arg_type(),
         default=8,
         metavar="N",
         help="without --practice/--practice-scenes: N synthetic practice images (default 8; 0 = none)",
     )
-    b.add_argument("--size", type=int, default=512, metavar="PX", help="stimulus width = height (default 512)")
-    b.add_argument("--views", type=int, default=8, help="views per run (default 8)")
-    b.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
-    b.add_argument("--seed", type=int, default=0, help="placement and sampler seed (default 0)")
+    b.add_argument("--size", type=Range(int, 32, 4096).arg_type(), default=512, metavar="PX", help="stimulus width = height (default 512)")
+    b.add_argument("--views", type=Range(int, 1, 256).arg_type(), default=8, help="views per run (default 8)")
+    b.add_argument("--spp", type=Range(int, 1, 65536).arg_type(), default=64, help="samples per pixel (default 64)")
+    b.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0, help="placement and sampler seed (default 0)")
     b.add_argument(
         "--object-size",
         default="0.10,0.30",
         metavar="LO,HI",
         help="object extent as a fraction of the frame width, drawn uniformly (default 0.10,0.30)",
     )
-    b.add_argument("--margin", type=float, default=0.02, help="object kept this share of the frame inside (0.02)")
-    b.add_argument("--threads", type=int, default=None, help="render threads (default: CAMO_THREADS or all cores)")
+    b.add_argument("--margin", type=Range(float, 0.0, 0.2).arg_type(), default=0.02, help="object kept this share of the frame inside (0.02)")
+    b.add_argument("--threads", type=Range(int, 1, 4096).arg_type(), default=None, help="render threads (default: CAMO_THREADS or all cores)")
     b.add_argument(
         "--copy",
         action="store_true",
@@ -76,10 +78,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--no-noise-match", action="store_true",
                    help="the same spp everywhere (default: more samples, up to 8x, where the render with the object is "
                    "noisier than the background, so noise does not give the object away)")
+    b.add_argument("--observer-trials", type=Range(int, 0, 100_000).arg_type(), default=200, metavar="N",
+                   help="simulated observer trials per stimulus for the predicted Table I and power (default 200; "
+                   "0 = none; docs/observer.md)")
     b.add_argument("--force", action="store_true", help="overwrite an existing stimulus set (new ids!)")
     b.set_defaults(func=cmd_build_stimuli)
 
-    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, admin token)")
+    k = sub.add_parser("make-key", help="write a new random key file (participant-id HMAC key, cookie key, admin token)")
     k.add_argument("path", metavar="FILE", help="new file (mode 0600); refuses to overwrite")
     k.set_defaults(func=cmd_make_key)
 
@@ -87,10 +92,15 @@ def register(subparsers) -> argparse.ArgumentParser:
     s.add_argument("--stimuli", required=True, metavar="STIMULI_DIR")
     s.add_argument("--db", required=True, metavar="URL", help="SQLAlchemy URL or a SQLite file path")
     s.add_argument("--host", default="127.0.0.1")
-    s.add_argument("--port", type=int, default=5000)
-    s.add_argument("--threads", type=int, default=8, help="worker threads (waitress)")
+    s.add_argument("--port", type=Range(int, 1, 65535).arg_type(), default=5000)
+    s.add_argument("--threads", type=Range(int, 1, 256).arg_type(), default=8,
+                   help="threads per worker process (default 8)")
     s.add_argument(
-        "--connections", type=int, default=1000, help="open client connections accepted at once (waitress)"
+        "--workers", type=Range(int, 1, 64).arg_type(), default=1,
+        help="worker processes (default 1: waitress in this process); 2 or more: gunicorn with that many "
+        "processes of --threads threads each (the production command; use a PostgreSQL --db)")
+    s.add_argument(
+        "--connections", type=Range(int, 10, 100_000).arg_type(), default=1000, help="open client connections accepted at once (waitress)"
     )
     s.add_argument(
         "--dev",
@@ -98,10 +108,12 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="development: werkzeug's server, and an id key kept in the database when none is given",
     )
     s.add_argument("--id-key-file", metavar="FILE", help="participant-id HMAC key (`camo study make-key FILE`)")
+    s.add_argument("--secret-key-file", metavar="FILE",
+                   help="cookie-signing key (`camo study make-key FILE`; another key than --id-key-file)")
     s.add_argument("--admin-token-file", metavar="FILE", help="admin token (enables /admin/)")
-    s.add_argument("--time-limit", type=float, metavar="S", help="seconds per trial (default 40)")
-    s.add_argument("--practice-trials", type=int, metavar="N", help="practice trials (default 5)")
-    s.add_argument("--min-age", type=int, metavar="YEARS", help="youngest age bracket (default 18)")
+    s.add_argument("--time-limit", type=Range(float, 1.0, 600.0).arg_type(), metavar="S", help="seconds per trial (default 40)")
+    s.add_argument("--practice-trials", type=Range(int, 0, 50).arg_type(), metavar="N", help="practice trials (default 5)")
+    s.add_argument("--min-age", type=Range(int, 10, 99).arg_type(), metavar="YEARS", help="youngest age bracket (default 18)")
     s.add_argument("--completion-code", metavar="CODE", help="study-wide completion code (Prolific)")
     s.add_argument("--completion-url", metavar="URL", help="e.g. https://app.prolific.com/submissions/complete?cc={code}")
     s.add_argument("--consent-file", metavar="FILE", help="plain-text consent statement")
@@ -110,8 +122,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     r = sub.add_parser("report", help="Table I, Kaplan-Meier curves, pairwise tests, CSV/Parquet tables")
     r.add_argument("--db", required=True, metavar="URL", help="SQLAlchemy URL or a SQLite file path")
     r.add_argument("--out", required=True, metavar="DIR")
-    r.add_argument("--bootstrap", type=int, default=2000, metavar="N", help="bootstrap replicates (default 2000)")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--bootstrap", type=Range(int, 0, 10_000_000).arg_type(), default=2000, metavar="N", help="bootstrap replicates (default 2000)")
+    r.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
     r.add_argument("--include-incomplete", action="store_true", help="also analyse unfinished sessions")
     r.add_argument(
         "--miss-censor", choices=("limit", "click"), default="limit", help="censor misses at the limit or at the click"
@@ -126,22 +138,41 @@ def register(subparsers) -> argparse.ArgumentParser:
     w = sub.add_parser(
         "power",
         help="participants needed to separate each pair of methods (resampled through Table I's tests)",
-        description="Power analysis: simulated studies of N participants drawn from predicted (camo evaluate's "
-        "simulated observer) or pilot outcomes, analysed with Table I's pairwise tests (Fisher and log-rank, "
-        "Holm); see study_site/power.py and docs/observer.md.",
+        description="Power analysis: simulated studies of N participants drawn from predicted (the simulated "
+        "observer on a stimulus set) or pilot outcomes, analysed with Table I's pairwise tests (Fisher and "
+        "log-rank, Holm), vectorised over the replicates; see study_site/power.py and docs/observer.md.",
     )
     src = w.add_mutually_exclusive_group()
-    src.add_argument("--predicted", nargs="+", metavar="EVAL_DIR",
-                     help="evaluation directories with the observer's simulated_trials.parquet")
+    src.add_argument("--predicted", nargs="+", metavar="STIMULI_DIR",
+                     help="stimulus sets with the observer's predictions (written by `camo study build-stimuli`, "
+                     "or `camo study predict`)")
     src.add_argument("--db", metavar="URL", help="a pilot study database (SQLAlchemy URL or SQLite path)")
     w.add_argument("--out", required=True, metavar="DIR")
     w.add_argument("--participants", default="10,20,30,40,60,80,100,150,200,300", metavar="N,...",
                    help="numbers of participants to simulate (default 10,20,30,40,60,80,100,150,200,300)")
-    w.add_argument("--reps", type=int, default=200, help="simulated studies per number (default 200)")
-    w.add_argument("--alpha", type=float, default=0.05, help="significance level after Holm (default 0.05)")
-    w.add_argument("--target", type=float, default=0.8, help="power wanted (default 0.8)")
-    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--reps", type=Range(int, 1, 100_000).arg_type(), default=200, help="simulated studies per number (default 200)")
+    w.add_argument("--alpha", type=Range(float, 0.0, 1.0, lo_open=True, hi_open=True).arg_type(), default=0.05, help="significance level after Holm (default 0.05)")
+    w.add_argument("--target", type=Range(float, 0.0, 1.0, lo_open=True, hi_open=True).arg_type(), default=0.8, help="power wanted (default 0.8)")
+    w.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
+    w.add_argument("--quiet", action="store_true", help="no progress bar")
     w.set_defaults(func=cmd_power)
+
+    q = sub.add_parser(
+        "predict",
+        help="run the simulated observer on every stimulus of a set (predicted Table I, power)",
+        description="The simulated observer (evaluation/observer.py) searches every stimulus of the set as the "
+        "site shows it and writes predicted.parquet/.csv, predicted_trials.parquet, predicted_config.json and "
+        "predicted_power/ next to manifest.json (build-stimuli does this already; use it to redo with other "
+        "observer settings). See study_site/predict.py and docs/observer.md.",
+    )
+    q.add_argument("stimuli", metavar="STIMULI_DIR")
+    q.add_argument("--trials", type=Range(int, 0, 100_000).arg_type(), default=200, metavar="N", help="simulated trials per stimulus (200)")
+    q.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
+    q.add_argument("--observer", metavar="KEY=VALUE,...",
+                   help="observer parameters (evaluation.observer.ObserverConfig), e.g. display_deg=14,criterion=4")
+    q.add_argument("--time-limit", type=Range(float, 1.0, 600.0).arg_type(), metavar="S", help="seconds per trial (default: the site's 40)")
+    q.add_argument("--quiet", action="store_true", help="no progress bar")
+    q.set_defaults(func=cmd_predict)
 
     m = sub.add_parser(
         "simulate",
@@ -152,13 +183,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         "generator. See study_site/simulate.py and docs/observer.md.",
     )
     m.add_argument("--url", required=True, help="the running study, e.g. http://127.0.0.1:5000")
-    m.add_argument("--participants", type=int, default=100, help="simulated participants (default 100)")
-    m.add_argument("--concurrency", type=int, default=20, help="participants at once (default 20)")
-    m.add_argument("--seed", type=int, default=0, help="participant ids sim-SEED-K and their random streams")
+    m.add_argument("--participants", type=Range(int, 1, 10_000).arg_type(), default=100, help="simulated participants (default 100)")
+    m.add_argument("--concurrency", type=Range(int, 1, 500).arg_type(), default=20, help="participants at once (default 20)")
+    m.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0, help="participant ids sim-SEED-K and their random streams")
     m.add_argument("--observer", metavar="KEY=VALUE,...",
                    help="observer parameters (evaluation.observer.ObserverConfig), e.g. display_deg=14,criterion=4")
-    m.add_argument("--ramp", type=float, default=0.0, metavar="S", help="spread arrivals over S seconds")
-    m.add_argument("--max-seconds", type=float, default=3600.0, help="deadline of the whole run (default 3600)")
+    m.add_argument("--ramp", type=Range(float, 0.0, 86_400.0).arg_type(), default=0.0, metavar="S", help="spread arrivals over S seconds")
+    m.add_argument("--max-seconds", type=Range(float, 1.0, 86_400.0).arg_type(), default=3600.0, help="deadline of the whole run (default 3600)")
     m.add_argument("--json", metavar="FILE", help="also write the summary and every simulated trial as JSON")
     m.set_defaults(func=cmd_simulate)
     return p
@@ -196,11 +227,13 @@ def cmd_power(args) -> int:
     if args.reps < 1 or args.reps > 100_000:
         raise CamoError("--reps must be 1-100000")
     if args.predicted:
-        cells, source = cells_from_predicted(args.predicted), "predicted by the simulated observer"
+        cells, source = cells_from_predicted(args.predicted), "predicted by the simulated observer on the stimuli"
     else:
         cells, source = cells_from_pilot(args.db), "pilot study"
+    t0 = time.perf_counter()
     res = write_power(cells, args.out, ns, reps=args.reps, alpha=args.alpha, target=args.target, seed=args.seed,
-                      source=source)
+                      source=source, progress=not args.quiet)
+    print(f"{len(ns)} numbers of participants x {args.reps} simulated studies in {time.perf_counter() - t0:.1f} s")
     from study_site.power import TESTS
 
     for r in res["needed"].itertuples():
@@ -218,12 +251,40 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
     return lo, hi
 
 
+def cmd_predict(args) -> int:
+    from study_site.predict import predict_stimulus_set
+    from study_site.simulate import parse_observer
+
+    cfg = parse_observer(args.observer)
+    views, _ = predict_stimulus_set(args.stimuli, n=args.trials, seed=args.seed, config=cfg,
+                                    time_limit_s=args.time_limit, progress=not args.quiet)
+    _print_predicted(views)
+    from study_site.power import write_predicted_power
+
+    write_predicted_power(args.stimuli, seed=args.seed, progress=not args.quiet)
+    print(f"wrote {args.stimuli}/predicted.parquet, predicted_trials.parquet, predicted_power/")
+    return 0
+
+
+def _print_predicted(views) -> None:
+    from evaluation.observer import predicted_table
+
+    formal = views[~views["practice"].astype(bool)]
+    t = predicted_table(formal.assign(method=formal["condition"]))
+    for r in t.itertuples():
+        print(f"predicted {r.method}: confusion {100 * r.confusion_rate:.1f} % (miss {100 * r.p_miss:.1f} %, "
+              f"timeout {100 * r.p_timeout:.1f} %), mean time of finds {r.mean_time_found_s:.2f} s "
+              f"({r.n_views} stimuli)")
+
+
 def cmd_build_stimuli(args) -> int:
     from study_site.stimuli import build_stimuli, summarize
 
     scenes = [x for x in args.practice_scenes.split(",") if x.strip()]
     if args.synthetic_practice < 0 or args.synthetic_practice > 200:
         raise CamoError("--synthetic-practice must be 0-200")
+    if not 0 <= args.observer_trials <= 100_000:
+        raise CamoError("--observer-trials must be 0-100000")
     if args.copy:
         manifest = build_stimuli(args.eval_dirs, args.out, practice_dirs=args.practice, force=args.force,
                                  practice_scenes=scenes, synthetic_practice_n=args.synthetic_practice)
@@ -237,6 +298,14 @@ def cmd_build_stimuli(args) -> int:
             noise_match=not args.no_noise_match,
         )
     print(f"{args.out}: {summarize(manifest)}")
+    if args.observer_trials > 0:
+        from study_site.predict import predict_stimulus_set
+
+        from study_site.power import write_predicted_power
+
+        views, _ = predict_stimulus_set(args.out, n=args.observer_trials, seed=args.seed)
+        _print_predicted(views)
+        write_predicted_power(args.out, seed=args.seed)
     return 0
 
 
@@ -269,10 +338,15 @@ def cmd_serve(args) -> int:
         raise CamoError(f"{args.stimuli}: no such stimulus directory")
     if not 10 <= args.connections <= 100_000:
         raise CamoError("--connections must be 10-100000")
+    if not 1 <= args.workers <= 64:
+        raise CamoError("--workers must be 1-64")
+    if args.workers > 1 and args.dev:
+        raise CamoError("--workers needs the production server (gunicorn), not --dev")
     cfg = from_env()
     cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
     for flag, key in (
         ("id_key_file", "ID_HMAC_KEY_FILE"),
+        ("secret_key_file", "SECRET_KEY_FILE"),
         ("admin_token_file", "ADMIN_TOKEN_FILE"),
         ("time_limit", "TRIAL_TIME_LIMIT_S"),
         ("practice_trials", "PRACTICE_TRIALS"),
@@ -286,9 +360,43 @@ def cmd_serve(args) -> int:
             cfg[key] = v
     if args.dev:
         cfg["DEV"] = True
-    app = create_app(cfg)
+    app = create_app(cfg)  # every configuration error is a one-line refusal here, before any process starts
+    if args.workers > 1:
+        app.extensions["camo_study"].db.dispose()
+        serve_gunicorn(cfg, args.host, args.port, args.workers, args.threads, args.connections)
+        return 0
     serve_app(app, args.host, args.port, threads=args.threads, connections=args.connections, dev=args.dev)
     return 0
+
+
+def serve_gunicorn(cfg: dict, host: str, port: int, workers: int, threads: int, connections: int = 1000) -> None:
+    """The production server: gunicorn's master in this process, ``workers`` forked processes of ``threads``
+    threads each (``gthread``), each building its own app (own database pool) from ``cfg``. The same as
+    ``gunicorn -w WORKERS -k gthread --threads THREADS 'study_site.wsgi:app'`` with ``CAMO_STUDY_*`` variables."""
+    try:
+        from gunicorn.app.base import BaseApplication
+    except ImportError:
+        raise CamoError("--workers needs gunicorn: pip install gunicorn (or use --workers 1: waitress)") from None
+    if str(cfg.get("DATABASE_URL", "")).startswith("sqlite"):
+        print("note: several processes share one SQLite file (each commit waits for the others' locks); "
+              "PostgreSQL is the database for --workers > 1", file=sys.stderr)
+
+    class StudyServer(BaseApplication):
+        def load_config(self):
+            for k, v in {"bind": f"{host}:{port}", "workers": workers, "threads": threads, "worker_class": "gthread",
+                         "worker_connections": connections, "keepalive": 60, "timeout": 60, "graceful_timeout": 10,
+                         "accesslog": None, "errorlog": "-", "loglevel": "warning", "proc_name": "camo-study",
+                         "preload_app": False}.items():
+                self.cfg.set(k, v)
+
+        def load(self):
+            from study_site import create_app
+
+            return create_app(cfg)
+
+    print(f"study site on http://{host}:{port}/ (gunicorn, {workers} workers x {threads} threads)", file=sys.stderr,
+          flush=True)
+    StudyServer().run()
 
 
 def serve_app(app, host: str, port: int, threads: int = 8, connections: int = 1000, dev: bool = False) -> None:
@@ -345,12 +453,12 @@ def cmd_report(args) -> int:
     t = res["table"]
     for r in t.itertuples():
         print(
-            f"{r.method}: confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
-            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s"
+            f"{r.label} ({r.condition}): confusion {100 * r.confusion_rate:.2f}% (n={r.n_trials}), "
+            f"mean/median time found {r.mean_time_found_s:.2f}/{r.median_time_found_s:.2f} s (server clock)"
         )
     b = res.get("baselines")
     if b is not None:
-        a = b[b["method"] == "all"].iloc[0]
+        a = b[b["condition"] == "all"].iloc[0]
         print(
             f"baselines over {a.n_trials} formal trials: centre click {100 * a.centre_click_hit_rate:.1f} %, "
             f"last-practice location {100 * a.last_practice_hit_rate:.1f} %, object area share "

@@ -14,28 +14,35 @@ DEFAULTS: dict[str, Any] = {
     "STIMULI_DIR": None,  # required: output of `camo study build-stimuli`
     "DATABASE_URL": None,  # default: sqlite:///<instance>/study.sqlite
     # secrets
-    "SECRET_KEY": None,  # signs the session cookie (generated once and kept in the database when not given)
+    # signs the session cookie: from the environment or a file, never the database (anyone holding the data could
+    # otherwise forge sessions). Required unless DEV.
+    "SECRET_KEY": None,
+    "SECRET_KEY_FILE": None,  # a file holding the cookie key (`camo study make-key FILE`)
     # key of the HMAC that replaces participant ids: from the environment or a file, never the database
     # (anyone holding the database could otherwise re-identify known ids). Required unless DEV.
     "ID_HMAC_KEY": None,
     "ID_HMAC_KEY_FILE": None,  # a file holding the key (`camo study make-key FILE`)
     "ADMIN_TOKEN": None,  # admin pages and CSV export; disabled (404) when unset
     "ADMIN_TOKEN_FILE": None,  # a file holding the admin token
-    "DEV": False,  # development only: an id key generated and kept in the database is allowed
+    "DEV": False,  # development only: an id key and a cookie key generated and kept in the database are allowed
     # protocol
     "TRIAL_TIME_LIMIT_S": 40.0,
     "PRACTICE_TRIALS": 5,
     "HIT_TOLERANCE_PX": 0,  # a click within this many image pixels of the object counts as a hit
     # the deadline lives on the server (issued by POST /api/start when the trial is first shown):
     "DEADLINE_GRACE_S": 2.0,  # network allowance: answers arriving later than limit + grace are timeouts
-    "RT_FLOOR_MS": 300.0,  # faster answers are stored but flagged too_fast; the analysis excludes them
+    "RT_FLOOR_MS": 300.0,  # answers faster on the server's clock are stored but flagged too_fast; excluded
+    # network allowance between the page's and the server's clock: a page claiming more time than the server
+    # measured (+ this) is refused (400); one claiming less (- this) is stored with clock_mismatch = true and, like
+    # every trial, judged and reported on the server's time
+    "CLOCK_TOLERANCE_MS": 1000.0,
     # display: the image's height is this share of the viewport's height (capped by DISPLAY_MAX_WIDTH_SHARE
     # of its width); displayed size, viewport and device pixel ratio are stored with every trial
     "DISPLAY_HEIGHT_SHARE": 0.72,
     "DISPLAY_MAX_WIDTH_SHARE": 0.94,
     "MIN_VIEWPORT_W": 800,  # smaller windows are asked to enlarge before a trial starts
     "MIN_VIEWPORT_H": 600,
-    "MIN_AGE": 18,  # youngest age bracket starts here; below 18 the consent page says guardians must agree
+    "MIN_AGE": 18,  # adults only: participants state their age bracket (required); younger ones cannot take part
     "ASSIGNMENT_HOLD_S": 3600.0,  # an unfinished participant's cells count as filled for this long
     "ALLOW_ANONYMOUS": True,  # landing page offers "start" without an id (a random id is made)
     # completion
@@ -79,6 +86,7 @@ _TYPES = {
     "DB_POOL_SIZE": int,
     "DEADLINE_GRACE_S": float,
     "RT_FLOOR_MS": float,
+    "CLOCK_TOLERANCE_MS": float,
     "DISPLAY_HEIGHT_SHARE": float,
     "DISPLAY_MAX_WIDTH_SHARE": float,
     "MIN_VIEWPORT_W": int,
@@ -88,6 +96,10 @@ _TYPES = {
 _BOOLS = {"ALLOW_ANONYMOUS", "SESSION_COOKIE_SECURE", "SESSION_COOKIE_HTTPONLY", "DEV"}
 
 ENV_PREFIX = "CAMO_STUDY_"
+#: The youngest MIN_AGE allowed: the study takes adults only.
+ADULT_AGE = 18
+#: The about-you answer of someone younger than MIN_AGE: stored, and the participation ends there.
+UNDER_MIN_AGE = "under"
 
 
 def from_env(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
@@ -134,11 +146,13 @@ def resolve(config: Mapping[str, Any] | None) -> dict[str, Any]:
         raise CamoError("config DEADLINE_GRACE_S must be between 0 and 30 seconds")
     if not 0.0 <= cfg["RT_FLOOR_MS"] <= 5000.0:
         raise CamoError("config RT_FLOOR_MS must be between 0 and 5000 ms")
+    if not 50.0 <= cfg["CLOCK_TOLERANCE_MS"] <= 10000.0:
+        raise CamoError("config CLOCK_TOLERANCE_MS must be between 50 and 10000 ms")
     for key in ("DISPLAY_HEIGHT_SHARE", "DISPLAY_MAX_WIDTH_SHARE"):
         if not 0.2 <= cfg[key] <= 1.0:
             raise CamoError(f"config {key} must be between 0.2 and 1")
-    if not 10 <= cfg["MIN_AGE"] <= 99:
-        raise CamoError("config MIN_AGE must be between 10 and 99")
+    if not ADULT_AGE <= cfg["MIN_AGE"] <= 99:
+        raise CamoError(f"MIN_AGE (--min-age) must be {ADULT_AGE}-99, not {cfg['MIN_AGE']}: the study takes adults only")
     url = cfg.get("COMPLETION_URL")
     if url and not str(url).startswith(("https://", "http://")):
         raise CamoError("config COMPLETION_URL must be an http(s) URL")
@@ -158,12 +172,19 @@ def read_secret_file(path: str, what: str, min_len: int = 16) -> str:
 
 
 def age_brackets(min_age: int) -> list[tuple[str, str]]:
-    """``[(value, label)]`` age brackets starting at ``min_age``: up to 24, then decades to 64, 65+."""
+    """``[(value, label)]`` adult age brackets starting at ``min_age`` (>= 18): up to 24, then decades to 64, 65+.
+
+    The about-you page offers these and ``UNDER_MIN_AGE`` ("Under 18"), which ends the participation.
+
+    >>> age_brackets(18)[:2]
+    [('18-24', '18\u201324'), ('25-34', '25\u201334')]
+    """
+    if min_age < ADULT_AGE:
+        raise CamoError(f"age brackets start at {ADULT_AGE} or later (adults only), not {min_age}")
     edges = [e for e in (25, 35, 45, 55, 65) if e > min_age]
     out, lo = [], min_age
     for e in edges:
         out.append((f"{lo}-{e - 1}", f"{lo}\u2013{e - 1}"))
         lo = e
     out.append((f"{lo}+", f"{lo} or older"))
-    out.append(("prefer_not", "Prefer not to say"))
     return out

@@ -36,7 +36,7 @@ from sqlalchemy import (
     insert,
     select,
 )
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.exc import ArgumentError, IntegrityError, OperationalError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
@@ -89,8 +89,11 @@ class PlanItem(Base):
     run: Mapped[str] = mapped_column(String(256))
     scene: Mapped[str] = mapped_column(String(256), index=True)
     object: Mapped[str] = mapped_column(String(256))
-    method: Mapped[str] = mapped_column(String(256))  # condition label (method or method+ablation)
-    ablation: Mapped[str] = mapped_column(String(256))
+    method: Mapped[str] = mapped_column(String(256))  # the run's method (``ours``)
+    ablation: Mapped[str] = mapped_column(String(256))  # its ablations: ``none`` or a comma list
+    # the condition (optimizer.assets.conditions): id (``ours-without-inpainting``) and label (``w/o Inpainting``)
+    condition: Mapped[str] = mapped_column(String(300), index=True)
+    label: Mapped[str] = mapped_column(String(300))
     view: Mapped[str] = mapped_column(String(64))
     width: Mapped[int] = mapped_column(Integer)
     height: Mapped[int] = mapped_column(Integer)
@@ -100,7 +103,7 @@ class PlanItem(Base):
 
 
 #: What a plan item shows, copied into its trial when it is answered (the trial row stands alone in the analysis).
-SHOWN_COLUMNS = ("practice", "stimulus_id", "run", "scene", "object", "method", "ablation", "view")
+SHOWN_COLUMNS = ("practice", "stimulus_id", "run", "scene", "object", "method", "ablation", "condition", "label", "view")
 
 
 class Trial(Base):
@@ -117,12 +120,14 @@ class Trial(Base):
     object: Mapped[str] = mapped_column(String(256))
     method: Mapped[str] = mapped_column(String(256))
     ablation: Mapped[str] = mapped_column(String(256))
+    condition: Mapped[str] = mapped_column(String(300))  # id and label as in the plan (see PlanItem)
+    label: Mapped[str] = mapped_column(String(300))
     view: Mapped[str] = mapped_column(String(64))
     hit: Mapped[bool] = mapped_column(Boolean)
     timed_out: Mapped[bool] = mapped_column(Boolean)
     click_x: Mapped[int | None] = mapped_column(Integer, nullable=True)  # image pixels (column)
     click_y: Mapped[int | None] = mapped_column(Integer, nullable=True)  # image pixels (row)
-    rt_ms: Mapped[float] = mapped_column(Float)  # client: performance.now() image shown -> click/timeout
+    rt_ms: Mapped[float] = mapped_column(Float)  # the page's claim: performance.now() image shown -> click/timeout
     time_limit_s: Mapped[float] = mapped_column(Float)
     display_w: Mapped[float | None] = mapped_column(Float, nullable=True)  # CSS px the image was shown at
     display_h: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -130,10 +135,13 @@ class Trial(Base):
     viewport_h: Mapped[float | None] = mapped_column(Float, nullable=True)
     dpr: Mapped[float | None] = mapped_column(Float, nullable=True)  # window.devicePixelRatio
     server_received_at: Mapped[datetime] = mapped_column(DateTime)
-    # server clock: ms from the trial's first /api/start to this answer's arrival
+    # the server's clock, the time the study decides on and reports: ms from the arrival of the trial's first
+    # /api/start to this answer's arrival
     server_rt_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
     late: Mapped[bool] = mapped_column(Boolean, default=False)  # a click after the deadline, stored as a timeout
-    too_fast: Mapped[bool] = mapped_column(Boolean, default=False)  # rt_ms below RT_FLOOR_MS (excluded in analysis)
+    too_fast: Mapped[bool] = mapped_column(Boolean, default=False)  # server_rt_ms below RT_FLOOR_MS (excluded)
+    # the page's rt_ms is more than CLOCK_TOLERANCE_MS below the server's: flagged, judged on the server's time
+    clock_mismatch: Mapped[bool] = mapped_column(Boolean, default=False)
     starts: Mapped[int] = mapped_column(Integer, default=1)  # times the image was shown (> 1: reloaded)
 
 
@@ -191,13 +199,17 @@ class Database:
         self.url = url
         self.engine = make_engine(url, **engine_kwargs)
         self._read = sessionmaker(self.engine, expire_on_commit=False)
-        self._write = sessionmaker(self.engine.execution_options(sqlite_begin="IMMEDIATE"), expire_on_commit=False)
+        self._write_engine = self.engine.execution_options(sqlite_begin="IMMEDIATE")
+        self._read_engine = (self.engine.execution_options(isolation_level="AUTOCOMMIT")
+                             if self.engine.dialect.name == "postgresql" else self.engine)
+        self._write = sessionmaker(self._write_engine, expire_on_commit=False)
+        self._insert_ignore_stmts: dict = {}
         self._write_lock = threading.Lock() if self.engine.dialect.name == "sqlite" else contextlib.nullcontext()
         self._light_engine = None
         if self.engine.dialect.name == "sqlite":  # same file, commits without fsync (see write_light)
             self._light_engine = make_engine(url, **dict(engine_kwargs, synchronous="NORMAL"))
-            self._light = sessionmaker(self._light_engine.execution_options(sqlite_begin="IMMEDIATE"),
-                                       expire_on_commit=False)
+            self._light_write_engine = self._light_engine.execution_options(sqlite_begin="IMMEDIATE")
+            self._light = sessionmaker(self._light_write_engine, expire_on_commit=False)
         else:
             if self.engine.dialect.name == "postgresql":
 
@@ -206,7 +218,8 @@ class Database:
                     if conn.get_execution_options().get("camo_light"):
                         conn.exec_driver_sql("SET LOCAL synchronous_commit TO OFF")
 
-            self._light = sessionmaker(self.engine.execution_options(camo_light=True), expire_on_commit=False)
+            self._light_write_engine = self.engine.execution_options(camo_light=True)
+            self._light = sessionmaker(self._light_write_engine, expire_on_commit=False)
         try:
             Base.metadata.create_all(self.engine)
         except OperationalError as exc:
@@ -234,6 +247,21 @@ class Database:
             with self._light() as s:
                 yield s
 
+    @contextlib.contextmanager
+    def read_conn(self) -> Iterator[Connection]:
+        """A Core connection for reads (the hot API paths: prebuilt statements, no ORM; see study_site.views). On
+        PostgreSQL in autocommit mode: a read is one round trip to the server (no BEGIN, no ROLLBACK on return)."""
+        with self._read_engine.connect() as c:
+            yield c
+
+    @contextlib.contextmanager
+    def write_conn(self, light: bool = False) -> Iterator[Connection]:
+        """A Core connection in a write transaction, committed on exit: like :meth:`write` (``light=False``) or
+        :meth:`write_light` (``light=True``)."""
+        with self._write_lock:
+            with (self._light_write_engine if light else self._write_engine).begin() as c:
+                yield c
+
     @property
     def dialect(self) -> str:
         return self.engine.dialect.name
@@ -250,6 +278,15 @@ class Database:
         with self.read() as s:
             return s.get(Setting, key).value
 
+    def put_setting(self, key: str, value: str) -> None:
+        """Store a setting, replacing an earlier value (e.g. the clock tolerance the server runs with)."""
+        with self.write() as s, s.begin():
+            row = s.get(Setting, key)
+            if row is None:
+                s.add(Setting(key=key, value=value))
+            elif row.value != value:
+                row.value = value
+
     def insert_ignore(self, session: Session, model, values: dict) -> bool:
         """INSERT that silently does nothing on a unique-key conflict; True if a row was inserted."""
         if self.dialect in ("sqlite", "postgresql"):
@@ -265,6 +302,28 @@ class Database:
             return True
         except IntegrityError:
             return False
+
+    def insert_ignore_conn(self, conn: Connection, model, values: dict) -> bool:
+        """:meth:`insert_ignore` on a Core connection, with the statement built once per table (the trial write's
+        hot path)."""
+        stmt = self._insert_ignore_stmts.get(model.__tablename__)
+        if stmt is None:
+            if self.dialect == "sqlite":
+                from sqlalchemy.dialects.sqlite import insert as dialect_insert
+            elif self.dialect == "postgresql":
+                from sqlalchemy.dialects.postgresql import insert as dialect_insert
+            else:
+                dialect_insert = None
+            stmt = dialect_insert(model.__table__).on_conflict_do_nothing() if dialect_insert else False
+            self._insert_ignore_stmts[model.__tablename__] = stmt
+        if stmt is False:
+            try:
+                with conn.begin_nested():
+                    conn.execute(insert(model.__table__), values)
+                return True
+            except IntegrityError:
+                return False
+        return bool(conn.execute(stmt, values).rowcount)
 
     def dispose(self) -> None:
         self.engine.dispose()

@@ -46,7 +46,15 @@ import numpy as np
 
 from camo_base.errors import CamoError
 
-from study_site.stimuli import StimulusWriter, check_no_leak, practice_split, synthetic_practice
+from study_site.stimuli import (
+    StimulusWriter,
+    check_no_content_leak,
+    check_no_leak,
+    environment_key,
+    phash,
+    practice_split,
+    synthetic_practice,
+)
 
 DEFAULT_SIZE = 512
 DEFAULT_OBJECT_FRAC = (0.10, 0.30)
@@ -235,6 +243,11 @@ def render_stimuli(
     named = practice_split(formal_scenes, {e.scene for e, p, _ in jobs if p}, practice_scenes)
     jobs = [(e, p or e.scene in named, ev) for e, p, ev in jobs]
     check_no_leak({e.scene for e, p, _ in jobs if not p}, {e.scene for e, p, _ in jobs if p}, "build-stimuli")
+    env_of = {id(e): environment_key(e.pack.environment) for e, _, _ in jobs}
+    # practice vs formal by what they show (the same environment), before anything is rendered; the images and
+    # backgrounds are compared again by perceptual hash when the set is written
+    check_no_content_leak([{"practice": p, "scene": e.scene, "view": "any", "environment": env_of[id(e)]}
+                           for e, p, _ in jobs], "build-stimuli")
 
     backend.init(threads=threads)
     renderer = ViewRenderer(spp, seed, noise_match=noise_match)
@@ -270,7 +283,8 @@ def render_stimuli(
                 continue
             meta = {"run": e.name, "scene": e.scene, "object": e.object, "method": e.method,
                     "ablation": e.ablation, "view": str(v), "source_kind": e.kind,
-                    "source_run": str(e.path.resolve()), "spp": spp, "seed": seed, **draws[v]}
+                    "source_run": str(e.path.resolve()), "spp": spp, "seed": seed, **draws[v],
+                    "environment": env_of[id(e)], "background_phash": phash(srgb8(bg.image[v]))}
             if objr.noise is not None:  # the object's pixels got up to 8x the spp where it was noisier
                 meta["spp_factor_max"] = int(objr.noise.factor[v].max())
             writer.add(srgb8(objr.image[v]), mask, meta, practice)

@@ -1,7 +1,7 @@
 """Simulated participants through the live study site (``camo study simulate``).
 
 Each simulated participant is an HTTP client of the real site (loopback only): the landing link with a
-``PROLIFIC_PID`` (``sim-<seed>-<k>``), consent, the optional age bracket, instructions, ``/api/state``, then
+``PROLIFIC_PID`` (``sim-<seed>-<k>``), consent, the age bracket (required), instructions, ``/api/state``, then
 every trial -- practice and formal -- as the page runs it: the image is downloaded from its opaque URL, the
 simulated observer (:mod:`evaluation.observer`, one simulated search with the participant's own random stream)
 decides where and when to click from **the image alone**, ``POST /api/start`` starts the server's clock, the
@@ -88,7 +88,8 @@ class SimStats:
 
 
 class ObserverCache:
-    """One :class:`evaluation.observer.Cells` per stimulus image (thread-safe; the map is computed once)."""
+    """One :class:`evaluation.observer.Cells` per stimulus image (thread-safe; the map is computed once), at the
+    display size the site gives that image (:func:`study_site.predict.display_deg`)."""
 
     def __init__(self, config):
         self.config = config
@@ -111,7 +112,10 @@ class ObserverCache:
                     return self.cells[key]
             with Image.open(io.BytesIO(png)) as im:
                 img = np.asarray(im.convert("RGB"))
-            c = make_cells(img, self.config)
+            from study_site.predict import REFERENCE_DEG, display_deg
+
+            deg = display_deg(img.shape[1], img.shape[0]) * self.config.display_deg / REFERENCE_DEG
+            c = make_cells(img, dataclasses.replace(self.config, display_deg=deg))
             with self.lock:
                 self.cells[key] = c
             return c
@@ -199,7 +203,7 @@ class Participant(SiteClient):
                                "study site)")
         self.csrf = m.group(1)
         self.form("/consent", {"consent": "yes"})
-        ages = ["18-24", "25-34", "35-44", "45-54", "55-64", "65+", "prefer_not", ""]
+        ages = ["18-24", "25-34", "35-44", "45-54", "55-64", "65+"]  # required; adults only
         self.form("/about-you", {"age": ages[int(self.rng.integers(len(ages)))]})
         self.form("/instructions", {})
         st, data, _ = self.request("GET", "/api/state")
@@ -343,8 +347,9 @@ def parse_observer(text: str | None):
         if "=" not in item:
             raise CamoError(f"--observer expects KEY=VALUE,..., not {item!r}")
         k, v = (x.strip() for x in item.split("=", 1))
-        if k not in fields or k == "centre_sigmas_deg":
-            known = ", ".join(n for n in fields if n != "centre_sigmas_deg")
+        tuples = ("centre_sigmas_deg", "object_deg")
+        if k not in fields or k in tuples:
+            known = ", ".join(n for n in fields if n not in tuples)
             raise CamoError(f"--observer: unknown key {k!r}; known: {known}")
         if k in ("start", "saliency_model"):
             kw[k] = v

@@ -10,8 +10,9 @@ Output (``STIMULI_DIR``)::
 
     STIMULI_DIR/
       manifest.json        server-side only: id -> run/scene/method/view/files
-      images/<id>.png      what a participant sees (re-encoded, no metadata)
-      reveal/<rid>.png     image with the object's outline drawn; served only
+      images/<id>.webp     what a participant sees: lossless WebP (checked pixel-identical when written)
+      images/<id>.png      the same pixels as PNG (fallback; re-encoded, no metadata)
+      reveal/<rid>.webp    image with the object's outline drawn (and .png); served only
                            after the participant answered that trial
       masks/<id>.png       server-side only (hit test)
 
@@ -51,10 +52,12 @@ import numpy as np
 from camo_base.atomic import atomic_path, write_json
 from camo_base.errors import CamoError
 from evaluation.evaldir import read_renders
+from optimizer.assets.conditions import condition
 
-MANIFEST_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+MANIFEST_VERSION = 3  # 3: condition, label, phash, environment, background_phash; WebP beside every PNG
+READABLE_VERSIONS = (1, 2, 3)
 SYNTHETIC_SCENE = "practice_synthetic"
+PRACTICE_METHOD = "practice"  # the synthetic practice images' method (no condition of the study)
 OUTLINE_RGB = (255, 40, 200)  # magenta: rarely present in natural backgrounds
 
 
@@ -78,18 +81,15 @@ class Stimulus:
     centroid_y: float | None = None  # fraction of the height (0 top)
     area_share: float | None = None  # mask pixels / image pixels
     centre_hit: bool | None = None  # the centre pixel (width // 2, height // 2) lies on the object
+    #: the condition's id and label (:mod:`optimizer.assets.conditions`), always derived from method + ablation
+    condition: str = ""
+    label: str = ""
 
-    @property
-    def condition(self) -> str:
-        """Method label used in the analysis: ``method`` or ``method+ablation``."""
-        return condition_label(self.method, self.ablation)
-
-
-def condition_label(method: str, ablation: str | None) -> str:
-    ab = (ablation or "").strip()
-    if ab.lower() in ("", "none", "full", "null"):
-        return method
-    return f"{method}+{ab}"
+    def __post_init__(self):
+        c = condition(self.method, self.ablation)
+        object.__setattr__(self, "condition", c.id)
+        object.__setattr__(self, "label", c.label)
+        object.__setattr__(self, "ablation", c.ablation)
 
 
 # ---------------------------------------------------------------------------
@@ -122,16 +122,50 @@ class StimulusSet:
             {s.scene for s in self.stimuli if not s.practice}, {s.scene for s in self.stimuli if s.practice}, mpath
         )
         self.data = data
+        self._check_content(mpath)
         self.by_id = {s.id: s for s in self.stimuli}
         self.by_reveal = {s.reveal_id: s for s in self.stimuli}
         self._masks: dict[str, np.ndarray] = {}
 
-    # files ---------------------------------------------------------------
-    def image_path(self, stim: Stimulus) -> Path:
-        return self.root / "images" / f"{stim.id}.png"
+    def _check_content(self, where) -> None:
+        """Practice vs formal by content (:func:`check_no_content_leak`); hashes of a manifest written before they
+        were recorded are computed from the images."""
+        entries = self.data["stimuli"]
+        if not any(e.get("practice") for e in entries):
+            return
+        rows = []
+        for e, st in zip(entries, self.stimuli):
+            row = dict(e)
+            if not row.get("phash"):
+                row["phash"] = phash(_load_rgb(self.image_path(st)))
+            rows.append(row)
+        check_no_content_leak(rows, where)
 
-    def reveal_path(self, stim: Stimulus) -> Path:
-        return self.root / "reveal" / f"{stim.reveal_id}.png"
+    # files ---------------------------------------------------------------
+    def image_path(self, stim: Stimulus, ext: str = ".png") -> Path:
+        return self.root / "images" / f"{stim.id}{ext}"
+
+    def reveal_path(self, stim: Stimulus, ext: str = ".png") -> Path:
+        return self.root / "reveal" / f"{stim.reveal_id}{ext}"
+
+    def image_names(self, stim: Stimulus) -> tuple[str, str]:
+        """``(preferred, fallback)`` file names under ``/i/``: ``<id>.webp`` and ``<id>.png`` (a set built before
+        WebP: the PNG twice)."""
+        png = f"{stim.id}.png"
+        return (f"{stim.id}.webp", png) if self.image_path(stim, ".webp").is_file() else (png, png)
+
+    def static_files(self) -> dict:
+        """``{file name: serving.StaticFile}`` of every stimulus image (both formats), with content-hash ETags."""
+        from study_site.serving import static_file
+
+        out = {}
+        for st in self.stimuli:
+            for name in set(self.image_names(st)):
+                p = self.root / "images" / name
+                if not p.is_file():
+                    raise CamoError(f"{p}: stimulus image missing (rebuild the set with `camo study build-stimuli`)")
+                out[name] = static_file(p)
+        return out
 
     def mask_path(self, stim: Stimulus) -> Path:
         return self.root / "masks" / f"{stim.id}.png"
@@ -180,6 +214,78 @@ def check_no_leak(formal_scenes: set[str], practice_scenes: set[str], where: Any
             f"{where}: practice scene(s) {', '.join(both)[:200]} also appear in the formal trials (practice would "
             "reveal where the object is); use other scenes for practice"
         )
+
+
+#: Largest Hamming distance (of 64 bits) between the perceptual hashes of a practice and a formal image (or
+#: background) that counts as "the same picture". Measured on 24 real 512-px stimuli (gravel, meadow, panorama;
+#: docs/study.md): a JPEG q80 re-encode 0-2; backgrounds of different framings 16 at least (median 32); images of
+#: other views or scenes 18 at least. The object moves an image's hash by 2-34 bits (the same framing with another
+#: object is not "the same picture"), which is why backgrounds are compared with backgrounds as well.
+PHASH_MAX_DISTANCE = 8
+
+
+def phash(rgb: np.ndarray) -> str:
+    """64-bit DCT perceptual hash (``imagehash.phash``: 32 x 32 greyscale, 8 x 8 lowest frequencies against their
+    median) of an ``(H, W, 3)`` uint8 sRGB image, as 16 hex digits."""
+    import imagehash
+    from PIL import Image
+
+    return str(imagehash.phash(Image.fromarray(np.asarray(rgb, dtype=np.uint8))))
+
+
+def phash_distance(a: str, b: str) -> int:
+    """Hamming distance of two :func:`phash` values."""
+    return bin(int(a, 16) ^ int(b, 16)).count("1")
+
+
+def environment_key(env_spec) -> str:
+    """What a scene pack's ``[environment]`` shows, by content: ``builtin:NAME``, or the SHA-256 (first 16 hex) of
+    its panorama or Mitsuba XML file, so a panorama copied under another name is still the same environment."""
+    import hashlib
+
+    if env_spec.builtin:
+        return f"builtin:{env_spec.builtin}"
+    path = env_spec.panorama or env_spec.xml
+    kind = "panorama" if env_spec.panorama else "xml"
+    try:
+        digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    except OSError:
+        digest = f"missing:{Path(path).name}"
+    return f"{kind}:{digest}"
+
+
+def check_no_content_leak(stimuli: list[dict[str, Any]], where: Any = "stimulus set") -> None:
+    """CamoError (one line) when practice shows what a formal trial shows, judged by content, not names:
+
+    * the same environment (:func:`environment_key`: a built-in, or the same panorama/XML bytes) -- e.g. practice
+      ``meadow:teapot`` with formal ``meadow``: same grass, sun and camera orbit;
+    * a practice image or background whose perceptual hash is within :data:`PHASH_MAX_DISTANCE` bits of a formal
+      one's (the same view under another scene name, copied renders).
+
+    ``stimuli``: manifest entries with ``practice``, ``scene`` and, where known, ``environment``, ``phash`` and
+    ``background_phash``."""
+    formal = [s for s in stimuli if not s["practice"]]
+    practice = [s for s in stimuli if s["practice"]]
+    envs = {s["environment"]: s["scene"] for s in formal if s.get("environment")}
+    for p in practice:
+        if p.get("environment") and p["environment"] in envs:
+            raise CamoError(
+                f"{where}: practice scene {p['scene']} shows the same environment ({p['environment']}) as formal "
+                f"scene {envs[p['environment']]} (practice would reveal the formal backgrounds); use another "
+                "environment for practice")
+    for key in ("phash", "background_phash"):
+        fh = [(s[key], s) for s in formal if s.get(key)]
+        for p in practice:
+            if not p.get(key):
+                continue
+            for h, f in fh:
+                d = phash_distance(p[key], h)
+                if d <= PHASH_MAX_DISTANCE:
+                    what = "image" if key == "phash" else "background"
+                    raise CamoError(
+                        f"{where}: practice {what} of scene {p['scene']} (view {p['view']}) looks like formal scene "
+                        f"{f['scene']} (view {f['view']}; perceptual hashes {d} of 64 bits apart, <= "
+                        f"{PHASH_MAX_DISTANCE}); use other images for practice")
 
 
 def placement(mask: np.ndarray) -> dict[str, Any]:
@@ -260,6 +366,28 @@ def _save_png(path: Path, arr: np.ndarray) -> None:
         Image.fromarray(arr).save(tmp, format="PNG", optimize=False)
 
 
+def _save_webp_lossless(path: Path, arr: np.ndarray) -> None:
+    """Lossless WebP of an ``(H, W, 3)`` uint8 image, decoded again and compared with ``arr``: a pixel that differs
+    is an error (CamoError), never a silently changed stimulus.
+
+    Effort ``method=2, quality=75``: measured on a 480 x 320 noisy image, 0.5 s and 156 KB, against 77 s and 155 KB
+    for the maximum (``method=6, quality=100``) and 260 KB for the PNG (libwebp 1.x through Pillow 13)."""
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr).save(tmp, format="WEBP", lossless=True, quality=75, method=2, exact=True)
+        with Image.open(tmp) as im:
+            back = np.asarray(im.convert("RGB"))
+        if back.shape != arr.shape or not np.array_equal(back, arr):
+            raise CamoError(f"{path}: the WebP encoder changed pixels (lossless expected); Pillow's libwebp is broken")
+
+
+def _save_image(stem: Path, arr: np.ndarray) -> None:
+    """``stem.png`` and ``stem.webp`` (lossless, verified pixel-identical) of one served image."""
+    _save_png(stem.with_suffix(".png"), arr)
+    _save_webp_lossless(stem.with_suffix(".webp"), arr)
+
+
 class StimulusWriter:
     """Writes images/, masks/, reveal/ of a new stimulus set, then manifest.json (last, atomically)."""
 
@@ -273,26 +401,30 @@ class StimulusWriter:
         self.stimuli: list[dict[str, Any]] = []
 
     def add(self, rgb: np.ndarray, mask: np.ndarray, meta: dict[str, Any], practice: bool) -> dict[str, Any]:
+        cond = condition(str(meta["method"]), meta.get("ablation"))
         sid = secrets.token_urlsafe(12)
         rid = secrets.token_urlsafe(12)
-        _save_png(self.out / "images" / f"{sid}.png", rgb)
+        _save_image(self.out / "images" / sid, rgb)
         _save_png(self.out / "masks" / f"{sid}.png", mask.astype(np.uint8) * 255)
-        _save_png(self.out / "reveal" / f"{rid}.png", outline_overlay(rgb, mask))
+        _save_image(self.out / "reveal" / rid, outline_overlay(rgb, mask))
         entry = {
+            "phash": phash(rgb),
             "id": sid,
             "reveal_id": rid,
             "run": str(meta["run"]),
             "scene": str(meta["scene"]),
             "object": str(meta.get("object") or ""),
             "method": str(meta["method"]),
-            "ablation": str(meta.get("ablation") or ""),
+            "ablation": cond.ablation,
+            "condition": cond.id,
+            "label": cond.label,
             "view": str(meta["view"]),
             "practice": bool(practice),
             "width": int(rgb.shape[1]),
             "height": int(rgb.shape[0]),
             "mask_pixels": int(mask.sum()),
             **placement(mask),
-            **{k: v for k, v in meta.items() if k not in ("run", "scene", "object", "method", "ablation", "view")},
+            **{k: v for k, v in meta.items() if k not in ("run", "scene", "object", "method", "ablation", "view", "condition", "label")},
         }
         self.stimuli.append(entry)
         return entry
@@ -305,6 +437,7 @@ class StimulusWriter:
             {s["scene"] for s in self.stimuli if s["practice"]},
             self.out,
         )
+        check_no_content_leak(self.stimuli, self.out)
         manifest = {
             "version": MANIFEST_VERSION,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -359,8 +492,38 @@ def synthetic_practice(n: int, size: tuple[int, int], seed: int = 0):
         obj = np.clip(shifted * gain + rng.normal(0, 6, 3), 0, 255)
         img = np.where(mask[..., None], obj, bg)
         meta = {"run": SYNTHETIC_SCENE, "scene": f"{SYNTHETIC_SCENE}_{i:02d}", "object": "blob",
-                "method": "practice", "ablation": "", "view": "0"}
+                "method": PRACTICE_METHOD, "ablation": "", "view": "0", "environment": "synthetic"}
         out.append((np.clip(img, 0, 255).astype(np.uint8), mask, meta))
+    return out
+
+
+def environments_of_eval_dir(eval_dir: Path) -> dict[str, str]:
+    """``{input name: environment_key}`` of the inputs an evaluation directory lists (its eval_config.toml), read
+    from each run's config.toml or each asset's scene; inputs whose scene can no longer be read are left out (their
+    images are still compared by perceptual hash)."""
+    from evaluation.evaldir import read_eval_config
+
+    out: dict[str, str] = {}
+    try:
+        records = [r for r in (read_eval_config(eval_dir) or {}).get("runs") or [] if isinstance(r, dict)]
+    except CamoError:
+        return out
+    for r in records:
+        name, kind, path = str(r.get("name", "")), str(r.get("kind", "run")), Path(str(r.get("path", "")))
+        try:
+            if kind == "run":
+                from optimizer.assets.rundir import pack_from_config, read_config
+
+                pack = pack_from_config(read_config(path), path)
+            elif kind == "asset":
+                from optimizer.scenes.builtin_scenes import resolve_scene
+
+                pack = resolve_scene(str(r.get("scene_source") or r.get("scene") or ""))
+            else:
+                continue
+        except (CamoError, OSError):
+            continue
+        out[name] = environment_key(pack.environment)
     return out
 
 
@@ -396,6 +559,7 @@ def build_stimuli(
     named = practice_split(formal_scenes, {str(e["scene"]) for _, e, p in plan if p}, practice_scenes)
     plan = [(d, e, p or str(e["scene"]) in named) for d, e, p in plan]
 
+    envs = {str(d): environments_of_eval_dir(d) for d, _ in sources}
     seen: set[tuple[str, str, bool]] = set()
     skipped_empty = 0
     sizes = []
@@ -419,6 +583,10 @@ def build_stimuli(
         sizes.append((rgb.shape[1], rgb.shape[0]))
         meta = {k: e.get(k) for k in ("run", "scene", "object", "method", "ablation", "view")}
         meta["source_image"] = str((d / str(e["image"])).resolve())
+        if envs[str(d)].get(str(e["run"])):
+            meta["environment"] = envs[str(d)][str(e["run"])]
+        if e.get("background") and (d / str(e["background"])).is_file():
+            meta["background_phash"] = phash(_load_rgb(d / str(e["background"])))
         writer.add(rgb, mask, meta, practice)
     has_practice = any(s["practice"] for s in writer.stimuli)
     if not has_practice and synthetic_practice_n > 0 and sizes:
@@ -436,8 +604,8 @@ def build_stimuli(
 def summarize(manifest: dict[str, Any]) -> str:
     formal = [s for s in manifest["stimuli"] if not s["practice"]]
     scenes = sorted({s["scene"] for s in formal})
-    conds = sorted({condition_label(s["method"], s["ablation"]) for s in formal})
-    cells = {(s["scene"], condition_label(s["method"], s["ablation"])) for s in formal}
+    conds = sorted({condition(s["method"], s["ablation"]).label for s in formal})
+    cells = {(s["scene"], condition(s["method"], s["ablation"]).id) for s in formal}
     practice = [s for s in manifest["stimuli"] if s["practice"]]
     missing = len(scenes) * len(conds) - len(cells)
     text = (

@@ -15,12 +15,14 @@ def make_fake_eval_dir(
     views: int = 2,
     size: tuple[int, int] = (160, 120),
     seed: int = 0,
+    ablations: dict[str, tuple[str, str]] | None = None,
 ) -> list[dict]:
     """Write ``root/renders.json`` and PNGs as `camo evaluate` would; return the entries.
 
     Each entry gets a random RGB image and a rectangular object mask; the rectangle
     (``x0, y0, x1, y1``, half-open, image pixels) is stored in the entry as ``rect``
-    so a test knows where the object is. ``size`` is ``(width, height)``.
+    so a test knows where the object is. ``size`` is ``(width, height)``. ``methods`` name runs; ``ablations``
+    maps such a name to the ``(method, ablation)`` it stands for (``{"ours-noinp": ("ours", "inpainting")}``).
     """
     from PIL import Image
 
@@ -29,8 +31,9 @@ def make_fake_eval_dir(
     w, h = size
     entries = []
     for si, scene in enumerate(scenes):
-        for method in methods:
-            run = f"{scene}__{method}"
+        for name in methods:
+            method, ablation = (ablations or {}).get(name, (name, ""))
+            run = f"{scene}__{name}"
             d = root / "renders" / run
             d.mkdir(parents=True, exist_ok=True)
             for v in range(views):
@@ -53,7 +56,7 @@ def make_fake_eval_dir(
                         "scene": scene,
                         "object": f"object_{si}",
                         "method": method,
-                        "ablation": "",
+                        "ablation": ablation,
                         "view": v,
                         "image": f"renders/{run}/{stem}_obj.png",
                         "background": f"renders/{run}/{stem}_bg.png",

@@ -1,21 +1,24 @@
 """Participant pages and the trial API.
 
 Flow: landing (Prolific PROLIFIC_PID/STUDY_ID/SESSION_ID or ?id=, or a form) ->
-consent -> about you (optional age bracket) -> instructions -> task (practice,
+consent -> about you (age bracket, required: adults only; "under MIN_AGE" ends at /not-eligible) -> instructions -> task (practice,
 then formal trials; JS) -> done (completion code / redirect).
 
 Nothing sent before a click names the scene, method, mask or outline: the task
-page gets opaque image URLs (``/i/<id>``); ``POST /api/trial`` hit-tests the
+page gets opaque image URLs (``/i/<id>.webp``, static: :mod:`study_site.serving`); ``POST /api/trial`` hit-tests the
 click against the mask on the server and only its response carries the reveal
 URL (``/r/<rid>``), which is served only once that trial is stored.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
 import secrets
+from pathlib import Path
+
 from flask import (
     Blueprint,
     abort,
@@ -28,11 +31,11 @@ from flask import (
     session,
     url_for,
 )
-from sqlalchemy import func, select, update
+from sqlalchemy import bindparam, func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from study_site.assign import create_plan
-from study_site.config import age_brackets
+from study_site.config import UNDER_MIN_AGE, age_brackets
 from study_site.db import SHOWN_COLUMNS, Participant, PlanItem, Trial, lock_for_assignment, utcnow
 from study_site.security import TOKEN_RE, check_csrf, hmac_id, valid_id
 
@@ -41,6 +44,7 @@ bp = Blueprint("study", __name__)
 STAGE_ENDPOINT = {
     "consent": "study.consent",
     "declined": "study.declined",
+    "ineligible": "study.ineligible",
     "about": "study.about",
     "instructions": "study.instructions",
     "task": "study.task",
@@ -65,6 +69,8 @@ def _cfg(key):
 def stage_of(p: Participant) -> str:
     if p.completed_at is not None:
         return "done"
+    if p.age_bracket == UNDER_MIN_AGE:
+        return "ineligible"
     if p.consent_at is None:
         return "declined" if p.declined_at is not None else "consent"
     if p.demographics_at is None:
@@ -235,17 +241,30 @@ def about():
     p, r = require_stage("about")
     if r is not None:
         return r
+    min_age = int(_cfg("MIN_AGE"))
     if request.method == "POST":
         check_csrf()
         age = request.form.get("age") or None
-        if age is not None and age not in dict(age_brackets(int(_cfg("MIN_AGE")))):
+        if age is None:  # required: the study takes adults only
+            return render_template("about.html", brackets=age_brackets(min_age), min_age=min_age,
+                                   error="Please choose your age bracket.", **_step_context("about")), 400
+        if age != UNDER_MIN_AGE and age not in dict(age_brackets(min_age)):
             abort(400, description="Unknown age bracket.")
         with st().db.write() as s, s.begin():
             q = s.get(Participant, p.id)
             q.age_bracket = age
             q.demographics_at = utcnow()
-        return redirect(url_for("study.instructions"))
-    return render_template("about.html", brackets=age_brackets(int(_cfg("MIN_AGE"))), **_step_context("about"))
+        return redirect(url_for("study.ineligible" if age == UNDER_MIN_AGE else "study.instructions"))
+    return render_template("about.html", brackets=age_brackets(min_age), min_age=min_age, error=None,
+                           **_step_context("about"))
+
+
+@bp.get("/not-eligible")
+def ineligible():
+    p, r = require_stage("ineligible")
+    if r is not None:
+        return r
+    return render_template("ineligible.html", min_age=int(_cfg("MIN_AGE")))
 
 
 @bp.route("/instructions", methods=["GET", "POST"])
@@ -295,15 +314,8 @@ def task():
 
 
 def _api_participant(s) -> Participant:
-    p = current_participant(s)
-    if p is None:
-        abort(401, description="no study session; open the study link again")
-    stage = stage_of(p)
-    if stage != "task":
-        resp = jsonify(error=f"not in the task ({stage})", redirect=url_for(STAGE_ENDPOINT[stage]))
-        resp.status_code = 409
-        abort(resp)
-    return p
+    """The session's participant (ORM), or abort 401 / 409 like :func:`_api_row`."""
+    return _api_row(current_participant(s))
 
 
 @bp.get("/api/state")
@@ -330,7 +342,7 @@ def api_state():
             {
                 "index": it.idx,
                 "practice": it.practice,
-                "src": url_for("study.image", sid=it.stimulus_id),
+                **_image_urls(it.stimulus_id),
                 "w": it.width,
                 "h": it.height,
                 "started": it.started_at is not None,
@@ -339,6 +351,70 @@ def api_state():
             if it.idx not in answered
         ],
     )
+
+
+def _image_urls(sid: str) -> dict[str, str]:
+    """``src`` (lossless WebP) and ``fallback`` (PNG) of a stimulus, served statically (:mod:`study_site.serving`)."""
+    stim = st().stimuli.by_id.get(sid)
+    webp, png = st().stimuli.image_names(stim) if stim is not None else (f"{sid}.png", f"{sid}.png")
+    return {"src": f"{request.script_root}/i/{webp}", "fallback": f"{request.script_root}/i/{png}"}
+
+
+# ---------------------------------------------------------------------------
+# the hot paths (/api/start, /api/trial): prebuilt Core statements, one read and one short write each.
+# Profiled (docs/study.md): building ORM statements per request (coercion, cache keys) cost more CPU than the
+# database; a prebuilt statement memoises its cache key, and one joined read replaces four ORM queries.
+# ---------------------------------------------------------------------------
+
+_P, _I, _T = Participant.__table__, PlanItem.__table__, Trial.__table__
+_STAGE_COLS = (_P.c.id, _P.c.time_limit_s, _P.c.last_seen_at, _P.c.completed_at, _P.c.consent_at, _P.c.declined_at,
+               _P.c.demographics_at, _P.c.instructions_at, _P.c.age_bracket)
+_N_DONE = select(func.count()).select_from(_T).where(_T.c.participant_id == _P.c.id).scalar_subquery()
+#: /api/start: the participant (stage fields), whether the trial exists, how many trials are answered
+START_READ = (
+    select(*_STAGE_COLS, _N_DONE.label("n_done"), _I.c.idx.label("item_idx"))
+    .select_from(_P.outerjoin(_I, (_I.c.participant_id == _P.c.id) & (_I.c.idx == bindparam("idx"))))
+    .where(_P.c.token == bindparam("token"))
+)
+#: /api/start: the first start wins, later ones only count
+START_WRITE = (
+    update(_I)
+    .where(_I.c.participant_id == bindparam("b_pid"), _I.c.idx == bindparam("b_idx"))
+    .values(started_at=func.coalesce(_I.c.started_at, bindparam("b_now")), starts=func.coalesce(_I.c.starts, 0) + 1)
+    .returning(_I.c.started_at, _I.c.starts)
+)
+_ITEM_COLS = [_I.c.started_at, _I.c.starts, _I.c.width, _I.c.height, _I.c.reveal_id, _I.c.idx.label("item_idx")] + [
+    _I.c[c] for c in SHOWN_COLUMNS]
+_TRIAL_COLS = ("id", "client_trial_id", "trial_index", "hit", "timed_out", "late", "too_fast", "clock_mismatch")
+_I2 = _I.alias("i2")
+_TOTAL = select(func.count()).select_from(_I2).where(_I2.c.participant_id == _P.c.id).scalar_subquery()
+#: /api/trial: the participant, the plan item, the plan's length and a stored answer to this trial (if any)
+TRIAL_READ = (
+    select(*_STAGE_COLS, *_ITEM_COLS, _TOTAL.label("total"), *[_T.c[c].label(f"t_{c}") for c in _TRIAL_COLS])
+    .select_from(
+        _P.outerjoin(_I, (_I.c.participant_id == _P.c.id) & (_I.c.idx == bindparam("idx")))
+        .outerjoin(_T, (_T.c.participant_id == _P.c.id) & (_T.c.trial_index == bindparam("idx")))
+    )
+    .where(_P.c.token == bindparam("token"))
+)
+TRIAL_COUNT = select(func.count()).select_from(_T).where(_T.c.participant_id == bindparam("pid"))
+TRIAL_STORED = select(*[_T.c[c] for c in _TRIAL_COLS]).where(
+    _T.c.participant_id == bindparam("pid"), _T.c.trial_index == bindparam("idx"))
+TOUCH = update(_P).where(_P.c.id == bindparam("b_pid")).values(last_seen_at=bindparam("b_now"))
+#: a participant's last_seen_at (what holds their cells, ASSIGNMENT_HOLD_S) is refreshed at most this often
+TOUCH_EVERY_S = 60.0
+
+
+def _api_row(row):
+    """The participant (a row or an ORM object) of an API call, or abort 401 (no session) / 409 (not in the task)."""
+    if row is None:
+        abort(401, description="no study session; open the study link again")
+    stage = stage_of(row)
+    if stage != "task":
+        resp = jsonify(error=f"not in the task ({stage})", redirect=url_for(STAGE_ENDPOINT[stage]))
+        resp.status_code = 409
+        abort(resp)
+    return row
 
 
 def _elapsed_ms(started_at, now) -> float:
@@ -360,22 +436,19 @@ def api_start():
     if isinstance(idx, bool) or not isinstance(idx, int) or not 0 <= idx < 10_000:
         abort(400, description="trial_index must be a small non-negative integer")
     state = st()
-    with state.db.read() as s:  # checks outside the (on SQLite: serialised) write
-        p = _api_participant(s)
-        if s.get(PlanItem, (p.id, idx)) is None:
-            abort(400, description="no such trial")
-        n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
-    if idx != n_done:
-        abort(409, description=f"trial {idx} is not the next one (next is {n_done})")
+    tok = session_token()
+    if tok is None:
+        abort(401, description="no study session; open the study link again")
+    with state.db.read_conn() as c:  # checks outside the (on SQLite: serialised) write
+        p = _api_row(c.execute(START_READ, {"token": tok, "idx": idx}).first())
+    if p.item_idx is None:
+        abort(400, description="no such trial")
+    if idx != p.n_done:
+        abort(409, description=f"trial {idx} is not the next one (next is {p.n_done})")
     limit_s = p.time_limit_s
     now = utcnow()
-    with state.db.write_light() as s, s.begin():  # one statement: the first start wins, later ones only count
-        started_at, starts = s.execute(
-            update(PlanItem)
-            .where(PlanItem.participant_id == p.id, PlanItem.idx == idx)
-            .values(started_at=func.coalesce(PlanItem.started_at, now), starts=func.coalesce(PlanItem.starts, 0) + 1)
-            .returning(PlanItem.started_at, PlanItem.starts)
-        ).one()
+    with state.db.write_conn(light=True) as c:  # one statement
+        started_at, starts = c.execute(START_WRITE, {"b_pid": p.id, "b_idx": idx, "b_now": now}).one()
     elapsed = _elapsed_ms(started_at, now)
     limit_ms = limit_s * 1000.0
     return jsonify(
@@ -423,7 +496,6 @@ TRIAL_FIELDS = {
     "trial_index", "client_trial_id", "timed_out", "x", "y", "rt_ms", "display_w", "display_h",
     "viewport_w", "viewport_h", "dpr",
 }
-CLOCK_TOLERANCE_MS = 1000.0  # the page's clock may run ahead of the server's by this much (start latency)
 
 
 def _parse_trial(body) -> dict:
@@ -462,59 +534,67 @@ def _parse_trial(body) -> dict:
     return out
 
 
-def _trial_answer(existing: Trial, item: PlanItem, total: int, ack: str, duplicate: bool):
+def _trial_answer(stored: dict, reveal_id: str, total: int, ack: str, duplicate: bool):
     return jsonify(
         ok=True,
         ack=ack,
-        stored_client_trial_id=existing.client_trial_id,
+        stored_client_trial_id=stored["client_trial_id"],
         duplicate=duplicate,
-        trial_index=existing.trial_index,
-        hit=existing.hit,
-        timed_out=existing.timed_out,
-        late=existing.late,
-        too_fast=existing.too_fast,
-        reveal=url_for("study.reveal", rid=item.reveal_id),
-        next=existing.trial_index + 1,
-        done=existing.trial_index + 1 >= total,
+        trial_index=stored["trial_index"],
+        hit=bool(stored["hit"]),
+        timed_out=bool(stored["timed_out"]),
+        late=bool(stored["late"]),
+        too_fast=bool(stored["too_fast"]),
+        clock_mismatch=bool(stored["clock_mismatch"]),
+        reveal=url_for("study.reveal", rid=reveal_id),
+        next=stored["trial_index"] + 1,
+        done=stored["trial_index"] + 1 >= total,
     )
 
 
 @bp.post("/api/trial")
 def api_trial():
-    """Store one answer, judged against the server's clock of that trial.
+    """Store one answer, judged on the server's clock of that trial (``server_rt_ms``: from the arrival of the
+    trial's first ``/api/start`` to the arrival of this answer; it includes one network round trip and the
+    page's two paint frames, so it is at least the page's honest ``rt_ms``).
 
     * a retry of a stored trial returns the stored answer (idempotent; no re-judging);
     * the trial must have been started (``/api/start``), else 409;
-    * ``rt_ms`` may not exceed the server's elapsed time by more than ``CLOCK_TOLERANCE_MS`` (400);
+    * ``rt_ms`` may not exceed the server's time by more than ``CLOCK_TOLERANCE_MS`` (400: impossible);
+    * ``rt_ms`` more than ``CLOCK_TOLERANCE_MS`` *below* the server's time is stored with
+      ``clock_mismatch = true``; the trial is judged and reported on the server's time like any other;
     * a timeout before the time limit (page or server clock) is 400;
     * a click after the limit (``rt_ms`` > limit, or arriving after limit + ``DEADLINE_GRACE_S`` on the
       server) is stored as a timeout with ``late = true`` (not a hit, whatever it clicked);
-    * ``rt_ms`` below ``RT_FLOOR_MS`` is stored with ``too_fast = true`` (the analysis excludes it).
+    * a server time below ``RT_FLOOR_MS`` is stored with ``too_fast = true`` (the analysis excludes it).
     """
     check_csrf()
     data = _parse_trial(_json_body())
     state = st()
     idx = data["trial_index"]
     now = utcnow()
-    with state.db.read() as s:
-        p = _api_participant(s)
-        item = s.get(PlanItem, (p.id, idx))
-        total = s.scalar(select(func.count()).where(PlanItem.participant_id == p.id))
-        existing = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
-    if item is None:
+    tok = session_token()
+    if tok is None:
+        abort(401, description="no study session; open the study link again")
+    with state.db.read_conn() as c:
+        row = _api_row(c.execute(TRIAL_READ, {"token": tok, "idx": idx}).first())
+    if row.item_idx is None:
         abort(400, description="no such trial")
-    if existing is not None:  # a retry (lost acknowledgement) or a second answer: the first one stands
-        return _trial_answer(existing, item, total, data["client_trial_id"], True)
-    if item.started_at is None:
+    if row.t_id is not None:  # a retry (lost acknowledgement) or a second answer: the first one stands
+        stored = {c: getattr(row, f"t_{c}") for c in _TRIAL_COLS}
+        return _trial_answer(stored, row.reveal_id, row.total, data["client_trial_id"], True)
+    if row.started_at is None:
         abort(409, description="trial not started (POST /api/start first)")
-    limit_ms = p.time_limit_s * 1000.0
-    server_ms = _elapsed_ms(item.started_at, now)
+    limit_ms = row.time_limit_s * 1000.0
+    server_ms = _elapsed_ms(row.started_at, now)
     rt = data["rt_ms"]
-    if rt > server_ms + CLOCK_TOLERANCE_MS:
+    tol = float(_cfg("CLOCK_TOLERANCE_MS"))
+    if rt > server_ms + tol:
         abort(400, description="rt_ms exceeds the time since the trial started")
+    clock_mismatch = rt < server_ms - tol
     late = False
     if data["timed_out"]:
-        if rt < limit_ms - CLOCK_TOLERANCE_MS or server_ms < limit_ms - CLOCK_TOLERANCE_MS:
+        if rt < limit_ms - tol or server_ms < limit_ms - tol:
             abort(400, description="a timeout before the time limit")
     elif rt > limit_ms or server_ms > limit_ms + 1000.0 * float(_cfg("DEADLINE_GRACE_S")):
         late = True
@@ -522,25 +602,25 @@ def api_trial():
     hit = False
     if not data["timed_out"]:
         x, y = int(data["x"]), int(data["y"])
-        if x >= item.width or y >= item.height:
+        if x >= row.width or y >= row.height:
             abort(400, description="click position outside the image")
         if not late:
-            stim = state.stimuli.by_id.get(item.stimulus_id)
+            stim = state.stimuli.by_id.get(row.stimulus_id)
             if stim is None:
                 abort(409, description="stimulus set changed since this session started")
             hit = state.stimuli.hit(stim, x, y, int(_cfg("HIT_TOLERANCE_PX")))
-    too_fast = (not data["timed_out"]) and rt < float(_cfg("RT_FLOOR_MS"))
+    too_fast = (not data["timed_out"]) and server_ms < float(_cfg("RT_FLOOR_MS"))
     values = dict(
-        participant_id=p.id,
+        participant_id=row.id,
         trial_index=idx,
         client_trial_id=data["client_trial_id"],
-        **{c: getattr(item, c) for c in SHOWN_COLUMNS},
+        **{c: getattr(row, c) for c in SHOWN_COLUMNS},
         hit=hit,
         timed_out=data["timed_out"] or late,
         click_x=x,
         click_y=y,
         rt_ms=rt,
-        time_limit_s=p.time_limit_s,
+        time_limit_s=row.time_limit_s,
         display_w=data["display_w"],
         display_h=data["display_h"],
         viewport_w=data["viewport_w"],
@@ -550,24 +630,28 @@ def api_trial():
         server_rt_ms=server_ms,
         late=late,
         too_fast=too_fast,
-        starts=int(item.starts or 1),
+        clock_mismatch=clock_mismatch,
+        starts=int(row.starts or 1),
     )
-    # the write holds SQLite's writer lock: as few statements as possible
-    with state.db.write() as s, s.begin():
-        n_done = s.scalar(select(func.count()).where(Trial.participant_id == p.id))
+    touch = row.last_seen_at is None or (now - row.last_seen_at).total_seconds() > TOUCH_EVERY_S
+    # the write holds SQLite's writer lock: as few statements as possible (count, insert, at most one update)
+    with state.db.write_conn() as c:
+        n_done = c.execute(TRIAL_COUNT, {"pid": row.id}).scalar()
         inserted = False
         if idx == n_done:
-            inserted = state.db.insert_ignore(s, Trial, values)
+            inserted = state.db.insert_ignore_conn(c, Trial, values)
         elif idx > n_done:
             abort(409, description=f"trial {idx} answered out of order (next is {n_done})")
         if inserted:
-            s.execute(update(Participant).where(Participant.id == p.id).values(last_seen_at=now))
-            stored = Trial(**values)
+            if touch:
+                c.execute(TOUCH, {"b_pid": row.id, "b_now": now})
+            stored = {k: values.get(k) for k in _TRIAL_COLS}
         else:  # answered meanwhile (another tab or a retry racing this one), or client_trial_id reused
-            stored = s.scalar(select(Trial).where(Trial.participant_id == p.id, Trial.trial_index == idx))
-            if stored is None:
+            r = c.execute(TRIAL_STORED, {"pid": row.id, "idx": idx}).first()
+            if r is None:
                 abort(409, description="client_trial_id already used for another trial")
-    return _trial_answer(stored, item, total, data["client_trial_id"], not inserted)
+            stored = r._asdict()
+    return _trial_answer(stored, row.reveal_id, row.total, data["client_trial_id"], not inserted)
 
 
 @bp.post("/api/complete")
@@ -592,26 +676,6 @@ def api_complete():
     return jsonify(ok=True, redirect=url_for("study.done"))
 
 
-@bp.get("/i/<sid>")
-def image(sid: str):
-    if not TOKEN_RE.match(sid):
-        abort(404)
-    with st().db.read() as s:
-        p = current_participant(s)
-        if p is None:
-            abort(404)
-        ok = s.scalar(
-            select(func.count()).where(PlanItem.participant_id == p.id, PlanItem.stimulus_id == sid)
-        )
-    stim = st().stimuli.by_id.get(sid)
-    if not ok or stim is None:
-        abort(404)
-    resp = send_file(st().stimuli.image_path(stim), mimetype="image/png", max_age=3600, conditional=True)
-    resp.cache_control.private = True
-    resp.cache_control.public = False
-    return resp
-
-
 @bp.get("/r/<rid>")
 def reveal(rid: str):
     if not TOKEN_RE.match(rid):
@@ -629,10 +693,25 @@ def reveal(rid: str):
     stim = st().stimuli.by_reveal.get(rid)
     if not answered or stim is None:
         abort(404)
-    resp = send_file(st().stimuli.reveal_path(stim), mimetype="image/png", max_age=3600, conditional=True)
+    # WebP to browsers that take it (Vary: Accept), else PNG; a content-hash ETag and no Last-Modified
+    webp = st().stimuli.reveal_path(stim, ".webp")
+    path = webp if "image/webp" in request.headers.get("Accept", "") and webp.is_file() else \
+        st().stimuli.reveal_path(stim)
+    f = _reveal_file(str(path))
+    resp = send_file(f.path, mimetype=f.mimetype, etag=False, last_modified=None, conditional=False)
+    resp.headers.pop("Last-Modified", None)
+    resp.set_etag(f.etag.strip('"'))
     resp.cache_control.private = True
-    resp.cache_control.public = False
-    return resp
+    resp.cache_control.max_age = 3600
+    resp.vary.add("Accept")
+    return resp.make_conditional(request)
+
+
+@functools.lru_cache(maxsize=4096)
+def _reveal_file(path: str):
+    from study_site.serving import static_file
+
+    return static_file(Path(path))
 
 
 # ---------------------------------------------------------------------------

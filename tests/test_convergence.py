@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from camo.cli import main
-from optimizer.optimise.schedule import PRESETS, lr_scale, progress
+from optimizer.optimise.presets import PRESETS
+from optimizer.optimise.schedule import lr_scale, progress
 from optimizer.optimise.warmstart import least_squares_albedo
 
 TINY = ["--views", "3", "--resolution", "32", "--map-resolution", "48", "--displacement-resolution", "16",
@@ -184,11 +185,11 @@ def _config(run):
 def test_presets_are_recorded(runs):
     fast, paper = _config(runs["fast"]), _config(runs["paper"])
     assert fast["preset"] == "fast" and paper["preset"] == "paper"
-    assert fast["stage1"]["warm_start"] is True and fast["stage1"]["lr_schedule"] == PRESETS["fast"]["stage1"]["lr_schedule"]
+    assert fast["stage1"]["warm_start"] is True and fast["stage1"]["lr_schedule"] == PRESETS["fast"].stage1["lr_schedule"]
     assert paper["stage1"]["warm_start"] is False and paper["stage1"]["lr_schedule"] == "constant"
     assert paper["stage1"]["silhouette_every"] == 1 and paper["stage2"]["iterations"] == 20
     assert paper["appearance"]["lr_maps"] == 0.01 and paper["appearance"]["lr_displacement"] == 0.1
-    assert fast["appearance"]["lr_displacement"] == PRESETS["fast"]["appearance"]["lr_displacement"]
+    assert fast["appearance"]["lr_displacement"] == PRESETS["fast"].appearance["lr_displacement"]
 
 
 def test_warm_start_matches_the_background_better_than_grey(runs):
@@ -243,10 +244,10 @@ def test_time_budget_ends_the_run(tmp_path):
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--time-budget", "0"], "--time-budget must be a positive"),
-    (["--time-budget", "nan"], "--time-budget must be a positive"),
-    (["--lr-maps", "-1"], "--lr-maps must be in (0, 10]"),
-    (["--snapshot-every", "-2"], "--snapshot-every must be >= 0"),
+    (["--time-budget", "0"], "--time-budget: must be a number > 0"),
+    (["--time-budget", "nan"], "--time-budget: must be a number > 0"),
+    (["--lr-maps", "-1"], "--lr-maps: must be a number in (0, 10]"),
+    (["--snapshot-every", "-2"], "--snapshot-every: must be an integer in [0, "),
 ])
 def test_bad_schedule_flags_are_one_line_errors(tmp_path, capsys, flags, message):
     out = tmp_path / "bad"
@@ -294,7 +295,7 @@ def tiny_box_stage(views: int):
     env = get_environment(pack.environment)
     app = AppearanceConfig(map_resolution=32, displacement_resolution=16)
     s1 = Stage1(pack, env, prepare_object(pack), cameras(pack), plan(pack, env, app.planner_params()),
-                Stage1Config(iterations=1, target_spp=8), app)
+                Stage1Config(iterations=1, target_spp=8), app).prepare()
     return s1, app, env
 
 

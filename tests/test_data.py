@@ -77,13 +77,6 @@ def sha(b: bytes) -> str:
     return hashlib.sha256(b).hexdigest()
 
 
-@pytest.fixture(autouse=True)
-def data_plugin(monkeypatch):
-    """`camo data` is a plugin module; register it here too until camo.cli.PLUGINS lists it."""
-    if "optimizer.scenes.data" not in cli.PLUGINS:
-        monkeypatch.setattr(cli, "PLUGINS", (*cli.PLUGINS, "optimizer.scenes.data"))
-
-
 # ------------------------------------------------------------------------------------------ server
 
 

@@ -250,7 +250,8 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     from evaluation.report import TABLE_II_HEADER, load_metrics, method_label
 
     out = tmp_path / "merged"
-    assert main(["report", str(eval_dir), str(eval_dir_big), str(eval_dir), "--out", str(out)]) == 0
+    assert main(["report", str(eval_dir), str(eval_dir_big), str(eval_dir), "--out", str(out), "--env-width",
+                 "128"]) == 0
     merged = load_metrics([eval_dir, eval_dir_big, eval_dir])
     assert len(merged) == 16 + 4  # the repeated evaluation is de-duplicated
     md = (out / "report.md").read_text()
@@ -263,7 +264,10 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     plots = sorted((out / "plots").glob("*.png"))
     assert len(plots) == 2 and all(f"plots/{p.name}" in md for p in plots)  # quality vs seconds per protocol
     page = (out / "report.html").read_text()
-    assert page.count("data:image/png;base64,") == 4 and "<table>" in page
+    assert page.count('<figure><img src="data:image/png;base64,') == 4 and "<table>" in page  # grids + plots
+    # the interactive viewer: both runs, each next to its views of the first evaluation that has it (4 each)
+    assert page.count("<model-viewer ") == 2 and page.count('class="camo-still"') == 4 + 4
+    assert "## Interactive 3D viewer" in md and (out / "viewer" / "model-viewer-umd.min.js").is_file()
     # the Table II value of "Ours" is the mean over views of its rows (one scene)
     df = pd.read_parquet(eval_dir / "metrics.parquet")
     ours = df[(df["run"] == "ours_full") & (df["region"] == "crop")]["psnr"].mean()

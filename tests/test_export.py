@@ -78,7 +78,7 @@ def test_scene_xml_renders_like_the_dict_scene(mi_backend, asset, tmp_path, env_
     v, f, uv, maps = asset
 
     def bsdf():  # fresh dict each time: mi.load_dict consumes the tensors
-        return scn.principled(maps["albedo"], maps["metallic"], maps["roughness"], maps["transmittance"], ETA)
+        return scn.principled(maps, ETA)
 
     cams = [Camera((2.2, 1.2, 1.4), (0.0, 0.0, 0.45), 45.0, 64, 64),
             Camera((-1.6, 2.0, 1.0), (0.0, 0.0, 0.45), 45.0, 64, 64)]
@@ -223,8 +223,7 @@ def _image(js, bin_, tex_index):
 def test_glb_layout_material_and_extensions(asset, tmp_path):
     v, f, uv, maps = asset
     rough = _rendered_roughness(maps["roughness"])
-    p = export.write_glb(tmp_path / "result.glb", v, f, uv, maps["albedo"], maps["metallic"], rough,
-                         maps["transmittance"], ETA)
+    p = export.write_glb(tmp_path / "result.glb", v, f, uv, {**maps, "roughness": rough}, ETA)
     data = p.read_bytes()
     magic, version, total = struct.unpack_from("<4sII", data)
     assert (magic, version, total) == (b"glTF", 2, len(data)) and total % 4 == 0
@@ -259,8 +258,8 @@ def test_glb_loads_in_trimesh_with_srgb_base_color(asset, tmp_path):
     import trimesh
 
     v, f, uv, maps = asset
-    p = export.write_glb(tmp_path / "result.glb", v, f, uv, maps["albedo"], maps["metallic"],
-                         _rendered_roughness(maps["roughness"]), maps["transmittance"], ETA)
+    p = export.write_glb(tmp_path / "result.glb", v, f, uv, {**maps, "roughness": _rendered_roughness(maps["roughness"])},
+                         ETA)
     scene = trimesh.load(p)
     (geom,) = scene.geometry.values()
     assert len(geom.vertices) == len(v) and len(geom.faces) == len(f)
@@ -296,8 +295,8 @@ def test_obj_loads_in_trimesh_and_mitsuba(mi_backend, asset, tmp_path):
 
     mi, _ = mi_backend
     v, f, uv, maps = asset
-    out = export.write_obj(tmp_path / "result.obj", v, f, uv, maps["albedo"], maps["metallic"],
-                           _rendered_roughness(maps["roughness"]), maps["transmittance"], ETA)
+    out = export.write_obj(tmp_path / "result.obj", v, f, uv,
+                           {**maps, "roughness": _rendered_roughness(maps["roughness"])}, ETA)
     assert out["mtl"] == tmp_path / "result.mtl"
     mtl = out["mtl"].read_text().split("\n")
     for line in (f"Ni {ETA!r}", "map_Kd result_albedo.png", "map_Pr result_roughness.png",
@@ -393,7 +392,8 @@ def _agreement(render, uv_fn, image, v_down: bool):
 def test_texture_orientation_glb_matches_mitsuba(red_quadrant_render, tmp_path):
     alb = red_quadrant_render["albedo"]
     s = np.zeros(alb.shape[:2], np.float32)
-    p = export.write_glb(tmp_path / "quad.glb", QUAD_V, QUAD_F, QUAD_UV, alb, s, s + 0.5, s, 1.5)
+    p = export.write_glb(tmp_path / "quad.glb", QUAD_V, QUAD_F, QUAD_UV,
+                         {"albedo": alb, "metallic": s, "roughness": s + 0.5, "transmittance": s}, 1.5)
     js, bin_ = export.read_glb(p)
     prim = js["meshes"][0]["primitives"][0]
     pos = _accessor(js, bin_, prim["attributes"]["POSITION"])
@@ -411,7 +411,8 @@ def test_texture_orientation_obj_matches_mitsuba(red_quadrant_render, tmp_path):
 
     alb = red_quadrant_render["albedo"]
     s = np.zeros(alb.shape[:2], np.float32)
-    out = export.write_obj(tmp_path / "quad.obj", QUAD_V, QUAD_F, QUAD_UV, alb, s, s + 0.5, s, 1.5)
+    out = export.write_obj(tmp_path / "quad.obj", QUAD_V, QUAD_F, QUAD_UV,
+                           {"albedo": alb, "metallic": s, "roughness": s + 0.5, "transmittance": s}, 1.5)
     m = trimesh.load(out["obj"], process=False)
     image = np.asarray(m.visual.material.image.convert("RGB"))
     uv_fn = _affine_uv(np.asarray(m.vertices), np.asarray(m.visual.uv))
@@ -451,12 +452,11 @@ def test_save_maps_previews_and_arrays(tmp_path):
 
 def test_bad_inputs_are_refused(asset, tmp_path):
     v, f, uv, maps = asset
-    args = (maps["albedo"], maps["metallic"], maps["roughness"], maps["transmittance"], ETA)
+    args = (maps, ETA)
     with pytest.raises(ValueError, match="uvs"):
         export.write_glb(tmp_path / "a.glb", v, f, uv[:-1], *args)
     with pytest.raises(ValueError, match="face indices"):
         export.write_glb(tmp_path / "a.glb", v, f + len(v), uv, *args)
     with pytest.raises(ValueError, match="roughness"):
-        export.write_obj(tmp_path / "a.obj", v, f, uv, maps["albedo"], maps["metallic"], maps["roughness"][:3],
-                         maps["transmittance"], ETA)
+        export.write_obj(tmp_path / "a.obj", v, f, uv, {**maps, "roughness": maps["roughness"][:3]}, ETA)
     assert not list(tmp_path.iterdir())

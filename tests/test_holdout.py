@@ -247,9 +247,9 @@ def test_holdout_off_keeps_the_last_iterate(tmp_path):
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--holdout-views", "-1"], "holdout-views must be >= 0"),
-    (["--holdout-every", "0"], "holdout-every must be >= 1"),
-    (["--holdout-spp", "0"], "holdout-spp must be >= 1"),
+    (["--holdout-views", "-1"], "--holdout-views: must be an integer in [0, "),
+    (["--holdout-every", "0"], "--holdout-every: must be an integer in [1, "),
+    (["--holdout-spp", "0"], "--holdout-spp: must be an integer in [1, "),
     (["--holdout-views", "0", "--patience", "2"], "--patience needs held-out views"),
     (["--method", "mean", "--holdout-views", "2"], "--holdout-views does not apply to --method mean"),
 ])
@@ -261,10 +261,10 @@ def test_bad_holdout_flags_are_one_line_errors(tmp_path, capsys, flags, message)
 
 
 def test_presets_say_whether_the_holdout_picks_the_result():
-    from optimizer.optimise.schedule import PRESETS
+    from optimizer.optimise.presets import PRESETS
 
-    assert PRESETS["paper"]["holdout"] == {}
-    assert PRESETS["fast"]["holdout"]["views"] >= 1
+    assert PRESETS["paper"].holdout == {}
+    assert PRESETS["fast"].holdout["views"] >= 1
 
 
 def test_nonfinite_held_out_renders_score_finite_and_never_win_by_accident():
@@ -311,7 +311,7 @@ def test_iterate_average_is_the_result_and_survives_a_resume(tmp_path, capsys):
     capsys.readouterr()
     assert main(["optimize", "gravel", "--out", str(tmp_path / "bad"), "--quiet", "--average", "1"]) == 2
     err = capsys.readouterr().err.strip()
-    assert "--average must be in [0, 0.999], got 1" in err and len(err.splitlines()) == 1
+    assert "--average: must be a number in [0, 0.999], got '1'" in err and len(err.splitlines()) == 1
 
 
 def test_parameters_scored_before_are_not_rendered_again():

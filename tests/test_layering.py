@@ -4,7 +4,9 @@ Every ``import`` / ``from ... import`` statement is read with :mod:`ast`, includ
 ``TYPE_CHECKING`` blocks (an import hidden in a function is still a dependency). Checked:
 
 - no import cycles between modules (strongly connected components of the module graph);
-- every import points to the same layer or a lower one, in the flow's order (``LAYERS``);
+- every import points to the same layer or a lower one, in the flow's order (``LAYERS``; inside the optimiser the
+  core, the baselines, the method registry, the run spec and the run driver are layers of their own, so the
+  baselines and the optimiser never import each other in a circle);
 - ``evaluation.metrics`` imports only itself and ``camo_base`` (metrics work on any images, without Mitsuba);
 - ``camo_base`` imports no heavy library at module level (every package may import it cheaply).
 
@@ -14,6 +16,7 @@ The checker itself is tested on a small synthetic tree, so a broken reader canno
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -27,7 +30,11 @@ LAYERS = (
     "optimizer.scenes",
     "optimizer.rendering",
     "optimizer.assets",
-    "optimizer.optimise",
+    "optimizer.optimise",  # the core: losses, Adam, stages, searches, warm start, inpainting, presets, options
+    "optimizer.optimise.baselines",  # the baselines use the core, never the method registry or the run driver
+    "optimizer.optimise.methods",  # the method registry: ours and every baseline module's METHODS
+    "optimizer.optimise.spec",  # the run spec (names methods)
+    "optimizer.optimise.run",  # the run driver
     "evaluation",
     "study_site",
     "camo",
@@ -45,13 +52,68 @@ def module_names(root: Path, packages=PACKAGES) -> dict[str, Path]:
     return out
 
 
+#: ``"package.module:callable"`` or ``"package.module"``: a string that names one of our modules is a hidden import.
+_MODULE_STRING = re.compile(r"^\w+(?:\.\w+)+(?::[\w.]+)?$|^\w+:[\w.]+$")
+#: Calls that import by name: ``importlib.import_module("x.y")``, ``__import__("x.y")``, and
+#: ``camo_base.plugins.submodules("pkg")`` (every module of ``pkg``: a registry's discovery).
+_IMPORT_CALLS = ("import_module", "__import__")
+_DISCOVERY_CALLS = ("submodules",)
+
+
+def _call_name(node: ast.Call) -> str:
+    f = node.func
+    return f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+
+
+def dynamic_imports(tree: ast.AST) -> list[tuple[str, int, str]]:
+    """``(target, line, how)`` of the imports a module makes by name: literal arguments of import calls,
+    discovery calls (target ``pkg.*``) and strings naming one of our modules (``"module:callable"``); ``how`` is
+    ``"dynamic"`` for an import call whose argument is not a literal (its target is unknown)."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and _call_name(node) in _IMPORT_CALLS + _DISCOVERY_CALLS and node.args:
+            arg = node.args[0]
+            if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+                star = ".*" if _call_name(node) in _DISCOVERY_CALLS else ""
+                out.append((arg.value + star, node.lineno, "call"))
+            else:
+                out.append(("?", node.lineno, "dynamic"))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and _MODULE_STRING.match(node.value):
+            out.append((node.value.partition(":")[0], node.lineno, "string"))
+    return out
+
+
 def imports_of(name: str, path: Path, modules: dict[str, Path]) -> list[tuple[str, int, bool]]:
     """``(imported module, line, at module level)`` for each import of one of ``modules`` in ``path``; an
-    imported name that is not a module counts as its module."""
+    imported name that is not a module counts as its module. Imports by name count too (:func:`dynamic_imports`:
+    a literal ``importlib.import_module`` target, every module of a package a registry discovers, a
+    ``"module:callable"`` string); they are never "at module level"."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     top = {id(n) for n in tree.body}
     out = []
+    docstrings = {id(n.body[0].value) for n in ast.walk(tree)
+                  if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and n.body
+                  and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
     for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and id(node) in docstrings:
+            continue
+        if isinstance(node, (ast.Call, ast.Constant)):
+            for target, line, how in dynamic_imports(node) if isinstance(node, ast.Call) else \
+                    dynamic_imports(ast.Expression(node)):
+                if how == "dynamic":
+                    continue
+                if target.endswith(".*"):
+                    pkg = target[:-2]
+                    hits = [m for m in modules if m.startswith(pkg + ".") and "." not in m[len(pkg) + 1:]]
+                else:
+                    hits = [target]
+                for t in hits:
+                    while t and t not in modules:
+                        t = t.rpartition(".")[0]
+                    # (a module's own packages are imported before it: naming one adds no dependency)
+                    if t and t != name and not name.startswith(t + "."):
+                        out.append((t, line, False))
+            continue
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -165,6 +227,28 @@ def test_the_checker_finds_cycles_and_upward_imports_on_a_known_tree(tmp_path):
     assert upward(edges, lines, ("low", "high")) == ["low.d:1 imports high.c (layer high is above low)"]
 
 
+def test_the_checker_reads_imports_by_name(tmp_path):
+    """``importlib.import_module("x")``, ``"module:callable"`` strings and a registry's discovery call are imports
+    too; a docstring naming a module is not."""
+    files = {
+        "low/__init__.py": "",
+        "low/a.py": '"""See low.b for more."""\nimport importlib\ndef f():\n    return importlib.import_module("low.b")\n',
+        "low/b.py": 'REF = "low.c:make"\n',
+        "low/c.py": "from camo_base.plugins import submodules\nPLUGINS = submodules(\"low.plug\")\n",
+        "low/plug/__init__.py": "",
+        "low/plug/one.py": "import low.a\n",
+        "low/plug/two.py": "",
+    }
+    for rel, text in files.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+    edges, _ = graph(tmp_path, ("low",))
+    assert edges["low.a"] == {"low.b"}
+    assert edges["low.b"] == {"low.c"}
+    assert edges["low.c"] == {"low.plug", "low.plug.one", "low.plug.two"}
+    assert cycles(edges) == [["low.a", "low.b", "low.c", "low.plug.one"]]
+
+
 # --- the real tree ------------------------------------------------------------------------------------------
 
 
@@ -214,4 +298,21 @@ def test_evaluation_and_the_study_never_need_the_optimiser(real):
     edges, lines = real
     bad = [f"{m}:{lines[(m, t)]} imports {t}" for m in edges if m.split(".")[0] in ("evaluation", "study_site")
            for t in edges[m] if t.startswith("optimizer.optimise")]
+    assert bad == []
+
+
+#: Modules allowed to import by a computed name, and why (every other import names its module literally).
+DYNAMIC_IMPORTS_ALLOWED = {
+    "camo_base.plugins": "the registries' discovery (its callers name their package literally; read above)",
+    "optimizer.optimise.inpainting.diffusers_backend": "third-party diffusers / transformers modules only",
+}
+
+
+def test_no_import_by_a_computed_name():
+    bad = []
+    for name, path in module_names(ROOT).items():
+        if name in DYNAMIC_IMPORTS_ALLOWED:
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        bad += [f"{name}:{line}" for _, line, how in dynamic_imports(tree) if how == "dynamic"]
     assert bad == []

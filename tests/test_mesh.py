@@ -231,7 +231,7 @@ def test_remesh_subdivides_low_poly_to_target_without_changing_the_shape():
 
 @pytest.mark.parametrize("decimator", ["quadric", "cluster"])
 def test_remesh_decimates_dense_input(decimator):
-    if decimator == "quadric" and not M._have_fast_simplification():
+    if decimator == "quadric" and not M.remesh._have_fast_simplification():
         pytest.skip("fast-simplification is not installed")
     dense = _dense_sphere()
     out = M.remesh_to_target(dense, 1500, decimator=decimator)
@@ -441,7 +441,7 @@ def test_prepare_mesh_rejects_bad_input(tmp_path):
 
 
 def test_xatlas_crash_becomes_camo_error(monkeypatch):
-    monkeypatch.setattr(M, "_XATLAS_WORKER", "import os; os.abort()")
+    monkeypatch.setattr(M.uv, "_XATLAS_WORKER", "import os; os.abort()")
     with pytest.raises(CamoError, match="xatlas"):
         M.uv_unwrap(_box())
 
@@ -549,7 +549,7 @@ def test_clean_merges_stl_style_triangle_soup(tmp_path):
 
 
 def test_auto_decimator_falls_back_to_clustering(monkeypatch):
-    monkeypatch.setattr(M, "_have_fast_simplification", lambda: False)
+    monkeypatch.setattr(M.remesh, "_have_fast_simplification", lambda: False)
     out = M.remesh_to_target(_dense_sphere(), 1200)
     assert out.metadata["camo_remesh"]["steps"][0].startswith("decimate:cluster")
     assert abs(len(out.vertices) - 1200) <= 180

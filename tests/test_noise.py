@@ -47,7 +47,7 @@ def _glass_scene(mi):
         m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
         v = (np.asarray(m.vertices) + [0, 0, 0.5]).astype(np.float32)
         # the built-in scenes' transmissive start: rough (0.5) transmission under the sun
-        return scn.object_mesh(v, np.asarray(m.faces), None, scn.principled([0.8, 0.8, 0.8], 0.0, 0.5, 0.9))
+        return scn.object_mesh(v, np.asarray(m.faces), None, scn.principled({"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": 0.9}))
 
     return build, mesh
 

@@ -165,6 +165,7 @@ def tiny_study_db(path: Path) -> str:
     trials each: method A mostly found fast, C mostly not found."""
     import datetime
 
+    from optimizer.assets.conditions import condition
     from study_site.db import Database, Participant, Trial
 
     url = f"sqlite:///{path}"
@@ -186,7 +187,7 @@ def tiny_study_db(path: Path) -> str:
                 rt = float(rng.uniform(1000, 20000)) if not timed_out else 40000.0
                 s.add(Trial(participant_id=p.id, trial_index=k, client_trial_id=f"c{i}-{k}", practice=practice,
                             stimulus_id=f"s{k}", run=f"r_{method}", scene=f"scene{k % 3}", object="o", method=method,
-                            ablation="none", view="0", hit=bool(found), timed_out=bool(timed_out),
+                            ablation="none", condition=condition(method).id, label=condition(method).label, view="0", hit=bool(found), timed_out=bool(timed_out),
                             click_x=None if timed_out else 1, click_y=None if timed_out else 1, rt_ms=rt,
                             time_limit_s=40.0, server_received_at=now))
         s.commit()
@@ -201,7 +202,8 @@ def _check_table_i(out: str, db_url: str) -> None:
     t = table_i(formal_trials(trials), n_boot=50, seed=0)
     assert "# Perceptual study: Table I" in out
     for r in t.itertuples():
-        assert f"| {r.method} | {r.n_trials} | {_pct(r.confusion_rate)} |" in out, r.method
+        assert f"| {r.label} | `{r.condition}` | {r.n_trials} | {_pct(r.confusion_rate)} |" in out, r.condition
+    assert "| Ours | `ours` |" in out and "| Mean [6] | `mean` |" in out
 
 
 def test_table1_notebook_from_db(tmp_path, kernel_env, monkeypatch):

@@ -1,4 +1,4 @@
-"""The simulated observer (evaluation/observer.py): sanity checks of the search model on known images."""
+"""The simulated observer (evaluation/observer.py): property tests of the search model on synthetic stimuli."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from evaluation.observer import ObserverConfig, make_cells, predict_stimulus, predicted_table, simulate_search, srgb_to_lab
+from evaluation.observer import (ObserverConfig, evidence_maps, make_cells, predict_stimulus, predicted_table,
+                                 simulate_search, srgb_to_lab)
 from camo_base.errors import CamoError
 
 N = 256
@@ -48,57 +49,131 @@ def test_lab_known_values():
     np.testing.assert_allclose(lab[2], [0.0, 0.0, 0.0], atol=1e-3)
 
 
-def test_red_object_on_grass_is_found_in_the_first_fixations():
+def shadowed(img: np.ndarray, region: np.ndarray, factor: float = 0.35) -> np.ndarray:
+    """A cast shadow: the linear radiance of ``region`` scaled by ``factor`` (the light that reaches the ground)."""
+    from camo_base.imaging import linear_to_srgb, srgb_to_linear
+
+    lin = srgb_to_linear(img)
+    lin[region] *= factor
+    return np.clip(linear_to_srgb(lin), 0, 1).astype(np.float32)
+
+
+def ellipse(cx: float, cy: float, ax: float, ay: float, n: int = N) -> np.ndarray:
+    yy, xx = np.mgrid[0:n, 0:n]
+    return ((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2 < 1.0
+
+
+def test_visible_object_is_found_fast():
     bg = grass()
     mask = disc(70, 170, 14)  # 4.7 deg from the centre at 16 deg per image height
     p = predict_stimulus(with_object(bg, mask, 0.0), mask, n=200, seed=1)
-    assert p.p_found >= 0.97
-    assert np.median(p.result.fixations) <= 2 and p.result.fixations.max() <= 4
-    assert np.median(p.rt_found_s) < 1.5
-    assert p.max_d_object > 5  # far above the criterion (3.5)
+    assert p.p_found >= 0.97 and p.p_timeout == 0
+    assert np.median(p.result.fixations) <= 3 and p.result.fixations.max() <= 5
+    assert 1.0 < np.median(p.rt_found_s) < 2.0  # the paper's Transparent: 1.86 s median (human)
+    assert p.object_evidence > 5 * ObserverConfig().criterion  # far above the verification criterion
 
 
-def test_first_fixation_detection_time_is_fixation_plus_fitts():
-    """A large red disc at the centre is seen at the first fixation: rt = fixation + Fitts' law to the click."""
+def test_first_fixation_find_time_is_fixation_verification_and_fitts():
+    """A large red disc at the centre is verified at the first fixation after onset (the onset fixation only
+    plans the first saccade): rt = 2 fixations + verification dwell + Fitts' law from the centre to the click."""
     bg = grass(2)
     mask = disc(128, 128, 40)
     cfg = ObserverConfig()
     img = with_object(bg, mask, 0.0)
     cells = make_cells(img, cfg)
     res = simulate_search(img, n=50, seed=0, config=cfg, mask=mask, cells=cells)
-    assert res.found.all() and (res.fixations == 1).all()
-    # which cell was clicked: the one whose click point equals the recorded click
-    idx = [int(np.flatnonzero((cells.click_px[:, 0] == x) & (cells.click_px[:, 1] == y))[0])
-           for x, y in zip(res.click_x, res.click_y)]
-    d = np.linalg.norm(cells.pos_deg[idx] - [cells.width_deg / 2, cells.height_deg / 2], axis=1)
-    expected = cfg.fixation_s + cfg.fitts_a_s + cfg.fitts_b_s * np.log2(d / cfg.fitts_width_deg + 1)
+    assert res.found.all() and (res.fixations == 2).all()
+    d = np.hypot((res.click_x + 0.5) / N * cells.width_deg - cells.width_deg / 2,
+                 (res.click_y + 0.5) / N * cells.height_deg - cells.height_deg / 2)
+    expected = 2 * cfg.fixation_s + cfg.verify_s + cfg.fitts_a_s + cfg.fitts_b_s * np.log2(d / cfg.fitts_width_deg + 1)
     np.testing.assert_allclose(res.rt_s, expected, rtol=1e-12)
 
 
-def test_blending_the_object_into_the_background_raises_the_time_monotonically():
+def test_hiding_the_object_more_never_helps_the_observer():
+    """The object mixed ever more into its background: its evidence falls strictly, the share found never rises
+    and the time to find (non-finds at the limit) never falls, from found at once to (almost) never found; the
+    misses that remain come from false verifications."""
     bg = grass(3)
     mask = disc(190, 80, 16)
-    alphas = (0.0, 0.6, 0.8, 0.88, 0.94, 1.0)
+    alphas = (0.0, 0.6, 0.8, 0.86, 0.9, 0.94, 1.0)
     preds = [predict_stimulus(with_object(bg, mask, a), mask, n=300, seed=5) for a in alphas]
-    times = [float(p.time_to_find_s.mean()) for p in preds]  # misses and timeouts at the limit
+    times = [float(p.time_to_find_s.mean()) for p in preds]
     found = [p.p_found for p in preds]
-    d_obj = [p.max_d_object for p in preds]
-    assert all(b >= a - 1e-9 for a, b in zip(times, times[1:])), times
-    assert all(b <= a + 1e-9 for a, b in zip(found, found[1:])), found
-    assert all(b < a for a, b in zip(d_obj, d_obj[1:])), d_obj  # discriminability falls strictly
-    assert times[0] < 2.0 and times[-1] > 35.0  # from found at once to (almost) never found
-    assert found[0] >= 0.97 and found[-1] <= 0.05
+    ev = [p.object_evidence for p in preds]
+    assert all(b < a for a, b in zip(ev[:-1], ev[1:-1])), ev  # (the last has no object: background evidence)
+    assert not ev[-1] >= ev[-3]  # lower, or NaN: no verified click would land on the invisible object
+    assert all(b <= a + 0.02 for a, b in zip(found, found[1:])), found  # common random numbers; 300 trials
+    assert all(b >= a - 0.3 for a, b in zip(times, times[1:])), times
+    assert found[0] >= 0.97 and times[0] < 2.0
+    assert found[-1] <= 0.03 and times[-1] > 35.0
+    # not found = a false verification (a click elsewhere) or a timeout; misses rise as the evidence falls
+    assert preds[0].p_miss <= 0.02 and preds[-1].p_miss + preds[-1].p_timeout >= 0.97
 
 
-def test_without_the_object_found_only_by_chance_and_the_mask_is_never_seen():
+def test_a_shadow_alone_is_not_clicked_as_the_object():
+    """A cast shadow (the ground's light scaled by 0.35) with no object: the observer does not take it for the
+    object -- its clicks land in it no more often than its share of the image would give by chance. A red-tinted
+    patch of the same shape is found."""
+    bg = grass(12)
+    region = ellipse(100, 160, 40, 16)
+    shadow_only = simulate_search(shadowed(bg, region), n=300, seed=2, mask=region)
+    assert shadow_only.found.mean() <= max(0.05, 3 * region.mean())
+    m = evidence_maps(shadowed(bg, region))
+    assert float(m.shadow[::4, ::4].max()) > 1.0  # it is seen as a shadow ...
+    tinted = predict_stimulus(with_object(bg, region, 0.7), region, n=300, seed=2)
+    assert tinted.p_found >= 0.95  # ... while an object of the same shape and place is found
+
+
+def test_an_object_with_its_shadow_is_clicked_on_the_object():
+    bg = grass(13)
+    obj = disc(150, 110, 14)
+    shadow = ellipse(175, 128, 26, 10) & ~obj  # cast to the lower right, touching the object
+    img = with_object(shadowed(bg, shadow), obj, 0.75)
+    res = simulate_search(img, n=300, seed=4, mask=obj)
+    on_shadow = shadow[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)] & res.clicked
+    assert res.found.mean() >= 0.9
+    assert on_shadow.mean() <= 0.05
+
+
+def fine_grass(seed: int = 0, n: int = N) -> np.ndarray:
+    """A green texture with stationary statistics at the object's scale (spectrum 1/f^0.5: no object-sized
+    blotches that would act as distractors of their own)."""
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(n)
+    fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
+    fr[0, 0] = 1.0
+    tex = np.real(np.fft.ifft2((rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / np.sqrt(fr)))
+    t = 0.5 + 0.12 * (tex - tex.mean()) / tex.std()
+    return np.clip(np.stack([0.35 * t, 0.75 * t, 0.25 * t], -1), 0, 1).astype(np.float32)
+
+
+@pytest.mark.parametrize("alpha, corners", [(0.8, True), (0.86, False)])
+def test_no_position_bias(alpha, corners):
+    """The same object pasted on its own background at the centre, in each quadrant's centre and (for the more
+    visible object) in two corners: found at rates within sampling error of the centre's (two-proportion z <
+    2.5). (docs/observer.md: the fainter object 14 px from two borders is found 94 % vs 100 %.)"""
+    bg = fine_grass(11)
+    rates, n = [], 300
+    places = ((128, 128), (64, 64), (192, 64), (64, 192), (192, 192)) + (((30, 30), (226, 226)) if corners else ())
+    for cx, cy in places:
+        mask = disc(cx, cy, 16)
+        rates.append(predict_stimulus(with_object(bg, mask, alpha), mask, n=n, seed=3).p_found)
+    for r in rates[1:]:
+        pooled = (rates[0] + r) / 2
+        se = math.sqrt(max(pooled * (1 - pooled), 1.0 / n) * 2 / n)
+        assert abs(rates[0] - r) / se < 2.5, rates
+
+
+def test_without_the_object_clicks_are_the_same_whatever_the_mask():
     bg = grass(4)
     rng = np.random.default_rng(0)
     rates, shares = [], []
     clicks = None
+    cells = make_cells(bg)
     for k in range(12):
         cx, cy = rng.uniform(30, N - 30, 2)
         mask = disc(cx, cy, 14)
-        res = simulate_search(bg, n=100, seed=9, mask=mask)
+        res = simulate_search(bg, n=100, seed=9, mask=mask, cells=cells)
         # same image and seed, another mask: the observer behaves identically (it never sees the mask)
         c = (res.click_x.copy(), res.click_y.copy(), res.rt_s.copy())
         if clicks is not None:
@@ -107,9 +182,9 @@ def test_without_the_object_found_only_by_chance_and_the_mask_is_never_seen():
         clicks = c
         rates.append(res.found.mean())
         shares.append(mask.mean())
-    # a chance click hits a 14 px disc about as often as its share of the image (~1 %); allow generous slack
-    assert np.mean(rates) <= 3 * np.mean(shares) + 0.02
-    assert np.mean(rates) < 0.1
+    assert np.mean(rates) <= 3 * np.mean(shares) + 0.03  # found only by chance
+    # an image without any object: the search runs long (timeouts or late false verifications)
+    assert np.median(res.rt_s) > 5.0
 
 
 def test_time_limit_bounds_the_search():
@@ -140,6 +215,8 @@ def test_bad_input_is_camoerror():
         simulate_search(img, n=2, mask=np.zeros((10, 10), bool))
     with pytest.raises(CamoError, match="must be > 0"):
         simulate_search(img, config=ObserverConfig(fixation_s=0))
+    with pytest.raises(CamoError, match=">= 0"):
+        simulate_search(img, config=ObserverConfig(shadow_gain=-1))
     with pytest.raises(CamoError, match="start"):
         simulate_search(img, config=ObserverConfig(start="left"))
     with pytest.raises(CamoError, match="n must be"):
@@ -161,55 +238,6 @@ def test_predicted_table_means_and_times():
     assert t.loc["m1", "median_time_all_s"] == pytest.approx(2.0)
     assert t.loc["m2", "mean_time_all_s"] == pytest.approx(24.5)
     assert t.loc["m1", "easy_views"] == 1 and t.loc["m2", "easy_views"] == 0
-
-
-# ---------------------------------------------------------------------------
-# evaluation directories and the report's "simulated" section
-# ---------------------------------------------------------------------------
-
-
-def test_predict_eval_dir_writes_predictions_that_match_the_library(tmp_path):
-    import json
-
-    from PIL import Image
-
-    from evaluation.observer import PREDICTION_COLUMNS, TRIAL_COLUMNS, predict_eval_dir
-    from study_site.testing import make_fake_eval_dir
-
-    entries = make_fake_eval_dir(tmp_path, scenes=("s1",), methods=("ours", "mean"), views=2, size=(64, 48))
-    # one view with an empty mask (object hidden): skipped
-    Image.fromarray(np.zeros((48, 64), np.uint8)).save(tmp_path / entries[-1]["mask"])
-    views, trials = predict_eval_dir(tmp_path, n=20, seed=4)
-    assert list(views.columns) == list(PREDICTION_COLUMNS) and list(trials.columns) == list(TRIAL_COLUMNS)
-    assert len(views) == 3 and len(trials) == 3 * 20
-    for f in ("simulated.parquet", "simulated.csv", "simulated_trials.parquet", "simulated_config.json"):
-        assert (tmp_path / f).stat().st_size > 0
-    cfg = json.loads((tmp_path / "simulated_config.json").read_text())
-    assert cfg["observer"]["start"] == "random" and cfg["trials_per_view"] == 20
-    # the stored figures are the library's for that image, mask and seed
-    e = entries[1]
-    img = np.asarray(Image.open(tmp_path / e["image"]).convert("RGB"))
-    mask = np.asarray(Image.open(tmp_path / e["mask"]).convert("L")) >= 128
-    p = predict_stimulus(img, mask, 20, 4 + 7919 * 1, ObserverConfig(start="random"))
-    row = views.iloc[1]
-    assert row["p_found"] == pytest.approx(p.p_found) and row["p_timeout"] == pytest.approx(p.p_timeout)
-    t = trials[(trials["run"] == e["run"]) & (trials["view"] == e["view"])]
-    np.testing.assert_allclose(t["rt_s"].to_numpy(), p.result.rt_s)
-    assert (views["p_found"] + views["p_miss"] + views["p_timeout"]).round(9).eq(1.0).all()
-
-
-def test_predict_eval_dir_bad_input(tmp_path):
-    from evaluation.observer import predict_eval_dir
-
-    with pytest.raises(CamoError, match="no renders.json"):
-        predict_eval_dir(tmp_path)
-    (tmp_path / "renders.json").write_text("{oops")
-    with pytest.raises(CamoError, match="not valid JSON"):
-        predict_eval_dir(tmp_path)
-    (tmp_path / "renders.json").write_text('[{"run": "r", "image": "nope.png", "mask": "nope_mask.png"}]')
-    with pytest.raises(CamoError, match="missing render"):
-        predict_eval_dir(tmp_path)
-    assert not (tmp_path / "simulated.parquet").exists()
 
 
 def test_observer_agreement_lists_the_pairs_ordered_differently():
@@ -265,7 +293,7 @@ def test_learned_saliency_map_from_local_torchscript(tmp_path):
     y, x = np.unravel_index(d.argmax(), d.shape)
     assert mask[int((y + 0.5) * N / d.shape[0]), int((x + 0.5) * N / d.shape[1])]
     p = predict_stimulus(img, mask, n=50, seed=0, config=cfg)
-    assert p.p_found >= 0.95
+    assert p.p_found >= 0.9
     assert "saliency_model_sha256" in cfg.to_dict() and len(cfg.to_dict()["saliency_model_sha256"]) == 64
     # random tiny weights run too (any TorchScript map); bad files are one-line errors
     rnd = ObserverConfig(saliency_model=str(_tiny_net(tmp_path / "rnd.pt", weight_red=False)))
@@ -277,31 +305,47 @@ def test_learned_saliency_map_from_local_torchscript(tmp_path):
         simulate_search(img, config=ObserverConfig(saliency_model=str(tmp_path / "missing.pt")))
 
 
-def test_simulated_section_of_the_report(tmp_path):
+
+
+def test_simulated_section_of_the_report_reads_the_stimulus_predictions(tmp_path):
     import json
 
-    from evaluation.observer import PREDICTION_COLUMNS
     from evaluation.report import simulated_section
 
-    rows = []
-    for run, method, pf, med in (("s-ours", "ours", 0.2, 5.0), ("s-mean", "mean", 1.0, 1.1)):
-        for v in range(2):
-            rows.append({c: 0 for c in PREDICTION_COLUMNS} | {
-                "run": run, "scene": "s", "object": "o", "method": method, "ablation": "none", "view": v, "n": 10,
-                "p_found": pf, "p_miss": 0.0, "p_timeout": 1 - pf, "median_time_found_s": med, "mean_time_found_s": med,
-                "mean_time_all_s": 30.0, "median_time_all_s": 30.0})
-    pd.DataFrame(rows).to_parquet(tmp_path / "simulated.parquet")
-    (tmp_path / "simulated_config.json").write_text(json.dumps({"observer": {"display_deg": 16.0}, "trials_per_view": 10}))
+    stim = tmp_path / "stim"
+    (stim / "predicted_power").mkdir(parents=True)
+    rows, trials = [], []
+    for sid, method, pf, med in (("a0", "ours", 0.2, 5.0), ("a1", "ours", 0.2, 5.0), ("b0", "mean", 1.0, 1.1),
+                                 ("b1", "mean", 1.0, 1.1), ("p0", "practice", 0.0, 1.0)):
+        rows.append({"id": sid, "run": f"s-{method}", "scene": "s", "method": method, "ablation": "", "view": sid[1],
+                     "practice": method == "practice", "p_found": pf, "p_miss": 0.0, "p_timeout": 1 - pf,
+                     "median_time_found_s": med, "mean_time_found_s": med, "mean_time_all_s": 30.0,
+                     "median_time_all_s": 30.0})
+        for k in range(10):
+            found = k < 10 * pf
+            trials.append({"id": sid, "trial": k, "found": found, "rt_s": med if found else 40.0})
+    pd.DataFrame(rows).to_parquet(stim / "predicted.parquet")
+    pd.DataFrame(trials).to_parquet(stim / "predicted_trials.parquet")
+    (stim / "predicted_config.json").write_text(json.dumps({"observer": {"display_deg": 16.0, "time_limit_s": 40.0},
+                                                            "trials_per_stimulus": 10}))
+    from PIL import Image
+
+    Image.new("RGB", (8, 8)).save(stim / "predicted_power" / "power.png")
     df = pd.DataFrame({"region": ["crop"] * 4, "scene": ["s"] * 4, "run": ["s-ours"] * 2 + ["s-mean"] * 2,
                        "label": ["Ours"] * 2 + ["Mean [6]"] * 2, "_order": [(5, 0, "")] * 2 + [(0, 1, "")] * 2,
                        "method": ["ours"] * 2 + ["mean"] * 2, "view": [0, 1, 0, 1],
                        "psnr": [20.0, 20.0, 30.0, 30.0]})  # PSNR prefers Mean, the observer Ours
     for m in ("ssim", "lpips", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim"):
         df[m] = np.nan
-    md, ht = simulated_section(df, [tmp_path])
+    out = tmp_path / "report"
+    out.mkdir()
+    md, ht = simulated_section(df, [stim], out)
     text = "\n".join(md)
     assert "| Ours | 80.0% |" in text and "| Mean [6] | 0.0% |" in text  # predicted confusion = 1 - p found
-    assert "s-mean view 0 (p found 1.00, median 1.10 s)" in text and "s-ours view" not in text.split("Easy views")[1]
+    assert "| 54.1% | 8.02 / 9.41 |" in text  # the paper's human Ours row beside it
+    assert "practice" not in text.split("Easy stimuli")[0]  # practice stimuli are not in Table I
     assert "| s | PSNR↑ | Mean [6] | Ours | 30.00 / 20.00 | 0.0% / 80.0% |" in text
-    assert any("Simulated observer" in h for h in ht)
-    assert simulated_section(df, [tmp_path / "nothing"]) == ([], [])
+    assert (out / "plots" / "power_predicted_0.png").is_file() and "power curve" in text
+    assert simulated_section(df, [], out) == ([], [])
+    with pytest.raises(CamoError, match="no observer predictions"):
+        simulated_section(df, [tmp_path / "nothing"], out)

@@ -190,14 +190,15 @@ def test_a_sun_baked_into_a_panorama_is_flagged_like_the_sun(tmp_path, mi_backen
 
 def _measured(name, ablate=(), spp=None, cams_res=48):
     from optimizer.optimise.planning import measure_plan
-    from optimizer.optimise.run import appearance_for
+    from optimizer.assets.conditions import ablated_switches
+    from optimizer.rendering.appearance import AppearanceConfig
     from optimizer.rendering.placement import prepare_object
     from optimizer.scenes.cameras import cameras
 
     pack = builtin_scenes.get(name)
     pack.object = dataclasses.replace(pack.object, target_vertices=2000)
     env = env_of(name)
-    return measure_plan(pack, env, prepare_object(pack), cameras(pack, (cams_res, cams_res)), appearance_for(set(ablate)),
+    return measure_plan(pack, env, prepare_object(pack), cameras(pack, (cams_res, cams_res)), AppearanceConfig(**ablated_switches(ablate)),
                         0, spp or {"training": 4, "targets": 64})
 
 

@@ -98,7 +98,7 @@ def test_no_search_without_a_trainable_turn_or_when_off(tmp_path):
 def test_bad_pose_search_is_a_one_line_error(tmp_path, capsys):
     assert main(["optimize", "gravel", "--out", str(tmp_path / "x"), "--quiet", "--pose-search", "-1"]) == 2
     err = capsys.readouterr().err.strip()
-    assert "--pose-search must be >= 0" in err and len(err.splitlines()) == 1
+    assert "--pose-search: must be an integer in [0, 3600]" in err and len(err.splitlines()) == 1
     assert main(["optimize", "gravel", "--out", str(tmp_path / "y"), "--quiet", "--method", "mean",
                  "--pose-search", "4"]) == 2
     assert "--pose-search does not apply to --method mean" in capsys.readouterr().err

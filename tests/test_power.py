@@ -83,24 +83,99 @@ def test_write_power_outputs_and_bad_input(tmp_path):
     assert parse_participants("40, 10,10") == [10, 40]
 
 
-def test_cli_power_from_a_predicted_evaluation(tmp_path, capsys):
+def test_vectorised_tests_equal_the_study_analysis_replicate_by_replicate():
+    """The vectorised Fisher and log-rank p-values (Holm) of every simulated study are those of
+    study_site.analysis.pairwise_tests on the same trials -- with tied times, misses and timeouts."""
+    from study_site.analysis import pairwise_tests
+    from study_site.power import _cell_arrays, draw_replicates, replicate_frame, replicate_pvalues
+
+    rng = np.random.default_rng(0)
+    c = cells({"a": 0.3, "b": 0.5, "c": 0.55}, scenes=("s1", "s2", "s3"), n=120)
+    c.loc[c["found"], "rt_s"] = np.round(rng.gamma(2, 3, int(c["found"].sum())), 1)  # ties
+    c.loc[~c["found"] & (rng.random(len(c)) < 0.5), "timed_out"] = False  # misses
+    arrays = _cell_arrays(c)
+    times = np.unique(np.concatenate([np.where(f, rt, lim) for f, _, rt, lim in arrays.values()]))
+    draws = draw_replicates(arrays, 30, 15, rng, times)
+    pv = replicate_pvalues(draws, len(times))
+    for r in range(15):
+        for row in pairwise_tests(replicate_frame(draws, r)).itertuples():
+            for test in ("p_fisher_holm", "p_logrank_holm"):
+                assert pv[(row.condition_a, row.condition_b)][test][r] == pytest.approx(getattr(row, test), rel=1e-9)
+
+
+def test_fisher_matches_scipy_on_random_tables():
+    from scipy.stats import fisher_exact
+
+    from study_site.power import fisher_two_sided
+
+    rng = np.random.default_rng(1)
+    ka, kb = rng.integers(0, 31, 200), rng.integers(0, 41, 200)
+    p = fisher_two_sided(ka, 30, kb, 40)
+    ref = [fisher_exact([[a, 30 - a], [b, 40 - b]])[1] for a, b in zip(ka, kb)]
+    np.testing.assert_allclose(p, ref, rtol=1e-9)
+
+
+def _stimulus_set_with_predictions(root, n=50):
+    """A stimulus set (two scenes, ours and mean) whose predicted_trials.parquet holds ``cells`` outcomes."""
+    c = cells({"ours": 0.7, "mean": 0.2}, n=n)
+    t = c.assign(id=[f"id{i // n}" for i in range(len(c))], view="0", practice=False, trial=np.arange(len(c)) % n)
+    root.mkdir(parents=True, exist_ok=True)
+    t.to_parquet(root / "predicted_trials.parquet")
+    pd.DataFrame({"id": t["id"].unique()}).to_parquet(root / "predicted.parquet")
+    return root
+
+
+def test_cli_power_from_predicted_stimuli(tmp_path, capsys):
     from study_site.cli import register
 
-    ev = tmp_path / "ev"
-    ev.mkdir()
-    c = cells({"ours": 0.7, "mean": 0.2}, n=50)
-    t = c.assign(run=c["scene"] + "-" + c["method"], ablation="none", view=0, trial=range(len(c)))
-    t.to_parquet(ev / "simulated_trials.parquet")
+    stim = _stimulus_set_with_predictions(tmp_path / "stim")
     p = argparse.ArgumentParser(prog="camo")
     register(p.add_subparsers(dest="command", required=True))
-    args = p.parse_args(["study", "power", "--predicted", str(ev), "--out", str(tmp_path / "pw"),
-                         "--participants", "10,60", "--reps", "30"])
+    args = p.parse_args(["study", "power", "--predicted", str(stim), "--out", str(tmp_path / "pw"),
+                         "--participants", "10,60", "--reps", "30", "--quiet"])
     assert args.func(args) == 0
     out = capsys.readouterr().out
-    assert "mean vs ours" in out and (tmp_path / "pw" / "power.png").is_file()
-    for argv in (["study", "power", "--out", str(tmp_path / "x")],  # no source
-                 ["study", "power", "--predicted", str(tmp_path), "--out", str(tmp_path / "x")],  # no parquet
-                 ["study", "power", "--predicted", str(ev), "--out", str(tmp_path / "x"), "--reps", "0"]):
-        args = p.parse_args(argv)
-        with pytest.raises(CamoError):
-            args.func(args)
+    assert "mean vs ours" in out and "simulated studies in" in out and (tmp_path / "pw" / "power.png").is_file()
+    # an evaluation directory is not what people see: a one-line error says to build the stimuli
+    ev = tmp_path / "ev"
+    ev.mkdir()
+    (ev / "renders.json").write_text("[]")
+    args = p.parse_args(["study", "power", "--predicted", str(ev), "--out", str(tmp_path / "pw2")])
+    with pytest.raises(CamoError, match="build-stimuli"):
+        args.func(args)
+    assert not (tmp_path / "pw2").exists()
+    with pytest.raises(SystemExit):  # out of range: refused by the flag's type (tests/test_cli_ranges.py)
+        p.parse_args(["study", "power", "--predicted", str(stim), "--out", str(tmp_path / "x"), "--reps", "0"])
+
+
+def test_end_to_end_build_stimuli_to_power(tmp_path, capsys):
+    """build-stimuli (copying evaluation renders) runs the observer on every stimulus it writes; `camo study
+    power --predicted` reads those predictions (the report's section on them: tests/test_observer.py)."""
+    import json
+
+    from study_site.cli import register
+    from study_site.testing import make_fake_eval_dir
+
+    ev = tmp_path / "eval"
+    make_fake_eval_dir(ev, scenes=("sa",), methods=("mean", "ours"), views=2, size=(96, 96))
+    p = argparse.ArgumentParser(prog="camo")
+    register(p.add_subparsers(dest="command", required=True))
+    stim = tmp_path / "stim"
+    args = p.parse_args(["study", "build-stimuli", str(ev), "--out", str(stim), "--copy", "--synthetic-practice",
+                         "0", "--observer-trials", "20"])
+    assert args.func(args) == 0
+    assert "predicted mean: confusion" in capsys.readouterr().out
+    views = pd.read_parquet(stim / "predicted.parquet")
+    trials = pd.read_parquet(stim / "predicted_trials.parquet")
+    manifest = json.loads((stim / "manifest.json").read_text())
+    assert sorted(views["id"]) == sorted(s["id"] for s in manifest["stimuli"])  # every stimulus it built
+    assert len(trials) == 20 * len(views)
+    assert set(trials["method"]) == {"mean", "ours"}
+    assert (views["p_found"] + views["p_miss"] + views["p_timeout"]).round(9).eq(1.0).all()
+    assert (stim / "predicted_power" / "power.png").is_file()
+    cfg = json.loads((stim / "predicted_config.json").read_text())
+    assert cfg["trials_per_stimulus"] == 20 and cfg["observer"]["time_limit_s"] == 40.0
+    args = p.parse_args(["study", "power", "--predicted", str(stim), "--out", str(tmp_path / "pw"),
+                         "--participants", "10,20", "--reps", "20", "--quiet"])
+    assert args.func(args) == 0
+    assert (tmp_path / "pw" / "power_needed.csv").is_file()

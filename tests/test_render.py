@@ -86,7 +86,7 @@ def test_depth_is_distance_in_scene_units(mi_backend):
 def test_background_equals_full_render_away_from_object(mi_backend):
     m = _box_obj()
     build = ENVIRONMENTS["gravel"][1]
-    bsdf = scn.principled((0.5, 0.5, 0.5), 0.0, 0.0, 0.0)
+    bsdf = scn.principled({"albedo": (0.5, 0.5, 0.5), "metallic": 0.0, "roughness": 0.0, "transmittance": 0.0})
     vr = render_views(build, _obj_fn(m, bsdf), CAMS, {"type": "path", "max_depth": 3}, spp=16, seed=5)
     assert vr.background.shape == (2, 32, 40, 3) and vr.mask.shape == (2, 32, 40)
     from optimizer.optimise.stage1 import influence_domain

@@ -32,12 +32,13 @@ def old_formulas(s: int, it: int, v: int, k: int) -> dict[str, int | list[int]]:
         "evaluation_cameras": s,  # evaluation/views.py evaluation_cameras
         "evaluation_render": (s * 7919 + 104729) & 0x7FFFFFFF,  # evaluation/views.py render_seed
         "observer": s + 7919 * k,  # evaluation/observer.py predict_entries
+        "turntable_render": (s * 7919 + 611953 + v) & 0x7FFFFFFF,  # new stream: evaluation/turntable.py (frame v)
     }
 
 
 def current(name: str, s: int, it: int, v: int, k: int):
     st = seeds.stream(name)
-    idx = {"iteration": it, "view": v, "stimulus": k, "pair": 0}
+    idx = {"iteration": it, "view": v, "stimulus": k, "pair": 0, "frame": v}
     return seeds.entropy(name, s, **{n: idx[n] for n, _ in st.indices})
 
 

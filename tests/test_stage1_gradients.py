@@ -19,19 +19,19 @@ def test_step_gradient_equals_per_view_reapplication(mi_backend):
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
     from optimizer.rendering.planner import plan
-    from optimizer.optimise.run import appearance_for
     from optimizer.optimise.stage1 import Stage1, Stage1Config
+    from optimizer.rendering.appearance import AppearanceConfig
 
     pack = builtin_scenes.get("gravel")
     pack.cameras = dataclasses.replace(pack.cameras, views=3)
     pack.render = dataclasses.replace(pack.render, resolution=(24, 24))
-    app = dataclasses.replace(appearance_for(set()), map_resolution=32, displacement_resolution=16)
+    app = dataclasses.replace(AppearanceConfig(), map_resolution=32, displacement_resolution=16)
     env = get_environment(pack.environment)
     pl = plan(pack, env, app.planner_params())
     assert pl.integrator["type"] == "prb_projective"  # the per-view path (no batch sensor)
     cams = cameras(pack)
     s1 = Stage1(pack, env, prepare_object(pack, target_vertices=800), cams, pl,
-                Stage1Config(spp=2, target_spp=4, seed=0, silhouette_every=1), app)
+                Stage1Config(spp=2, target_spp=4, seed=0, silhouette_every=1), app).prepare()
 
     def take() -> dict[str, np.ndarray]:
         g = {n: np.array(dr.grad(s1.opt[n])).ravel().copy() for n in s1.opt.values}

@@ -31,7 +31,7 @@ def stage2(mi_backend, tmp_path_factory):
     app = AppearanceConfig(map_resolution=64, displacement_resolution=32, pose=False)
     s2 = Stage2(pack, env, prepared, cameras(pack), plan(pack, env, app.planner_params()),
                 Stage1Config(spp=8, target_spp=16, seed=3), app,
-                stage2=Stage2Config(strength=0.8, preview_spp=16), inpainter=get_inpainter("patch"))
+                stage2=Stage2Config(strength=0.8, preview_spp=16), inpainter=get_inpainter("patch")).prepare()
     for v in range(3):
         s2.make_pseudo_gt(v)
     return s2
@@ -143,7 +143,8 @@ def test_fixed_displacement_keeps_stage1_geometry_and_drops_projective_sampling(
     values["displacement"] = rng.uniform(-0.5, 0.5, values["displacement"].shape).astype(np.float32)
     s2 = Stage2(pack, env, prepare_object(pack, target_vertices=800), cameras(pack), pl,
                 Stage1Config(spp=2, target_spp=8, seed=1), app, initial=values,
-                stage2=Stage2Config(strength=0.8, preview_spp=4, displacement=False), inpainter=get_inpainter("patch"))
+                stage2=Stage2Config(strength=0.8, preview_spp=4, displacement=False),
+                inpainter=get_inpainter("patch")).prepare()
     displaced = world_positions(s2.geometry, values, app)
     flat = world_positions(s2.geometry, dict(values, displacement=np.zeros_like(values["displacement"])), app)
     assert np.abs(displaced - flat).max() > 1e-4  # the fixed map really displaces the mesh

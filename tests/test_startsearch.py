@@ -64,9 +64,9 @@ def test_start_search_skips_non_finite_scores_and_falls_back_to_the_first():
 
 def spec(*flags):
     from camo.cli import build_parser
-    from camo.optimize_cli import spec_from_args
+    from camo.optimize_cli import spec_of
 
-    return spec_from_args(build_parser().parse_args(["optimize", "gravel", "--out", "x", *flags]))
+    return spec_of(build_parser().parse_args(["optimize", "gravel", "--out", "x", *flags]))
 
 
 def test_presets_flags_and_the_options_that_turn_the_search_off():

@@ -131,12 +131,15 @@ def test_sigkill_after_the_first_checkpoint_then_resume_is_bit_exact(reference, 
     exactly the numbers of the uninterrupted run (log records, maps, pose, final renders), with one
     log record per iteration (records written after the checkpoint but before the kill are replaced).
     """
+    from optimizer.assets.rundir import staging_dir
+
     out = tmp_path / "killed"
+    part = staging_dir(out)  # where the unfinished run writes (the run directory appears when it finished)
     cmd = [sys.executable, "-m", "camo.cli", "optimize", "gravel", "--out", str(out), *TINY, *FULL]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=dict(os.environ))
     deadline = time.monotonic() + 300
     try:
-        while not (out / "checkpoint.npz").exists():
+        while not (part / "checkpoint.npz").exists():
             assert proc.poll() is None, f"camo exited ({proc.returncode}) early: {proc.stderr.read()}"
             assert time.monotonic() < deadline, "no checkpoint within 300 s"
             time.sleep(0.005)
@@ -145,11 +148,12 @@ def test_sigkill_after_the_first_checkpoint_then_resume_is_bit_exact(reference, 
         proc.wait(timeout=60)
         proc.stderr.close()
     assert proc.returncode == -signal.SIGKILL
-    assert not (out / "summary.json").exists(), "the run finished before the kill: nothing was tested"
-    with np.load(out / "checkpoint.npz") as ck:
+    assert not out.exists() and not (part / "summary.json").exists(), \
+        "the run finished before the kill: nothing was tested"
+    with np.load(part / "checkpoint.npz") as ck:
         killed_at = (int(ck["stage"]), int(ck["iteration"]))
     assert killed_at[0] == 1 and killed_at[1] < 4
-    logged = len((out / "log.jsonl").read_text().splitlines())
+    logged = len((part / "log.jsonl").read_text().splitlines())
     assert optimize(out, *FULL, "--resume") == 0
     assert_same_numbers(out, reference)
     print(f"STRESS sigkill: checkpoint at stage {killed_at[0]} iteration {killed_at[1]}, {logged} log records "

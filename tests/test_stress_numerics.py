@@ -89,7 +89,7 @@ def stage1(pack, env, prepared, app, *, iterations=2, loss="gated", spp=4, targe
            targets=None, domain="object+shadow"):
     cfg = Stage1Config(iterations=iterations, spp=spp, target_spp=target_spp, seed=seed, loss=loss, domain=domain)
     return Stage1(pack, env, prepared, cameras(pack), plan(pack, env, app.planner_params()), cfg, app,
-                  initial=initial, targets=targets)
+                  initial=initial).prepare(targets=targets)
 
 
 def assert_step_sane(rec: dict) -> None:
@@ -477,7 +477,7 @@ def test_black_albedo_under_transmission_has_finite_gradients_and_leaves_zero(gr
     a NaN rotation gradient every other step), were zeroed by the sanitiser and stayed at 0 for good.
 
     Expected: no non-finite gradient entry in any step, the albedo starts at ``ALBEDO_MIN`` (not 0) and moves."""
-    from optimizer.rendering.appearance import ALBEDO_MIN
+    from optimizer.scenes.bsdf_maps import ALBEDO_MIN
 
     pack, env, app, targets = grazing
     init = initial_values(app, pack.material)
@@ -760,7 +760,7 @@ def test_mesh_preparation_is_exactly_scale_invariant(tmp_path):
     """Hard case: the same icosphere at 1, 1e-4 and 1e4 (after normalisation the vertices differ by 1 ulp).
 
     Expected: the prepared meshes are the same mesh (same faces, vertices and UVs up to round-off), so
-    the optimiser cannot tell the input's units apart. BUG (optimizer/scenes/mesh.py ``_split_to_count``):
+    the optimiser cannot tell the input's units apart. BUG (optimizer/scenes/mesh/remesh.py ``_split_to_count``):
     longest-edge refinement sorts edges by float length and cuts the list at the vertex budget; an
     icosphere has many equal-length edges, so 1-ulp differences decide which are split and the three
     inputs get three different tessellations (553 / 541 / 540 UV vertices, vertices up to 0.08 apart).

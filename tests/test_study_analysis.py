@@ -13,7 +13,8 @@ from study_site.analysis import bootstrap_confusion, durations, holm, pairwise_t
 
 def _trials(rows):
     """rows: (participant, method, outcome, rt_s) with outcome in {'hit', 'miss', 'timeout'}."""
-    df = pd.DataFrame(rows, columns=["participant", "method", "outcome", "rt_s"])
+    df = pd.DataFrame(rows, columns=["participant", "condition", "outcome", "rt_s"])
+    df["label"] = "label of " + df["condition"]
     df["hit"] = df["outcome"] == "hit"
     df["timed_out"] = df["outcome"] == "timeout"
     df["time_limit_s"] = 40.0
@@ -55,7 +56,8 @@ def test_table_i_hand_computed():
         (1, "A", "hit", 2.0), (1, "A", "miss", 3.0), (2, "A", "hit", 4.0), (2, "A", "timeout", 40.02),
         (1, "B", "hit", 1.0), (1, "B", "hit", 2.0), (2, "B", "hit", 3.0), (2, "B", "hit", 4.0), (3, "B", "hit", 5.0),
     ]
-    t = table_i(_trials(rows), n_boot=500, seed=1).set_index("method")
+    t = table_i(_trials(rows), n_boot=500, seed=1).set_index("condition")
+    assert t["label"].tolist() == ["label of A", "label of B"]
     a, b = t.loc["A"], t.loc["B"]
     assert (a.n_trials, a.n_found, a.n_missed, a.n_timeout, a.n_participants) == (4, 2, 1, 1, 2)
     assert a.confusion_rate == 0.5 and b.confusion_rate == 0.0
@@ -100,7 +102,7 @@ def test_pairwise_tests_and_holm():
     rows = [(p, "A", "miss" if p <= 6 else "hit", 2.0) for p in range(1, 11)]
     rows += [(p, "B", "hit", 1.0 + p / 10) for p in range(1, 11)]
     rows += [(p, "C", "miss" if p <= 2 else "hit", 3.0) for p in range(1, 11)]
-    pw = pairwise_tests(_trials(rows)).set_index(["method_a", "method_b"])
+    pw = pairwise_tests(_trials(rows)).set_index(["condition_a", "condition_b"])
     ab = pw.loc[("A", "B")]
     assert (ab.confusion_a, ab.confusion_b, ab["diff"]) == pytest.approx((0.6, 0.0, 0.6))
     assert ab.p_fisher == pytest.approx(fisher_exact([[6, 4], [0, 10]])[1])

@@ -41,7 +41,8 @@ def _app(stim_dir, tmp_path, **cfg):
         "PRACTICE_TRIALS": 2,
         "TRIAL_TIME_LIMIT_S": 40,
         "ADMIN_TOKEN": "admintok123",
-        "ID_HMAC_KEY": ID_KEY,
+        "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64,
+        "RT_FLOOR_MS": 0,  # answers follow their start at once here (too_fast: tests/test_study_protocol.py)
     }
     base.update(cfg)
     app = create_app(base)
@@ -97,7 +98,7 @@ def _age_trial(app, idx, seconds):
 def _finish(client, tok, rects, hit_every=2):
     state = client.get("/api/state").get_json()
     for t in state["trials"]:
-        sid = t["src"].rsplit("/", 1)[1]
+        sid = t["src"].rsplit("/", 1)[1].split(".")[0]
         x0, y0, x1, y1 = rects[sid]
         if t["index"] % hit_every == 0:
             x, y = (x0 + x1) // 2, (y0 + y1) // 2
@@ -200,9 +201,9 @@ def test_full_session_rows_and_no_leak(stim_dir, tmp_path):
     # images only for the participant's own plan; reveal only after answering
     t0 = state["trials"][0]
     assert c.get(t0["src"]).status_code == 200
-    rid = next(s.reveal_id for s in StimulusSet(stim_dir).stimuli if s.id == t0["src"].rsplit("/", 1)[1])
+    rid = next(s.reveal_id for s in StimulusSet(stim_dir).stimuli if s.id == t0["src"].rsplit("/", 1)[1].split(".")[0])
     assert c.get(f"/r/{rid}").status_code == 404
-    sid = t0["src"].rsplit("/", 1)[1]
+    sid = t0["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = rects[sid]
     x0, y0 = (x0 + x1) // 2, (y0 + y1) // 2  # practice images are synthetic ellipses: aim at the centre
     r = _post_trial(c, tok, 0, x=x0, y=y0, display_w=640.0, display_h=480.0)
@@ -277,7 +278,7 @@ def test_cells_fill_evenly(stim_dir, tmp_path):
     assert len({tuple(o) for o in orders.values()}) > 1  # orders are shuffled
 
 
-def test_declined_and_demographics_optional(stim_dir, tmp_path):
+def test_declined_and_age_required(stim_dir, tmp_path):
     app = _app(stim_dir, tmp_path)
     c = app.test_client()
     c.get("/?id=someone_42")
@@ -287,8 +288,11 @@ def test_declined_and_demographics_optional(stim_dir, tmp_path):
     c.get("/?id=someone_42")  # came back: asked again
     assert c.get("/consent").status_code == 200
     c.post("/consent", data={"csrf_token": tok, "consent": "yes"})
-    assert c.post("/about-you", data={"csrf_token": tok}).status_code == 302  # skipped
-    assert c.post("/about-you", data={"csrf_token": tok, "age": "99"}).status_code in (302, 400)
+    r = c.post("/about-you", data={"csrf_token": tok})  # adults only: the age bracket is required
+    assert r.status_code == 400 and "Please choose your age bracket" in r.text
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "99"}).status_code == 400
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "prefer_not"}).status_code == 400
+    assert c.post("/about-you", data={"csrf_token": tok, "age": "25-34"}).status_code == 302
 
 
 def test_anonymous_start_and_admin(stim_dir, tmp_path):
@@ -436,7 +440,6 @@ def test_cli_bad_input_raises_camoerror(tmp_path):
         ["study", "build-stimuli", str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
         ["study", "serve", "--stimuli", str(tmp_path / "missing"), "--db", "sqlite:///x.db"],
         ["study", "serve", "--stimuli", str(tmp_path), "--db", str(tmp_path / "x.db")],  # no manifest
-        ["study", "serve", "--stimuli", str(tmp_path), "--db", "sqlite:///x.db", "--port", "70000"],
         ["study", "report", "--db", str(tmp_path / "none.sqlite"), "--out", str(tmp_path / "r")],
         ["study", "report", "--db", "nosuchdialect://x", "--out", str(tmp_path / "r")],
     ):
@@ -445,6 +448,8 @@ def test_cli_bad_input_raises_camoerror(tmp_path):
             args.func(args)
     with pytest.raises(SystemExit):
         p.parse_args(["study"])
+    with pytest.raises(SystemExit):  # out of range: refused by the flag's type (tests/test_cli_ranges.py)
+        p.parse_args(["study", "serve", "--stimuli", str(tmp_path), "--db", "sqlite:///x.db", "--port", "70000"])
 
 
 # ---------------------------------------------------------------------------
@@ -493,3 +498,94 @@ def test_locked_database_is_503_then_retry_succeeds(stim_dir, tmp_path):
     con.close()
     r = _post_trial(c, tok, 0, start=False, timed_out=True, rt_ms=40000.0)  # the client's retry
     assert r.status_code == 200 and r.get_json()["duplicate"] is False
+
+
+# ---------------------------------------------------------------------------
+# stimulus images: static, immutable, headers without build times
+# ---------------------------------------------------------------------------
+
+
+def test_stimulus_headers_reveal_nothing(stim_dir, tmp_path):
+    """/i/<id>.webp and .png: immutable caching, ETag = content hash (304 on If-None-Match), no Last-Modified,
+    the same pixels in both formats; a file's modification time changes no header; the reveal image likewise."""
+    import hashlib
+    import io
+    import os
+
+    app = _app(stim_dir, tmp_path)
+    c = app.test_client()
+    tok = _to_task(c)
+    state = c.get("/api/state").get_json()
+    t0 = state["trials"][0]
+    assert t0["src"].endswith(".webp") and t0["fallback"] == t0["src"][:-5] + ".png"
+    got = {}
+    for url, mime in ((t0["src"], "image/webp"), (t0["fallback"], "image/png")):
+        other = app.test_client()  # static: the unguessable URL is the permission, no session needed
+        r = other.get(url)
+        assert r.status_code == 200 and r.mimetype == mime, url
+        body = r.get_data()
+        assert "Last-Modified" not in r.headers and "Set-Cookie" not in r.headers
+        assert r.headers["ETag"] == '"' + hashlib.sha256(body).hexdigest()[:32] + '"'
+        assert r.headers["Cache-Control"] == "public, max-age=31536000, immutable"
+        assert r.headers["Content-Length"] == str(len(body))
+        r304 = other.get(url, headers={"If-None-Match": r.headers["ETag"]})
+        assert r304.status_code == 304 and r304.get_data() == b""
+        got[mime] = np.asarray(Image.open(io.BytesIO(body)).convert("RGB"))
+    assert np.array_equal(got["image/webp"], got["image/png"])  # lossless: pixel-identical
+    # every stimulus of the set: WebP smaller than PNG, pixel-identical, and the ETag does not move with the mtime
+    ss = StimulusSet(stim_dir)
+    for st in ss.stimuli:
+        a = np.asarray(Image.open(ss.image_path(st, ".webp")).convert("RGB"))
+        assert np.array_equal(a, np.asarray(Image.open(ss.image_path(st)).convert("RGB")))
+    etag = c.get(t0["src"]).headers["ETag"]
+    sid = t0["src"].rsplit("/", 1)[1].split(".")[0]
+    os.utime(ss.image_path(ss.by_id[sid], ".webp"), (1_000_000_000, 1_000_000_000))
+    (tmp_path / "b").mkdir()
+    assert _app(stim_dir, tmp_path / "b").test_client().get(t0["src"]).headers["ETag"] == etag
+    for bad in ("/i/nope.webp", "/i/" + sid, "/i/../manifest.json", "/i/" + sid + ".png/x"):
+        assert c.get(bad).status_code == 404, bad
+    assert c.post(t0["src"]).status_code == 405
+    # the reveal, once answered: WebP to a browser that takes it, PNG otherwise; content-hash ETag, no time
+    rects = mask_rects(stim_dir)
+    x0, y0, x1, y1 = rects[sid]
+    j = _post_trial(c, tok, 0, x=(x0 + x1) // 2, y=(y0 + y1) // 2).get_json()
+    rw = c.get(j["reveal"], headers={"Accept": "image/avif,image/webp,image/png,*/*"})
+    rp = c.get(j["reveal"], headers={"Accept": "image/png"})
+    assert (rw.status_code, rw.mimetype, rp.mimetype) == (200, "image/webp", "image/png")
+    for r in (rw, rp):
+        assert "Last-Modified" not in r.headers and "Accept" in r.headers["Vary"]
+        assert r.headers["ETag"] == '"' + hashlib.sha256(r.get_data()).hexdigest()[:32] + '"'
+        assert c.get(j["reveal"], headers={"If-None-Match": r.headers["ETag"],
+                                           "Accept": r.request.headers.get("Accept")}).status_code == 304
+
+
+def test_cookie_key_outside_the_database(stim_dir, tmp_path, capsys):
+    """The cookie-signing key is read from a file (`make-key`, --secret-key-file), never written to the database;
+    without one the server refuses to start in one line (DEV keeps one in the database)."""
+    from camo.cli import main
+    from study_site.db import Setting
+
+    cfg = {"STIMULI_DIR": str(stim_dir), "DATABASE_URL": f"sqlite:///{tmp_path / 'c.sqlite'}", "ID_HMAC_KEY": ID_KEY}
+    with pytest.raises(CamoError, match=r"^SECRET_KEY \(the cookie-signing key\) is not set: .*camo study make-key"):
+        create_app(cfg)
+    key = tmp_path / "cookie.key"
+    assert main(["study", "make-key", str(key)]) == 0
+    app = create_app(dict(cfg, SECRET_KEY_FILE=str(key)))
+    assert app.secret_key == key.read_text().strip()
+    with app.extensions["camo_study"].db.read() as s:
+        assert s.get(Setting, "secret_key") is None
+    (tmp_path / "short.key").write_text("x" * 10)
+    with pytest.raises(CamoError, match="SECRET_KEY file .* shorter than 32"):
+        create_app(dict(cfg, SECRET_KEY_FILE=str(tmp_path / "short.key")))
+    with pytest.raises(CamoError, match="must be different keys"):
+        create_app(dict(cfg, SECRET_KEY=ID_KEY))
+    dev = create_app(dict(cfg, DEV=True))
+    with dev.extensions["camo_study"].db.read() as s:
+        assert s.get(Setting, "secret_key").value == dev.secret_key
+    idk = tmp_path / "id.key"
+    idk.write_text("ab" * 32)
+    capsys.readouterr()
+    rc = main(["study", "serve", "--stimuli", str(stim_dir), "--db", str(tmp_path / "d.sqlite"), "--id-key-file",
+               str(idk)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("camo: error: SECRET_KEY (the cookie-signing key) is not set")

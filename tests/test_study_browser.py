@@ -65,7 +65,7 @@ def _serve_site(root, limit_s=LIMIT_S, n_practice=N_PRACTICE):
             "TRIAL_TIME_LIMIT_S": limit_s,
             "PRACTICE_TRIALS": n_practice,
             "COMPLETION_CODE": "C0DE1234",
-            "ID_HMAC_KEY": "b" * 64,
+            "ID_HMAC_KEY": "b" * 64, "SECRET_KEY": "s" * 64,
         }
     )
     rec = Recorder(app)
@@ -171,7 +171,7 @@ class Participant:
         p = self.page
         p.wait_for_selector("#task[data-phase='trial'] #stage img.stim")
         src = p.get_attribute("#stage img.stim", "src")
-        sid = src.rsplit("/", 1)[1]
+        sid = src.rsplit("/", 1)[1].split(".")[0]
         self.seen.append(sid)
         if shot_name:
             shot(p, shot_name + "_trial")
@@ -356,8 +356,8 @@ def test_reload_mid_trial_keeps_the_deadline(slow_site, browser):
     # the time bar starts from the remaining share, not from full
     bar = p.evaluate("() => parseFloat(document.getElementById('timer-fill').style.width)")
     assert bar == 0 or bar < 80
-    who.seen.append(first_src.rsplit("/", 1)[1])
-    x0, y0, x1, y1 = site["rects"][first_src.rsplit("/", 1)[1]]
+    who.seen.append(first_src.rsplit("/", 1)[1].split(".")[0])
+    x0, y0, x1, y1 = site["rects"][first_src.rsplit("/", 1)[1].split(".")[0]]
     box = p.locator("#stage img.stim").bounding_box()
     p.mouse.click(box["x"] + ((x0 + x1) / 2 + 0.5) * box["width"] / SIZE[0],
                   box["y"] + ((y0 + y1) / 2 + 0.5) * box["height"] / SIZE[1])
@@ -380,4 +380,28 @@ def test_reload_mid_trial_keeps_the_deadline(slow_site, browser):
     rows, _ = _db_trials(site, "RELOADER_1")
     r = rows.iloc[1]
     assert r.timed_out and not r.hit and r.starts == 2 and r.server_rt_ms >= 6000
+    ctx.close()
+
+
+def test_adults_only_in_the_browser(site, browser):
+    """The age question is required (the browser will not submit without an answer) and "Under 18" ends the
+    participation on the not-eligible page."""
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800})
+    p = ctx.new_page()
+    p.goto(f"{site['base']}/?PROLIFIC_PID=MINOR_1")
+    p.wait_for_url("**/consent")
+    assert "Adults only" in p.inner_text("#adult-note")
+    p.click("#agree")
+    p.wait_for_url("**/about-you")
+    p.click("#continue")  # nothing chosen: the form is not sent
+    assert p.url.endswith("/about-you")
+    assert p.evaluate("() => document.querySelector('input[name=age]').validity.valueMissing")
+    shot(p, "03b_about_you_required")
+    p.check("input[value='under']")
+    p.click("#continue")
+    p.wait_for_url("**/not-eligible")
+    assert "adults aged 18 or older" in p.inner_text("#ineligible")
+    shot(p, "11_not_eligible")
+    p.goto(f"{site['base']}/task")
+    assert p.url.endswith("/not-eligible")
     ctx.close()

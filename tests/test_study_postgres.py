@@ -42,7 +42,7 @@ def _app(stim, url, **cfg):
     from study_site import create_app
 
     app = create_app({"STIMULI_DIR": str(stim), "DATABASE_URL": url, "PRACTICE_TRIALS": 1, "RATE_LIMIT_PER_S": 0,
-                      "ID_HMAC_KEY": ID_KEY, "TRIAL_TIME_LIMIT_S": 10, **cfg})
+                      "ID_HMAC_KEY": ID_KEY, "SECRET_KEY": "s" * 64, "TRIAL_TIME_LIMIT_S": 10, **cfg})
     app.testing = True
     return app
 
@@ -80,7 +80,7 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
     trials = c.get("/api/state").get_json()["trials"]
     assert [t["practice"] for t in trials] == [True, False, False]
     # trial 0: hit, then two retries
-    sid = trials[0]["src"].rsplit("/", 1)[1]
+    sid = trials[0]["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = rects[sid]
     assert c.post("/api/start", json={"trial_index": 0}, headers=h).get_json()["starts"] == 1
     body = {"trial_index": 0, "client_trial_id": "pground-0", "timed_out": False, "rt_ms": 612.5,
@@ -103,7 +103,7 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
         it.started_at -= timedelta(seconds=13)
     st = c.post("/api/start", json={"trial_index": 1}, headers=h).get_json()
     assert st["starts"] == 2 and st["remaining_ms"] == 0 and st["elapsed_ms"] >= 13000
-    sid = trials[1]["src"].rsplit("/", 1)[1]
+    sid = trials[1]["src"].rsplit("/", 1)[1].split(".")[0]
     x0, y0, x1, y1 = rects[sid]
     late = {"trial_index": 1, "client_trial_id": "pground-1", "timed_out": False, "rt_ms": 12000.0,
             "x": (x0 + x1) // 2, "y": (y0 + y1) // 2}
@@ -129,7 +129,7 @@ def test_postgres_round_trip_retries_and_clock(pg, stim):
 def test_postgres_concurrent_sessions_and_report(pg, stim, tmp_path):
     from study_site.analysis import write_report
 
-    app = _app(stim, pg)
+    app = _app(stim, pg, RT_FLOOR_MS=0)  # answers follow their start at once
     errors = []
 
     def participant(i):
@@ -158,7 +158,69 @@ def test_postgres_concurrent_sessions_and_report(pg, stim, tmp_path):
     res = write_report(pg, tmp_path / "rep", n_boot=100, stimuli_dir=stim)
     trials = res["trials"]
     assert len(trials) == 12 * 3 and trials.groupby(["participant", "trial_index"]).size().max() == 1
-    cells = Counter(zip(trials.loc[~trials.practice, "scene"], trials.loc[~trials.practice, "method"]))
+    cells = Counter(zip(trials.loc[~trials.practice, "scene"], trials.loc[~trials.practice, "condition"]))
     assert set(cells.values()) == {4}  # 12 participants over 3 methods per scene, least-filled first
-    assert res["baselines"].set_index("method").loc["all", "n_trials"] == 24
+    assert res["baselines"].set_index("condition").loc["all", "n_trials"] == 24
     app.extensions["camo_study"].db.dispose()
+
+
+def test_production_command_gunicorn_on_postgres(pg, stim, tmp_path):
+    """The documented production command, `camo study serve --workers 2 --db postgresql+psycopg://...` (gunicorn,
+    two worker processes), started as a subprocess: simulated participants take the whole study over HTTP, every
+    trial is stored once, the image headers are the static ones, and both workers are up."""
+    import http.client
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from study_site.analysis import load_tables
+    from study_site.simulate import simulate
+
+    root = Path(__file__).resolve().parents[1]
+    keys = []
+    for name in ("id.key", "cookie.key"):
+        keys.append(tmp_path / name)
+        subprocess.run([sys.executable, "-m", "camo.cli", "study", "make-key", str(keys[-1])], check=True,
+                       capture_output=True, cwd=root, env=dict(os.environ, PYTHONPATH=str(root)))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, PYTHONPATH=str(root), CAMO_STUDY_PRACTICE_TRIALS="1", CAMO_STUDY_RT_FLOOR_MS="0")
+    cmd = [sys.executable, "-m", "camo.cli", "study", "serve", "--stimuli", str(stim), "--db", pg, "--port", str(port),
+           "--workers", "2", "--threads", "4", "--id-key-file", str(keys[0]), "--secret-key-file", str(keys[1]),
+           "--time-limit", "3"]
+    proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    try:
+        t_end = time.monotonic() + 90
+        while True:
+            assert proc.poll() is None and time.monotonic() < t_end, proc.stdout.read().decode()[-2000:]
+            try:
+                c = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
+                c.request("GET", "/healthz")
+                if c.getresponse().status == 200:
+                    break
+            except OSError:
+                time.sleep(0.2)
+        workers = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        assert len(workers) == 2
+        res = simulate(f"http://127.0.0.1:{port}", 8, concurrency=8, seed=5, max_seconds=120)
+        assert res["completed"] == 8 and res["n_errors"] == 0, res["errors"]
+        trials, parts = load_tables(pg)
+        assert len(trials) == 8 * 3 and trials.groupby(["participant", "trial_index"]).size().max() == 1
+        assert bool(parts["completed"].all()) and set(parts["age_bracket"]) <= {"18-24", "25-34", "35-44", "45-54",
+                                                                               "55-64", "65+"}
+        sid = trials["stimulus_id"].iloc[0]
+        c = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+        c.request("GET", f"/i/{sid}.webp")
+        r = c.getresponse()
+        r.read()
+        assert r.status == 200 and r.getheader("Content-Type") == "image/webp"
+        assert r.getheader("Last-Modified") is None and "immutable" in r.getheader("Cache-Control")
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(30)

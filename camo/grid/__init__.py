@@ -26,6 +26,8 @@ import os
 
 
 def register(sub) -> None:
+    from camo_base.ranges import Range
+
     grid = sub.add_parser("grid", help="run a benchmark grid of optimise + evaluate cells, resumably")
     gsub = grid.add_subparsers(dest="grid_command", metavar="SUBCOMMAND")
     gsub.required = True
@@ -36,7 +38,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder (cells/, metrics.parquet, report/); rerun to resume")
     p.add_argument("--executor", choices=("local", "ray"), default="local",
                    help="local process pool (default) or Ray (pip install 'camo-toolkit[cluster]')")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=Range(int, 1, 1024).arg_type(), default=1,
                    help="cells run at once (default 1); each gets max(1, cores // workers) render threads")
     p.add_argument("--ray-address", metavar="ADDR",
                    help="Ray cluster to use (default: env RAY_ADDRESS; else a local Ray on 127.0.0.1)")

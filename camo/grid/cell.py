@@ -15,8 +15,8 @@ Cell folder::
 
 A partial cell (started, no DONE) is resumed when its run directory has a checkpoint (method ``ours``; baselines
 have none), otherwise restarted over its files. The optimisation runs the cell's run spec as stored
-(:func:`optimizer.optimise.run.run`, as ``camo optimize`` does after filling one); the evaluation runs through the
-same parser and handler as the ``camo evaluate`` command line.
+(:func:`optimizer.optimise.run.run`, as ``camo optimize`` does after filling one); the evaluation calls
+:func:`evaluation.evaluate.evaluate` with the cell's evaluation settings, as ``camo evaluate`` does with its flags'.
 
 This module is imported by spawned worker processes: keep its imports light.
 """
@@ -42,7 +42,6 @@ DONE = "DONE"
 ERROR = "ERROR"
 ERROR_LOG = "error.log"
 CELL_LOCK = ".lock"
-CHECKPOINT = "checkpoint.npz"  # = optimizer.assets.rundir.CHECKPOINT (not imported: keep the workers' imports light)
 
 #: Test hook: a cell whose name contains this string kills its worker process (simulates a crash).
 CRASH_ENV = "CAMO_GRID_TEST_CRASH"
@@ -87,10 +86,14 @@ def read_done(cell_dir: Path, key: str) -> dict[str, Any] | None:
 
 
 def checkpoint_progress(run_dir: Path) -> str | None:
-    """``"stage S, iteration N"`` of a run directory's checkpoint, else None."""
-    p = Path(run_dir) / CHECKPOINT
-    if not p.is_file():
+    """``"stage S, iteration N"`` of the checkpoint a resume of a run directory would continue (its unfinished
+    staging folder's, else its own), else None."""
+    from optimizer.assets.rundir import CHECKPOINT, resumable
+
+    folder = resumable(run_dir)
+    if folder is None:
         return None
+    p = folder / CHECKPOINT
     try:
         import numpy as np
 
@@ -165,23 +168,14 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split()) or "error"
 
 
-def _camo(argv: list[str]) -> None:
-    """Run ``camo ARGV`` through the CLI's parser and handler; CamoError on a parse error or a failure."""
-    import contextlib
-    import io
+def evaluate_cell(cell, cell_dir: Path, threads: int | None) -> None:
+    """Evaluate the cell's run directory with its evaluation settings (:meth:`camo.grid.spec.Cell.
+    evaluation_settings`: the grid's ``[evaluate]`` options), as ``camo evaluate`` does; CamoError for bad input."""
+    from evaluation.evaluate import evaluate
+    from evaluation.inputs import InputSpec
 
-    from camo.cli import build_parser
-
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            args = build_parser().parse_args(argv)
-    except SystemExit:
-        lines = err.getvalue().strip().splitlines()
-        raise CamoError(lines[-1] if lines else f"bad arguments for camo {argv[0]}") from None
-    rc = int(args.func(args) or 0)
-    if rc != 0:
-        raise CamoError(f"camo {argv[0]} exited with status {rc}")
+    evaluate([InputSpec("run", str(cell.run_dir(cell_dir)))], str(cell.eval_dir(cell_dir)),
+             cell.evaluation_settings(threads))
 
 
 def optimize_cell(cell, cell_dir: Path, threads: int | None, mode: str = "fresh") -> Path:
@@ -279,13 +273,15 @@ def run_cell(cell_dict: dict[str, Any], cell_dir: str, threads: int | None) -> d
 def _run(cell, cdir: Path, threads: int | None, t0: float) -> dict[str, Any]:
     from camo_base import atomic
 
+    from optimizer.assets.rundir import resumable, staging_dir
+
     run_dir = cell.run_dir(cdir)
     optimized = (cdir / OPTIMIZED).is_file()
     if optimized:
         mode = "evaluate"
-    elif (run_dir / CHECKPOINT).is_file() and cell.method == "ours":
+    elif resumable(run_dir) is not None and cell.method == "ours":
         mode = "resume"
-    elif run_dir.exists() and any(run_dir.iterdir()):
+    elif (run_dir.exists() and any(run_dir.iterdir())) or staging_dir(run_dir).exists():
         mode = "restart"
     else:
         mode = "fresh"
@@ -307,7 +303,8 @@ def _run(cell, cdir: Path, threads: int | None, t0: float) -> dict[str, Any]:
             try:
                 optimize_cell(cell, cdir, threads, mode)
             except CamoError as exc:
-                if mode != "resume" or not any(s in str(exc) for s in ("checkpoint", "--resume")):
+                refused = "resume" in getattr(exc, "names", ()) or "checkpoint" in str(exc)  # (not resumable)
+                if mode != "resume" or not refused:
                     raise
                 print(f"resume failed ({exc}); restarting the run", flush=True)
                 _append(cdir / ATTEMPTS, {"event": "restart", "reason": _one_line(exc), "time": _now()})
@@ -325,7 +322,7 @@ def _run(cell, cdir: Path, threads: int | None, t0: float) -> dict[str, Any]:
 
             shutil.rmtree(eval_root)
         print(f"$ camo {' '.join(cell.evaluate_command(cdir, threads))}", flush=True)
-        _camo(cell.evaluate_command(cdir, threads))
+        evaluate_cell(cell, cdir, threads)
         seconds_eval = time.perf_counter() - t
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - every failure of a cell is recorded, never raised
         msg = f"{phase}: {exc if isinstance(exc, CamoError) else f'{type(exc).__name__}: {exc}'}"

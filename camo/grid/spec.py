@@ -32,9 +32,12 @@ relative to the grid file. Options the grid sets itself are refused: ``out``, ``
 ``quiet``, ``threads`` (cores // workers), and the axes ``method``, ``ablate``, ``seed`` (use ``methods``,
 ``ablations``, ``seeds``).
 
-The ``[optimize]`` options fill each cell's **run spec** (:class:`optimizer.optimise.spec.RunSpec`) through the
-real ``camo optimize`` parser, once, when the grid is loaded; the cell stores the spec (``Cell.spec``, its
-``to_dict``) and its worker runs it as it is (:func:`optimizer.optimise.run.run`), no command line in between.
+The ``[optimize]`` options are run options (:mod:`optimizer.optimise.options`: the same names, types and ranges as
+``camo optimize``'s flags): each cell's ``{option: value}`` mapping becomes its **run spec**
+(:meth:`optimizer.optimise.spec.RunSpec.from_options`) once, when the grid is loaded; the cell stores the spec
+(``Cell.spec``, its ``to_dict``) and its worker runs it as it is (:func:`optimizer.optimise.run.run`). The
+``[evaluate]`` options are converted by the types of ``camo evaluate``'s flags into the evaluation settings the
+worker passes to :func:`evaluation.evaluate.evaluate`. No command line is made or parsed in between.
 
 Each cell has a **key**: the first 16 hex digits of the SHA-256 of its resolved options (scene as written plus
 the pack file's SHA-256, method, ablation, seed, and the optimise and evaluate options the grid file sets, each
@@ -46,9 +49,7 @@ so the keys of grid folders written then still match.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import io
 import hashlib
 import json
 import math
@@ -132,11 +133,19 @@ class Cell:
         return Path(cell_dir) / "eval" / self.name  # named after the cell: the report's settings list it
 
     def evaluate_command(self, cell_dir: Path, threads: int | None) -> list[str]:
+        """The ``camo evaluate`` command line equivalent to the cell's evaluation (for its log; the worker calls
+        :func:`evaluation.evaluate.evaluate` with :meth:`evaluation_settings`)."""
         argv = ["evaluate", str(self.run_dir(cell_dir)), "--out", str(self.eval_dir(cell_dir)),
                 *self.evaluate_argv, "--quiet"]
         if threads:
             argv += ["--threads", str(threads)]
         return argv
+
+    def evaluation_settings(self, threads: int | None = None):
+        """The cell's :class:`evaluation.evaluate.EvalSettings` (quiet, the worker's threads)."""
+        from evaluation.cli import evaluation_settings
+
+        return evaluation_settings({**dict(self.evaluate), "threads": threads, "quiet": True})
 
 
 @dataclasses.dataclass
@@ -152,101 +161,98 @@ class Grid:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# options of `camo optimize` / `camo evaluate`, through their real parsers
+# options of `camo optimize` (the run options) and `camo evaluate` (its flags' types), as data
 # --------------------------------------------------------------------------------------------------------------
 
 
 def command_parser(command: str) -> argparse.ArgumentParser:
-    """The argparse parser of ``camo <command>`` as registered by its plugin (so new options just work)."""
+    """The argparse parser of ``camo evaluate`` as its plugin registers it: its actions say each option's type,
+    choices and default (read as a schema, never given a command line)."""
+    from evaluation import cli as eval_cli
+
+    if command != "evaluate":
+        raise ValueError(f"no parser schema for camo {command}")
     root = argparse.ArgumentParser(prog="camo")
     sub = root.add_subparsers(dest="command")
-    if command == "optimize":
-        from camo import optimize_cli
-
-        optimize_cli.register(sub)
-    else:
-        from evaluation import cli as eval_cli
-
-        eval_cli.register(sub)
+    eval_cli.register(sub)
     return sub.choices[command]
-
-
-#: What the parsers need besides the options (a required positional or --out); never used to run anything.
-_BASE_ARGV = {"optimize": ["SCENE", "--out", "/nonexistent-camo-grid-cell"],
-              "evaluate": ["--out", "/nonexistent-camo-grid-cell"]}
-
-
-def parse_command(parser: argparse.ArgumentParser, argv: list[str], where: str) -> argparse.Namespace:
-    """``parser.parse_args(argv)`` with argparse's error (usage on stderr, exit 2) as one CamoError line."""
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            return parser.parse_args(argv)
-    except SystemExit:
-        lines = err.getvalue().strip().splitlines()
-        raise CamoError(f"{where}: {lines[-1] if lines else 'bad options'}") from None
 
 
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _option_args(section: str, table: dict[str, Any], parser: argparse.ArgumentParser, where: str
-                 ) -> tuple[dict[str, Any], list[str]]:
-    """Validate one ``[optimize]`` / ``[evaluate]`` table through the real parser: the resolved ``{dest: value}``
-    (options equal to their absent value left out: the same work, the same key) and argv fragments."""
-    absent: dict[str, Any] = {}
-    if section == "optimize":
-        from camo.optimize_cli import ABSENT, KEY_STABLE
-
-        absent = {**ABSENT, **KEY_STABLE}
+def _check_key(section: str, raw_key: str, known, where: str) -> str:
+    dest = str(raw_key).replace("-", "_")
     reserved = RESERVED[section]
-    known = vars(parse_command(parser, _BASE_ARGV[section], where))  # every option's dest
-    argv: list[str] = []
-    dests: list[str] = []
-    for raw_key, value in table.items():
-        dest = str(raw_key).replace("-", "_")
-        if dest in reserved:
-            raise CamoError(f"{where}: [{section}] {raw_key} is set by the grid: {reserved[dest]}")
-        if dest not in known or dest == "func":  # (argparse would take --iter for --iterations: not here)
-            names = ", ".join(sorted(k.replace("_", "-") for k in known if k not in reserved and k != "func"))
-            raise CamoError(f"{where}: [{section}] unknown option {raw_key!r}; `camo {section}` options: {names}")
-        opt = "--" + dest.replace("_", "-")
-        is_flag = isinstance(parser.get_default(dest), bool)
-        if is_flag and not isinstance(value, bool):
-            raise CamoError(f"{where}: [{section}] {raw_key} is a flag: write true or false, not {value!r}")
-        if isinstance(value, bool):
-            if not is_flag:
-                raise CamoError(f"{where}: [{section}] {raw_key} must be a number, a string or a list, not {value!r}")
-            if value:
-                argv.append(opt)
-            dests.append(dest)
-            continue
-        if isinstance(value, dict) or value is None:
-            raise CamoError(f"{where}: [{section}] {raw_key} must be a number, a string or a list, not {value!r}")
-        if isinstance(value, list):
-            if not value or any(isinstance(v, (list, dict, bool)) for v in value):
-                raise CamoError(f"{where}: [{section}] {raw_key}: a list must hold plain numbers or strings, "
-                                f"got {value!r}")
-            text = ",".join(str(v) for v in value)
-        elif isinstance(value, float) and value != value:
-            raise CamoError(f"{where}: [{section}] {raw_key} is NaN")
-        else:
-            text = str(value)
-        argv.append(f"{opt}={text}")  # `=` keeps values such as "-1" from looking like options
-        dests.append(dest)
-    ns = parse_command(parser, [*_BASE_ARGV[section], *argv], f"{where}: [{section}]")
+    if dest in reserved:
+        raise CamoError(f"{where}: [{section}] {raw_key} is set by the grid: {reserved[dest]}")
+    if dest not in known:
+        names = ", ".join(sorted(k.replace("_", "-") for k in known if k not in reserved))
+        raise CamoError(f"{where}: [{section}] unknown option {raw_key!r}; `camo {section}` options: {names}")
+    return dest
+
+
+def _optimize_values(table: dict[str, Any], where: str) -> dict[str, Any]:
+    """One ``[optimize]`` table as run option values (:meth:`optimizer.optimise.options.Option.convert`: the types,
+    choices and ranges of ``camo optimize``'s flags), options equal to their absent value left out (the same work,
+    the same cell key)."""
+    from optimizer.optimise.options import ABSENT, KEY_STABLE, OPTIONS
+
+    absent = {**ABSENT, **KEY_STABLE}
     values: dict[str, Any] = {}
-    for dest in dests:
-        v = getattr(ns, dest)
-        if isinstance(v, float) and not math.isfinite(v):
-            raise CamoError(f"{where}: [{section}] {dest.replace('_', '-')} must be finite, got {v!r}")
-        if v == absent.get(dest, parser.get_default(dest)):  # the same work as leaving it out: the same cell key
+    for raw_key, value in table.items():
+        dest = _check_key("optimize", raw_key, set(OPTIONS) | set(RESERVED["optimize"]), where)
+        try:
+            v = OPTIONS[dest].convert(value, str(raw_key))
+        except CamoError as exc:
+            raise CamoError(f"{where}: [optimize] {exc}") from None
+        if v == absent.get(dest, False if OPTIONS[dest].kind is bool else None):
             continue
         values[dest] = v
-    out_argv = [("--" + d.replace("_", "-")) if values[d] is True else f"--{d.replace('_', '-')}={_text(values[d])}"
-                for d in sorted(values)]
-    return values, out_argv
+    return values
+
+
+def _evaluate_values(table: dict[str, Any], parser: argparse.ArgumentParser, where: str
+                     ) -> tuple[dict[str, Any], list[str]]:
+    """One ``[evaluate]`` table converted by the types of ``camo evaluate``'s flags: the resolved ``{dest: value}``
+    (options equal to their default left out) and the equivalent command-line arguments (for the cell's log)."""
+    actions = {a.dest: a for a in parser._actions if a.option_strings}
+    values: dict[str, Any] = {}
+    for raw_key, value in table.items():
+        dest = _check_key("evaluate", raw_key, set(actions) - {"help"}, where)
+        act = actions[dest]
+        is_flag = act.nargs == 0
+        if is_flag != isinstance(value, bool):
+            raise CamoError(f"{where}: [evaluate] {raw_key} " + (f"is a flag: write true or false, not {value!r}"
+                            if is_flag else f"must be a number, a string or a list, not {value!r}"))
+        if is_flag:
+            v: Any = value
+        else:
+            if isinstance(value, dict) or value is None:
+                raise CamoError(f"{where}: [evaluate] {raw_key} must be a number, a string or a list, not {value!r}")
+            if isinstance(value, list):
+                if not value or any(isinstance(x, (list, dict, bool)) for x in value):
+                    raise CamoError(f"{where}: [evaluate] {raw_key}: a list must hold plain numbers or strings, "
+                                    f"got {value!r}")
+                value = ",".join(str(x) for x in value)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise CamoError(f"{where}: [evaluate] {raw_key} must be finite, got {value!r}")
+            try:
+                v = act.type(str(value)) if act.type is not None else str(value)
+            except argparse.ArgumentTypeError as exc:  # a Range: its message says the range and the value
+                raise CamoError(f"{where}: [evaluate] {raw_key}: {_one_line(exc)}") from None
+            except (TypeError, ValueError):
+                raise CamoError(f"{where}: [evaluate] {raw_key}: invalid value {value!r}") from None
+            if act.choices is not None and v not in act.choices:
+                raise CamoError(f"{where}: [evaluate] {raw_key} must be one of {', '.join(map(str, act.choices))}, "
+                                f"got {v!r}")
+        if v == act.default:  # the same work as leaving it out: the same cell key
+            continue
+        values[dest] = v
+    argv = [("--" + d.replace("_", "-")) if values[d] is True else f"--{d.replace('_', '-')}={_text(values[d])}"
+            for d in sorted(values)]
+    return values, argv
 
 
 def _text(value: Any) -> str:
@@ -276,7 +282,7 @@ def _str_list(doc: dict, key: str, where: str, default: list | None = None) -> l
 
 
 def _ablations(doc: dict, where: str) -> list[str]:
-    from camo.cli import parse_ablate
+    from optimizer.assets.conditions import parse_ablations
 
     raw = doc.get("ablations", ["none"])
     if isinstance(raw, str):
@@ -296,10 +302,10 @@ def _ablations(doc: dict, where: str) -> list[str]:
             out.append("none")
             continue
         try:
-            parts = parse_ablate(text)
+            parts = parse_ablations(text, field="ablations")
         except CamoError as exc:
-            raise CamoError(f"{where}: ablations: {exc}".replace("--ablate ", "")) from None
-        out.append(",".join(sorted(parts)))
+            raise CamoError(f"{where}: {exc}") from None
+        out.append(",".join(parts))
     dup = sorted({x for x in out if out.count(x) > 1})
     if dup:
         raise CamoError(f"{where}: ablations list {', '.join(dup)} more than once")
@@ -383,7 +389,8 @@ def cell_key(doc: dict[str, Any]) -> str:
 
 def load_grid(path: str | Path) -> Grid:
     """Parse and validate a grid file; CamoError (one line) for anything wrong, before any work starts."""
-    from camo.optimize_cli import METHODS
+    from optimizer.optimise.methods import METHOD_NAMES
+    from optimizer.optimise.spec import check_options_apply, option_applies
 
     path = Path(path).expanduser()
     if not path.is_file():
@@ -405,10 +412,10 @@ def load_grid(path: str | Path) -> Grid:
     scenes = _str_list(doc, "scenes", where)
     objects = _str_list(doc, "objects", where) if "objects" in doc else None
     methods = _str_list(doc, "methods", where, ["ours"])
-    bad = [m for m in methods if m not in METHODS]
+    bad = [m for m in methods if m not in METHOD_NAMES]
     if bad:
         raise CamoError(f"{where}: unknown method(s) {', '.join(bad)}; `camo optimize --method` takes: "
-                        f"{', '.join(METHODS)}")
+                        f"{', '.join(METHOD_NAMES)}")
     ablations = _ablations(doc, where)
     if ablations != ["none"] and "ours" not in methods:
         raise CamoError(f"{where}: ablations apply to method \"ours\" only, and methods does not list it")
@@ -422,39 +429,34 @@ def load_grid(path: str | Path) -> Grid:
         sections[section] = t
     per_method = {k: v for k, v in sections["optimize"].items() if isinstance(v, dict)}
     for m in per_method:
-        if m not in METHODS:
+        if m not in METHOD_NAMES:
             raise CamoError(f"{where}: [optimize.{m}]: a sub-table must be named after a method "
-                            f"({', '.join(METHODS)})")
+                            f"({', '.join(METHOD_NAMES)})")
     base_opt = {k.replace("-", "_"): v for k, v in sections["optimize"].items() if not isinstance(v, dict)}
-    opt_parser, eval_parser = command_parser("optimize"), command_parser("evaluate")
-    eval_values, eval_argv = _option_args("evaluate", sections["evaluate"], eval_parser, where)
-    from camo.optimize_cli import check_options_apply, option_applies
-
-    known = optimize_options(opt_parser)
+    eval_values, eval_argv = _evaluate_values(sections["evaluate"], command_parser("evaluate"), where)
+    base_values = _optimize_values(base_opt, where)
     unused = [d.replace("_", "-") for d in base_opt
-              if d in known and d not in RESERVED["optimize"] and not any(option_applies(m, d) for m in methods)]
+              if d in base_values and not any(option_applies(m, d) for m in methods)]
     # Not an error: grid files written before run specs may carry them (and their cells' keys include them)
     notes = [f"[optimize] {', '.join(unused)} {'applies' if len(unused) == 1 else 'apply'} to none of this grid's "
              f"methods ({', '.join(methods)}): no cell uses {'it' if len(unused) == 1 else 'them'}"] if unused else []
-    opt_by_method: dict[str, tuple[dict[str, Any], list[str]]] = {}
+    opt_by_method: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {}
     for m in methods:
         own = {k.replace("-", "_"): v for k, v in per_method.get(m, {}).items()}
         sub_where = where if m not in per_method else f"{where} (method {m})"
-        merged = {**base_opt, **own}
-        values, _ = _option_args("optimize", merged, opt_parser, sub_where)
+        values = _optimize_values({**base_opt, **own}, sub_where)
         try:
             check_options_apply(m, own)
         except CamoError as exc:
             raise CamoError(f"{where}: [optimize.{m}] {exc}") from None
         # the key takes every option the grid gives the method (as keys always did); the spec those it uses
-        used = {d: v for d, v in values.items() if option_applies(m, d)}
-        opt_by_method[m] = values, [_arg(d, v) for d, v in sorted(used.items())]
+        opt_by_method[m] = values, {d: v for d, v in values.items() if option_applies(m, d)}
 
     entries = _scene_entries(scenes, objects, path.parent, where)
     cells: list[Cell] = []
     for scene_arg, label, sha in entries:
         for m in methods:
-            opt_values, opt_argv = opt_by_method[m]
+            opt_values, used = opt_by_method[m]
             for abl in (ablations if m == "ours" else ["none"]):
                 for seed in seeds:
                     key = cell_key({"scene": label, "pack_sha256": sha, "method": m, "ablation": abl, "seed": seed,
@@ -462,9 +464,9 @@ def load_grid(path: str | Path) -> Grid:
                     abl_part = "" if abl == "none" else "-wo-" + abl.replace(",", "+")
                     scene_part = Path(label).stem if sha else label
                     nm = _slug(f"{scene_part}__{m}{abl_part}__s{seed}")
-                    argv = [scene_arg, "--out", "/nonexistent-camo-grid-cell", "--method", m, "--seed", str(seed),
-                            *(["--ablate", abl] if abl != "none" else []), *opt_argv]
-                    spec = cell_spec(opt_parser, argv, f"{where}: cell {nm}")
+                    options = {"scene": scene_arg, "method": m, "seed": seed, **used,
+                               **({"ablate": abl} if abl != "none" else {})}
+                    spec = cell_spec(options, f"{where}: cell {nm}")
                     cells.append(Cell(key=key, name=nm, scene=scene_arg, scene_label=label, method=m, ablation=abl,
                                       seed=seed, spec=spec, evaluate=tuple(sorted(eval_values.items())),
                                       evaluate_argv=tuple(eval_argv)))
@@ -477,43 +479,27 @@ def load_grid(path: str | Path) -> Grid:
     return grid
 
 
-def optimize_options(parser: argparse.ArgumentParser) -> set[str]:
-    """The dests of ``camo optimize``'s options."""
-    return set(vars(parse_command(parser, _BASE_ARGV["optimize"], "camo optimize")))
+def cell_spec(options: dict[str, Any], where: str) -> dict[str, Any]:
+    """The run spec (``to_dict``) of a cell's run options (:meth:`optimizer.optimise.spec.RunSpec.from_options`);
+    a problem is one line naming the grid's keys."""
+    from camo_base.errors import renamed
+    from optimizer.optimise.spec import RunSpec, grid_names
 
-
-def _arg(dest: str, value: Any) -> str:
-    return "--" + dest.replace("_", "-") if value is True else f"--{dest.replace('_', '-')}={_text(value)}"
-
-
-def cell_spec(parser: argparse.ArgumentParser, argv: list[str], where: str) -> dict[str, Any]:
-    """The run spec (``to_dict``) that ``camo optimize ARGV`` runs: the real parser fills it, once."""
-    from camo.optimize_cli import spec_from_args
-
-    args = parse_command(parser, argv, where)
     try:
-        return spec_from_args(args).to_dict()
+        return RunSpec.from_options(options).to_dict()
     except CamoError as exc:
-        raise CamoError(f"{where}: {exc}") from None
+        raise CamoError(f"{where}: {renamed(exc, grid_names(options.get('method')))}") from None
 
 
 def validate_cells(grid: Grid) -> None:
-    """Run every cell's evaluation command line through the real `camo evaluate` checks (cheap: no rendering, no
-    Mitsuba) so that bad settings fail before the first cell starts (the optimisation's are checked when its run
-    spec is made)."""
-    from evaluation.evaluate import EvalSettings, parse_metrics
-
-    from camo.cli import build_parser
-
-    parser = build_parser()
+    """Check every cell's evaluation settings the way `camo evaluate` does (cheap: no rendering, no Mitsuba) so
+    that bad settings fail before the first cell starts (the optimisation's are checked when its run spec is
+    made)."""
     seen_eval: set[tuple] = set()
     for c in grid.cells:
-        if c.evaluate_argv not in seen_eval:
-            seen_eval.add(c.evaluate_argv)
-            ea = parse_command(parser, c.evaluate_command(Path("/nonexistent-camo-grid-cell"), None),
-                               f"{grid.path}: [evaluate]")
+        if c.evaluate not in seen_eval:
+            seen_eval.add(c.evaluate)
             try:
-                EvalSettings(views=ea.views, jitter=ea.jitter, spp=ea.spp, resolution=ea.resolution,
-                             metrics=parse_metrics(ea.metrics), seed=ea.seed).validate()
+                c.evaluation_settings().validate()
             except CamoError as exc:
                 raise CamoError(f"{grid.path}: [evaluate]: {exc}") from None

@@ -13,10 +13,11 @@ encode it first with ``camo_base.imaging.linear_to_srgb`` (which tone-clips to `
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import os
-from typing import Callable, Iterator, TypeVar, Union
+from typing import Any, Callable, Iterator, Mapping, Optional, TypeVar, Union
 
 import numpy as np
 import torch
@@ -132,19 +133,21 @@ def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torc
     return t
 
 
-def check_size(t: torch.Tensor, metric: str, name: str = "image") -> None:
-    """Raise CamoError when ``t``'s smaller side is below ``MIN_SIZE[metric]``."""
-    need = MIN_SIZE[metric]
+def check_size(t: torch.Tensor, metric: str, name: str = "image", min_size: Optional[int] = None) -> None:
+    """Raise CamoError when ``t``'s smaller side is below ``min_size`` (default ``MIN_SIZE[metric]``, else 1)."""
+    need = min_size if min_size is not None else MIN_SIZE.get(metric, 1)
     h, w = int(t.shape[-2]), int(t.shape[-1])
     if min(h, w) < need:
         raise CamoError(f"{metric}: {name} is {h}x{w} px; this metric needs at least {need}x{need} px")
 
 
 def prepare_pair(
-    x: ImageLike, y: ImageLike, metric: str, data_range: float = 1.0, same_size: bool = True
+    x: ImageLike, y: ImageLike, metric: str, data_range: float = 1.0, same_size: bool = True,
+    min_size: Optional[int] = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Convert and check an image pair for ``metric``: same batch size (and size unless ``same_size=False``),
-    at least ``MIN_SIZE[metric]`` px, values in ``[0, data_range]``. Both get the wider of the two dtypes."""
+    at least ``min_size`` px (default ``MIN_SIZE[metric]``, else 1), values in ``[0, data_range]``. Both get the
+    wider of the two dtypes."""
     if data_range <= 0:
         raise CamoError(f"{metric}: data_range must be > 0, got {data_range}")
     tx = to_batch(x, "x", data_range)
@@ -153,8 +156,8 @@ def prepare_pair(
         raise CamoError(f"{metric}: image shapes differ: {tuple(tx.shape)} vs {tuple(ty.shape)}")
     if tx.shape[0] != ty.shape[0]:
         raise CamoError(f"{metric}: batch sizes differ: {tx.shape[0]} vs {ty.shape[0]}")
-    check_size(tx, metric, "x")
-    check_size(ty, metric, "y")
+    check_size(tx, metric, "x", min_size)
+    check_size(ty, metric, "y", min_size)
     if tx.dtype != ty.dtype:
         tx, ty = tx.double(), ty.double()
     if tx.device != ty.device:
@@ -172,3 +175,55 @@ def chunks(t: torch.Tensor, pixels: int = CHUNK_PIXELS) -> Iterator[slice]:
     n, per = int(t.shape[0]), max(1, pixels // max(1, int(t.shape[-2]) * int(t.shape[-1])))
     for i in range(0, n, per):
         yield slice(i, min(n, i + per))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the record every metric module declares
+# --------------------------------------------------------------------------------------------------------------
+
+#: ``compute(x, y, weights) -> (values (N,), extra)``: a metric on a checked batch pair (``extra``: ``variant`` and
+#: ``weights_sha256`` strings, written as the ``{name}_variant`` / ``{name}_weights_sha256`` columns).
+Compute = Callable[[torch.Tensor, torch.Tensor, Mapping[str, Any]], "tuple[torch.Tensor, dict[str, Any]]"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Metric:
+    """One image metric of the benchmark, as its module declares it in ``METRICS`` (collected by
+    :mod:`evaluation.metrics.registry`; the metrics table's columns, the report's Table II columns and the
+    ``--metrics`` help are made from these records).
+
+    ``label``: the column header without its arrow (``"PSNR"``); ``decimals``: digits in report tables;
+    ``order``: position among the columns of ``metrics.parquet`` (new metrics: after the built-in ones);
+    ``table_order``: position in Table II (the paper's five first); ``variant``: its rows carry
+    ``{name}_variant``; ``weights_key``: the weights entry whose presence asks for a learned metric;
+    ``unavailable(weights)``: why it cannot run with these weights (None: it can; raise CamoError or return a
+    reason)."""
+
+    name: str
+    compute: Compute
+    higher_is_better: bool
+    units: str
+    value_range: str
+    description: str
+    label: str
+    needs_weights: bool = False
+    decimals: int = 4
+    order: float = 100.0
+    table_order: float = 100.0
+    variant: bool = False
+    weights_key: str = ""
+    unavailable: Optional[Callable[[Mapping[str, Any]], Optional[str]]] = None
+
+    @property
+    def header(self) -> str:
+        """The column header with the better direction: ``"PSNR↑"``, ``"LPIPS↓"``."""
+        return f"{self.label}{'↑' if self.higher_is_better else '↓'}"
+
+
+def plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Compute:
+    """The ``compute`` of a weight-free metric function ``fn(x, y)`` (with a fixed ``variant`` string, if any)."""
+    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> "tuple[torch.Tensor, dict[str, Any]]":
+        extra = {"variant": variant} if variant else {}
+        return fn(x, y), extra
+
+    return run

@@ -14,14 +14,14 @@ import contextlib
 import importlib.util
 import os
 from pathlib import Path
-from typing import Any, Iterator, Optional, Union
+from typing import Any, Iterator, Mapping, Optional, Union
 
 import torch
 import torch.nn.functional as F
 
 from camo_base.errors import CamoError
 
-from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, prepare_pair
 from evaluation.metrics.weights import weights_sha256
 
 PathLike = Union[str, os.PathLike]
@@ -116,3 +116,25 @@ def dreamsim_distance(x: ImageLike, y: ImageLike, model: Any) -> torch.Tensor:
 
     with torch.no_grad():
         return model(prep(x), prep(y)).float().cpu().reshape(-1)
+
+
+_MODELS: dict[tuple, Any] = {}
+
+
+def _compute(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+    kind = weights.get("dreamsim_type", DREAMSIM_TYPE)
+    key = (str(weights.get("dreamsim")), kind)
+    if key not in _MODELS:
+        _MODELS[key] = load_dreamsim(weights.get("dreamsim"), kind)
+    model = _MODELS[key]
+    return dreamsim_distance(x, y, model), {"variant": kind, "weights_sha256": model.camo_weights_sha256}
+
+
+def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
+    return None if weights.get("dreamsim") else "DreamSim needs a local weights folder"
+
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("dreamsim", _compute, False, "1", "[0, 2]", "DreamSim (optional package, local weights folder)",
+                  "DreamSim", needs_weights=True, order=6, table_order=2, variant=True, weights_key="dreamsim",
+                  unavailable=_unavailable),)

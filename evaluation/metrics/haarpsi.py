@@ -7,7 +7,7 @@ import torch.nn.functional as F
 
 from camo_base.errors import CamoError
 
-from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, chunks, metric_thread_policy, plain, prepare_pair
 
 #: Constants of the paper, fitted on natural images in the 0..255 scale.
 HAARPSI_C = 30.0
@@ -156,3 +156,9 @@ def lpips_proxy(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Te
         ``(N,)`` tensor, dimensionless, in ``[0, 1]``; 0 for identical images. Differentiable.
     """
     return (1.0 - haarpsi(x, y, data_range)).clamp_min(0.0)
+
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("lpips_proxy", plain(lpips_proxy, "1-haarpsi"), False, "1", "[0, 1]",
+                  "1 - HaarPSI; weight-free, NOT LPIPS, different scale", "LPIPS-proxy", order=3, table_order=5,
+                  variant=True),)

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Mapping, Optional, Union
 
 import torch
 import torch.nn as nn
 
 from camo_base.errors import CamoError
 
-from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, prepare_pair
 from evaluation.metrics.weights import (cached_model, file_key, find_lpips_lin_weights, find_trunk_weights,
                                         load_state_dict, take, weights_sha256)
 
@@ -183,3 +183,23 @@ def lpips(
         model = load_lpips(net, trunk, lin)
     with torch.no_grad() if not (x.requires_grad or y.requires_grad) else torch.enable_grad():
         return model(x, y)
+
+
+def _compute(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+    net = weights.get("lpips_net", "alex")
+    model = load_lpips(net, weights.get("lpips_trunk"), weights.get("lpips_lin"))
+    sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
+    return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
+
+
+def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
+    net = weights.get("lpips_net", "alex")
+    find_trunk_weights(net, weights.get("lpips_trunk"))
+    find_lpips_lin_weights(net, weights.get("lpips_lin"))
+    return None
+
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("lpips", _compute, False, "1", "[0, ~1]", "LPIPS v0.1 (AlexNet by default), local weights", "LPIPS",
+                  needs_weights=True, order=2, table_order=0, variant=True, weights_key="lpips_trunk",
+                  unavailable=_unavailable),)

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evaluation.metrics._common import ImageLike, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, metric_thread_policy, plain, prepare_pair
 
 #: Elements per block of the fast path: a float32 block of x and of y (2 x 256 kB) stay in a 1 MB L2 cache between
 #: the fused sum of squares and the range check (bench/bench_metrics.py: 65536 beat 32768 and 98304).
@@ -100,3 +100,8 @@ def psnr(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Tensor:
     x, y = prepare_pair(x, y, "psnr", data_range)
     mse = F.mse_loss(x, y, reduction="none").mean(dim=(1, 2, 3)).double()
     return 10.0 * torch.log10(data_range**2 / mse)
+
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("psnr", plain(psnr), True, "dB", "[0, inf], inf if identical", "peak signal-to-noise ratio, data range 1",
+                  "PSNR", decimals=2, order=0, table_order=4),)

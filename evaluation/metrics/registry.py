@@ -1,4 +1,11 @@
-"""Registry of the image metrics and :func:`compute_metrics`, which fills one score row.
+"""Registry of the image metrics: every ``METRICS`` record the modules of this package declare, and
+:func:`compute_metrics`, which fills one score row.
+
+Each metric module ends with ``METRICS = (Metric(...),)`` (:class:`~evaluation.metrics._common.Metric`: name,
+``compute``, better direction, units, range, label, ...); :data:`METRICS` collects them once, ordered by
+``Metric.order``. The columns of ``metrics.parquet`` (:mod:`evaluation.evaldir`), the report's Table II columns
+(:mod:`evaluation.report`), ``camo evaluate --metrics`` and its help, and the docs table (:func:`metrics_table`)
+are made from it: adding a metric is adding a module (CONTRIBUTING.md, "Adding a metric").
 
 ``weights`` (all keys optional; unset ones are looked up as :mod:`evaluation.metrics.weights` describes)::
 
@@ -15,90 +22,37 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Optional, Sequence
-
-import torch
+from typing import Any, Mapping, Optional, Sequence
 
 from camo_base.errors import CamoError
+from camo_base.plugins import submodules
 
-from evaluation.metrics._common import ImageLike, prepare_pair
-from evaluation.metrics.dreamsim import DREAMSIM_TYPE, dreamsim_distance, load_dreamsim
-from evaluation.metrics.haarpsi import lpips_proxy
-from evaluation.metrics.lpips import LPIPS_VERSION, load_lpips, lpips
-from evaluation.metrics.psnr import psnr
-from evaluation.metrics.sifid import SIFID_VARIANT, load_sifid_inception, sifid
-from evaluation.metrics.sifid_proxy import SIFID_PROXY_VARIANT, sifid_proxy
-from evaluation.metrics.ssim import ssim
-from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights
+from evaluation.metrics._common import ImageLike, Metric, prepare_pair
 
-
-@dataclass(frozen=True)
-class MetricSpec:
-    """One metric: how to compute it on ``(x, y, weights)`` and how to read its value."""
-
-    name: str
-    compute: Callable[[torch.Tensor, torch.Tensor, Mapping[str, Any]], tuple[torch.Tensor, dict[str, Any]]]
-    higher_is_better: bool
-    needs_weights: bool
-    units: str
-    value_range: str
-    description: str
+def _collect() -> dict[str, Metric]:
+    found: dict[str, Metric] = {}
+    for module in submodules("evaluation.metrics"):
+        for m in getattr(module, "METRICS", ()):
+            if not isinstance(m, Metric):
+                raise TypeError(f"{module.__name__}.METRICS must hold Metric records, got {m!r}")
+            if m.name in found:
+                raise RuntimeError(f"{module.__name__}: metric {m.name!r} is declared twice")
+            found[m.name] = m
+    return {n: found[n] for n in sorted(found, key=lambda n: (found[n].order, n))}
 
 
-def _plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Callable:
-    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-        extra = {"variant": variant} if variant else {}
-        return fn(x, y), extra
+#: Every metric by name, in column order.
+METRICS: dict[str, Metric] = _collect()
 
-    return run
-
-
-def _lpips(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-    net = weights.get("lpips_net", "alex")
-    model = load_lpips(net, weights.get("lpips_trunk"), weights.get("lpips_lin"))
-    sha = f"trunk:{model.weights_sha256['trunk']};lin:{model.weights_sha256['lin']}"
-    return lpips(x, y, model), {"variant": f"{net}-v{LPIPS_VERSION}", "weights_sha256": sha}
-
-
-def _sifid(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-    variant = weights.get("sifid_variant", SIFID_VARIANT)
-    model = load_sifid_inception(weights.get("sifid"), variant)
-    return sifid(x, y, model), {"variant": variant, "weights_sha256": model.weights_sha256}
-
-
-_DREAMSIM_MODELS: dict[tuple, Any] = {}
-
-
-def _dreamsim(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
-    kind = weights.get("dreamsim_type", DREAMSIM_TYPE)
-    key = (str(weights.get("dreamsim")), kind)
-    if key not in _DREAMSIM_MODELS:
-        _DREAMSIM_MODELS[key] = load_dreamsim(weights.get("dreamsim"), kind)
-    model = _DREAMSIM_MODELS[key]
-    return dreamsim_distance(x, y, model), {"variant": kind, "weights_sha256": model.camo_weights_sha256}
-
-
-METRICS: dict[str, MetricSpec] = {
-    "psnr": MetricSpec("psnr", _plain(psnr), True, False, "dB", "[0, inf], inf if identical",
-                       "peak signal-to-noise ratio, data range 1"),
-    "ssim": MetricSpec("ssim", _plain(ssim), True, False, "1", "[-1, 1]",
-                       "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True"),
-    "lpips": MetricSpec("lpips", _lpips, False, True, "1", "[0, ~1]",
-                        "LPIPS v0.1 (AlexNet by default), local weights"),
-    "lpips_proxy": MetricSpec("lpips_proxy", _plain(lpips_proxy, "1-haarpsi"), False, False, "1", "[0, 1]",
-                              "1 - HaarPSI; weight-free, NOT LPIPS, different scale"),
-    "sifid": MetricSpec("sifid", _sifid, False, True, "feature units^2", "[0, inf)",
-                        "SinGAN SIFID, 64-dim Inception block-0 features, local weights"),
-    "sifid_proxy": MetricSpec("sifid_proxy", _plain(sifid_proxy, SIFID_PROXY_VARIANT), False, False,
-                              "feature units^2", "[0, inf)",
-                              "SIFID statistics over weight-free DoG texture energy + opponent colour"),
-    "dreamsim": MetricSpec("dreamsim", _dreamsim, False, True, "1", "[0, 2]",
-                           "DreamSim (optional package, local weights folder)"),
-}
-
-#: Metrics that need no weights and always run.
+#: Metrics that need no weights and always run (the default of ``camo evaluate``).
 WEIGHT_FREE = tuple(n for n, s in METRICS.items() if not s.needs_weights)
+#: Metrics that need local weights (computed when their weights are given or found).
+LEARNED = tuple(n for n, s in METRICS.items() if s.needs_weights)
+
+
+def table_metrics() -> list[Metric]:
+    """The metrics in Table II order (the paper's LPIPS, SIFID, DreamSim, SSIM, PSNR first, then the others)."""
+    return sorted(METRICS.values(), key=lambda m: (m.table_order, m.order, m.name))
 
 
 def metric_unavailable(name: str, weights: Optional[Mapping[str, Any]] = None) -> Optional[str]:
@@ -106,19 +60,28 @@ def metric_unavailable(name: str, weights: Optional[Mapping[str, Any]] = None) -
     weights = weights or {}
     if name not in METRICS:
         return f"unknown metric {name!r}"
+    check = METRICS[name].unavailable
+    if check is None:
+        return None
     try:
-        if name == "lpips":
-            net = weights.get("lpips_net", "alex")
-            find_trunk_weights(net, weights.get("lpips_trunk"))
-            find_lpips_lin_weights(net, weights.get("lpips_lin"))
-        elif name == "sifid":
-            find_trunk_weights("inception", weights.get("sifid"))
-        elif name == "dreamsim":
-            if not weights.get("dreamsim"):
-                return "DreamSim needs a local weights folder"
+        return check(weights)
     except CamoError as exc:
         return str(exc)
-    return None
+
+
+def metrics_help() -> str:
+    """``camo evaluate --metrics`` help: the metrics and the default."""
+    return (f"comma list of metrics: {', '.join(METRICS)} (default: {','.join(WEIGHT_FREE)}, plus "
+            f"{'/'.join(LEARNED)} when their weights are given or found)")
+
+
+def metrics_table() -> str:
+    """The Markdown table of the metrics (docs/evaluation.md, generated by ``python -m camo.docs``)."""
+    rows = ["| name | better | units | range | what | weights |", "|---|---|---|---|---|---|"]
+    for m in METRICS.values():
+        rows.append(f"| `{m.name}` | {'higher' if m.higher_is_better else 'lower'} | {m.units} | {m.value_range} | "
+                    f"{m.description} | {'yes' if m.needs_weights else 'no'} |")
+    return "\n".join(rows)
 
 
 def compute_metrics(

@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Mapping, Optional, Union
 
 import torch
 import torch.nn as nn
 
 from camo_base.errors import CamoError
 
-from evaluation.metrics._common import ImageLike, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, prepare_pair
 from evaluation.metrics.frechet import frechet_of_feature_maps
 from evaluation.metrics.weights import (cached_model, file_key, find_trunk_weights, load_state_dict, take,
                                         weights_sha256)
@@ -41,7 +41,6 @@ SIFID_VARIANTS = {
 }
 #: The variant recorded with every SIFID score unless another is asked for.
 SIFID_VARIANT = "singan"
-SIFID_DIMS = 64
 
 _STEM = (  # name, in, out, stride, padding
     ("Conv2d_1a_3x3", 3, 32, 2, 0),
@@ -147,3 +146,20 @@ def sifid(
         fx = model(x * input_scale)
         fy = model(y * input_scale)
     return frechet_of_feature_maps(fx, fy)
+
+
+def _compute(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tuple[torch.Tensor, dict[str, Any]]:
+    variant = weights.get("sifid_variant", SIFID_VARIANT)
+    model = load_sifid_inception(weights.get("sifid"), variant)
+    return sifid(x, y, model), {"variant": variant, "weights_sha256": model.weights_sha256}
+
+
+def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
+    find_trunk_weights("inception", weights.get("sifid"))
+    return None
+
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("sifid", _compute, False, "feature units^2", "[0, inf)",
+                  "SinGAN SIFID, 64-dim Inception block-0 features, local weights", "SIFID", needs_weights=True,
+                  order=4, table_order=1, variant=True, weights_key="sifid", unavailable=_unavailable),)

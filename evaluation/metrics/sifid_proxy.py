@@ -22,7 +22,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, chunks, metric_thread_policy, plain, prepare_pair
 from evaluation.metrics.frechet import frechet_of_feature_maps
 
 SIFID_PROXY_SCALES = (1.0, 2.0, 4.0)
@@ -141,3 +141,9 @@ def sifid_proxy(x: ImageLike, y: ImageLike) -> torch.Tensor:
     x, y = prepare_pair(x, y, "sifid_proxy", same_size=False)
     with torch.no_grad():
         return frechet_of_feature_maps(proxy_features(x), proxy_features(y))
+
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("sifid_proxy", plain(sifid_proxy, SIFID_PROXY_VARIANT), False, "feature units^2", "[0, inf)",
+                  "SIFID statistics over weight-free DoG texture energy + opponent colour", "SIFID-proxy", order=5,
+                  table_order=6, variant=True),)

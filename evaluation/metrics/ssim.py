@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from evaluation.metrics._common import ImageLike, chunks, metric_thread_policy, prepare_pair
+from evaluation.metrics._common import ImageLike, Metric, chunks, metric_thread_policy, plain, prepare_pair
 
 #: Window of Wang et al.: Gaussian, sigma 1.5, truncated at 3.5 sigma -> 11 taps (scikit-image's choice).
 SSIM_SIGMA = 1.5
@@ -97,3 +97,8 @@ def ssim(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Tensor:
     x, y = prepare_pair(x, y, "ssim", data_range)
     return torch.cat([_ssim_map(x[s], y[s], data_range, SSIM_K1, SSIM_K2).mean(dim=(1, 2, 3)) for s in chunks(x)])
 
+
+#: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
+METRICS = (Metric("ssim", plain(ssim), True, "1", "[-1, 1]",
+                  "SSIM, Gaussian 11x11 sigma 1.5, = scikit-image gaussian_weights=True", "SSIM", order=1,
+                  table_order=3),)

@@ -6,7 +6,7 @@ One representation, :class:`Asset`, whatever the source:
 * ``vertices (N, 3)`` float32 (Z-up, scene units once placed), ``faces (F, 3)`` int64, ``uvs (N, 2)`` float32 in
   **Mitsuba's convention** (``v = 0`` is the top row of the texture image; see :mod:`optimizer.assets.export`) or None;
 * ``maps``: the material **as rendered**: ``albedo`` linear RGB ``(H, W, 3)`` or ``(3,)``; ``metallic``,
-  ``roughness`` (the rendered roughness, i.e. after :func:`optimizer.rendering.scene.effective_roughness` for the
+  ``roughness`` (the rendered roughness, i.e. after :meth:`optimizer.scenes.bsdf_maps.BsdfMap.rendered` for the
   optimiser's maps) and ``transmittance`` ``(H, W, 1)`` or ``()``; all in [0, 1]. Maps may differ in size.
 * ``eta`` (index of refraction), ``lambertian`` (the albedo-only ablation renders a diffuse BSDF), ``wrap``
   (texture wrap mode: ``clamp``, ``repeat`` or ``mirror``).
@@ -56,11 +56,13 @@ from pathlib import Path
 import numpy as np
 
 from camo_base.errors import CamoError
+from optimizer.scenes.bsdf_maps import MAPS, gltf_extensions
 
 #: Index of refraction when an asset gives none (glTF's KHR_materials_ior default).
 DEFAULT_ETA = 1.5
 #: glTF extensions this reader understands (an asset requiring any other one is refused).
-SUPPORTED_GLTF_EXTENSIONS = ("KHR_materials_transmission", "KHR_materials_ior")
+#: Material extensions read: those the BSDF maps live in (``BsdfMap.gltf``) and the index of refraction.
+SUPPORTED_GLTF_EXTENSIONS = (*gltf_extensions(), "KHR_materials_ior")
 PLACEMENTS = ("auto", "scene", "pack")
 ASSET_SUFFIXES = (".glb", ".gltf", ".obj")
 
@@ -86,9 +88,11 @@ class Asset:
     coordinates_from: str = ""  # after place(): the placement used, "scene" or "pack"
 
     def values(self) -> dict[str, np.ndarray]:
-        """The maps as optimised: rendered roughness inverted once (clipped to [0, 1]), others clipped to [0, 1]."""
+        """The maps as optimised: a rendered value inverted once (the roughness' safe minimum), clipped to [0, 1]."""
         out = {k: np.clip(v, 0.0, 1.0).astype(np.float32) for k, v in self.maps.items()}
-        out["roughness"], _ = map_values_from_rendered(self.maps["roughness"])
+        for name, m in MAPS.items():
+            if m.rendered_offset and name in self.maps:
+                out[name], _ = map_values_from_rendered(self.maps[name], name)
         return out
 
     def bsdf(self) -> dict:
@@ -99,7 +103,7 @@ class Asset:
         if self.lambertian:
             d = {"type": "diffuse", "reflectance": scn.texture(v["albedo"])}
         else:
-            d = scn.principled(v["albedo"], v["metallic"], v["roughness"], v["transmittance"], self.eta)
+            d = scn.principled(v, self.eta)
         if self.wrap != "clamp":
             for t in d.values():
                 if isinstance(t, dict) and t.get("type") == "bitmap":
@@ -113,14 +117,11 @@ class Asset:
         return scn.object_mesh(self.vertices, self.faces, self.uvs, self.bsdf())
 
 
-def map_values_from_rendered(rendered_roughness: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Invert ``r_min + (1 - r_min) r`` (the rendered roughness) to the map value ``r`` that
-    ``object_bsdf`` / ``scene.principled`` take; returns ``(r, clipped)`` where ``clipped`` says a value lay
+def map_values_from_rendered(rendered: np.ndarray, name: str = "roughness") -> tuple[np.ndarray, bool]:
+    """Invert map ``name``'s rendered value (``r_min + (1 - r_min) r`` for the roughness) to the map value ``r``
+    that ``object_bsdf`` / ``scene.principled`` take; returns ``(r, clipped)`` where ``clipped`` says a value lay
     outside ``[r_min, 1]``."""
-    from optimizer.rendering.scene import ROUGHNESS_MIN
-
-    rr = np.asarray(rendered_roughness, dtype=np.float32)
-    r = (rr - np.float32(ROUGHNESS_MIN)) / np.float32(1.0 - ROUGHNESS_MIN)
+    r = MAPS[name].from_rendered(rendered)
     clipped = bool((r < -1e-5).any() or (r > 1.0 + 1e-5).any())
     return np.clip(r, 0.0, 1.0).astype(np.float32), clipped
 
@@ -128,18 +129,17 @@ def map_values_from_rendered(rendered_roughness: np.ndarray) -> tuple[np.ndarray
 def check_maps(asset: Asset, label: str, where: str = "{label}: {name}") -> None:
     """Warn (in ``asset.warnings``) about maps outside the renderable range; NaN/inf is an error. ``where``
     formats a map's name in the messages (e.g. ``"{label}: maps/{name}.npy"``)."""
-    from optimizer.rendering.scene import ROUGHNESS_MIN
-
-    for name in ("albedo", "metallic", "roughness", "transmittance"):
+    for name, m in MAPS.items():
         at = where.format(label=label, name=name)
         if name not in asset.maps:
             raise CamoError(f"{label}: no {name} map")
         a = asset.maps[name]
         if not np.isfinite(a).all():
             raise CamoError(f"{at}: contains NaN or infinite values")
-        if name == "roughness" and not asset.lambertian:
-            if a.size and (a.min() < ROUGHNESS_MIN - 1e-5 or a.max() > 1 + 1e-5):
-                asset.warnings.append(f"{at} lies outside the renderable range [{ROUGHNESS_MIN}, 1]; clipped")
+        lo = m.rendered_offset
+        if lo and not asset.lambertian:
+            if a.size and (a.min() < lo - 1e-5 or a.max() > 1 + 1e-5):
+                asset.warnings.append(f"{at} lies outside the renderable range [{lo}, 1]; clipped")
         elif a.size and (a.min() < -1e-5 or a.max() > 1 + 1e-5):
             asset.warnings.append(f"{at} lies outside [0, 1]; clipped")
 
@@ -421,17 +421,21 @@ def read_gltf(path: str | Path) -> Asset:
                                                                                 and base_img[..., -1].min() < 1)):
         warnings.append(f"{path.name}: base colour alpha ({mat.get('alphaMode')}) is ignored (rendered opaque); "
                         "use KHR_materials_transmission")
-    mfac, rfac = float(pbr.get("metallicFactor", 1.0)), float(pbr.get("roughnessFactor", 1.0))
-    mr = tex(pbr.get("metallicRoughnessTexture"), "metallicRoughnessTexture")
-    if mr is None:
-        metallic, roughness = np.float32(mfac), np.float32(rfac)
-    else:
-        mr = _rgb(mr)
-        metallic, roughness = mr[..., 2:3] * mfac, mr[..., 1:2] * rfac
-    tr = ext.get("KHR_materials_transmission", {})
-    tfac = float(tr.get("transmissionFactor", 0.0))
-    timg = tex(tr.get("transmissionTexture"), "transmissionTexture")
-    transmittance = np.float32(tfac) if timg is None else timg[..., :1] * tfac
+    maps = {"albedo": np.asarray(albedo, np.float32)}
+    images: dict[tuple[str, str], np.ndarray | None] = {}
+    for name, bm in MAPS.items():  # every other map from its glTF slot (factor x texture channel)
+        slot = bm.gltf
+        if bm.colour or slot is None:
+            continue
+        table = pbr if not slot.extension else ext.get(slot.extension, {})
+        fac = float(table.get(slot.factor, slot.default))
+        key = (slot.extension, slot.texture)
+        if key not in images:
+            img = tex(table.get(slot.texture), slot.texture)
+            images[key] = None if img is None else _rgb(img)
+        img = images[key]
+        maps[name] = np.asarray(np.float32(fac) if img is None else img[..., slot.channel:slot.channel + 1] * fac,
+                                np.float32)
     eta = float(ext.get("KHR_materials_ior", {}).get("ior", DEFAULT_ETA))
     if not math.isfinite(eta) or eta <= 0:
         raise CamoError(f"{path}: KHR_materials_ior.ior must be a positive number, got {eta}")
@@ -457,10 +461,7 @@ def read_gltf(path: str | Path) -> Asset:
     v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1)  # glTF +Y up -> +Z up (as optimizer.scenes.mesh.load_mesh)
     gen = str(doc.get("asset", {}).get("generator", ""))
     coords = "scene" if gen.startswith("camo") else "object"
-    asset = Asset(str(path), v.astype(np.float32), np.concatenate(faces).astype(np.int64), uv,
-                  {"albedo": np.asarray(albedo, np.float32), "metallic": np.asarray(metallic, np.float32),
-                   "roughness": np.asarray(roughness, np.float32),
-                   "transmittance": np.asarray(transmittance, np.float32)},
+    asset = Asset(str(path), v.astype(np.float32), np.concatenate(faces).astype(np.int64), uv, maps,
                   eta, False, wrap, coords, warnings)
     return _checked(asset, path)
 
@@ -602,37 +603,24 @@ def read_obj(path: str | Path) -> Asset:
     kd = np.asarray(kd * 3 if len(kd) == 1 else kd, np.float32)[:3]
     img = image("map_Kd")
     albedo = kd if img is None else _srgb_to_linear(_rgb(img)) * kd
-    if "Pr" in mat or "map_Pr" in mat:
-        img = image("map_Pr")
-        roughness = np.float32(num("Pr", 1.0)) if img is None else _scalar_map(img) * num("Pr", 1.0)
-    elif "Ns" in mat:
-        roughness = np.float32(math.sqrt(2.0 / (max(num("Ns", 0.0), 0.0) + 2.0)))
-        warnings.append(f"{path.name}: no Pr; roughness {float(roughness):.3f} from Ns (sqrt(2 / (Ns + 2)))")
-    else:
-        roughness = np.float32(1.0)
-    img = image("map_Pm")
-    metallic = np.float32(num("Pm", 0.0)) if img is None else _scalar_map(img) * num("Pm", 1.0)
-    if "Ptr" in mat or "map_Ptr" in mat:
-        img = image("map_Ptr")
-        trans = np.float32(num("Ptr", 0.0)) if img is None else _scalar_map(img) * num("Ptr", 1.0)
-    elif "Tf" in mat:
-        trans = np.float32(num("Tf", 0.0))
-    elif "Tr" in mat:
-        trans = np.float32(num("Tr", 0.0))
-    elif "d" in mat or "map_d" in mat:
-        img = image("map_d")
-        trans = np.float32(1.0 - num("d", 1.0)) if img is None else 1.0 - _scalar_map(img) * num("d", 1.0)
-        if img is not None or float(trans) > 0:
-            warnings.append(f"{path.name}: dissolve (d / map_d) read as transmission 1 - d")
-    else:
-        trans = np.float32(0.0)
+    maps: dict[str, np.ndarray] = {"albedo": np.asarray(albedo, np.float32)}
+    for name, bm in MAPS.items():  # every other map from its PBR-MTL key (BsdfMap.mtl): K, map_K = value x texture
+        key = bm.mtl
+        if bm.colour:
+            continue
+        if key and (key in mat or f"map_{key}" in mat):
+            img = image(f"map_{key}")
+            value = np.float32(num(key, bm.mtl_default)) if img is None else _scalar_map(img) * num(key, 1.0)
+        else:
+            value = _mtl_fallback(name, num, image, mat, path.name, warnings)
+        maps[name] = np.asarray(value, np.float32)
     eta = num("Ni", DEFAULT_ETA)
     if eta <= 0:
         raise CamoError(f"{mtl_path}: Ni must be > 0, got {eta}")
     for key in ("map_Bump", "bump", "norm", "map_Ke", "disp"):
         if key in mat:
             warnings.append(f"{path.name}: {key} is ignored")
-    textured = any(np.ndim(a) >= 2 for a in (albedo, roughness, metallic, trans))
+    textured = any(np.ndim(a) >= 2 for a in maps.values())
     p = np.asarray(pos, np.float64)
     if (ft < 0).any():
         if textured:
@@ -643,11 +631,31 @@ def read_obj(path: str | Path) -> Asset:
         t = np.asarray(tex, np.float64)[pairs[:, 1]]
         v, f, uv = p[pairs[:, 0]], inv.reshape(-1, 3), np.stack([t[:, 0], 1.0 - t[:, 1]], 1)  # OBJ v up -> Mitsuba
     asset = Asset(str(path), v.astype(np.float32), f.astype(np.int64), None if uv is None else uv.astype(np.float32),
-                  {"albedo": np.asarray(albedo, np.float32), "metallic": np.asarray(metallic, np.float32),
-                   "roughness": np.asarray(roughness, np.float32), "transmittance": np.asarray(trans, np.float32)},
-                  float(eta), False, "repeat" if uv is not None and ((uv < 0) | (uv > 1)).any() else "clamp",
+                  maps, float(eta), False, "repeat" if uv is not None and ((uv < 0) | (uv > 1)).any() else "clamp",
                   "scene" if camo_file else "object", warnings)
     return _checked(asset, path)
+
+
+def _mtl_fallback(name: str, num, image, mat: dict, file: str, warnings: list[str]):
+    """A map an MTL file does not give by its PBR key: what the classic keys say (roughness from the specular
+    exponent ``Ns``; transmission from ``Tf``, ``Tr`` or ``1 - d``), else its ``BsdfMap.mtl_default`` (roughness
+    1, metallic and transmission 0)."""
+    if name == "roughness" and "Ns" in mat:
+        r = np.float32(math.sqrt(2.0 / (max(num("Ns", 0.0), 0.0) + 2.0)))
+        warnings.append(f"{file}: no Pr; roughness {float(r):.3f} from Ns (sqrt(2 / (Ns + 2)))")
+        return r
+    if name == "transmittance":
+        if "Tf" in mat:
+            return np.float32(num("Tf", 0.0))
+        if "Tr" in mat:
+            return np.float32(num("Tr", 0.0))
+        if "d" in mat or "map_d" in mat:
+            img = image("map_d")
+            t = np.float32(1.0 - num("d", 1.0)) if img is None else 1.0 - _scalar_map(img) * num("d", 1.0)
+            if img is not None or float(t) > 0:
+                warnings.append(f"{file}: dissolve (d / map_d) read as transmission 1 - d")
+            return t
+    return np.float32(MAPS[name].mtl_default)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -4,9 +4,10 @@ Inputs (NumPy, as the optimiser holds them):
 
 * ``vertices (N, 3)`` world-space positions (Z-up, scene units) of the UV-split mesh,
   ``faces (F, 3)`` vertex indices, ``uvs (N, 2)`` in [0, 1] in **Mitsuba's convention**;
-* ``albedo (H, W, 3)`` linear in [0, 1]; ``metallic``, ``roughness``, ``transmittance``
-  ``(H, W)`` in [0, 1]; ``roughness`` is the *rendered* roughness (after
-  :func:`optimizer.rendering.scene.effective_roughness`); ``eta`` the scalar index of refraction.
+* ``maps``: ``{name: array}`` for every BSDF map of :data:`optimizer.scenes.bsdf_maps.MAPS` **as rendered**
+  (``roughness`` after the safe minimum): a colour map (``albedo``) ``(H, W, 3)`` linear in [0, 1], the others
+  ``(H, W)`` in [0, 1]; ``eta`` the scalar index of refraction. Where each map goes in glTF and MTL is its
+  registry record (``BsdfMap.gltf``, ``BsdfMap.mtl``).
 
 Texture-coordinate conventions (verified with Mitsuba 3.9.1, see ``tests/test_export.py``):
 
@@ -46,6 +47,7 @@ import numpy as np
 
 from camo_base.atomic import atomic_path, write_bytes, write_text
 from camo_base.imaging import linear_to_srgb, save_png, to_uint8
+from optimizer.scenes.bsdf_maps import MAPS, gltf_extensions
 
 #: Rotation taking world (Z-up) coordinates to glTF (Y-up): (x, y, z) -> (x, z, -y).
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -55,7 +57,8 @@ _FLOAT, _UINT = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 _LINEAR, _LINEAR_MIPMAP_LINEAR, _CLAMP_TO_EDGE = 9729, 9987, 33071
 
-GLB_EXTENSIONS = ("KHR_materials_transmission", "KHR_materials_ior")
+#: glTF extensions the glb uses: those of the maps (KHR_materials_transmission) and the index of refraction.
+GLB_EXTENSIONS = (*gltf_extensions(), "KHR_materials_ior")
 
 
 # --- input checks --------------------------------------------------------------
@@ -89,21 +92,31 @@ def _scalar_map(name: str, m, shape: tuple[int, int] | None = None) -> np.ndarra
     if a.ndim != 2:
         raise ValueError(f"{name} must be (H, W), got {a.shape}")
     if shape is not None and a.shape != shape:
-        raise ValueError(f"{name} must be {shape} like the albedo, got {a.shape}")
+        raise ValueError(f"{name} must be {shape} like the map it shares a texture with, got {a.shape}")
     return np.nan_to_num(a, nan=0.0)
 
 
-def _maps(albedo, metallic, roughness, transmittance, eta):
-    alb = np.asarray(albedo, dtype=np.float32)
-    if alb.ndim != 3 or alb.shape[2] != 3:
-        raise ValueError(f"albedo must be (H, W, 3), got {alb.shape}")
-    met = _scalar_map("metallic", metallic)
-    rough = _scalar_map("roughness", roughness, met.shape)
-    trans = _scalar_map("transmittance", transmittance)
+def _maps(maps: Mapping[str, np.ndarray], eta) -> tuple[dict[str, np.ndarray], float]:
+    """The maps checked and as float32: colour maps ``(H, W, 3)``, the others ``(H, W)``; maps sharing a glTF
+    texture have one shape."""
+    out: dict[str, np.ndarray] = {}
+    shared: dict[str, tuple[int, ...]] = {}
+    for name, m in MAPS.items():
+        if name not in maps:
+            raise ValueError(f"no {name} map")
+        if m.colour:
+            a = np.asarray(maps[name], dtype=np.float32)
+            if a.ndim != 3 or a.shape[2] != 3:
+                raise ValueError(f"{name} must be (H, W, 3), got {a.shape}")
+        else:
+            key = m.gltf.texture if m.gltf else name
+            a = _scalar_map(name, maps[name], shared.get(key))
+            shared.setdefault(key, a.shape)
+        out[name] = a
     eta = float(eta)
     if not np.isfinite(eta) or eta <= 0:
         raise ValueError(f"eta must be a positive number, got {eta}")
-    return alb, met, rough, trans, eta
+    return out, eta
 
 
 # --- geometry helpers ----------------------------------------------------------
@@ -168,13 +181,50 @@ def _grey_rgb(x: np.ndarray) -> np.ndarray:
     return np.repeat(g[..., None], 3, axis=-1)
 
 
-def metallic_roughness8(metallic: np.ndarray, roughness: np.ndarray) -> np.ndarray:
-    """glTF metallicRoughnessTexture: R = 255 (unused), G = roughness, B = metallic (linear)."""
-    out = np.empty(metallic.shape + (3,), np.uint8)
-    out[..., 0] = 255
-    out[..., 1] = linear8(roughness)
-    out[..., 2] = linear8(metallic)
+def packed8(channels: Mapping[int, np.ndarray]) -> np.ndarray:
+    """An 8-bit RGB data texture (linear) holding several maps, one per channel (``{channel: (H, W)}``); unused
+    channels are 255. glTF's metallicRoughnessTexture is ``{1: roughness, 2: metallic}`` (R unused)."""
+    shape = next(iter(channels.values())).shape
+    out = np.full(shape + (3,), 255, np.uint8)
+    for c, x in channels.items():
+        out[..., c] = linear8(x)
     return out
+
+
+def gltf_images(maps: Mapping[str, np.ndarray]) -> list[tuple[str, np.ndarray, list[str]]]:
+    """The images of the glb, in order: ``(name, uint8 RGB, maps in it)``, one per glTF texture of the maps
+    (``BsdfMap.gltf``): a colour map sRGB-encoded, a texture holding one map grey, one holding several packed
+    (:func:`packed8`)."""
+    groups: dict[tuple[str, str], list[str]] = {}
+    for name, m in MAPS.items():
+        if m.gltf is not None:
+            groups.setdefault((m.gltf.extension, m.gltf.texture), []).append(name)
+    out = []
+    for names in groups.values():
+        first = MAPS[names[0]]
+        if first.colour:
+            img = srgb8(maps[names[0]])
+        elif len(names) == 1:
+            img = _grey_rgb(maps[names[0]])
+        else:
+            img = packed8({MAPS[n].gltf.channel: maps[n] for n in names})
+        out.append((first.gltf.image, img, names))
+    return out
+
+
+def gltf_material(name: str, images: list[tuple[str, np.ndarray, list[str]]], eta: float) -> dict:
+    """The glb's material: each map's factor (1) and texture in ``pbrMetallicRoughness`` or its extension, then
+    ``KHR_materials_ior``."""
+    pbr: dict = {}
+    ext: dict = {}
+    for index, (_, _, names) in enumerate(images):
+        slot = MAPS[names[0]].gltf
+        table = pbr if not slot.extension else ext.setdefault(slot.extension, {})
+        for n in names:
+            table[MAPS[n].gltf.factor] = [1.0, 1.0, 1.0, 1.0] if MAPS[n].colour else 1.0
+        table[slot.texture] = {"index": index, "texCoord": 0}
+    ext["KHR_materials_ior"] = {"ior": eta}
+    return {"name": f"{name}_material", "pbrMetallicRoughness": pbr, "extensions": ext}
 
 
 # --- glTF binary ---------------------------------------------------------------
@@ -198,13 +248,13 @@ class _BinBuilder:
         return len(self.views) - 1
 
 
-def glb_bytes(vertices, faces, uvs, albedo, metallic, roughness, transmittance, eta: float, *,
+def glb_bytes(vertices, faces, uvs, maps: Mapping[str, np.ndarray], eta: float, *,
               normals: np.ndarray | None = None, y_up: bool = True, name: str = "camo_object") -> bytes:
     """The glb file content (see :func:`write_glb`)."""
     v, f, uv = _geometry(vertices, faces, uvs)
     if uv is None:
         raise ValueError("the glb needs uvs")
-    alb, met, rough, trans, eta = _maps(albedo, metallic, roughness, transmittance, eta)
+    maps, eta = _maps(maps, eta)
     nrm = vertex_normals(v, f) if normals is None else np.ascontiguousarray(np.asarray(normals, np.float32))
     if nrm.shape != v.shape:
         raise ValueError(f"normals must be {v.shape}, got {nrm.shape}")
@@ -218,12 +268,9 @@ def glb_bytes(vertices, faces, uvs, albedo, metallic, roughness, transmittance, 
         {"bufferView": b.add(f.astype("<u4").tobytes(), _ELEMENT_ARRAY_BUFFER), "componentType": _UINT,
          "count": int(f.size), "type": "SCALAR", "min": [int(f.min())], "max": [int(f.max())]},
     ]
-    images = [
-        {"bufferView": b.add(_png_bytes(srgb8(alb))), "mimeType": "image/png", "name": "base_color"},
-        {"bufferView": b.add(_png_bytes(metallic_roughness8(met, rough))), "mimeType": "image/png",
-         "name": "metallic_roughness"},
-        {"bufferView": b.add(_png_bytes(_grey_rgb(trans))), "mimeType": "image/png", "name": "transmission"},
-    ]
+    pictures = gltf_images(maps)
+    images = [{"bufferView": b.add(_png_bytes(img)), "mimeType": "image/png", "name": image}
+              for image, img, _ in pictures]
     node: dict = {"mesh": 0, "name": name}
     if y_up:
         m4 = np.eye(4)
@@ -238,24 +285,10 @@ def glb_bytes(vertices, faces, uvs, albedo, metallic, roughness, transmittance, 
         "meshes": [{"name": name, "primitives": [{
             "attributes": {"POSITION": 0, "NORMAL": 1, "TEXCOORD_0": 2},
             "indices": 3, "material": 0, "mode": 4}]}],
-        "materials": [{
-            "name": f"{name}_material",
-            "pbrMetallicRoughness": {
-                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
-                "baseColorTexture": {"index": 0, "texCoord": 0},
-                "metallicFactor": 1.0,
-                "roughnessFactor": 1.0,
-                "metallicRoughnessTexture": {"index": 1, "texCoord": 0},
-            },
-            "extensions": {
-                "KHR_materials_transmission": {"transmissionFactor": 1.0,
-                                               "transmissionTexture": {"index": 2, "texCoord": 0}},
-                "KHR_materials_ior": {"ior": eta},
-            },
-        }],
+        "materials": [gltf_material(name, pictures, eta)],
         "samplers": [{"magFilter": _LINEAR, "minFilter": _LINEAR_MIPMAP_LINEAR,
                       "wrapS": _CLAMP_TO_EDGE, "wrapT": _CLAMP_TO_EDGE}],
-        "textures": [{"sampler": 0, "source": i} for i in range(3)],
+        "textures": [{"sampler": 0, "source": i} for i in range(len(images))],
         "images": images,
         "accessors": accessors,
         "bufferViews": b.views,
@@ -272,14 +305,15 @@ def glb_bytes(vertices, faces, uvs, albedo, metallic, roughness, transmittance, 
     ])
 
 
-def write_glb(path: str | os.PathLike, vertices, faces, uvs, albedo, metallic, roughness, transmittance, eta: float,
+def write_glb(path: str | os.PathLike, vertices, faces, uvs, maps: Mapping[str, np.ndarray], eta: float,
               *, normals: np.ndarray | None = None, y_up: bool = True, name: str = "camo_object") -> Path:
-    """Write a glTF 2.0 binary with one mesh and a PBR material.
+    """Write a glTF 2.0 binary with one mesh and a PBR material (the maps' places: ``BsdfMap.gltf``).
 
     * ``baseColorTexture``: 8-bit sRGB-encoded PNG of ``albedo`` (linear input);
     * ``metallicRoughnessTexture``: linear PNG, G = roughness (the rendered one), B = metallic;
     * ``KHR_materials_transmission``: ``transmissionFactor`` 1, ``transmissionTexture`` (R) =
-      ``transmittance``; ``KHR_materials_ior``: ``ior = eta``; both in ``extensionsUsed``.
+      ``transmittance``; ``KHR_materials_ior``: ``ior = eta``; both in ``extensionsUsed``; a map in
+      another extension likewise (factor 1, its texture).
     * attributes POSITION (with min/max), NORMAL, TEXCOORD_0 (= Mitsuba ``uvs``, unchanged;
       see the module docstring), uint32 indices; sampler bilinear + clamp as in the render.
 
@@ -288,8 +322,7 @@ def write_glb(path: str | os.PathLike, vertices, faces, uvs, albedo, metallic, r
     the two extensions); the JSON and BIN chunks and every buffer view are 4-byte aligned.
     """
     path = Path(path)
-    write_bytes(path, glb_bytes(vertices, faces, uvs, albedo, metallic, roughness, transmittance, eta,
-                                normals=normals, y_up=y_up, name=name))
+    write_bytes(path, glb_bytes(vertices, faces, uvs, maps, eta, normals=normals, y_up=y_up, name=name))
     return path
 
 
@@ -316,48 +349,40 @@ def read_glb(path: str | os.PathLike) -> tuple[dict, bytes]:
 # --- OBJ + MTL -----------------------------------------------------------------
 
 
-def write_obj(path: str | os.PathLike, vertices, faces, uvs, albedo, metallic, roughness, transmittance, eta: float,
+def write_obj(path: str | os.PathLike, vertices, faces, uvs, maps: Mapping[str, np.ndarray], eta: float,
               *, normals: np.ndarray | None = None, material: str = "camo") -> dict[str, Path]:
     """Write ``path`` (.obj), its ``.mtl`` and the texture PNGs beside it.
 
-    Files: ``<stem>.obj``, ``<stem>.mtl``, ``<stem>_albedo.png`` (sRGB-encoded),
-    ``<stem>_roughness.png``, ``<stem>_metallic.png``, ``<stem>_transmittance.png``
-    (linear grey). OBJ texture coordinates are ``vt = (u, 1 - v)`` (OBJ's v points up;
+    Files: ``<stem>.obj``, ``<stem>.mtl``, one ``<stem>_<map>.png`` per BSDF map (the colour map sRGB-encoded, the
+    others linear grey). OBJ texture coordinates are ``vt = (u, 1 - v)`` (OBJ's v points up;
     see the module docstring); positions are world space (Z-up), normals as in the render.
 
     MTL keys: the classic ``Kd 1 1 1`` + ``map_Kd`` (albedo), ``Ka``/``Ks`` 0, ``d 1``,
-    ``illum 2``, ``Ni`` = eta; and the widely read PBR extension keys (Blender, assimp,
-    tinyobjloader, three.js): ``Pr``/``map_Pr`` (roughness, the rendered one), ``Pm``/``map_Pm``
-    (metallic), and ``Ptr``/``map_Ptr`` for transmission (the three.js / assimp PBR-MTL
-    spelling of glTF's transmission). ``Tf`` is deliberately *not* written: in classic MTL
-    it is a whole-material transmission filter colour, which would make readers that
-    honour it treat every texel as transparent.
+    ``illum 2``, ``Ni`` = eta; and for every other map its key ``K 1`` and ``map_K`` (``BsdfMap.mtl``: the widely
+    read PBR extension keys of Blender, assimp, tinyobjloader, three.js: ``Pm`` metallic, ``Pr`` roughness (the
+    rendered one), ``Ptr`` transmission -- the three.js / assimp PBR-MTL spelling of glTF's transmission).
+    ``Tf`` is deliberately *not* written: in classic MTL it is a whole-material transmission filter colour, which
+    would make readers that honour it treat every texel as transparent.
 
-    Returns ``{"obj", "mtl", "albedo", "roughness", "metallic", "transmittance"}`` paths.
+    Returns ``{"obj", "mtl", <map>...}`` paths.
     """
     path = Path(path)
     v, f, uv = _geometry(vertices, faces, uvs)
     if uv is None:
         raise ValueError("the OBJ needs uvs")
-    alb, met, rough, trans, eta = _maps(albedo, metallic, roughness, transmittance, eta)
+    maps, eta = _maps(maps, eta)
     nrm = vertex_normals(v, f) if normals is None else np.asarray(normals, np.float32)
     stem = path.stem
-    out = {
-        "obj": path,
-        "mtl": path.with_suffix(".mtl"),
-        "albedo": path.with_name(f"{stem}_albedo.png"),
-        "roughness": path.with_name(f"{stem}_roughness.png"),
-        "metallic": path.with_name(f"{stem}_metallic.png"),
-        "transmittance": path.with_name(f"{stem}_transmittance.png"),
-    }
-    save_png(out["albedo"], srgb8(alb))
-    save_png(out["roughness"], linear8(rough))
-    save_png(out["metallic"], linear8(met))
-    save_png(out["transmittance"], linear8(trans))
-
+    out = {"obj": path, "mtl": path.with_suffix(".mtl"),
+           **{name: path.with_name(f"{stem}_{name}.png") for name in MAPS}}
+    for name, m in MAPS.items():
+        save_png(out[name], srgb8(maps[name]) if m.colour else linear8(maps[name]))
+    scalars = [(name, m.mtl) for name, m in MAPS.items() if not m.colour and m.mtl]
+    colour = next(name for name, m in MAPS.items() if m.colour)
     mtl = "\n".join([
-        "# camo asset: PBR material (albedo sRGB PNG; roughness/metallic/transmittance linear grey PNGs)",
-        "# Pr/Pm/Ptr: PBR-MTL extension keys (roughness, metallic, transmission); Ni: index of refraction",
+        f"# camo asset: PBR material ({colour} sRGB PNG; {'/'.join(n for n, _ in scalars)} linear grey PNGs)",
+        f"# {'/'.join(k for _, k in scalars)}: PBR-MTL extension keys ({', '.join(n for n, _ in scalars)}); "
+        "Ni: index of refraction",
         f"newmtl {material}",
         "Ka 0 0 0",
         "Kd 1 1 1",
@@ -366,13 +391,9 @@ def write_obj(path: str | os.PathLike, vertices, faces, uvs, albedo, metallic, r
         "d 1",
         "illum 2",
         f"Ni {eta!r}",
-        "Pr 1",
-        "Pm 1",
-        "Ptr 1",
-        f"map_Kd {out['albedo'].name}",
-        f"map_Pr {out['roughness'].name}",
-        f"map_Pm {out['metallic'].name}",
-        f"map_Ptr {out['transmittance'].name}",
+        *(f"{key} 1" for _, key in scalars),
+        f"map_Kd {out[colour].name}",
+        *(f"map_{key} {out[name].name}" for name, key in scalars),
         "",
     ])
     write_text(out["mtl"], mtl)
@@ -434,8 +455,6 @@ def write_ply(path: str | os.PathLike, vertices, faces, uvs=None, normals=None) 
 
 # --- maps ----------------------------------------------------------------------
 
-MAP_NAMES = ("albedo", "metallic", "roughness", "transmittance", "displacement")
-
 
 def map_preview(name: str, arr: np.ndarray, displacement_bound: float | None = None) -> np.ndarray | None:
     """The 8-bit preview of one map, or None when it is not an image (e.g. per-vertex data).
@@ -456,7 +475,7 @@ def map_preview(name: str, arr: np.ndarray, displacement_bound: float | None = N
             m = float(np.nanmax(np.abs(a))) if a.size else 0.0
             bound = m if m > 0 else 1.0
         return linear8(0.5 + 0.5 * np.nan_to_num(a) / float(bound))
-    if a.ndim == 3 and ("albedo" in name or "color" in name):
+    if a.ndim == 3 and (name in MAPS and MAPS[name].colour or "albedo" in name or "color" in name):
         return srgb8(a[..., :3])
     return linear8(a)
 

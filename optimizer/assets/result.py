@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from camo_base import atomic, imaging, seeds
+from optimizer.scenes.bsdf_maps import MAPS
 from optimizer.assets import export, scene_xml
 from optimizer.rendering import scene as scn
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, object_bsdf, object_mesh, pose_record, rendered_maps, world_positions
@@ -95,10 +96,9 @@ def write_result(out: Path, res: Result, history: list[dict[str, Any]] | None = 
     maps["displacement"] = v["displacement"][..., 0] * g.bound
     export.save_maps(out / "maps", maps, displacement_bound=g.bound)
     verts = world_positions(g, v, res.app)
-    scalar = {k: maps[k][..., 0] for k in ("metallic", "roughness", "transmittance")}
+    bsdf = {k: maps[k] if m.colour else maps[k][..., 0] for k, m in MAPS.items()}
     for writer, name in ((export.write_glb, "result.glb"), (export.write_obj, "result.obj")):
-        writer(out / name, verts, g.faces, g.uvs, maps["albedo"], scalar["metallic"], scalar["roughness"],
-               scalar["transmittance"], res.app.eta)
+        writer(out / name, verts, g.faces, g.uvs, bsdf, res.app.eta)
     export.write_ply(out / "result.ply", verts, g.faces, g.uvs)
     scene_xml.write_scene_xml(out / "scene.xml", res.env.build(), out / "result.ply", object_bsdf(v, res.app),
                               [scn.perspective(c, res.spp) for c in res.cams], res.integrator)

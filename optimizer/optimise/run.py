@@ -1,7 +1,8 @@
 """``camo optimize``: run a :class:`optimizer.optimise.spec.RunSpec` into its run directory.
 
 :func:`run` takes a spec and runs its method: ``ours`` here (:func:`optimize`: Stage 1, then Stage 2 unless
-ablated), a baseline through :func:`optimizer.optimise.baselines.run_baseline`. The run directory (see
+ablated), a baseline through :func:`run_baseline` (what it computes: its
+:class:`~optimizer.optimise.method.Method` in :data:`optimizer.optimise.methods.METHODS`). The run directory (see
 CONTRIBUTING.md) is written through :mod:`optimizer.assets.rundir` (``config.toml`` = the spec + provenance,
 ``log.jsonl``, ``summary.json``) and :mod:`optimizer.assets.result` (maps, ``result.glb``, ``result.obj``,
 ``scene.xml``, ``pose.json``, previews, renders); ``checkpoint.npz`` (every ``checkpoint_every`` iterations;
@@ -21,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from camo_base import atomic, imaging
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 from camo_base.provenance import versions
-from optimizer.assets.rundir import CHECKPOINT, LOG, prepare_run_dir, write_config, write_log
+from optimizer.assets.rundir import CHECKPOINT, LOG, RunTransaction, provenance, write_config, write_log
 from optimizer.optimise.finish import finish
 from optimizer.optimise.holdout import Holdout
 from optimizer.optimise.spec import RunSpec
@@ -33,25 +34,57 @@ from optimizer.scenes.scenepack import ScenePack
 
 
 def run(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False, progress: bool = True,
-        threads: int | None = None) -> Path:
-    """Run ``spec`` into the run directory ``out`` (validated first; CamoError, one line, for bad input).
+        threads: int | None = None, accept_versions: bool = False) -> Path:
+    """Run ``spec`` into the run directory ``out`` (validated first; SettingError/CamoError, one line, for bad input).
 
+    The run writes into a staging folder beside ``out`` and moves it into place only once it finished
+    (:class:`optimizer.assets.rundir.RunTransaction`): a failure, Ctrl-C or a kill leaves an earlier run in ``out``
+    byte for byte (``overwrite``: it is replaced at the end). ``resume``: continue from the checkpoint of the
+    unfinished staging folder or of ``out`` (``ours`` only); refused for a run recorded by another spec layout or
+    major camo / Mitsuba version unless ``accept_versions``; each attempt is appended to ``config.toml``'s history.
     ``threads``: CPU threads of the LLVM backend (and torch, for GANmouflage); not part of the spec (it does not
-    change the result), recorded in ``config.toml``'s ``[versions]``."""
+    change the result), recorded in the history."""
+    
     spec.validate()
-    if spec.method == "ours":
-        return optimize(spec, out, resume=resume, overwrite=overwrite, progress=progress, threads=threads)
-    if resume:
-        raise CamoError(f"--resume: method {spec.method!r} is a one-shot baseline and keeps no checkpoint; run it again")
-    from optimizer.optimise.baselines import run_baseline
+    if resume and spec.method_info.compute is not None:
+        raise SettingError(f"{{0}}: method {spec.method!r} is a one-shot baseline and keeps no checkpoint; run it "
+                           "again", "resume")
+    with RunTransaction(out, resume, overwrite, accept_versions, versions()) as txn:
+        if spec.method_info.compute is None:
+            optimize_in(spec, txn, progress=progress, threads=threads)
+        else:
+            baseline_in(spec, txn, progress=progress, threads=threads)
+    return Path(out)
 
-    return run_baseline(spec, out, overwrite=overwrite, progress=progress, threads=threads)
+
+def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False,
+             progress: bool = True, threads: int | None = None, accept_versions: bool = False) -> Path:
+    """:func:`run` for method ``ours``."""
+    if spec.method != "ours":
+        raise ValueError(f"optimize runs method ours, not {spec.method!r} (use run)")
+    return run(spec, out, resume, overwrite, progress, threads, accept_versions)
 
 
-def appearance_for(ablate: set[str], base: AppearanceConfig | None = None) -> AppearanceConfig:
-    app = base or AppearanceConfig()
-    return dataclasses.replace(app, pose="pose" not in ablate, displacement="displacement" not in ablate,
-                               bsdf="bsdf" not in ablate, transmittance="transmittance" not in ablate)
+def run_baseline(spec: RunSpec, out: str | Path, overwrite: bool = False, progress: bool = True,
+                 threads: int | None = None) -> Path:
+    """:func:`run` for a baseline (its :class:`~optimizer.optimise.method.Method` in
+    :data:`optimizer.optimise.methods.METHODS` says what it computes)."""
+    if spec.method_info.compute is None:
+        raise ValueError(f"run_baseline runs baselines; method {spec.method} runs through optimizer.optimise.run.run")
+    return run(spec, out, overwrite=overwrite, progress=progress, threads=threads)
+
+
+def baseline_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threads: int | None = None) -> None:
+    """A baseline's run into the staging folder of ``txn`` (options get the thread count of a torch method)."""
+    from optimizer import backend
+    from optimizer.optimise.baselines.common import run_directory
+
+    method, options = spec.method_info, spec.options
+    if options is not None and threads is not None and hasattr(options, "threads"):
+        options = dataclasses.replace(options, threads=threads)
+    backend.init(threads=threads)
+    run_directory(spec, txn.path, lambda setup: method.compute(setup, options, progress), progress, threads,
+                  provenance(versions(), None, "start"))
 
 
 def _read_log(path: Path, stage1_upto: int | None, stage2_upto: int | None) -> list[dict[str, Any]]:
@@ -82,142 +115,38 @@ def load_checkpoint(path: Path) -> dict[str, np.ndarray]:
         raise CamoError(f"checkpoint {path} is corrupt or unreadable ({type(exc).__name__}); delete it or start a new run") from None
 
 
-def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bool = False,
-             progress: bool = True, threads: int | None = None) -> Path:
-    """Run Stage 1 and, unless ablated, Stage 2 of ``spec`` (method ``ours``) into the run directory ``out``."""
+def optimize_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threads: int | None = None) -> None:
+    """Stage 1 and, unless ablated, Stage 2 of ``spec`` (method ``ours``) into the staging folder of ``txn``: the
+    set-up, Stage 1's named preparation steps (:class:`~optimizer.optimise.stage1.Stage1`), the stages' loops
+    with their checkpoints, then the result (:func:`finish_run`)."""
     from optimizer import backend
-    from optimizer.scenes.cameras import cameras
     from optimizer.scenes.environments import get_environment
-    from optimizer.rendering.placement import prepare_object
-    from optimizer.optimise.planning import checkpoint_entry, config_record, narrowed, run_plan
 
-    if spec.method != "ours":
-        raise ValueError(f"optimize runs method ours, not {spec.method!r} (use run)")
-    out = Path(out)
-    prepare_run_dir(out, resume, overwrite)
+    out = txn.path
     backend.init(threads=threads)
     env = get_environment(spec.pack.environment)
     pack, rough_note = glint_safe_start(spec.pack, env, spec)
     fingerprint = spec.fingerprint()
-    state = None
-    if resume:
-        state = load_checkpoint(out / CHECKPOINT)
-        if str(state.get("fingerprint", "")) != fingerprint:
-            raise CamoError(f"--resume: {out} was made with a different configuration; start a new run instead")
+    state = _resume_state(spec, out, fingerprint) if txn.resume else None
     resume_stage = int(state["stage"]) if state is not None and "stage" in state else 1
-    if state is not None and resume_stage == 2 and not spec.time_budget and not spec.holdout.patience and \
-            int(state.get("stage1_iterations", -1)) != spec.stage1.iterations:
-        raise CamoError(f"--resume: {out} finished Stage 1 with {int(state.get('stage1_iterations', -1))} iterations; "
-                        f"it cannot continue with --iterations {spec.stage1.iterations} (start a new run)")
-
-    inpainter = None
-    s2c = spec.stage2_config()
-    if 2 in spec.stages:  # load the inpainter first: a bad weights folder must fail before Stage 1 runs
-        from optimizer.optimise.inpaint import get_inpainter
-
-        opts = {"sdxl_path": s2c.sdxl_path, "controlnet_path": s2c.controlnet_path, "prompt": s2c.prompt} \
-            if s2c.backend == "diffusers" else {}
-        inpainter = get_inpainter(s2c.backend, **opts)
-
-    t_setup = time.perf_counter()
-    prepared = prepare_object(pack)
-    app = spec.appearance
-    cams = cameras(pack)
+    inpainter = _inpainter(spec)  # first: a bad weights folder must fail before Stage 1 runs
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
-    # the effect plan: the pilot on this scene and start (or the checkpoint's plan when resuming)
-    pl = run_plan(spec, pack, env, prepared, cams, app, say, state)
-    env = pl.environment(env)
-
-    def plan_for(a: AppearanceConfig):
-        if not spec.planner:
-            from optimizer.rendering.planner import full_plan
-
-            return full_plan("optimize", geometry=bool({"pose", "displacement"} & a.planner_params()))
-        return narrowed(pl, pack, env, a.planner_params(), spec.shadow_gradients)
-
-    advice = dict(pl.reasons).get("initial roughness")
-    if rough_note:
-        say(f"note: {rough_note}")
-    elif advice:
-        say(f"note: initial roughness {advice}")
-    budget1 = stage1_budget(spec)
-    s1cfg = spec.stage1_config(time_budget=budget1)
-    s1 = Stage1(pack, env, prepared, cams, pl, s1cfg, app, say, pose_search_info=checkpointed_turn(state),
-                start_search_info=checkpointed_start(state))
-    hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
-    if state is None and hold is not None and s1cfg.roughness_search and "roughness" in app.trainable():
-        s1.search_start(s1cfg.roughness_search, lambda values: hold.score(values)[0])
-    # seconds before Stage 1's first step that count as optimisation: the pose search, the start search, the warm start
-    warm_seconds = (s1.warm_start_info.seconds if s1.warm_start_info else 0.0) + \
-        (s1.pose_search_info.seconds if s1.pose_search_info else 0.0) + \
-        (s1.start_search_info.seconds if s1.start_search_info else 0.0)
+    t_setup = time.perf_counter()
+    setup = _setup(spec, pack, env, rough_note, say, state)
+    s1, hold, warm_seconds = _prepare_stage1(spec, setup, state, say)
     setup_seconds = time.perf_counter() - t_setup - warm_seconds
-    if budget1:
-        s1.time_budget = max(budget1 - warm_seconds, 1e-3)  # the warm start is paid from Stage 1's budget
-    clock = {"offset": warm_seconds}
-    history: list[dict[str, Any]] = []
-    if state is not None:
-        if resume_stage == 1:
-            s1.load_checkpoint_state(state)  # validates keys, shapes and values (CamoError)
-        else:
-            _check_stage2_checkpoint(state, s1)
-        if hold is not None:
-            hold.load_state(state)
-            s1.stop_requested = resume_stage == 1 and hold.patience_spent()
-        history = _read_log(out / LOG, s1.iteration if resume_stage == 1 else None,
-                            int(state["iteration"]) if resume_stage == 2 else None)
-        s1.elapsed = stage_seconds(history, 1)
-    plan_record = {**config_record(pl),
-                   # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
-                   "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp}
-    if rough_note:
-        plan_record["start_roughness"] = pack.material.roughness  # rough_start raised the pack's (spec.pack)
-    write_config(out, spec.to_dict(), {"versions": versions(), "plan": plan_record,
-                                       "fingerprint": {"value": fingerprint}})
+    history = _restore(s1, hold, state, resume_stage, out) if state is not None else []
+    write_config(out, spec.to_dict(), {
+        **provenance(versions(), txn.previous, "resume" if txn.resume else "start",
+                     **({"from_stage": resume_stage, "from_iteration": int(state["iteration"])} if state else {})),
+        "plan": _plan_record(setup, s1), "fingerprint": {"value": fingerprint}})
     write_log(out, history)
-
-    def held(extra=None):  # checkpoint entries: a stage's own, the held-out views' best iterate, the searches' choices
-        turn = {"pose_search/info": np.array(json.dumps(s1.pose_search_info.to_dict()))} if s1.pose_search_info else {}
-        turn.update(checkpoint_entry(pl))
-        if s1.start_search_info:
-            turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
-        return {**(extra or {}), **(hold.state() if hold is not None else {}), **turn}
-
-    final_stage: Stage1 = s1
+    ctx = _Loop(spec, out, fingerprint, s1, hold, history, progress, {"offset": warm_seconds})
     with open(out / LOG, "a", encoding="utf-8") as log:
-        if resume_stage == 1:
-            _loop(s1, "stage 1", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, held()), spec.checkpoint_every,
-                  snapshots(out, spec.snapshot_every, clock), hold, clock)
-            values1 = s1.current_values()
-        else:
-            values1 = {k[len("stage1/"):]: v for k, v in state.items() if k.startswith("stage1/")}
+        ctx.log = log
+        final_stage = ctx.stage1(resume_stage, state)
         if 2 in spec.stages:
-            from optimizer.optimise.stage2 import Stage2, pseudo_gt_strip
-
-            # Stage 2 keeps Stage 1's pose; its displacement is refined too unless --stage2-fixed-displacement
-            # (then no geometry moves and the planner drops the projective integrator)
-            app2 = dataclasses.replace(app, pose=False, freeze_displacement=not s2c.displacement)
-            s2 = Stage2(pack, env, prepared, cams, plan_for(app2), spec.stage1_config(), app2, say, initial=values1,
-                        targets=s1.targets, stage2=s2c, inpainter=inpainter)
-            s2.initial_render = s1.initial_render
-            s2.total_iterations = s2c.iterations
-            s1_seconds = warm_seconds + stage_seconds(history, 1)
-            if spec.time_budget:
-                s2.time_budget = max(spec.time_budget - s1_seconds, 1e-3)
-            clock["offset"] = s1_seconds
-            if resume_stage == 2:
-                s2.load_checkpoint_state(state)
-                s2.elapsed = stage_seconds(history, 2)
-            extra = {f"stage1/{k}": v for k, v in values1.items()}
-            extra["stage1_iterations"] = np.array(s1.iteration if resume_stage == 1 else int(state["stage1_iterations"]))
-            _loop(s2, "stage 2", progress, log, history,
-                  lambda st: save_checkpoint(out / CHECKPOINT, st, fingerprint, held(extra)), spec.checkpoint_every,
-                  snapshots(out, spec.snapshot_every, clock), hold, clock)
-            for v in sorted(s2.pseudo_np):
-                imaging.save_png(out / "stage2" / f"view_{v:02d}_pseudo_gt.png", s2.pseudo_np[v])
-                imaging.save_png(out / "stage2" / f"view_{v:02d}_strip.png", pseudo_gt_strip(s2, v))
-            final_stage = s2
+            final_stage = ctx.stage2(setup, inpainter, resume_stage, state, warm_seconds, say)
     values = hold.best if hold is not None and hold.best is not None else final_stage.current_values()
     if spec.snapshot_every > 0:  # the result itself, at the run's end (with a holdout: the chosen iterate)
         chosen = hold.best_check if hold is not None and hold.best_check else \
@@ -225,10 +154,199 @@ def optimize(spec: RunSpec, out: str | Path, resume: bool = False, overwrite: bo
         write_snapshot(out / "snapshots" / "result.npz", values,
                        warm_seconds + stage_seconds(history, 1) + stage_seconds(history, 2),
                        chosen["iteration"], chosen["stage"])
-    finish_run(out, final_stage, pack, env, history, setup_seconds, spec, s1.warm_start_info, values=values,
-               holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
-               start=s1.start_search_info, plan=pl)
-    return out
+    finish_run(out, final_stage, setup.pack, setup.env, history, setup_seconds, spec, s1.warm_start_info,
+               values=values, holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
+               start=s1.start_search_info, plan=setup.plan)
+
+
+@dataclasses.dataclass
+class _Setup:
+    """What both stages share: the pack (its start roughness made glint-safe), environment (without the emitters
+    the plan dropped), prepared object, cameras, Stage 1's plan (measured by the pilot) and the appearance config."""
+
+    pack: ScenePack
+    env: Any
+    prepared: Any
+    cams: list
+    plan: Any
+    app: AppearanceConfig
+    rough_note: str | None
+    plan_for: Any
+
+
+def _setup(spec: RunSpec, pack: ScenePack, env, rough_note: str | None, say, state=None) -> _Setup:
+    """The prepared object, cameras and the run's effect plan: the pilot on this scene and start
+    (:func:`optimizer.optimise.planning.run_plan`; a resumed run's plan comes from its checkpoint)."""
+    from optimizer.scenes.cameras import cameras
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.optimise.planning import narrowed, run_plan
+    from optimizer.rendering.planner import full_plan
+
+    prepared = prepare_object(pack)
+    cams = cameras(pack)
+    pl = run_plan(spec, pack, env, prepared, cams, spec.appearance, say, state)
+    env = pl.environment(env)
+
+    def plan_for(a: AppearanceConfig):
+        params = a.planner_params()
+        return narrowed(pl, pack, env, params, spec.shadow_gradients) if spec.planner else \
+            full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
+
+    advice = dict(pl.reasons).get("initial roughness")
+    if rough_note:
+        say(f"note: {rough_note}")
+    elif advice:
+        say(f"note: initial roughness {advice}")
+    return _Setup(pack, env, prepared, cams, pl, spec.appearance, rough_note, plan_for)
+
+
+def _resume_state(spec: RunSpec, out: Path, fingerprint: str) -> dict[str, np.ndarray]:
+    """The checkpoint a resumed run continues, checked against ``spec`` (SettingError naming ``resume``)."""
+    state = load_checkpoint(out / CHECKPOINT)
+    if str(state.get("fingerprint", "")) != fingerprint:
+        raise SettingError("{0}: the run was made with a different configuration; start a new run instead", "resume")
+    stage = int(state["stage"]) if "stage" in state else 1
+    if stage == 2 and not spec.time_budget and not spec.holdout.patience and \
+            int(state.get("stage1_iterations", -1)) != spec.stage1.iterations:
+        raise SettingError(f"{{0}}: the run finished Stage 1 with {int(state.get('stage1_iterations', -1))} "
+                           f"iterations; it cannot continue with {{1}} {spec.stage1.iterations} (start a new run)",
+                           "resume", "stage1.iterations")
+    return state
+
+
+def _inpainter(spec: RunSpec):
+    """Stage 2's inpainter (None without Stage 2)."""
+    if 2 not in spec.stages:
+        return None
+    from optimizer.optimise.inpaint import get_inpainter
+
+    s2c = spec.stage2_config()
+    opts = {"sdxl_path": s2c.sdxl_path, "controlnet_path": s2c.controlnet_path, "prompt": s2c.prompt} \
+        if s2c.backend == "diffusers" else {}
+    return get_inpainter(s2c.backend, **opts)
+
+
+def _prepare_stage1(spec: RunSpec, setup: _Setup, state, say) -> tuple[Stage1, Holdout | None, float]:
+    """Stage 1 and its held-out views, prepared step by step: the turn search, the targets, the warm start, the
+    optimiser and scene, then the start search (a resumed run reuses the recorded choices). Returns the stage, the
+    held-out views (or None) and the seconds of the searches and the warm start (counted as optimisation; paid from
+    Stage 1's time budget)."""
+    budget1 = stage1_budget(spec)
+    s1cfg = spec.stage1_config(time_budget=budget1)
+    s1 = Stage1(setup.pack, setup.env, setup.prepared, setup.cams, setup.plan, s1cfg, setup.app, say)
+    s1.search_pose(checkpointed_turn(state))
+    s1.render_targets()
+    s1.warm_start(checkpointed_start(state))
+    s1.build()
+    hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
+    if state is None and hold is not None and s1cfg.roughness_search and "roughness" in setup.app.trainable():
+        s1.search_start(s1cfg.roughness_search, lambda values: hold.score(values)[0])
+    warm_seconds = sum(info.seconds for info in (s1.warm_start_info, s1.pose_search_info, s1.start_search_info)
+                       if info is not None)
+    if budget1:
+        s1.time_budget = max(budget1 - warm_seconds, 1e-3)
+    return s1, hold, warm_seconds
+
+
+def _restore(s1: Stage1, hold: Holdout | None, state: dict[str, np.ndarray], resume_stage: int,
+             out: Path) -> list[dict[str, Any]]:
+    """A resumed run's Stage 1 (or Stage 2 checkpoint checks), held-out record and log up to its checkpoint."""
+    if resume_stage == 1:
+        s1.load_checkpoint_state(state)  # validates keys, shapes and values (CamoError)
+    else:
+        _check_stage2_checkpoint(state, s1)
+    if hold is not None:
+        hold.load_state(state)
+        s1.stop_requested = resume_stage == 1 and hold.patience_spent()
+    history = _read_log(out / LOG, s1.iteration if resume_stage == 1 else None,
+                        int(state["iteration"]) if resume_stage == 2 else None)
+    s1.elapsed = stage_seconds(history, 1)
+    return history
+
+
+def _plan_record(setup: _Setup, s1: Stage1) -> dict[str, Any]:
+    from optimizer.optimise.planning import config_record
+
+    rec = {**config_record(setup.plan),
+           # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
+           "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp}
+    if setup.rough_note:
+        rec["start_roughness"] = setup.pack.material.roughness  # rough_start raised the pack's (spec.pack)
+    return rec
+
+
+@dataclasses.dataclass
+class _Loop:
+    """The stages' loops of one run: logging, checkpoints (with the held-out record and the searches' choices)
+    and snapshots."""
+
+    spec: RunSpec
+    out: Path
+    fingerprint: str
+    s1: Stage1
+    hold: Holdout | None
+    history: list
+    progress: bool
+    clock: dict[str, float]
+    log: Any = None
+    values1: dict[str, np.ndarray] | None = None
+    s1_iterations: int = 0
+
+    def held(self, extra=None) -> dict[str, np.ndarray]:
+        """Checkpoint entries beside a stage's own: the held-out views' best iterate, the searches' choices, the
+        measured plan (a resumed run does not run the pilot again)."""
+        from optimizer.optimise.planning import checkpoint_entry
+
+        s1 = self.s1
+        turn = {"pose_search/info": np.array(json.dumps(s1.pose_search_info.to_dict()))} if s1.pose_search_info \
+            else {}
+        turn.update(checkpoint_entry(s1.plan))
+        if s1.start_search_info:
+            turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
+        return {**(extra or {}), **(self.hold.state() if self.hold is not None else {}), **turn}
+
+    def loop(self, stage: Stage1, label: str, extra=None) -> None:
+        _loop(stage, label, self.progress, self.log, self.history,
+              lambda st: save_checkpoint(self.out / CHECKPOINT, st, self.fingerprint, self.held(extra)),
+              self.spec.checkpoint_every, snapshots(self.out, self.spec.snapshot_every, self.clock), self.hold,
+              self.clock)
+
+    def stage1(self, resume_stage: int, state) -> Stage1:
+        """Stage 1's iterations (none when a resumed run is past it); returns the stage."""
+        if resume_stage == 1:
+            self.loop(self.s1, "stage 1")
+            self.values1, self.s1_iterations = self.s1.current_values(), self.s1.iteration
+        else:
+            self.values1 = {k[len("stage1/"):]: v for k, v in state.items() if k.startswith("stage1/")}
+            self.s1_iterations = int(state["stage1_iterations"])
+        return self.s1
+
+    def stage2(self, setup: _Setup, inpainter, resume_stage: int, state, warm_seconds: float, say) -> Stage1:
+        """Stage 2 from Stage 1's result: it keeps Stage 1's pose; its displacement is refined too unless
+        ``stage2.displacement`` is off (then no geometry moves and the planner drops the projective integrator).
+        Writes the pseudo ground truths and their strips to ``stage2/``; returns the stage."""
+        from optimizer.optimise.stage2 import Stage2, pseudo_gt_strip
+
+        spec, s1, s2c = self.spec, self.s1, self.spec.stage2_config()
+        app2 = dataclasses.replace(setup.app, pose=False, freeze_displacement=not s2c.displacement)
+        s2 = Stage2(setup.pack, setup.env, setup.prepared, setup.cams, setup.plan_for(app2), spec.stage1_config(),
+                    app2, say, initial=self.values1, stage2=s2c, inpainter=inpainter).prepare(targets=s1.targets)
+        s2.initial_render = s1.initial_render
+        s2.total_iterations = s2c.iterations
+        s1_seconds = warm_seconds + stage_seconds(self.history, 1)
+        if spec.time_budget:
+            s2.time_budget = max(spec.time_budget - s1_seconds, 1e-3)
+        self.clock["offset"] = s1_seconds
+        if resume_stage == 2:
+            s2.load_checkpoint_state(state)
+            s2.elapsed = stage_seconds(self.history, 2)
+        extra = {f"stage1/{k}": v for k, v in self.values1.items()}
+        extra["stage1_iterations"] = np.array(self.s1_iterations)
+        self.loop(s2, "stage 2", extra)
+        for v in sorted(s2.pseudo_np):
+            imaging.save_png(self.out / "stage2" / f"view_{v:02d}_pseudo_gt.png", s2.pseudo_np[v])
+            imaging.save_png(self.out / "stage2" / f"view_{v:02d}_strip.png", pseudo_gt_strip(s2, v))
+        return s2
 
 
 def checkpointed_turn(state: dict[str, np.ndarray] | None):
@@ -410,7 +528,7 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
     seconds = {"setup": setup_seconds, "warm_start": warm_s, "pose_search": pose_s, "start_search": start_s,
                "stage1": pre + s1_s, "stage2": s2_s, "optimisation": pre + s1_s + s2_s}
     finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
-           extra={"preset": spec.preset, "time_budget": spec.time_budget,
+           extra={"fingerprint": spec.fingerprint(), "preset": spec.preset, "time_budget": spec.time_budget,
                   "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout,
                   "pose_search": pose.to_dict() if pose is not None else None,
                   "start_search": start.to_dict() if start is not None else None,

@@ -1,14 +1,17 @@
-"""The run specification: one dataclass tree that defines a ``camo optimize`` run, and the methods it can name.
+"""The run specification: one dataclass tree that defines a ``camo optimize`` run.
 
-A :class:`RunSpec` is what a run *is*. ``camo optimize`` only fills one from its flags
-(:func:`camo.optimize_cli.spec_from_args`), a grid cell stores one (``camo.grid``), and a run directory's
-``config.toml`` is ``spec.to_dict()`` plus provenance (:func:`optimizer.assets.rundir.write_config`)::
+A :class:`RunSpec` is what a run *is*. It is built from data: :meth:`RunSpec.from_options` makes one from a
+``{option: value}`` mapping (the run options of :mod:`optimizer.optimise.options`; ``camo optimize`` passes its
+flags, a grid cell its ``[optimize]`` table) with a preset (:mod:`optimizer.optimise.presets`) and the start rules
+applied; :meth:`RunSpec.from_dict` reads a recorded one; a run directory's ``config.toml`` is ``spec.to_dict()``
+plus provenance (:func:`optimizer.assets.rundir.write_config`)::
 
     spec_version   2 (a config.toml without it is the layout before run specs; optimizer.assets.rundir reads both)
     scene          the SCENE argument as given: a built-in ENV or ENV:OBJECT, or a scene pack file
-    method         ours | transparent | mean | random | greedy | diffusion2d | ganmouflage (:data:`METHODS`)
+    method         a method of optimizer.optimise.methods.METHODS (ours, transparent, mean, ...)
     seed           the run seed: camo_base.seeds derives every random stream of the run from it, by name
-    preset         fast | paper (optimizer.optimise.schedule.PRESETS): the defaults the settings started from
+    preset         the preset the settings started from (optimizer.optimise.presets.PRESETS; none recorded for a
+                   spec built field by field in Python)
     stages, ablate, planner, shadow_gradients, rough_start, time_budget, checkpoint_every, snapshot_every
     [spp]          SppSettings, every samples-per-pixel count of a run once:
                      train           each training render (Stage 1 and Stage 2 gradient steps)        --spp
@@ -22,29 +25,34 @@ A :class:`RunSpec` is what a run *is*. ``camo optimize`` only fills one from its
     [appearance]   AppearanceConfig (optimizer.rendering.appearance)
     [holdout]      HoldoutSettings (optimizer.optimise.holdout): held-out views that pick the result among the
                    iterates (views 0: off, the paper's last iterate)
-    [options]      the method's own options (its dataclass, :attr:`Method.options`); ours and transparent have none
-    [pack]         the resolved scene pack (--resolution, --views, --target-vertices, --init and the preset's
-                   starting material applied)
+    [options]      the method's own options (its dataclass, ``Method.options``); ours and transparent have none
+    [pack]         the resolved scene pack (resolution, views, target vertices, init and the preset's starting
+                   material applied)
 
-**Each method declares what it reads** (:attr:`Method.reads`, spec fields or whole tables). A spec holds
-settings for those only: :meth:`RunSpec.to_dict` writes only them, :meth:`RunSpec.from_dict` refuses any other,
-and :meth:`RunSpec.validate` refuses a spec whose unread fields differ from their defaults -- a setting the
-method would ignore is an error, never silence. ``ours`` reads everything but ``[options]``; a baseline reads
-:data:`COMMON_READS` (scene, seed, the target spp, the loss and its domain, the map resolution, the planner) and
-its own ``[options]``.
+**Each method declares what it reads** (``Method.reads``, spec fields or whole tables). A spec holds settings for
+those only: :meth:`RunSpec.to_dict` writes only them, :meth:`RunSpec.from_dict` refuses any other, and
+:meth:`RunSpec.validate` refuses a spec whose unread fields differ from their defaults -- a setting the method
+would ignore is an error, never silence. ``ours`` reads everything but ``[options]``; a baseline reads
+:data:`optimizer.optimise.method.COMMON_READS` (scene, seed, the target spp, the loss and its domain, the map
+resolution, the planner) and its own ``[options]``. Errors name options and spec fields
+(:class:`camo_base.errors.SettingError`); ``camo optimize`` shows them as its flags (:func:`option_name`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import math
 from typing import Any, Callable, Mapping
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError, literal
+from optimizer.assets.conditions import ABLATIONS, ablated_switches, parse_ablations
 from optimizer.assets.rundir import CONFIG_VERSION, config_fingerprint
 from optimizer.optimise.holdout import HoldoutSettings
+from optimizer.optimise.method import Method
+from optimizer.optimise.methods import METHODS, resolve_method
+from optimizer.optimise.options import OPTIONS, RANGES, UNCAPPED, given, option_field
+from optimizer.optimise.presets import PRESETS, get_preset
 from optimizer.optimise.stage1 import Stage1Config, Stage1Settings
 from optimizer.optimise.stage2 import Stage2Config, Stage2Settings
 from optimizer.rendering.appearance import AppearanceConfig
@@ -52,93 +60,8 @@ from optimizer.scenes.scenepack import RenderSpec, ScenePack
 
 #: The spec's version, as written to config.toml (``spec_version``).
 SPEC_VERSION = CONFIG_VERSION
-#: What ``--ablate`` may name.
-ABLATIONS = ("pose", "displacement", "bsdf", "transmittance", "inpainting")
 #: Fields a resumed run may change (its checkpoint stays valid): left out of :meth:`RunSpec.fingerprint`.
 RESUMABLE = ("checkpoint_every", "snapshot_every", "stage1.iterations", "stage2.iterations")
-
-#: What every method reads: the scene, the seed, the background targets and loss domain (the target spp, Stage 1's
-#: loss settings), the albedo atlas' resolution and the index of refraction, the effect planner's inputs.
-COMMON_READS = ("scene", "pack", "method", "seed", "preset", "spp.target", "stage1.loss", "stage1.alpha", "stage1.eps",
-                "stage1.domain", "stage1.domain_dilate", "stage1.shadow_threshold", "appearance.map_resolution",
-                "appearance.eta", "planner", "shadow_gradients")
-
-
-@dataclasses.dataclass(frozen=True)
-class Method:
-    """One ``--method`` and what it reads of a run spec.
-
-    ``reads``: spec fields (``"stage1.iterations"``) or whole tables (``"stage2"``, ``"options"``); ``"*"`` is
-    every field but ``options``. ``options``: ``"module:callable"`` making the method's options dataclass (imported
-    when needed; None: the method has no options). ``option_names``: ``camo optimize`` option names (the flags,
-    ``-`` as ``_``; also the keys of a grid's ``[optimize]`` table) that set the method's own options instead of
-    the field they set for ``ours`` -- ``--iterations`` is GANmouflage's training iterations, not Stage 1's."""
-
-    name: str
-    summary: str
-    reads: tuple[str, ...] = COMMON_READS
-    options: str | None = None
-    option_names: tuple[tuple[str, str], ...] = ()
-
-    def reads_path(self, path: str) -> bool:
-        """Whether the method reads spec field ``path`` (dotted: ``"stage2.iterations"``, ``"options.backend"``)."""
-        if path == "spec_version":
-            return True
-        if path == "options" or path.startswith("options."):
-            return self.options is not None
-        for r in self.reads:
-            if r == "*" or path == r or path.startswith(r + "."):
-                return True
-        return False
-
-    def make_options(self) -> Any:
-        """The method's default options (None when it has none)."""
-        return _call(self.options) if self.options else None
-
-
-def _call(ref: str) -> Any:
-    module, _, attr = ref.partition(":")
-    obj: Any = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj()
-
-
-#: Every method a run spec may name, by ``--method`` name.
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("ours", "Stage 1 (background matching) and Stage 2 (synthesis): the paper's method", reads=("*",)),
-    Method("transparent", "transmittance 1 everywhere: a glass-like object (baselines.transparent)"),
-    Method("mean", "Owens et al. 2014: mean background colour over the views (baselines.owens2014)",
-           options="optimizer.optimise.baselines.owens2014:OwensOptions"),
-    Method("random", "Owens et al. 2014: one random projection order (baselines.owens2014)",
-           options="optimizer.optimise.baselines.owens2014:OwensOptions"),
-    Method("greedy", "Owens et al. 2014: greedy view choice (baselines.owens2014)",
-           options="optimizer.optimise.baselines.owens2014:OwensOptions"),
-    Method("diffusion2d", "per-view inpainting projected onto the surface (baselines.diffusion2d)",
-           options="optimizer.optimise.baselines.diffusion2d:Diffusion2DOptions",
-           option_names=(("stage2_backend", "options.backend"), ("sdxl_path", "options.backend_options.sdxl_path"),
-                         ("controlnet_path", "options.backend_options.controlnet_path"))),
-    Method("ganmouflage", "Guo et al. 2023: texture field, perceptual + adversarial losses (baselines.ganmouflage)",
-           options="optimizer.optimise.baselines.ganmouflage:GanmouflageConfig",
-           option_names=(("iterations", "options.iterations"),)),
-)}
-#: ``--method`` names that are a method with other default options: ``(method, options factory)``.
-METHOD_ALIASES: dict[str, tuple[str, str]] = {
-    "ganmouflage-paper": ("ganmouflage", "optimizer.optimise.baselines.ganmouflage:GanmouflageConfig.paper"),
-}
-#: Every name ``--method`` takes.
-METHOD_NAMES = (*METHODS, *METHOD_ALIASES)
-
-
-def resolve_method(name: str) -> tuple[Method, Callable[[], Any]]:
-    """``(method, default options factory)`` of a ``--method`` name; CamoError for an unknown one."""
-    if name in METHOD_ALIASES:
-        base, ref = METHOD_ALIASES[name]
-        return METHODS[base], lambda: _call(ref)
-    m = METHODS.get(name)
-    if m is None:
-        raise CamoError(f"unknown --method {name!r}; choose one of: {', '.join(METHOD_NAMES)}")
-    return m, m.make_options
 
 
 @dataclasses.dataclass
@@ -158,12 +81,12 @@ class RunSpec:
     pack: ScenePack
     method: str = "ours"
     seed: int = 0
-    preset: str = "fast"
+    preset: str | None = None  # the preset the settings started from (from_options); None: the fields as given
     stages: tuple[int, ...] = (1, 2)
     ablate: tuple[str, ...] = ()
     planner: bool = True
     shadow_gradients: bool = False
-    rough_start: bool = True  # raise a glint-prone initial roughness to planner.GLINT_ROUGHNESS (fast preset)
+    rough_start: bool = True  # raise a glint-prone initial roughness to planner.GLINT_ROUGHNESS (the fast preset's)
     time_budget: float | None = None  # seconds for warm start + Stage 1 + Stage 2 iterations (setup excluded)
     checkpoint_every: int = 10
     snapshot_every: int = 0  # > 0: snapshots/sS_XXXX.npz every N iterations of each stage (bench_convergence)
@@ -254,6 +177,94 @@ class RunSpec:
                 kw[name] = _convert(fields[name].type, value, f"{where}: {name}")
         return cls(**kw)
 
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any], preset: str | None = None) -> "RunSpec":
+        """The run spec of ``{option: value}`` (the options of :mod:`optimizer.optimise.options`, by name, ``-`` or
+        ``_``; what ``camo optimize``'s flags and a grid's ``[optimize]`` table give), validated.
+
+        ``preset`` (or an option ``preset``; default :data:`~optimizer.optimise.presets.DEFAULT_PRESET`) gives the
+        starting values; every option given overrides its field. The start rules: the preset's starting material
+        unless ``init`` names a value, an ablation pins what it fixes, ``init`` albedo turns the warm start off,
+        ``init`` roughness (or ``bsdf`` ablated, or no held-out views) turns the roughness start search off,
+        ``time_budget`` without an iteration count lifts the iteration caps, ``inpainting`` ablated runs Stage 1
+        only. SettingError (one line, naming options or spec fields) for an unknown option, a bad value or one the
+        method does not use.
+
+        >>> spec = RunSpec.from_options({"scene": "meadow", "iterations": 3, "ablate": "pose"})
+        >>> spec.preset, spec.stage1.iterations, spec.appearance.pose, spec.stage1.warm_start
+        ('fast', 3, False, True)
+        """
+        vals: dict[str, Any] = {}
+        for name, value in given(dict(options)).items():
+            if name not in OPTIONS:
+                raise SettingError(f"unknown option {literal(repr(name))}; the options are "
+                                   f"{', '.join('{%d}' % i for i in range(len(OPTIONS)))}", *OPTIONS)
+            vals[name] = OPTIONS[name].convert(value)
+        if "scene" not in vals:
+            raise SettingError("{0} is missing (a built-in scene name or a scene pack file)", "scene")
+        if preset is not None and vals.get("preset", preset) != preset:
+            raise SettingError(f"{{0}} {literal(vals['preset'])} differs from the preset {literal(preset)} asked for",
+                               "preset")
+        p = get_preset(preset if preset is not None else vals.get("preset"))
+        method_name = vals.get("method", "ours")
+        method, make_options = resolve_method(method_name)
+        _check_options_apply(method, method_name, vals)
+        pack = _pack_of(vals)
+        ablate = parse_ablations(vals.get("ablate", ""))
+        init = parse_init(vals.get("init", ""))
+        for a in ablate:
+            for key in ABLATIONS[a].fixes:
+                if key in init:
+                    raise SettingError(f"{{0}} {key} conflicts with {{1}} {a} (the ablation fixes it)", "init", "ablate")
+        start = {k: v for k, v in p.material.items() if k not in init}
+        if init or start:
+            pack.material = dataclasses.replace(pack.material, **start, **init)
+        pins = {k: v for a in ablate for k, v in ABLATIONS[a].pins}
+        if pins:
+            pack.material = dataclasses.replace(pack.material, **pins)
+        # every other option sets its field as given: group them by table
+        tables: dict[str, dict[str, Any]] = {"": {}, "spp": {}, "stage1": {}, "stage2": {}, "appearance": {},
+                                             "holdout": {}, "options": {}}
+        for name, value in vals.items():
+            if name not in _SPECIAL:
+                head, _, rest = option_field(method, name).partition(".")
+                if rest:
+                    tables[head][rest] = value
+                else:
+                    tables[""][head] = value
+        app = dataclasses.replace(AppearanceConfig(), **p.appearance, **ablated_switches(ablate))
+        app = dataclasses.replace(app, **tables["appearance"])
+        s1 = dataclasses.replace(Stage1Settings(**p.stage1), **tables["stage1"])
+        holdout = dataclasses.replace(HoldoutSettings(**p.holdout), **tables["holdout"])
+        s2 = dataclasses.replace(Stage2Settings(**p.stage2), **tables["stage2"],
+                                 displacement=not vals.get("stage2_fixed_displacement", False))
+        if vals.get("time_budget") and "iterations" not in vals:
+            s1 = dataclasses.replace(s1, iterations=UNCAPPED)
+        if vals.get("time_budget") and "stage2_iterations" not in vals:
+            s2 = dataclasses.replace(s2, iterations=UNCAPPED)
+        if "warm_start" in vals:
+            s1 = dataclasses.replace(s1, warm_start=vals["warm_start"] == "on")
+        elif "albedo" in init:  # an explicit starting albedo is kept (the warm start would replace it)
+            s1 = dataclasses.replace(s1, warm_start=False)
+        if "roughness_search" in vals:
+            s1 = dataclasses.replace(s1, roughness_search=parse_roughness_list(vals["roughness_search"]))
+        elif "roughness" in init or "bsdf" in ablate or not holdout.views:
+            # an explicit (or ablated) starting roughness is kept; without held-out views there is nothing to score on
+            s1 = dataclasses.replace(s1, roughness_search=())
+        stages = parse_stages(vals["stages"]) if "stages" in vals else (1, 2)
+        if any(ABLATIONS[a].stage1_only for a in ablate):
+            stages = (1,)
+        options = make_options()
+        for path, value in tables["options"].items():
+            options = _set_option(options, path.split("."), value)
+        spec = cls(scene=vals["scene"], pack=pack, method=method_name, preset=p.name, stages=stages, ablate=ablate,
+                   planner=not vals.get("no_planner", False), rough_start=p.rough_start and "roughness" not in init,
+                   spp=SppSettings(**tables["spp"]), stage1=s1, stage2=s2, appearance=app, holdout=holdout,
+                   options=options, **tables[""])
+        # what the method does not read goes back to its default (the preset's values for `ours` among them): the
+        # spec records only what the method reads; every option given was checked above to be read
+        return spec.normalised().validate()
+
     # ----------------------------------------------------------------------------------------------------------
     def _defaults(self) -> "RunSpec":
         """This spec with every field but scene, pack, method, seed, preset and options at its default."""
@@ -278,21 +289,20 @@ class RunSpec:
         another fingerprint cannot be resumed)."""
         return config_fingerprint(self.to_dict(), ignore=RESUMABLE)
 
-    def validate(self, names: Mapping[str, str] | None = None) -> "RunSpec":
-        """CamoError (one line) for a value out of range or a setting the method would ignore; returns ``self``.
-
-        ``names``: how to call a field in the message (``camo optimize`` passes its flags: ``--spp`` for
-        ``spp.train``); else the dotted field name."""
-        from optimizer.optimise.schedule import PRESETS, SCHEDULES
+    def validate(self) -> "RunSpec":
+        """SettingError (one line, naming spec fields: a front end shows them as its own names, ``camo optimize``
+        as flags) for a value out of range (:data:`optimizer.optimise.options.RANGES`) or a setting the method
+        would ignore; returns ``self``."""
+        from optimizer.optimise.schedule import SCHEDULES
 
         m = self.method_info
 
-        def name(path: str) -> str:
-            return (names or {}).get(path, path)
+        def fields(paths) -> str:
+            return ", ".join("{%d}" % i for i in range(len(paths)))
 
         unread = self.unread_settings()
         if unread:
-            raise CamoError(f"method {m.name} does not use {', '.join(name(p) for p in unread)}")
+            raise SettingError(f"method {m.name} does not use {fields(unread)}", *unread)
 
         def get(path: str) -> Any:
             obj: Any = self
@@ -300,56 +310,31 @@ class RunSpec:
                 obj = obj.get(part) if isinstance(obj, dict) else getattr(obj, part, None)
             return obj
 
-        def at_least(path: str, lo: int) -> None:
+        for path, r in RANGES.items():
             v = get(path)
-            if m.reads_path(path) and v is not None and v < lo:
-                raise CamoError(f"{name(path)} must be >= {lo}, got {v}")
+            if v is None or not m.reads_path(path):
+                continue
+            for x in (v if isinstance(v, (tuple, list)) else (v,)):  # pack.render.resolution: (width, height)
+                r.check(x, path)
 
         def one_of(path: str, allowed) -> None:
             v = get(path)
             if m.reads_path(path) and v not in allowed and not (v is None and path.startswith("options.")):
-                raise CamoError(f"{name(path)} must be one of {', '.join(map(str, allowed))}, got {v!r}")
+                raise SettingError(f"{{0}} must be one of {', '.join(map(str, allowed))}, got {literal(repr(v))}",
+                                   path)
 
-        def within(path: str, lo: float, hi: float, lo_open: bool = False) -> None:
-            v = get(path)
-            if not m.reads_path(path) or v is None:
-                return
-            ok = math.isfinite(v) and (lo < v if lo_open else lo <= v) and v <= hi
-            if not ok:
-                raise CamoError(f"{name(path)} must be in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {v}")
-
-        at_least("seed", 0)
-        for p in ("spp.train", "spp.target", "spp.stage2_preview", "stage1.iterations", "stage2.iterations",
-                  "stage1.silhouette_every", "checkpoint_every", "appearance.map_resolution",
-                  "appearance.displacement_resolution", "options.iterations"):
-            at_least(p, 1)
-        at_least("snapshot_every", 0)
-        at_least("stage1.pose_search", 0)
-        for p in ("holdout.views", "holdout.patience"):
-            at_least(p, 0)
-        for p in ("holdout.every", "holdout.spp"):
-            at_least(p, 1)
         if m.reads_path("holdout") and self.holdout.patience and not self.holdout.views:
-            raise CamoError(f"{name('holdout.patience')} needs held-out views ({name('holdout.views')} >= 1)")
-        at_least("pack.object.target_vertices", 100)
-        within("appearance.displacement_bound", 0.0, 0.5)
-        within("appearance.lr_maps", 0.0, 10.0, lo_open=True)
-        within("appearance.lr_displacement", 0.0, 10.0, lo_open=True)
-        within("appearance.grad_blur", 0.0, 64.0)
-        within("stage1.average", 0.0, 0.999)
+            raise SettingError("{0} needs held-out views ({1} >= 1)", "holdout.patience", "holdout.views")
         if m.reads_path("stage1.roughness_search") and self.stage1.roughness_search:
             rs = self.stage1.roughness_search
             if not all(isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and 0.0 <= r <= 1.0
                        for r in rs):
-                raise CamoError(f"{name('stage1.roughness_search')} must be numbers in [0, 1], got {list(rs)}")
+                raise SettingError(f"{{0}} must be numbers in [0, 1], got {literal(list(rs))}",
+                                   "stage1.roughness_search")
             if not self.holdout.views:
-                raise CamoError(f"{name('stage1.roughness_search')} needs held-out views ({name('holdout.views')} >= 1)")
-        within("stage2.strength", 0.0, 1.0, lo_open=True)
-        within("options.strength", 0.0, 1.0, lo_open=True)
-        if m.reads_path("time_budget") and self.time_budget is not None and \
-                not (math.isfinite(self.time_budget) and self.time_budget > 0):
-            raise CamoError(f"{name('time_budget')} must be a positive number of seconds, got {self.time_budget}")
-        one_of("preset", tuple(PRESETS))
+                raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.roughness_search", "holdout.views")
+        if self.preset is not None:
+            one_of("preset", tuple(PRESETS))
         one_of("stage1.loss", ("gated", "mse"))
         one_of("stage1.domain", ("object+shadow", "frame"))
         one_of("stage1.lr_schedule", SCHEDULES)
@@ -357,21 +342,171 @@ class RunSpec:
         one_of("options.backend", ("patch", "diffusers"))
         one_of("options.albedo_mode", ("global", "local", "photo"))
         if m.reads_path("stages") and (not self.stages or set(self.stages) - {1, 2} or 1 not in self.stages):
-            raise CamoError(f"{name('stages')} must include 1 and may include 2, got {list(self.stages)}")
-        bad = sorted(set(self.ablate) - set(ABLATIONS))
-        if bad:
-            raise CamoError(f"unknown {name('ablate')} item(s) {', '.join(bad)}; allowed: {', '.join(ABLATIONS)}")
+            raise SettingError(f"{{0}} must include 1 and may include 2, got {list(self.stages)}", "stages")
+        parse_ablations(self.ablate)
         if m.reads_path("stage2") and 2 in self.stages and self.stage2.backend == "diffusers" and \
                 not (self.stage2.sdxl_path and self.stage2.controlnet_path):
-            raise CamoError(f"{name('stage2.backend')} diffusers needs {name('stage2.sdxl_path')} and "
-                            f"{name('stage2.controlnet_path')} (local folders; nothing is downloaded)")
+            raise SettingError("{0} diffusers needs {1} and {2} (local folders; nothing is downloaded)",
+                               "stage2.backend", "stage2.sdxl_path", "stage2.controlnet_path")
         opts = self.options
         if getattr(opts, "backend", None) == "diffusers" and not all(
                 (opts.backend_options or {}).get(k) for k in ("sdxl_path", "controlnet_path")):
-            raise CamoError(f"{name('options.backend')} diffusers needs {name('options.backend_options.sdxl_path')} "
-                            f"and {name('options.backend_options.controlnet_path')} (local folders; nothing is "
-                            "downloaded)")
+            raise SettingError("{0} diffusers needs {1} and {2} (local folders; nothing is downloaded)",
+                               "options.backend", "options.backend_options.sdxl_path",
+                               "options.backend_options.controlnet_path")
         return self
+
+
+# --------------------------------------------------------------------------------------------------------------
+# options -> spec: the start rules' parts
+# --------------------------------------------------------------------------------------------------------------
+
+#: Options whose value is not their field's value as given (read and converted by :meth:`RunSpec.from_options`).
+_SPECIAL = ("scene", "method", "preset", "resolution", "views", "target_vertices", "init", "ablate", "stages",
+            "warm_start", "no_planner", "stage2_fixed_displacement", "roughness_search")
+
+
+def option_applies(method_name: str, name: str) -> bool:
+    """Whether ``method_name`` reads what run option ``name`` sets (other names apply to every method)."""
+    if name not in OPTIONS:
+        return True
+    method, _ = resolve_method(method_name)
+    return method.reads_path(option_field(method, name))
+
+
+def check_options_apply(method_name: str, names) -> None:
+    """SettingError (one line) naming the first run option in ``names`` that ``method_name`` does not read."""
+    method, _ = resolve_method(method_name)
+    _check_options_apply(method, method_name, [n for n in names if n in OPTIONS])
+
+
+def option_name(name: str, method: str | None = None) -> str | None:
+    """The run option (or execution argument) a library error's setting ``name`` is given by: the name itself for
+    an option or an execution argument, the option that sets it for a spec field (``method``'s own options
+    considered: GANmouflage's ``options.iterations`` is ``iterations``), else None."""
+    from optimizer.optimise.options import EXECUTION, option_names
+
+    if name in OPTIONS or name in EXECUTION:
+        return name
+    try:
+        m = resolve_method(method)[0] if method else METHODS["ours"]
+    except CamoError:
+        m = METHODS["ours"]
+    return option_names(m).get(name) or option_names(METHODS["ours"]).get(name)
+
+
+def grid_names(method: str | None = None) -> Callable[[str], str]:
+    """How a grid file calls a setting an error names: by its ``[optimize]`` key (:func:`option_name`)."""
+    return lambda n: option_name(n, method) or n
+
+
+def _check_options_apply(method: Method, method_name: str, vals) -> None:
+    """SettingError naming the first option in ``vals`` that ``method`` does not read."""
+    for name in vals:
+        field = option_field(method, name)
+        if name != "scene" and not method.reads_path(field):
+            takes = sorted(n for n in OPTIONS if method.reads_path(option_field(method, n)) and n != "scene")
+            raise SettingError(f"{{0}} does not apply to {{1}} {method_name} (it sets {field}, which {method.name} "
+                               f"does not use); {method_name} takes "
+                               f"{', '.join('{%d}' % (i + 2) for i in range(len(takes)))}", name, "method", *takes)
+
+
+def _pack_of(vals: Mapping[str, Any]) -> ScenePack:
+    """The scene pack of ``vals["scene"]`` with the ``resolution``, ``views`` and ``target_vertices`` options
+    applied (a run's spp are its own: the pack's [render] spp is not touched)."""
+    from optimizer.scenes.builtin_scenes import resolve_scene
+
+    pack = resolve_scene(vals["scene"])
+    if "resolution" in vals:
+        pack.render = dataclasses.replace(pack.render, resolution=(vals["resolution"], vals["resolution"]))
+    if "views" in vals:
+        if pack.cameras.mode == "list":
+            raise SettingError("{0} only applies to orbit cameras", "views")
+        pack.cameras = dataclasses.replace(pack.cameras, views=vals["views"])
+    if "target_vertices" in vals:
+        pack.object = dataclasses.replace(pack.object, target_vertices=vals["target_vertices"])
+    return pack
+
+
+def parse_init(text: str, field: str = "init") -> dict:
+    """``init``: ``"roughness=0.5,albedo=0.4/0.3/0.2"`` -> initial material values (the maps of
+    :data:`optimizer.scenes.bsdf_maps.MAPS`: a colour map takes a grey or R/G/B); SettingError naming ``field``."""
+    from optimizer.scenes.bsdf_maps import MAPS
+
+    out: dict = {}
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        key, eq, val = item.partition("=")
+        key = key.strip()
+        if not eq or key not in MAPS:
+            raise SettingError(f"{{0}} takes KEY=VALUE with KEY one of {', '.join(MAPS)}; got {literal(repr(item))}",
+                               field)
+        if key in out:
+            raise SettingError(f"{{0}} sets {key} twice", field)
+        colour = MAPS[key].channels == 3
+        try:
+            nums = [float(v) for v in val.split("/")]
+        except ValueError:
+            raise SettingError(f"{{0}} {key} must be a number in [0, 1]{' or R/G/B' if colour else ''}, got "
+                               f"{literal(repr(val))}", field) from None
+        if len(nums) not in ((1, 3) if colour else (1,)) or not all(0.0 <= v <= 1.0 for v in nums):
+            raise SettingError(f"{{0}} {key} must be {'a grey or R/G/B values' if colour else 'a number'} in [0, 1], "
+                               f"got {literal(repr(val))}", field)
+        out[key] = tuple(nums * 3 if len(nums) == 1 else nums) if colour else nums[0]
+    return out
+
+
+def parse_roughness_list(text: str, field: str = "roughness_search") -> tuple[float, ...]:
+    """``roughness_search``: ``R1,R2,...`` (numbers in [0, 1]) or ``off`` / empty -> a tuple; SettingError otherwise."""
+    if text.strip().lower() in ("", "off", "none"):
+        return ()
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise SettingError(f"{{0}} must be a comma list of numbers in [0, 1] or 'off', got {literal(repr(text))}",
+                           field) from None
+    return values
+
+
+def parse_stages(text: str, field: str = "stages") -> tuple[int, ...]:
+    """``stages``: ``"1,2"`` or ``"1"`` -> the sorted stages; SettingError otherwise."""
+    try:
+        stages = tuple(sorted({int(x) for x in text.split(",") if x.strip()}))
+    except ValueError:
+        raise SettingError(f"{{0}} must be a comma list of 1 and 2, got {literal(repr(text))}", field) from None
+    if not stages or set(stages) - {1, 2} or 1 not in stages:
+        raise SettingError(f"{{0}} must include 1 and may include 2, got {literal(repr(text))}", field)
+    return stages
+
+
+def spec_from_file(path: str, seed: int | None = None, field: str = "path") -> "RunSpec":
+    """The run spec recorded in ``path`` (a run directory's ``config.toml`` or the directory), with ``seed`` replaced
+    when given (a replicate); CamoError (one line) for a missing file, a config.toml from before run specs, or a
+    bad spec."""
+    from pathlib import Path
+
+    from camo_base.documents import read_toml
+    from optimizer.assets.rundir import read_config, spec_of_config
+
+    p = Path(path)
+    run_dir = p if p.is_dir() else p.parent
+    if not p.is_dir() and not p.is_file():
+        raise SettingError(f"{{0}} {literal(path)}: no such file or run directory", field)
+    cfg = read_config(run_dir) if p.is_dir() else read_toml(p, "run spec")
+    data = spec_of_config(cfg, run_dir)
+    if seed is not None:
+        data["seed"] = seed
+    return RunSpec.from_dict(data, where=str(p)).validate()
+
+
+def _set_option(options, path: list[str], value):
+    """``options`` with the field at ``path`` (``["backend_options", "sdxl_path"]``: a key of a dict field) set."""
+    if len(path) == 1:
+        return dataclasses.replace(options, **{path[0]: value})
+    d = dict(getattr(options, path[0]) or {})
+    d[path[1]] = value
+    return dataclasses.replace(options, **{path[0]: d})
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -35,7 +35,8 @@ import numpy as np
 
 from optimizer.rendering import scene as scn
 from optimizer.optimise.adam import Adam, blur_texels, dr_numpy
-from optimizer.rendering.appearance import ALBEDO_MIN, MAPS, AppearanceConfig, Geometry, clamp_projections, initial_values, object_mesh, pose_record, world_positions
+from optimizer.rendering.appearance import AppearanceConfig, Geometry, clamp_projections, initial_values, object_mesh, pose_record, world_positions
+from optimizer.scenes.bsdf_maps import ALBEDO_MIN, MAPS
 from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
 from camo_base import seeds
@@ -64,11 +65,11 @@ class Stage1Settings:
     domain_dilate: float = 0.04  # fraction of the image's larger side
     shadow_threshold: float = 0.05  # relative luminance change that marks the object's influence
     silhouette_every: int = 4  # projective: the silhouette term on a random 1/N of the views per step, weighted
-    # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/schedule.PRESETS: the
+    # The dataclass defaults are the paper's; `camo optimize` applies a preset (optimizer/optimise/presets.py: the
     # default "fast" turns on the warm start)
     warm_start: bool = False  # least-squares albedo start (optimizer/optimise/warmstart.py); paper: grey 0.5
     pose_search: int = 0  # > 0: try this many turns about the vertical axis first (optimizer/optimise/posesearch.py)
-    lr_schedule: str = "constant"  # optimizer/optimise/schedule.py; fast: "cosine"
+    lr_schedule: str = "constant"  # or "cosine" (optimizer/optimise/schedule.py); both presets: constant
     lr_floor: float = 0.1  # cosine: final learning rate as a fraction of the initial one
     average: float = 0.0  # > 0: the result is the moving average of the iterates with this decay (optimise/adam.py)
     # starting roughness values tried on the held-out views before Stage 1 (optimizer/optimise/startsearch.py); [] off
@@ -173,26 +174,30 @@ def shading_integrator(plan: Plan) -> dict:
 
 
 class Stage1:
-    """One Stage 1 optimisation; :meth:`step` runs one iteration."""
+    """One Stage 1 optimisation. The constructor only reads its settings; the preparation is four named steps
+    that :func:`optimizer.optimise.run.optimize` calls (and a user may call, or :meth:`prepare` for all four):
+
+    1. :meth:`search_pose`: the turn search (``cfg.pose_search``), or a recorded turn;
+    2. :meth:`render_targets`: the background targets, coverage, depth and loss domain (or an earlier stage's);
+    3. :meth:`warm_start`: a recorded starting roughness, then the least-squares albedo (``cfg.warm_start``);
+    4. :meth:`build`: the optimiser and the training scene.
+
+    Then optionally :meth:`search_start` (the start search, before the first step), and :meth:`step` per iteration.
+
+    >>> s1 = Stage1(pack, env, prepared, cams, plan, cfg, app).prepare()  # doctest: +SKIP
+    >>> rec = s1.step()  # doctest: +SKIP
+    """
 
     STAGE = 1
 
     def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
                  cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None,
-                 initial: dict[str, np.ndarray] | None = None, targets: Targets | None = None,
-                 pose_search_info=None, start_search_info=None):
-        """``initial`` overrides the paper's initial values (e.g. a Stage 1 result for Stage 2);
-        ``targets`` reuses background renders and the loss domain of an earlier stage; ``pose_search_info`` (a
-        resumed run's :class:`~optimizer.optimise.posesearch.PoseSearchInfo`) sets the turn the search chose
-        instead of searching again (the renders at more than one thread are not bit-stable, and the turn decides
-        the loss domain); ``start_search_info`` (a resumed run's
-        :class:`~optimizer.optimise.startsearch.StartSearchInfo`) likewise sets the starting roughness the search
-        chose (:meth:`search_start` runs the search)."""
-        import drjit as dr
-        import mitsuba as mi
-
+                 initial: dict[str, np.ndarray] | None = None):
+        """``initial`` overrides the paper's initial values (e.g. a Stage 1 result for Stage 2; then neither the
+        pose search nor the warm start runs)."""
         self.pack, self.env, self.cams, self.plan, self.cfg, self.app = pack, env, cams, plan, cfg, app
         self.geometry = Geometry.build(prepared, pack.object, app)
+        self._initial_given = initial is not None
         self.values = {k: v.copy() for k, v in (initial or initial_values(app, pack.material)).items()}
         self.project = clamp_projections(app, pack.object.size)
         self.iteration = 0
@@ -201,40 +206,97 @@ class Stage1:
         self.time_budget = cfg.time_budget
         self.stop_requested = False  # set by the run loop (held-out patience spent): the stage ends after this step
         self.history: list[dict[str, Any]] = []
-        self.pose_search_info = None
-        if cfg.pose_search and "rotation" in app.trainable() and initial is None and targets is None:
-            from optimizer.optimise.posesearch import SPP, VIEWS, pose_search
-
-            if pose_search_info is not None:
-                self.values["rotation"] = np.array([pose_search_info.rotation], np.float32)
-                self.pose_search_info = pose_search_info
-            else:
-                self.values, self.pose_search_info = pose_search(
-                    self.values, self.geometry, app, env, cams, self.shading_integrator(), cfg.pose_search, VIEWS,
-                    SPP, seeds.seed("pose_search", cfg.seed), log)
-        if targets is None:
-            log("rendering background targets and the loss domain")
-        self.targets = targets if targets is not None else self._targets()
-        self.start_search_info = start_search_info
-        if start_search_info is not None and initial is None:
-            self.values["roughness"] = np.full_like(self.values["roughness"], start_search_info.chosen)
         self._log = log
-        self._unprepared = {k: v.copy() for k, v in self.values.items()}  # the start before the warm start
-        self._warm_cache: dict = {}  # the warm start's geometry-only work, shared by the start search's candidates
+        self.pose_search_info = None
+        self.start_search_info = None
         self.warm_start_info = None
-        self._warm = bool(cfg.warm_start and initial is None)
+        self.targets: Targets | None = None
+        self.initial_render: np.ndarray | None = None
+        self._unprepared: dict[str, np.ndarray] | None = None  # the start before the warm start
+        self._warm_cache: dict = {}  # the warm start's geometry-only work, shared by the start search's candidates
+        self._warm = bool(cfg.warm_start and not self._initial_given)
+        self.opt = None  # built by build()
+        self.windows: list[tuple[int, int, int, int]] | None = None  # per view, the training render's window (build)
+        self._batched = uses_batch(plan.integrator)
+
+    # --- preparation: the named steps ------------------------------------------------
+    def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
+        """Every preparation step in order (class doc); returns ``self``. ``targets``: an earlier stage's (then the
+        turn is that stage's: no pose search); the ``*_info`` records: a resumed run's choices."""
+        if targets is None:
+            self.search_pose(pose_search_info)
+        self.render_targets(targets)
+        self.warm_start(start_search_info)
+        self.build()
+        return self
+
+    def search_pose(self, info=None):
+        """Step 1: start from the best of ``cfg.pose_search`` turns about the vertical axis
+        (:mod:`optimizer.optimise.posesearch`), when the pose is optimised and no initial values were given.
+        ``info`` (a resumed run's :class:`~optimizer.optimise.posesearch.PoseSearchInfo`) sets the turn the search
+        chose instead of searching again (the renders at more than one thread are not bit-stable, and the turn
+        decides the loss domain). Returns the record (or None)."""
+        cfg, app = self.cfg, self.app
+        if not cfg.pose_search or "rotation" not in app.trainable() or self._initial_given:
+            return None
+        from optimizer.optimise.posesearch import SPP, VIEWS, pose_search
+
+        if info is not None:
+            self.values["rotation"] = np.array([info.rotation], np.float32)
+            self.pose_search_info = info
+        else:
+            self.values, self.pose_search_info = pose_search(
+                self.values, self.geometry, app, self.env, self.cams, self.shading_integrator(), cfg.pose_search,
+                VIEWS, SPP, seeds.seed("pose_search", cfg.seed), self._log)
+        return self.pose_search_info
+
+    def render_targets(self, targets: Targets | None = None) -> Targets:
+        """Step 2: the background targets, coverage, depth and loss domain of every view, and the initial render
+        (:func:`render_targets` at the current start); ``targets``: reuse an earlier stage's."""
+        if targets is not None:
+            self.targets = targets
+        else:
+            self._log("rendering background targets and the loss domain")
+            self.targets, self.initial_render = render_targets(
+                self.env, self.cams, self._object(), self.shading_integrator(), self.cfg,
+                region=getattr(self.plan, "region_search", False),
+                region_threshold=getattr(self.plan, "region_threshold", None))
+        return self.targets
+
+    def warm_start(self, start_search_info=None):
+        """Step 3: the start Stage 1 takes: a recorded starting roughness (``start_search_info``, a resumed run's
+        :class:`~optimizer.optimise.startsearch.StartSearchInfo`), then the least-squares albedo warm start
+        (``cfg.warm_start``) and the albedo floor. Returns the warm start's record (or None)."""
+        if self.targets is None:
+            raise RuntimeError("Stage 1's warm start needs the targets (render_targets first)")
+        self.start_search_info = start_search_info
+        if start_search_info is not None and not self._initial_given:
+            self.values["roughness"] = np.full_like(self.values["roughness"], start_search_info.chosen)
+        self._unprepared = {k: v.copy() for k, v in self.values.items()}
         self.values, self.warm_start_info = self._prepare(self.values)
+        return self.warm_start_info
+
+    def build(self) -> "Stage1":
+        """Step 4: the optimiser (:class:`~optimizer.optimise.adam.Adam` over the trainable parameters) and the
+        training scene with its parameter keys and per-view targets."""
+        import drjit as dr
+        import mitsuba as mi
+
+        if self.targets is None:
+            raise RuntimeError("Stage 1 is built after its targets (render_targets first)")
         self._make_optimiser()
         # the window of each view the loss reads (its domain's bounding box): training renders only it
-        self.windows = training_windows(self.targets.domain, cfg.domain) if getattr(plan, "region", False) else None
-        self._batched = uses_batch(plan.integrator) and self.windows is None
+        self.windows = training_windows(self.targets.domain, self.cfg.domain) \
+            if getattr(self.plan, "region", False) else None
+        self._batched = uses_batch(self.plan.integrator) and self.windows is None
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
-        self._bg = [mi.TensorXf(self.window(v, self.targets.background[v])) for v in range(len(cams))]
-        self._w = [self.window(v, self.targets.domain[v]) for v in range(len(cams))] if cfg.domain != "frame" else \
-            [None] * len(cams)
+        self._bg = [mi.TensorXf(self.window(v, self.targets.background[v])) for v in range(len(self.cams))]
+        self._w = [self.window(v, self.targets.domain[v]) for v in range(len(self.cams))] \
+            if self.cfg.domain != "frame" else [None] * len(self.cams)
         dr.eval()
+        return self
 
     # --- set-up -------------------------------------------------------------
     def _prepare(self, values: dict[str, np.ndarray]):
@@ -267,8 +329,8 @@ class Stage1:
         Returns the search's record; its seconds exclude the chosen start's warm start (``warm_start_info``)."""
         from optimizer.optimise.startsearch import start_search
 
-        if self.iteration:
-            raise RuntimeError("the start search runs before Stage 1's first step")
+        if self.iteration or self.opt is None:
+            raise RuntimeError("the start search runs after Stage 1 is built and before its first step")
         t0 = time.perf_counter()
         have = (float(self.values["roughness"].flat[0]), self.values, self.warm_start_info)
         before = self.warm_start_info.seconds if self.warm_start_info is not None else 0.0
@@ -292,12 +354,6 @@ class Stage1:
     def shading_integrator(self) -> dict:
         """A path tracer consistent with the training integrator (same depth) for targets and final renders."""
         return shading_integrator(self.plan)
-
-    def _targets(self) -> Targets:
-        targets, self.initial_render = render_targets(self.env, self.cams, self._object(), self.shading_integrator(),
-                                                      self.cfg, region=getattr(self.plan, "region_search", False),
-                                                      region_threshold=getattr(self.plan, "region_threshold", None))
-        return targets
 
     def window(self, view: int, image: np.ndarray) -> np.ndarray:
         """The part of a full-frame ``image`` (``(H, W, ...)``) of ``view`` that its training render covers."""
@@ -327,10 +383,8 @@ class Stage1:
 
         keys["positions"] = find("vertex_positions")
         if self.app.bsdf:
-            keys["albedo"] = find("base_color.data")
-            keys["metallic"] = find("metallic.data")
-            keys["roughness"] = find("roughness.data")
-            keys["transmittance"] = find("spec_trans.data")
+            for name, m in MAPS.items():
+                keys[name] = find(f"{m.principled}.data")
         else:
             keys["albedo"] = find("reflectance.data")
         missing = [k for k, v in keys.items() if v is None]
@@ -351,12 +405,9 @@ class Stage1:
             dt = opt["translation"] if "translation" in opt else mi.Float(v["translation"])
             th = opt["rotation"] if "rotation" in opt else mi.Float(v["rotation"])
             out[keys["positions"]] = g.positions_dr(d, dt, th)
-        for name in MAPS:
+        for name, m in MAPS.items():
             if name in opt and name in keys:
-                value = opt[name]
-                if name == "roughness":
-                    value = scn.effective_roughness(value)
-                out[keys[name]] = value
+                out[keys[name]] = m.rendered(opt[name])  # (the roughness' safe minimum)
         return out
 
     def _apply(self) -> None:
@@ -438,6 +489,8 @@ class Stage1:
         import drjit as dr
         import mitsuba as mi
 
+        if self.opt is None:
+            raise RuntimeError("Stage 1 steps once prepared (prepare(), or its four steps)")
         V = len(views)
         # Loss terms stay Dr.Jit values (detached) and are read back once, after all views: a
         # read-back per view would stall the pipeline.

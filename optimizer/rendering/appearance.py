@@ -5,11 +5,10 @@ Parameters (all optimised with Adam, all in Dr.Jit arrays):
 =============== ================= =========================================================
 name            shape             meaning
 =============== ================= =========================================================
-albedo          (R, R, 3)         linear base colour in [0, 1] (init 0.5)
-metallic        (R, R, 1)         [0, 1] (init 0)
-roughness       (R, R, 1)         [0, 1] map value (init 0); rendered as
-                                  ``scene.effective_roughness`` (safe minimum 0.035)
-transmittance   (R, R, 1)         principled ``spec_trans`` in [0, 1] (init 0.5)
+albedo          (R, R, 3)         the BSDF maps (:data:`optimizer.scenes.bsdf_maps.MAPS`: albedo
+metallic        (R, R, 1)         linear base colour, metallic, roughness (map value; rendered with
+roughness       (R, R, 1)         the safe minimum 0.035), transmittance = principled ``spec_trans``),
+transmittance   (R, R, 1)         each in [0, 1]; paper start 0.5, 0, 0, 0.5
 displacement    (Rd, Rd, 1)       d in [-1, 1]; D = d * bound, bound = displacement_bound *
                                   object size (scene units); v' = v + D(u) n (Eq. 4)
 translation     (3,)              dt, clipped to +-translation_fraction * size; dz = 0
@@ -37,19 +36,10 @@ from typing import Any
 
 import numpy as np
 
+from optimizer.scenes.bsdf_maps import MAPS
 from optimizer.scenes.pose import euler_xyz_deg, model_matrix
 from optimizer.rendering import scene as scn
-from optimizer.rendering.scene import ROUGHNESS_MIN
 from optimizer.scenes.scenepack import MaterialSpec, ObjectSpec
-
-MAPS = ("albedo", "metallic", "roughness", "transmittance")
-
-#: Smallest albedo value a channel may take. Mitsuba's principled BSDF tints its specular transmission by
-#: ``sqrt(base_color)``, whose slope is infinite at 0: with ``spec_trans > 0`` a channel at exactly 0 gets an
-#: infinite (or NaN) gradient. The sanitiser zeroes it, so such a texel could never leave 0, and the NaN reached
-#: the pose's gradient through the shared vertex graph (one step in two lost its rotation update on meadow; the
-#: warm start clips 13 % of meadow's seen texels at 0). At 1e-3 the slope is ~16 and the colour is black in 8 bit.
-ALBEDO_MIN = 1e-3
 
 
 @dataclasses.dataclass
@@ -80,12 +70,12 @@ class AppearanceConfig:
     grad_blur: float = 0.0
     freeze_displacement: bool = False  # displacement applied from the initial values, not optimised (Stage 2 option)
 
+    def map_on(self, name: str) -> bool:
+        """Whether BSDF map ``name`` is optimised (every switch it needs is on; else it is fixed at its ``off``)."""
+        return all(getattr(self, s) for s in MAPS[name].switches)
+
     def trainable(self) -> list[str]:
-        names = ["albedo"]
-        if self.bsdf:
-            names += ["metallic", "roughness"]
-            if self.transmittance:
-                names.append("transmittance")
+        names = [n for n in MAPS if self.map_on(n)]
         if self.displacement and not self.freeze_displacement:
             names.append("displacement")
         if self.pose:
@@ -108,18 +98,20 @@ class AppearanceConfig:
 
 
 def initial_values(cfg: AppearanceConfig, material: MaterialSpec) -> dict[str, np.ndarray]:
-    """Initial parameter arrays (paper: albedo 0.5, metallic 0, roughness 0, transmittance 0.5)."""
+    """Initial parameter arrays: each BSDF map (:data:`~optimizer.scenes.bsdf_maps.MAPS`) at the material's value,
+    or its ``off`` value when switched off (paper: albedo 0.5, metallic 0, roughness 0, transmittance 0.5); zero
+    displacement, translation and turn."""
     r, rd = cfg.map_resolution, cfg.displacement_resolution
-    t0 = material.transmittance if (cfg.transmittance and cfg.bsdf) else 0.0
-    return {
-        "albedo": np.broadcast_to(np.asarray(material.albedo, np.float32), (r, r, 3)).copy(),
-        "metallic": np.full((r, r, 1), material.metallic if cfg.bsdf else 0.0, np.float32),
-        "roughness": np.full((r, r, 1), material.roughness if cfg.bsdf else 1.0, np.float32),
-        "transmittance": np.full((r, r, 1), t0, np.float32),
-        "displacement": np.zeros((rd, rd, 1), np.float32),
-        "translation": np.zeros(3, np.float32),
-        "rotation": np.zeros(1, np.float32),
-    }
+    out: dict[str, np.ndarray] = {}
+    for name, m in MAPS.items():
+        value = getattr(material, name) if cfg.map_on(name) else m.off
+        if m.colour:
+            out[name] = np.broadcast_to(np.asarray(value, np.float32), (r, r, m.channels)).copy()
+        else:
+            out[name] = np.full((r, r, 1), value, np.float32)
+    out.update(displacement=np.zeros((rd, rd, 1), np.float32), translation=np.zeros(3, np.float32),
+               rotation=np.zeros(1, np.float32))
+    return out
 
 
 def bilinear_taps(uv: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -232,11 +224,8 @@ def clamp_projections(cfg: AppearanceConfig, size: float) -> dict[str, Any]:
 
     lim = cfg.translation_fraction * size
 
-    def unit(x):
-        return dr.clip(dr.select(dr.isfinite(x), x, 0.0), 0.0, 1.0)
-
-    def colour(x):  # albedo: [ALBEDO_MIN, 1] (the principled BSDF's sqrt tint has an infinite slope at 0)
-        return dr.clip(dr.select(dr.isfinite(x), x, ALBEDO_MIN), ALBEDO_MIN, 1.0)
+    def unit(low: float):  # a map: [low, 1] (albedo: ALBEDO_MIN, the principled BSDF's sqrt tint is infinite at 0)
+        return lambda x: dr.clip(dr.select(dr.isfinite(x), x, low), low, 1.0)
 
     def signed(x):
         return dr.clip(dr.select(dr.isfinite(x), x, 0.0), -1.0, 1.0)
@@ -254,22 +243,21 @@ def clamp_projections(cfg: AppearanceConfig, size: float) -> dict[str, Any]:
         x = dr.select(ok, x, 0.0)
         return dr.clip(x - 2 * math.pi * dr.round(x / (2 * math.pi)), -math.pi, math.pi)
 
-    return {"albedo": colour, "metallic": unit, "roughness": unit, "transmittance": unit,
+    return {**{name: unit(m.low) for name, m in MAPS.items()},
             "displacement": signed, "translation": offset, "rotation": angle}
 
 
 def rendered_maps(values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The maps as rendered (roughness through the safe minimum), for export."""
-    out = {k: values[k] for k in MAPS}
-    out["roughness"] = ROUGHNESS_MIN + (1.0 - ROUGHNESS_MIN) * values["roughness"]
-    return out
+    """The maps as rendered (:meth:`~optimizer.scenes.bsdf_maps.BsdfMap.rendered`: roughness through the safe
+    minimum), for export."""
+    return {k: m.rendered(values[k]) for k, m in MAPS.items()}
 
 
 def object_bsdf(values: dict[str, np.ndarray], app: AppearanceConfig) -> dict:
     """The object's BSDF dict for parameter ``values`` (albedo only -> Lambertian)."""
     if not app.bsdf:
         return {"type": "diffuse", "reflectance": scn.texture(values["albedo"])}
-    return scn.principled(values["albedo"], values["metallic"], values["roughness"], values["transmittance"], app.eta)
+    return scn.principled({k: values[k] for k in MAPS}, app.eta)
 
 
 def object_mesh(geometry: Geometry, values: dict[str, np.ndarray], app: AppearanceConfig) -> dict:

@@ -7,6 +7,7 @@ from typing import Callable
 import numpy as np
 
 from optimizer.rendering import scene as scn
+from optimizer.scenes.bsdf_maps import material_values
 from optimizer.scenes.pose import model_matrix, transform_points
 from optimizer.scenes.scenepack import MaterialSpec, ScenePack
 
@@ -34,7 +35,7 @@ def static_object_fn(pack: ScenePack, prepared, material: MaterialSpec | None = 
     verts = placed_vertices(pack, prepared)
 
     def build():
-        bsdf = scn.principled(mat.albedo, mat.metallic, mat.roughness, mat.transmittance, mat.eta)
+        bsdf = scn.principled(material_values(mat), mat.eta)
         return scn.object_mesh(verts, prepared.uv_faces, prepared.uvs, bsdf)
 
     return build

@@ -301,8 +301,3 @@ def bake(surface: TexelSurface, colours: np.ndarray, assigned: np.ndarray, fallb
     return np.clip(out.reshape(R, R, 3), 0.0, 1.0)
 
 
-def chart_mask(surface: TexelSurface) -> np.ndarray:
-    """``(R, R)`` bool: texels whose centre lies on the surface."""
-    m = np.zeros(surface.resolution ** 2, bool)
-    m[surface.index] = True
-    return m.reshape(surface.resolution, surface.resolution)

@@ -8,23 +8,19 @@ vertex buffer through ``mi.traverse``.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from optimizer.scenes.bsdf_maps import MAPS
 from optimizer.scenes.cameras import Camera
 
 OBJECT_ID = "object"
 
-#: Roughness maps in [0, 1] render with ``r_min + (1 - r_min) r``: Mitsuba clamps the
-#: GGX alpha = r^2 at 1e-3 (r ~ 0.032), below which the gradient is zero, and r = 0
-#: yields unstable (NaN-prone) near-delta lobes. The affine map keeps the gradient
-#: alive everywhere and makes the paper's initial roughness 0 safe.
-ROUGHNESS_MIN = 0.035
-
-
 def effective_roughness(r):
-    return ROUGHNESS_MIN + (1.0 - ROUGHNESS_MIN) * r
+    """The rendered roughness of map value ``r`` (the safe minimum :data:`~optimizer.scenes.bsdf_maps.ROUGHNESS_MIN`
+    applied; :meth:`~optimizer.scenes.bsdf_maps.BsdfMap.rendered` of the roughness map)."""
+    return MAPS["roughness"].rendered(r)
 
 
 def texture(value, raw: bool = True) -> dict:
@@ -44,26 +40,20 @@ def texture(value, raw: bool = True) -> dict:
             "filter_type": "bilinear", "wrap_mode": "clamp"}
 
 
-def principled(albedo, metallic, roughness, transmittance, eta: float = 1.5) -> dict:
-    """Principled BSDF dict; each parameter a scalar, an RGB triple, a NumPy map or an ``mi.TensorXf``.
-
-    ``roughness`` is the map value in [0, 1]; the rendered roughness is
-    :func:`effective_roughness` of it (applied here for constants and maps).
-    """
+def principled(maps: Mapping[str, Any], eta: float = 1.5) -> dict:
+    """Principled BSDF dict of the BSDF maps' values (``{name: value}`` for every map of
+    :data:`~optimizer.scenes.bsdf_maps.MAPS`; each a scalar, an RGB triple, a NumPy map or an ``mi.TensorXf``), as
+    *map values*: a map's rendered value (the roughness' safe minimum) is applied here, for constants and maps."""
     import mitsuba as mi
 
-    if isinstance(roughness, mi.TensorXf):
-        rough = effective_roughness(roughness)
-    else:
-        rough = effective_roughness(np.asarray(roughness, dtype=np.float32))
-    return {
-        "type": "principled",
-        "base_color": texture(albedo),
-        "metallic": texture(metallic),
-        "roughness": texture(rough),
-        "spec_trans": texture(transmittance),
-        "eta": float(eta),
-    }
+    d: dict[str, Any] = {"type": "principled"}
+    for name, m in MAPS.items():
+        v = maps[name]
+        if not isinstance(v, mi.TensorXf):
+            v = np.asarray(v, dtype=np.float32)
+        d[m.principled] = texture(m.rendered(v) if m.rendered_offset else v)
+    d["eta"] = float(eta)
+    return d
 
 
 def object_mesh(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray | None, bsdf: dict | Any,

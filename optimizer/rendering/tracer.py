@@ -39,8 +39,6 @@ wavefront kernel per vertex (each compiles once and is cached).
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import numpy as np
 
 MAX_EMITTERS = 4
@@ -223,7 +221,6 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
     Pixels are rendered in chunks of at most ``chunk`` samples (each pixel's samples stay in one chunk; the result
     does not depend on the chunking). ``seed`` keys the random streams (:func:`pixel_rng`)."""
     import drjit as dr
-    import mitsuba as mi
 
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
     groups = int(groups)

@@ -190,35 +190,3 @@ def repair_negative_radiance(pano: np.ndarray, radius: int = 2) -> tuple[np.ndar
     }
 
 
-def clamp_negative_radiance(pano: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
-    """Set negative channel values of a linear panorama ``(H, W, 3)`` to 0, and say how much that changed.
-
-    Lossy HDR compression (the DWAB EXRs of web asset packs) rings around a bright sun: a few pixels next
-    to it go negative (e.g. -3894 beside a 2.99e4 sun). No radiance is negative, so a renderer must not
-    see them; clamping keeps every other pixel bit-exact and leaves the sun's peak where it was. The
-    returned figures (all solid-angle weighted, Rec. 709 luminance) are what the repair did:
-    ``pixels`` with a negative channel, ``pixel_fraction``, ``power_before`` / ``power_after`` (sr-weighted
-    luminance over the sphere), ``energy_removed`` (the negative energy clamped away, >= 0) and
-    ``energy_removed_fraction`` (of ``power_before``), and the most negative value ``min_value``.
-    NaN or infinite values are refused (a :class:`~camo_base.errors.CamoError`), not repaired.
-    """
-    from camo_base.imaging import REC709_LUMA
-
-    a = _finite_rgb(pano)
-    neg = np.minimum(a, 0.0).astype(np.float64)
-    w = solid_angles(a.shape[0], a.shape[1])
-    luma = np.asarray(REC709_LUMA, np.float64)
-    before = float(np.sum((a.astype(np.float64) @ luma) * w))
-    removed = float(-np.sum((neg @ luma) * w))
-    out = np.maximum(a, 0.0).astype(np.float32)
-    after = float(np.sum((out.astype(np.float64) @ luma) * w))
-    pixels = int((a < 0).any(axis=-1).sum())
-    return out, {
-        "pixels": pixels,
-        "pixel_fraction": pixels / float(a.shape[0] * a.shape[1]),
-        "min_value": float(a.min()),
-        "power_before": before,
-        "power_after": after,
-        "energy_removed": removed,
-        "energy_removed_fraction": removed / before if before > 0 else 0.0,
-    }

@@ -47,6 +47,7 @@ from typing import Any
 
 from camo_base.documents import read_toml
 from camo_base.errors import CamoError
+from optimizer.scenes.bsdf_maps import MAPS
 
 
 @dataclasses.dataclass
@@ -88,13 +89,15 @@ class RenderSpec:
     spp: int = 16
 
 
-@dataclasses.dataclass
-class MaterialSpec:
-    albedo: tuple[float, float, float] = (0.5, 0.5, 0.5)
-    metallic: float = 0.0
-    roughness: float = 0.0
-    transmittance: float = 0.5
-    eta: float = 1.5
+#: ``[material]``: the object's initial material, one field per BSDF map (:data:`optimizer.scenes.bsdf_maps.MAPS`,
+#: default the paper's starting value; a colour map an RGB triple, linear) and the index of refraction ``eta``.
+MaterialSpec = dataclasses.make_dataclass(
+    "MaterialSpec",
+    [(m.name, tuple[float, float, float] if m.colour else float,
+      dataclasses.field(default=(float(m.initial),) * 3 if m.colour else float(m.initial))) for m in MAPS.values()]
+    + [("eta", float, dataclasses.field(default=1.5))],
+    namespace={"__doc__": "The initial material of a scene pack ([material]): one field per BSDF map and eta.",
+               "__module__": __name__})
 
 
 @dataclasses.dataclass
@@ -269,12 +272,15 @@ def parse_pack(data: dict[str, Any], base_dir: Path | None = None, source: str |
 
     m = sections["material"]
     mat = MaterialSpec()
-    if "albedo" in m:
-        a = m["albedo"]
-        mat.albedo = _vec("[material] albedo", a, (3,), 0.0, 1.0) if isinstance(a, list) else (_num("[material] albedo", a, 0.0, 1.0),) * 3
-    for k in ("metallic", "roughness", "transmittance"):
-        if k in m:
-            setattr(mat, k, _num(f"[material] {k}", m[k], 0.0, 1.0))
+    for k, bm in MAPS.items():
+        if k not in m:
+            continue
+        a = m[k]
+        if bm.colour:
+            a = _vec(f"[material] {k}", a, (3,), 0.0, 1.0) if isinstance(a, list) else (_num(f"[material] {k}", a, 0.0, 1.0),) * 3
+        else:
+            a = _num(f"[material] {k}", a, 0.0, 1.0)
+        setattr(mat, k, a)
     if "eta" in m:
         mat.eta = _num("[material] eta", m["eta"], 1.0001, 4.0)
 

@@ -1,6 +1,6 @@
 /* Click-to-find task. No build step, no dependencies.
  *
- * 1. GET the participant's remaining trials (opaque image URLs only).
+ * 1. GET the participant's remaining trials (opaque image URLs only: lossless WebP, PNG fallback).
  * 2. Preload and decode every image before the first trial, so download time never counts.
  * 3. Per trial: POST /api/start (the server starts the trial's clock the first time and answers with the
  *    time already used, so a reload continues the same deadline), show the image at a fixed share of the
@@ -130,9 +130,11 @@
       var img = new Image();
       img.alt = 'Find the hidden object and click on it';
       img.draggable = false;
+      var url = t.src;  // lossless WebP; the same pixels as PNG (t.fallback) for a browser without WebP
       for (var attempt = 0; ; attempt++) {
-        img.src = t.src;
+        img.src = url;
         try { await img.decode(); break; } catch (e) {
+          if (url !== t.fallback && t.fallback) { url = t.fallback; continue; }
           if (attempt >= 5) throw new Fatal('An image could not be loaded. Please check your connection and reload the page.');
           await sleep(500 * (attempt + 1));
         }

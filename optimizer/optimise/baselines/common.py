@@ -53,6 +53,7 @@ import numpy as np
 
 from camo_base import seeds
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, initial_values, object_bsdf
+from optimizer.scenes.bsdf_maps import MAPS
 from optimizer.scenes.cameras import Camera
 from camo_base.errors import CamoError
 from optimizer.scenes.scenepack import ScenePack
@@ -194,28 +195,29 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
 
 
 def painted_values(setup: Setup, albedo: np.ndarray) -> dict[str, np.ndarray]:
-    """Parameters of a painted (Lambertian-like) object: ``albedo`` map, metallic 0, roughness 1, transmittance 0."""
+    """Parameters of a painted (Lambertian-like) object: the ``albedo`` map and every other BSDF map at its
+    ``painted`` value (:data:`optimizer.scenes.bsdf_maps.MAPS`: metallic 0, roughness 1, transmittance 0)."""
     vals = initial_values(setup.app, setup.pack.material)
     r = setup.app.map_resolution
     a = np.asarray(albedo, np.float32)
     if a.shape != (r, r, 3):
         raise ValueError(f"albedo map must be ({r}, {r}, 3), got {a.shape}")
-    vals["albedo"] = np.clip(a, 0.0, 1.0)
-    vals["metallic"] = np.zeros((r, r, 1), np.float32)
-    vals["roughness"] = np.ones((r, r, 1), np.float32)
-    vals["transmittance"] = np.zeros((r, r, 1), np.float32)
+    for name, m in MAPS.items():
+        vals[name] = np.clip(a, 0.0, 1.0) if m.painted is None else np.full((r, r, m.channels), m.painted, np.float32)
     return vals
 
 
 def run_directory(spec, out: str | Path,
                   compute: Callable[[Setup], tuple[dict[str, np.ndarray], list[dict[str, Any]], dict[str, Any]]],
-                  overwrite: bool = False, progress: bool = True, threads: int | None = None) -> Path:
+                  progress: bool = True, threads: int | None = None,
+                  provenance: dict[str, Any] | None = None) -> Path:
     """Set up ``spec`` (a baseline's :class:`optimizer.optimise.spec.RunSpec`), run ``compute(setup) -> (values,
-    history, info)``, and write the run directory.
+    history, info)``, and write the run directory into the folder ``out`` (the staging folder of
+    :func:`optimizer.optimise.run.run`, which moves it into place).
 
     The directory has the layout of ``ours`` (CONTRIBUTING.md): ``config.toml``
-    (the spec, with a ``[baseline]`` table = ``info``), ``log.jsonl`` (one record per
-    training iteration; empty for one-shot methods), maps, ``result.glb`` /
+    (the spec, with a ``[baseline]`` table = ``info``; ``provenance``: its ``[versions]`` and ``[[history]]``),
+    ``log.jsonl`` (one record per training iteration; empty for one-shot methods), maps, ``result.glb`` /
     ``.obj`` / ``.ply``, ``scene.xml``, ``pose.json``, previews, ``renders.npz``
     and ``summary.json``. There is no ``checkpoint.npz``: baselines are
     one-shot runs and cannot be resumed.
@@ -223,12 +225,11 @@ def run_directory(spec, out: str | Path,
     from optimizer import backend
     from optimizer.assets.result import Result
     from camo_base.provenance import versions
-    from optimizer.assets.rundir import prepare_run_dir, write_config, write_log
+    from optimizer.assets.rundir import write_config, write_log
     from optimizer.optimise.finish import finish
     from optimizer.optimise.planning import config_record
 
     out = Path(out)
-    prepare_run_dir(out, False, overwrite)
     backend.init(threads=threads)
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
     t0 = time.perf_counter()
@@ -238,7 +239,7 @@ def run_directory(spec, out: str | Path,
     values, history, info = compute(st)
     seconds_method = time.perf_counter() - t1
     write_config(out, spec.to_dict(), {
-        "versions": versions(),
+        **(provenance or {"versions": versions()}),
         "plan": config_record(st.plan),
         "fingerprint": {"value": spec.fingerprint()},
         "baseline": {"method": spec.method, **info},
@@ -247,5 +248,6 @@ def run_directory(spec, out: str | Path,
     say("rendering the result")
     res = Result(spec.pack, st.env, st.cams, st.geometry, values, st.app, st.integrator, st.stage1.target_spp, st.targets)
     finish(out, res, history, st.stage1, st.initial_render, method=spec.method,
-           seconds={"setup": seconds_setup, "method": seconds_method}, extra={"plan": st.plan.to_dict()})
+           seconds={"setup": seconds_setup, "method": seconds_method},
+           extra={"fingerprint": spec.fingerprint(), "plan": st.plan.to_dict()})
     return out

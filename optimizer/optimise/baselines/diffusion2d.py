@@ -33,6 +33,7 @@ import numpy as np
 from camo_base import imaging, seeds
 from optimizer.optimise.baselines.common import BaselineOptions, Setup, observed_albedo, painted_values
 from optimizer.optimise.baselines.owens2014 import fill_in_order
+from optimizer.optimise.method import Method
 from optimizer.rendering.projection import bake
 
 
@@ -76,3 +77,12 @@ def compute(setup: Setup, opts: Diffusion2DOptions | None = None):
             "texels_seen": int(assigned.sum()), "seconds_inpaint": float(sum(secs))}
     setup.inpainted = images  # for inspection by callers/tests
     return values, [], info
+
+
+#: The method of this module (collected by :mod:`optimizer.optimise.methods`): ``--stage2-backend``,
+#: ``--sdxl-path`` and ``--controlnet-path`` set its inpainter.
+METHODS = (Method("diffusion2d", "per-view inpainting projected onto the surface (baselines.diffusion2d)",
+                  options=Diffusion2DOptions, compute=lambda setup, options, progress: compute(setup, options),
+                  option_names=(("stage2_backend", "options.backend"),
+                                ("sdxl_path", "options.backend_options.sdxl_path"),
+                                ("controlnet_path", "options.backend_options.controlnet_path"))),)

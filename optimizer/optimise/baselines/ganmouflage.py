@@ -131,6 +131,7 @@ from camo_base import imaging, seeds
 from optimizer.scenes.cameras import Camera
 from optimizer.rendering import projection
 from optimizer.optimise.baselines.common import Setup, painted_values, to_albedo
+from optimizer.optimise.method import Method
 
 # --------------------------------------------------------------------------- config
 
@@ -721,3 +722,10 @@ def compute(setup: Setup, cfg: GanmouflageConfig | None = None, progress: bool =
     info.update(reference_views=tr.refs, texels=len(surf))
     setup.trainer = tr
     return values, tr.history, info
+
+
+#: The method of this module (collected by :mod:`optimizer.optimise.methods`): ``--iterations`` sets its training
+#: iterations; ``ganmouflage-paper`` is the same method with :meth:`GanmouflageConfig.paper`.
+METHODS = (Method("ganmouflage", "Guo et al. 2023: texture field, perceptual + adversarial losses (baselines.ganmouflage)",
+                  options=GanmouflageConfig, compute=compute, option_names=(("iterations", "options.iterations"),),
+                  variants=(("ganmouflage-paper", GanmouflageConfig.paper),)),)

@@ -40,9 +40,8 @@ import numpy as np
 
 from camo_base import seeds
 from optimizer.optimise.baselines.common import BaselineOptions, Setup, observed_albedo, painted_values
+from optimizer.optimise.method import Method
 from optimizer.rendering.projection import Observations, bake
-
-METHODS = ("mean", "random", "greedy")
 
 
 @dataclasses.dataclass
@@ -132,3 +131,21 @@ def compute(setup: Setup, method: str, opts: OwensOptions | None = None):
         raise ValueError(f"unknown Owens 2014 model {method!r}")
     values = painted_values(setup, bake(surf, col, assigned))
     return values, [], info
+
+
+def _model(name: str):
+    def run(setup: Setup, opts: OwensOptions | None, progress: bool):
+        return compute(setup, name, opts)
+
+    return run
+
+
+#: The methods of this module (collected by :mod:`optimizer.optimise.methods`).
+METHODS = (
+    Method("mean", "Owens et al. 2014: mean background colour over the views (baselines.owens2014)",
+           options=OwensOptions, compute=_model("mean")),
+    Method("random", "Owens et al. 2014: one random projection order (baselines.owens2014)",
+           options=OwensOptions, compute=_model("random")),
+    Method("greedy", "Owens et al. 2014: greedy view choice (baselines.owens2014)",
+           options=OwensOptions, compute=_model("greedy")),
+)

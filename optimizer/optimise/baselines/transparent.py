@@ -15,6 +15,7 @@ import numpy as np
 
 from optimizer.rendering.appearance import initial_values
 from optimizer.optimise.baselines.common import Setup
+from optimizer.optimise.method import Method
 
 
 def compute(setup: Setup):
@@ -25,3 +26,8 @@ def compute(setup: Setup):
             "metallic": 0.0, "roughness": 0.0,
             "eta": float(setup.app.eta)}
     return vals, [], info
+
+
+#: The method of this module (collected by :mod:`optimizer.optimise.methods`).
+METHODS = (Method("transparent", "transmittance 1 everywhere: a glass-like object (baselines.transparent)",
+                  compute=lambda setup, options, progress: compute(setup)),)

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 from camo_base.errors import CamoError
+from camo_base.ranges import Range
 
 
 def register(sub) -> None:
@@ -29,9 +30,9 @@ def register(sub) -> None:
                    "else the public registry)")
     p.add_argument("--pypi-files", help="PyPI files host for `registry = \"pypi\"` entries (default: CAMO_PYPI_FILES, "
                    "else the public one)")
-    p.add_argument("--timeout", type=float, default=30.0, help="seconds per connect / read (default 30)")
-    p.add_argument("--retries", type=int, default=4, help="further attempts per download after a failure (default 4)")
-    p.add_argument("--backoff", type=float, default=2.0, help="seconds before the first retry, doubled each time (default 2)")
+    p.add_argument("--timeout", type=Range(float, 0.0, 3600.0, lo_open=True).arg_type(), default=30.0, help="seconds per connect / read (default 30)")
+    p.add_argument("--retries", type=Range(int, 0, 20).arg_type(), default=4, help="further attempts per download after a failure (default 4)")
+    p.add_argument("--backoff", type=Range(float, 0.0, 60.0).arg_type(), default=2.0, help="seconds before the first retry, doubled each time (default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_fetch)
 
@@ -260,6 +261,8 @@ def run_pack(args) -> int:
     if other is not None:
         where[id(other)] = (Path(args.with_dest) if args.with_dest else dest, other_man.path)
 
+    if "script" in (a.kind, other.kind if other is not None else None):
+        raise CamoError(f"{args.name if a.kind == 'script' else other.name} is a script, not part of a scene pack")
     if a.kind == "mesh":
         mesh_asset, env_asset = a, other
         if other is not None and other.kind == "mesh":

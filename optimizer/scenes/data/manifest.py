@@ -6,7 +6,7 @@ A manifest is a TOML file with one ``[[asset]]`` table per file (see ``data_mani
 
     [[asset]]
     name = "royal_esplanade"                 # unique; [A-Za-z0-9][A-Za-z0-9._-]*
-    kind = "hdri"                            # mesh | scene | hdri
+    kind = "hdri"                            # mesh | scene | hdri | script
     url = "https://dl.polyhaven.org/file/ph-assets/HDRIs/hdr/2k/royal_esplanade_2k.hdr"
     licence = "CC0-1.0"                      # SPDX id, or the source's licence name
     sha256 = "TO-BE-PINNED"                  # 64 hex digits, or the placeholder
@@ -21,6 +21,9 @@ A manifest is a TOML file with one ``[[asset]]`` table per file (see ``data_mani
     homepage = "https://polyhaven.com/a/royal_esplanade"
     [asset.pack]                             # values for the scene pack (see below)
     capture_height = 1.6
+
+A ``script`` is a JavaScript file the toolkit serves to browsers (the interactive viewer's ``<model-viewer>``):
+it lands as it is, in no scene pack.
 
 ``pack`` holds, for a ``mesh``, ``[object]`` values (size, rotation, translation, target_vertices); for an
 ``hdri``, ``[environment]`` panorama values (capture_height, ground, ground_extent, rotation); for a
@@ -68,7 +71,7 @@ from camo_base.documents import read_toml
 from camo_base.errors import CamoError
 
 PLACEHOLDER = "TO-BE-PINNED"
-KINDS = ("mesh", "scene", "hdri")
+KINDS = ("mesh", "scene", "hdri", "script")
 ARCHIVES = ("zip", "tar", "tar.gz", "tar.bz2", "tar.xz")
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
@@ -89,6 +92,7 @@ _PACK_KEYS = {
     "mesh": ("size", "rotation", "translation", "target_vertices"),
     "hdri": ("capture_height", "ground", "ground_extent", "rotation"),
     "scene": ("xml",),
+    "script": (),
 }
 _PACK_TABLES = ("cameras", "render")
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -303,6 +307,8 @@ def _parse_asset(i: int, raw: Any, base_url: str | None, mpath: Path) -> Asset:
         raise CamoError(f"{where}: an hdri must be an .hdr or .exr file, got {suffix_of!r}")
     if kind == "scene" and not suffix_of.lower().endswith(".xml"):
         raise CamoError(f"{where}: a scene's pack.xml must be a .xml file, got {suffix_of!r}")
+    if kind == "script" and not suffix_of.lower().endswith(".js"):
+        raise CamoError(f"{where}: a script must be a .js file, got {suffix_of!r}")
     if archive is None and filename.lower().endswith((".zip", ".tar", ".tgz", ".tar.gz", ".tar.bz2", ".tar.xz")):
         raise CamoError(f"{where}: {filename!r} looks like an archive; set `archive` and `member`")
 
@@ -359,8 +365,8 @@ def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
     name, kind = raw["name"], raw["kind"]
     if not isinstance(name, str) or not _NAME_RE.match(name):
         raise CamoError(f"{where}: name must match [A-Za-z0-9][A-Za-z0-9._-]*, got {name!r}")
-    if kind not in ("mesh", "hdri"):
-        raise CamoError(f"{where}: a registry entry must be a mesh or an hdri, got {kind!r}")
+    if kind not in ("mesh", "hdri", "script"):
+        raise CamoError(f"{where}: a registry entry must be a mesh, an hdri or a script, got {kind!r}")
     registry = raw["registry"]
     if registry not in REGISTRIES:
         raise CamoError(f"{where}: registry must be one of {', '.join(REGISTRIES)}, got {registry!r}")
@@ -399,6 +405,8 @@ def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
         raise CamoError(f"{where}: an hdri must land as an .exr or .hdr file, got {filename!r}")
     if kind == "mesh" and not low.endswith(MESH_SUFFIXES):
         raise CamoError(f"{where}: a mesh must land as one of {', '.join(MESH_SUFFIXES)}, got {filename!r}")
+    if kind == "script" and not (low.endswith(".js") and decode == "none" and convert == "none"):
+        raise CamoError(f"{where}: a script lands as it is packaged (decode/convert none), as a .js file")
     if convert == "exr-repair-negative" and not low.endswith(".exr"):
         raise CamoError(f"{where}: convert = exr-repair-negative writes an .exr file, got {filename!r}")
     if convert == "obj-y-up" and not (low.endswith(".obj") and member.lower().endswith(".obj")):

@@ -1,0 +1,110 @@
+"""The tables and pictures of docs/results/observer.md, from stimulus sets with the observer's predictions.
+
+For each pair (evaluation directory, stimulus set built from it): the predicted Table I per method on the formal
+stimuli (what ``camo report --stimuli`` shows), next to the paper's human Table I, the human-range check for the
+plainly visible baselines (Mean, Random, Transparent), Kendall's tau of the observer's method order against each
+metric per scene, and a picture of the stimuli with the simulated clicks (green on the object, red off it; the
+object's outline in magenta) next to the observer's priority and verification maps.
+
+Usage: python bench/observer_results.py --pairs EVAL_DIR:STIMULI_DIR ... [--pictures OUT.jpg] [--views 0,1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def tables(pairs: list[tuple[Path, Path]]) -> str:
+    from evaluation.observer import HUMAN_VISIBLE, PAPER_TABLE_I, predicted_table
+    from evaluation.report import load_metrics, load_simulated, method_label, observer_agreement
+
+    out = []
+    visible = {"Mean [6]", "Random [6]", "Transparent"}
+    for ev, st in pairs:
+        df = load_metrics([ev])
+        df["label"] = [method_label(m, a) for m, a in zip(df["method"], df["ablation"])]
+        views, trials, _ = load_simulated([st])
+        t = predicted_table(views, by=("label",), trials=trials).set_index("label")
+        scene = ", ".join(sorted(views["scene"].unique()))
+        out += [f"### {scene}", "",
+                "| Method | stimuli | pred. confusion | P(miss) | P(timeout) | pred. avg. / med. time of finds (s) "
+                "| human confusion (paper) | human avg. / med. (s) | visible: in human range? |",
+                "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+        for lab, r in t.iterrows():
+            hum = PAPER_TABLE_I.get(lab)
+            ok = ""
+            if lab in visible:
+                lo, hi = HUMAN_VISIBLE["mean_time_s"]
+                ok = "yes" if (r.confusion_rate <= HUMAN_VISIBLE["max_confusion"]
+                               and lo <= r.mean_time_found_s <= hi) else "no"
+            out.append(f"| {lab} | {int(r.n_views)} | {100 * r.confusion_rate:.1f} % | {100 * r.p_miss:.1f} % | "
+                       f"{100 * r.p_timeout:.1f} % | {r.mean_time_found_s:.2f} / {r.median_time_found_s:.2f} | "
+                       + (f"{100 * hum[0]:.1f} % | {hum[1]:.2f} / {hum[2]:.2f}" if hum else "— | —") + f" | {ok} |")
+        taus, _ = observer_agreement(df, views)
+        if taus:
+            out += ["", "Kendall's tau, observer order (predicted confusion) vs metric order (crop): "
+                    + ", ".join(f"{x['metric']} {x['tau']:+.2f}" for x in taus) + "."]
+        out.append("")
+    return "\n".join(out)
+
+
+def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    from evaluation.observer import ObserverConfig, evidence_maps, make_cells, simulate_search
+
+    rows = []
+    for d in stim_dirs:
+        man = json.loads((d / "manifest.json").read_text())
+        for s in sorted(man["stimuli"], key=lambda s: (s["method"], s.get("ablation", ""), s["view"])):
+            if not s["practice"] and s["view"] in views:
+                rows.append((d, s))
+    fig, axes = plt.subplots(len(rows), 3, figsize=(9, 3 * len(rows)), squeeze=False)
+    for ax, (d, s) in zip(axes, rows):
+        img = np.asarray(Image.open(d / "images" / f"{s['id']}.png").convert("RGB"))
+        mask = np.asarray(Image.open(d / "masks" / f"{s['id']}.png").convert("L")) > 127
+        cfg = ObserverConfig()
+        maps = evidence_maps(img, cfg)
+        res = simulate_search(img, n=n, seed=0, config=cfg, mask=mask, cells=make_cells(img, cfg, maps=maps))
+        ax[0].imshow(img)
+        ax[0].contour(mask, [0.5], colors="m", linewidths=0.7)
+        hit, miss = res.clicked & res.found, res.clicked & ~res.found
+        ax[0].scatter(res.click_x[hit], res.click_y[hit], c="lime", s=7)
+        ax[0].scatter(res.click_x[miss], res.click_y[miss], c="red", s=7)
+        lab = s["method"] + (f"+{s['ablation']}" if s.get("ablation") not in ("", "none", None) else "")
+        ax[0].set_title(f"{s['scene']} {lab} view {s['view']}: found {res.found.mean():.0%}, miss {miss.mean():.0%}, "
+                        f"timeout {res.timed_out.mean():.0%}", fontsize=7)
+        ax[1].imshow(maps.guidance, cmap="magma")
+        ax[1].set_title("priority G (object-sized, + near shadows)", fontsize=7)
+        ax[2].imshow(maps.verify, cmap="magma")
+        ax[2].set_title("verification evidence V", fontsize=7)
+        for a in ax:
+            a.set_xticks([])
+            a.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=80, pil_kwargs={"quality": 85})
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pairs", nargs="+", required=True, metavar="EVAL_DIR:STIMULI_DIR")
+    ap.add_argument("--pictures", metavar="OUT.jpg")
+    ap.add_argument("--views", default="0", help="stimulus views in the picture (comma list)")
+    args = ap.parse_args()
+    pairs = [tuple(Path(x) for x in p.split(":", 1)) for p in args.pairs]
+    print(tables(pairs))
+    if args.pictures:
+        pictures([st for _, st in pairs], Path(args.pictures), set(args.views.split(",")))
+
+
+if __name__ == "__main__":
+    main()

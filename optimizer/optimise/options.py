@@ -1,0 +1,257 @@
+"""The options of a run: the schema ``camo optimize``'s flags and a grid's ``[optimize]`` keys are made from.
+
+Each :class:`Option` is one setting a caller may give by name (``iterations``, ``map_resolution``; the flag is
+``--`` plus the name with ``-`` for ``_``): its type, its choices, the run spec field it sets and its help. The
+range of every number is :data:`RANGES` (by spec field), the one place a limit is written:
+:meth:`optimizer.optimise.spec.RunSpec.validate` checks fields with it, and ``camo optimize`` gives each numeric
+flag its :class:`~camo_base.ranges.Range` as argparse ``type``. :func:`convert` turns a plain value (a TOML value,
+a parsed flag) into the option's type, the way argparse would turn its text, so a grid file and a command line
+with the same settings give the same values (and the same grid cell keys).
+:meth:`~optimizer.optimise.spec.RunSpec.from_options` turns a ``{name: value}`` mapping into a run spec.
+
+Options that only say where and how a run executes (:data:`EXECUTION`) are not part of the spec.
+
+This module imports nothing heavy: ``camo --help`` reads it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+from camo_base.errors import SettingError, literal
+from camo_base.ranges import Range
+from optimizer.optimise.presets import DEFAULT_PRESET, PRESETS, preset_values
+
+#: Iteration cap of a stage under --time-budget when no iteration count is given (the budget ends it first).
+UNCAPPED = 100_000
+
+#: The range of every numeric run spec field (and of the execution option ``threads``).
+RANGES: dict[str, Range] = {
+    "seed": Range(int, 0, 2**63 - 1),
+    "spp.train": Range(int, 1, 2**20), "spp.target": Range(int, 1, 2**20), "spp.stage2_preview": Range(int, 1, 2**20),
+    "stage1.iterations": Range(int, 1, UNCAPPED), "stage2.iterations": Range(int, 1, UNCAPPED),
+    "stage1.silhouette_every": Range(int, 1, 10_000),
+    "stage1.pose_search": Range(int, 0, 3600),
+    "stage1.average": Range(float, 0.0, 0.999),
+    "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
+    "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
+    "time_budget": Range(float, 0.0, None, lo_open=True),
+    "appearance.map_resolution": Range(int, 8, 16384), "appearance.displacement_resolution": Range(int, 8, 16384),
+    "appearance.displacement_bound": Range(float, 0.0, 0.5),
+    "appearance.lr_maps": Range(float, 0.0, 10.0, lo_open=True),
+    "appearance.lr_displacement": Range(float, 0.0, 10.0, lo_open=True),
+    "appearance.grad_blur": Range(float, 0.0, 64.0),
+    "holdout.views": Range(int, 0, 1024), "holdout.every": Range(int, 1, UNCAPPED), "holdout.spp": Range(int, 1, 2**20),
+    "holdout.patience": Range(int, 0, UNCAPPED),
+    "pack.object.target_vertices": Range(int, 100, 10_000_000),
+    "pack.render.resolution": Range(int, 8, 8192),
+    "pack.cameras.views": Range(int, 1, 1024),
+    "options.iterations": Range(int, 1, 10_000_000),
+    "options.strength": Range(float, 0.0, 1.0, lo_open=True),
+    "threads": Range(int, 1, 4096),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """One run option (module doc). ``kind``: int, float, str, or bool (a switch: given means true). ``field``: the
+    spec field it sets (``negate``: a switch that sets its field to false); ``choices``: the values a str option
+    takes."""
+
+    name: str
+    field: str
+    kind: type
+    help: str
+    metavar: str | None = None
+    choices: tuple[str, ...] | None = None
+    negate: bool = False
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    @property
+    def range(self) -> Range | None:
+        return RANGES.get(self.field) if self.kind in (int, float) else None
+
+    def convert(self, value: Any, name: str | None = None) -> Any:
+        """``value`` as this option's type, as argparse converts the text of the flag (a str option takes a list
+        as its comma-joined items); SettingError naming ``name`` (default: the option's name) otherwise."""
+        name = name or self.name
+        if self.kind is bool:
+            if not isinstance(value, bool):
+                raise SettingError(f"{{0}} is a flag: write true or false, not {literal(repr(value))}", name)
+            return value
+        if isinstance(value, bool) or isinstance(value, dict) or value is None:
+            raise SettingError(f"{{0}} must be {_kind_text(self)}, not {literal(repr(value))}", name)
+        if self.kind is str:
+            if isinstance(value, (list, tuple)):
+                if not value or any(isinstance(v, (list, tuple, dict, bool)) for v in value):
+                    raise SettingError(f"{{0}}: a list must hold plain numbers or strings, got {literal(repr(value))}", name)
+                value = ",".join(str(v) for v in value)
+            text = str(value)
+            if self.choices is not None and text not in self.choices:
+                raise SettingError(f"{{0}} must be one of {', '.join(self.choices)}, got {literal(repr(text))}", name)
+            return text
+        if isinstance(value, (list, tuple)):
+            raise SettingError(f"{{0}} must be {_kind_text(self)}, not {literal(repr(value))}", name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SettingError(f"{{0}} must be finite, got {literal(repr(value))}", name)
+        try:
+            v = self.kind(value) if isinstance(value, str) or self.kind is float else value
+        except (TypeError, ValueError):
+            raise SettingError(f"{{0}} must be {_kind_text(self)}, got {literal(repr(value))}", name) from None
+        if self.kind is int and not isinstance(v, int):
+            raise SettingError(f"{{0}} must be an integer, got {literal(repr(value))}", name)
+        r = self.range
+        if r is not None:
+            r.check(v, name)
+        return v
+
+
+def _kind_text(opt: Option) -> str:
+    return {int: "an integer", float: "a number", str: "a string or a list"}.get(opt.kind, "a value")
+
+
+def _p(field: str) -> str:
+    """``(fast: X; paper: Y)`` from the presets, or '' when no preset sets ``field``."""
+    v = preset_values(field)
+    return f" ({v})" if v else ""
+
+
+def _options() -> tuple[Option, ...]:
+    from optimizer.assets.conditions import ablations_help
+    from optimizer.optimise.schedule import SCHEDULES
+    from optimizer.scenes.bsdf_maps import MAPS
+
+    o = Option
+    return (
+        o("scene", "scene", str, "built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml"),
+        o("method", "method", str, "the method (default ours; list: camo optimize --help)"),
+        o("preset", "preset", str, "the defaults the settings start from; explicit options override them",
+          choices=tuple(PRESETS)),
+        o("seed", "seed", int, "the run seed (default 0): every random stream derives from it (camo_base.seeds)"),
+        o("time_budget", "time_budget", float,
+          "stop when warm start + Stage 1 + Stage 2 iterations have taken this long (Stage 1 gets 80 %%; without "
+          "--iterations / --stage2-iterations the iteration caps are lifted)", metavar="SECONDS"),
+        o("warm_start", "stage1.warm_start", str, "least-squares albedo start" + _p("stage1.warm_start")
+          + "; off when --init sets albedo", choices=("on", "off")),
+        o("lr_schedule", "stage1.lr_schedule", str, "learning-rate schedule" + _p("stage1.lr_schedule"),
+          choices=tuple(SCHEDULES)),
+        o("lr_maps", "appearance.lr_maps", float, "Adam rate of the BSDF maps" + _p("appearance.lr_maps")),
+        o("lr_displacement", "appearance.lr_displacement", float,
+          "Adam rate of the normalised displacement" + _p("appearance.lr_displacement")),
+        o("grad_blur", "appearance.grad_blur", float,
+          "blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (0: off)"
+          + _p("appearance.grad_blur") + "; averages the per-texel Monte Carlo noise that otherwise speckles the maps",
+          metavar="TEXELS"),
+        o("average", "stage1.average", float,
+          "the result is the moving average of the iterates with this decay (about the last 1 / (1 - DECAY) "
+          "iterates; 0: the iterate itself)", metavar="DECAY"),
+        o("roughness_search", "stage1.roughness_search", str,
+          "before Stage 1, warm-start each of these uniform starting roughness values and start from the one that "
+          "scores best on the held-out views" + _p("stage1.roughness_search") + "; off with 'off' or --init "
+          "roughness=X", metavar="R1,R2,..."),
+        o("snapshot_every", "snapshot_every", int,
+          "save the parameters every N iterations to snapshots/ (bench/bench_convergence.py scores them)",
+          metavar="N"),
+        o("pose_search", "stage1.pose_search", int,
+          "before Stage 1, try N turns of the object about the vertical axis and start from the one whose shadow and "
+          "reflections change the ground least" + _p("stage1.pose_search") + "; 0: off", metavar="N"),
+        o("holdout_views", "holdout.views", int,
+          "held-out jittered views (own seed stream, never the evaluation's) that pick the result among the "
+          "iterates checked every --holdout-every iterations and at each stage's end" + _p("holdout.views")
+          + "; 0: the last iterate is the result", metavar="N"),
+        o("holdout_every", "holdout.every", int, "iterations between held-out checks" + _p("holdout.every"),
+          metavar="N"),
+        o("holdout_spp", "holdout.spp", int, "samples per pixel of the held-out renders" + _p("holdout.spp"),
+          metavar="N"),
+        o("patience", "holdout.patience", int,
+          "stop Stage 1 after N held-out checks in a row without a better iterate (default 0: never)", metavar="N"),
+        o("iterations", "stage1.iterations", int, "Stage 1 iterations" + _p("stage1.iterations")),
+        o("resolution", "pack.render.resolution", int, "render width = height in pixels (default: the pack's)"),
+        o("spp", "spp.train", int,
+          "samples per pixel of each training render (default 4; the run spec's spp.train; `camo scenes render "
+          "--spp` is a render's own spp)"),
+        o("target_spp", "spp.target", int,
+          "samples per pixel of the background targets, the loss domain, the warm start and the final render "
+          "(default 64; spp.target)"),
+        o("views", "pack.cameras.views", int, "number of orbit views (default: the pack's, 16)"),
+        o("ablate", "ablate", str, "comma list of parts switched off: " + ablations_help()),
+        o("init", "pack.material", str,
+          f"initial material values, overriding the scene pack's [material]: {', '.join(MAPS)} in [0, 1] (a colour "
+          f"map: grey or R/G/B; paper: {', '.join(f'{m.initial:g}' for m in MAPS.values())})",
+          metavar="KEY=VALUE,..."),
+        o("loss", "stage1.loss", str,
+          "luminance-gated (Eq. 9) or squared error (unbiased at a few spp)" + _p("stage1.loss"),
+          choices=("gated", "mse")),
+        o("map_resolution", "appearance.map_resolution", int, "BSDF map resolution (default 800, the paper's)"),
+        o("displacement_resolution", "appearance.displacement_resolution", int,
+          "displacement map resolution (default 256)"),
+        o("displacement_bound", "appearance.displacement_bound", float,
+          "displacement amplitude bound, fraction of object size (default 0.02)"),
+        o("target_vertices", "pack.object.target_vertices", int, "remeshing target (paper: ~30,000)"),
+        o("domain", "stage1.domain", str, "loss pixel domain (default object+shadow)",
+          choices=("object+shadow", "frame")),
+        o("stages", "stages", str, "stages to run: 1 (background matching), 2 (synthesis); default 1,2"),
+        o("stage2_iterations", "stage2.iterations", int, "Stage 2 iterations" + _p("stage2.iterations")),
+        o("stage2_backend", "stage2.backend", str, "Stage 2 inpainter (default: patch, offline)",
+          choices=("patch", "diffusers")),
+        o("stage2_strength", "stage2.strength", float, "Stage 2 noise strength t_start in (0, 1] (default 0.5)"),
+        o("stage2_fixed_displacement", "stage2.displacement", bool,
+          "Stage 2 refines the BSDF maps only and keeps Stage 1's displacement (default: refines both, as the "
+          "paper; from roughness 0 under the sun, fixed gave fewer glints in novel views, docs/results)",
+          negate=True),
+        o("sdxl_path", "stage2.sdxl_path", str, "local SDXL inpainting pipeline folder (diffusers backend)"),
+        o("controlnet_path", "stage2.controlnet_path", str, "local depth ControlNet folder (diffusers backend)"),
+        o("silhouette_every", "stage1.silhouette_every", int,
+          "projective training: the silhouette gradient on a random 1/N of the views per step, weighted N"
+          + _p("stage1.silhouette_every") + "; 1 = every view"),
+        o("checkpoint_every", "checkpoint_every", int, "checkpoint every N iterations (default 10)", metavar="N"),
+        o("no_planner", "planner", bool, "always full path tracing (max_depth 12, projective on)", negate=True),
+        o("shadow_gradients", "shadow_gradients", bool, "let shadow boundaries drive the pose (~35x cost)"),
+    )
+
+
+#: Every run option by name (the spec's; execution options are :data:`EXECUTION`).
+OPTIONS: dict[str, Option] = {o.name: o for o in _options()}
+
+#: Options that say where and how a run executes, not what it is: never part of the spec (``camo optimize`` flags).
+EXECUTION = ("spec", "out", "resume", "overwrite", "accept_versions", "quiet", "threads")
+
+#: What an absent option means, for the options whose absence is a fixed value (not the pack's or the preset's):
+#: the run spec's defaults, written as the option would be. ``camo grid`` drops an option set to this value from a
+#: cell's key (the same work); tests/test_optimize_cli.py checks it against the spec.
+ABSENT: dict[str, Any] = {"seed": 0, "preset": DEFAULT_PRESET, "ablate": "", "init": "", "stages": "1,2",
+                          "checkpoint_every": 10, "snapshot_every": 0, "method": "ours"}
+
+#: Option values ``camo grid`` also leaves out of cell keys although they are no longer what an absent option
+#: means: ``loss = "gated"`` was the default until the fast preset took the squared error (2026-11-24), and grid
+#: folders made before keep their keys. Known limit: a grid naming ``loss = "gated"`` and one naming no loss get the
+#: same cell keys; give such grids their own output folder (each cell's config.toml records the loss it ran).
+KEY_STABLE: dict[str, Any] = {"loss": "gated"}
+
+
+def option_field(method, name: str) -> str:
+    """The run spec field option ``name`` sets for ``method`` (an :class:`~optimizer.optimise.method.Method`: a
+    method may take an option for its own ``[options]``)."""
+    return dict(method.option_names).get(name) or OPTIONS[name].field
+
+
+def option_names(method) -> dict[str, str]:
+    """``{spec field: option name}`` for ``method``: how to call a field in a message about options."""
+    out = {option_field(method, n): n for n in OPTIONS}
+    return out
+
+
+def given(mapping: dict[str, Any]) -> dict[str, Any]:
+    """The options a mapping gives: keys with ``-`` as ``_``, None and false switches left out (absent)."""
+    out = {}
+    for k, v in mapping.items():
+        name = str(k).replace("-", "_")
+        if v is None or (v is False and name in OPTIONS and OPTIONS[name].kind is bool):
+            continue
+        out[name] = v
+    return out
