@@ -259,6 +259,9 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert "| Ours |" in md and "| w/o Pose + Displacement |" in md
     assert "8 spp, 32x32 px" in md and "2 spp, 160x160 px" in md  # two protocols, reported apart
     assert "## Skipped metrics" in md and "`dreamsim`" in md
+    # the effect plan per run: what its pilot measured (summary.json) and how the evaluation rendered it
+    plans = md[md.index("## Effect plans"):]
+    assert "| ours_full | gravel |" in plans and "; pilot " in plans and "depth " in plans
     grids = sorted((out / "grids").glob("*.png"))
     assert len(grids) == 2 and all(f"grids/{g.name}" in md for g in grids)
     plots = sorted((out / "plots").glob("*.png"))
