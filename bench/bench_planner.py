@@ -253,7 +253,8 @@ def bench_gradient(name: str, args) -> dict:
             if who == "full" and spp not in args.full_levels:
                 continue
             stages[(who, spp)] = st = stage(pl, spp)
-            probe(st, 30_000)  # compile
+            for k in range(args.warmup):  # compile: every view's kernels (the silhouette term runs on a random
+                probe(st, 30_000 + k)     # subset of views per step; a run's 60 steps amortise the compiles)
     for spp in args.train_levels:
         for rep in range(args.reps):
             for who in kinds:
@@ -319,6 +320,8 @@ def main() -> None:
     ap.add_argument("--grad-blur", type=float, default=2.0, help="texels (sigma) the map gradients are blurred by "
                     "before the cosine, as the fast preset's Adam sees them (0: raw)")
     ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--warmup", type=int, default=1, help="untimed Stage 1 probes per setting before timing (JIT "
+                    "compiles of every view's kernels; a run amortises them over its steps: raise it for steadier timings)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args()
