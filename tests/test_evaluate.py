@@ -197,9 +197,10 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     key = next(k for k in params.keys() if k.startswith("roughness") and k.endswith("data"))
     np.testing.assert_allclose(np.asarray(params[key]).reshape(rough.shape), rough, atol=1e-6)
 
-    integ = run.config["plan"]["integrator"]
-    depth = integ.get("max_depth", 2)
-    shading = {"type": "path", "max_depth": depth, "rr_depth": depth}
+    plan = run.config["plan"]
+    depth = plan["integrator"].get("max_depth", 2)
+    # the plan's path tracer: its measured depth, Russian roulette as the plan records it (from vertex 5)
+    shading = {"type": "path", "max_depth": depth, "rr_depth": plan["rr_depth"]}
     final_render = run.summary()["final_render"]  # the run's final render: spp.target, stream final_render
     assert final_render["spp"] == run.config["spp"]["target"] and final_render["integrator"] == shading
     assert final_render["seed"] == seeds.seed("final_render", run.config["seed"])
