@@ -40,9 +40,12 @@ MIN_SIZE = {
     "haarpsi": 16,
     "lpips_proxy": 16,
     "lpips": 32,
+    "lpips_vgg": 32,
     "sifid": 32,
     "sifid_proxy": 32,
     "dreamsim": 32,
+    "detail_ratio": 3,
+    "tint": 1,
 }
 
 
@@ -133,6 +136,14 @@ def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torc
     return t
 
 
+def check_data_range(data_range: float, metric: str) -> None:
+    """CamoError (one line) unless ``data_range`` is a finite number > 0 (NaN, inf, 0, negatives, non-numbers)."""
+    ok = (isinstance(data_range, (int, float, np.number)) and not isinstance(data_range, (bool, np.bool_))
+          and math.isfinite(float(data_range)) and float(data_range) > 0)
+    if not ok:
+        raise CamoError(f"{metric}: data_range must be a finite number > 0, got {data_range!r}")
+
+
 def check_size(t: torch.Tensor, metric: str, name: str = "image", min_size: Optional[int] = None) -> None:
     """Raise CamoError when ``t``'s smaller side is below ``min_size`` (default ``MIN_SIZE[metric]``, else 1)."""
     need = min_size if min_size is not None else MIN_SIZE.get(metric, 1)
@@ -148,8 +159,7 @@ def prepare_pair(
     """Convert and check an image pair for ``metric``: same batch size (and size unless ``same_size=False``),
     at least ``min_size`` px (default ``MIN_SIZE[metric]``, else 1), values in ``[0, data_range]``. Both get the
     wider of the two dtypes."""
-    if data_range <= 0:
-        raise CamoError(f"{metric}: data_range must be > 0, got {data_range}")
+    check_data_range(data_range, metric)
     tx = to_batch(x, "x", data_range)
     ty = to_batch(y, "y", data_range)
     if same_size and tx.shape != ty.shape:
@@ -197,7 +207,13 @@ class Metric:
     ``table_order``: position in Table II (the paper's five first); ``variant``: its rows carry
     ``{name}_variant``; ``weights_key``: the weights entry whose presence asks for a learned metric;
     ``unavailable(weights)``: why it cannot run with these weights (None: it can; raise CamoError or return a
-    reason)."""
+    reason); ``needs``: one line saying what a user needs to compute it (printed where it is skipped and in the
+    docs table; "" for weight-free metrics); ``by_default``: computed without ``--metrics`` whenever it can run
+    (False: only when asked for by name, e.g. ``lpips_vgg``); ``cross_check``: a weight-free stand-in on its own
+    scale (reports label its column "(cross-check)"; it is not the metric it approximates); ``from_path(path)``:
+    the weights entries of the path a user gives for this metric (``camo evaluate --weights NAME=PATH``, a grid's
+    ``[evaluate] weights``; CamoError, one line, when the path does not hold them): a learned metric's weights
+    option is this function, no flag or settings field elsewhere."""
 
     name: str
     compute: Compute
@@ -213,11 +229,59 @@ class Metric:
     variant: bool = False
     weights_key: str = ""
     unavailable: Optional[Callable[[Mapping[str, Any]], Optional[str]]] = None
+    #: a give-away measure of the object's own pixels: ``compute(x, y, weights, mask)`` also takes the object's
+    #: mask ``(N, 1, H, W)`` bool (:func:`masked`); without a mask it measures the whole image
+    masked: bool = False
+    #: the ideal value when it is neither end of the range (a ratio: 1); ``higher_is_better`` is then ignored and
+    #: "better" means closer to it in log ratio (:meth:`badness`)
+    target: Optional[float] = None
+    needs: str = ""
+    by_default: bool = True
+    cross_check: bool = False
+    from_path: Optional[Callable[[str], dict[str, str]]] = None
 
     @property
     def header(self) -> str:
-        """The column header with the better direction: ``"PSNR↑"``, ``"LPIPS↓"``."""
+        """The column header with the better direction: ``"PSNR↑"``, ``"LPIPS↓"``, ``"Detail→1"``."""
+        if self.target is not None:
+            return f"{self.label}→{self.target:g}"
         return f"{self.label}{'↑' if self.higher_is_better else '↓'}"
+
+    def badness(self, value: float) -> float:
+        """How far ``value`` is from the best (smaller is better): ``-value`` / ``value`` for a directed metric,
+        ``|log(value / target)|`` for one with a :attr:`target` (0.8 and 1.25 are equally far from 1)."""
+        if self.target is not None:
+            return abs(math.log(max(value, 1e-12) / self.target))
+        return -value if self.higher_is_better else value
+
+
+def masked(fn: Callable[..., torch.Tensor]) -> Compute:
+    """The ``compute`` of a weight-free give-away measure ``fn(x, y, mask)`` (``mask`` ``(N, 1, H, W)`` bool or
+    None for the whole image); declare its :class:`Metric` with ``masked=True``."""
+    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any],
+            mask: Optional[torch.Tensor] = None) -> "tuple[torch.Tensor, dict[str, Any]]":
+        return fn(x, y, mask), {}
+
+    return run
+
+
+def to_mask(mask: Any, like: torch.Tensor, metric: str) -> torch.Tensor:
+    """``mask`` (NumPy or torch, ``(H, W)``, ``(N, H, W)`` or ``(N, 1, H, W)``, bool or 0/1 or 0/255) as a
+    ``(N, 1, H, W)`` bool tensor matching the image batch ``like``; None gives all True. CamoError on a shape that
+    does not fit."""
+    n, _, h, w = like.shape
+    if mask is None:
+        return torch.ones((n, 1, h, w), dtype=torch.bool)
+    m = torch.from_numpy(np.ascontiguousarray(mask)) if isinstance(mask, np.ndarray) else mask
+    if not isinstance(m, torch.Tensor):
+        raise CamoError(f"{metric}: mask must be a NumPy array or torch tensor, got {type(mask).__name__}")
+    if m.ndim == 2:
+        m = m[None, None]
+    elif m.ndim == 3:
+        m = m[:, None]
+    if m.ndim != 4 or m.shape[1] != 1 or tuple(m.shape[-2:]) != (h, w) or m.shape[0] not in (1, n):
+        raise CamoError(f"{metric}: mask shape {tuple(mask.shape)} does not fit images of shape {tuple(like.shape)}")
+    return (m != 0).expand(n, 1, h, w)
 
 
 def plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Compute:
