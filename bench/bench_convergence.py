@@ -100,7 +100,7 @@ class Scorer:
         self.pack = run.pack
         self.env = get_environment(self.pack.environment)
         self.cams = evaluation_cameras(self.pack, views, 0.25, 0, tuple(self.pack.render.resolution)).cams
-        self.integrator = evaluation_plan(self.pack, self.env).integrator
+        self.integrator = evaluation_plan(self.pack, self.env, self.cams, spp).integrator
         self.renderer = ViewRenderer(spp, 0)
         self.bg = self.renderer.background(self.pack, self.env, self.cams, self.integrator)
 

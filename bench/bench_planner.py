@@ -1,93 +1,409 @@
-"""Effect planner vs always-full path tracing, per built-in scene.
+"""The measured effect planner against full path tracing, at equal error, per scene (built-in and real packs).
 
-For each built-in scene and the full method's parameters (pose, displacement,
-BSDF, transmittance), time one render + backward of the Stage 1 gradient pass
-with the planned integrator and with the reference "always full" setting
-(``prb_projective``, max_depth 12, indirect visibility sampling on), and
-measure the image difference between the planned and the full light transport
-(PSNR of path-traced renders at high spp).
+For every scene, measured side by side in one run (plan and full interleaved at every sample count):
 
-    python bench/bench_planner.py [--views 2] [--resolution 64] [--spp 4] [--ref-spp 512] [--scenes meadow,room]
+**(a) An evaluation render** of the scene's object (its starting material) from jittered evaluation cameras: the
+plan (:func:`evaluation.views.evaluation_plan`: the pilot's depth, Russian roulette from 5, only the region the
+object can change rendered, the rest the background render's of the same seed) and full path tracing (depth 12,
+Russian roulette from 5, every pixel). Error: RMS over the frame of the sRGB with-object image against a converged
+full render (``--ref-spp``, its own noise subtracted). Seconds: the with-object render (the plan's includes finding
+its region; the background render is shared by every input of a scene in both and not counted; the pilot, once
+per scene, is listed apart).
 
-Prints a Markdown table.
+**(b) A Stage 1 iteration's loss and gradient** at the run's starting state: the plan (:mod:`optimizer.optimise.
+planning`: measured depth, the loss domain's window, the silhouette budget, ``sppi = 0``), ``full`` (what
+``--no-planner`` runs: depth 12, Mitsuba's per-pixel silhouette samples, indirect visibility on, full frames) and
+``full-lt`` (full light transport with the plan's projective settings: depth 12, ``sppi = 0``, the silhouette
+budget, full frames -- it isolates what the measured depth and the window buy). Error: 1 - cosine similarity of the
+map gradients (albedo, metallic, roughness, transmittance; blurred by ``--grad-blur`` texels, as the fast preset's
+Adam sees them) with a high-spp gradient of full path tracing (prb, depth 12, ``--ref-grad-spp`` x
+``--ref-grad-seeds``); the loss' RMS deviation from the reference loss.
+
+Equal-error speed-up: the seconds full tracing takes at the stage's spp (evaluation ``--eval-spp``; training
+``--train-spp``) over the seconds the plan takes to reach the same error (log-log interpolation along its curve).
+Gradient ratio: the plan's cosine at full tracing's seconds (interpolated) over full tracing's cosine.
+
+    python bench/bench_planner.py [--scenes meadow,room] [--real] [--views 4] [--resolution 64] [--out DIR]
+
+Prints Markdown tables and writes ``DIR/bench_planner.json`` (every measured point).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import math
 import time
+from pathlib import Path
 
 import numpy as np
 
+REAL_PACKS = ("sky-duck", "city-cone", "forest-teddy", "dawn-soccerball", "sunset-mug", "venice-duplo",
+              "apartment-bunny", "warehouse-tray")
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
+
+def say(msg: str) -> None:
+    import sys
+
+    print(msg, file=sys.stderr, flush=True)
+
+
+#: The clock of the timed renders and probes (``--clock``): ``cpu`` = this process's CPU seconds (every thread), the
+#: fair measure on a shared, oversubscribed machine where wall seconds depend on the other jobs; ``wall`` = elapsed.
+CLOCK = {"cpu": time.process_time, "wall": time.perf_counter}
+clock = time.process_time
+
+
+def srgb_rms(a: np.ndarray, b: np.ndarray) -> float:
     from camo_base.imaging import linear_to_srgb
 
-    mse = float(np.mean((linear_to_srgb(a) - linear_to_srgb(b)) ** 2))
-    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
+    d = linear_to_srgb(np.clip(a, 0, None)).astype(np.float64) - linear_to_srgb(np.clip(b, 0, None))
+    return float(np.sqrt(np.mean(d ** 2)))
 
 
-def time_gradient_pass(pack, env, prepared, cams, plan_, spp: int, reps: int) -> float:
-    """Seconds per view of render + backward through all Stage 1 parameters (after one warm-up)."""
-    from optimizer.rendering.appearance import AppearanceConfig
+def seconds_at(curve: list[tuple[float, float]], error: float) -> float:
+    """Seconds a curve ``[(seconds, error), ...]`` (error falling with seconds) needs to reach ``error``
+    (log-log interpolation; extrapolated from the last two points beyond the ends)."""
+    pts = sorted(curve)
+    xs = np.log([p[0] for p in pts])
+    ys = np.log([max(p[1], 1e-12) for p in pts])
+    y = math.log(max(error, 1e-12))
+    for i in range(len(pts) - 1):
+        if (ys[i] - y) * (ys[i + 1] - y) <= 0 and ys[i] != ys[i + 1]:
+            t = (y - ys[i]) / (ys[i + 1] - ys[i])
+            return float(math.exp(xs[i] + t * (xs[i + 1] - xs[i])))
+    i = 0 if y > ys[0] else len(pts) - 2
+    slope = (ys[i + 1] - ys[i]) / (xs[i + 1] - xs[i]) if xs[i + 1] != xs[i] else -0.5
+    slope = slope if slope < 0 else -0.5
+    return float(math.exp(xs[i] + (y - ys[i]) / slope))
+
+
+def value_at(curve: list[tuple[float, float]], seconds: float) -> float:
+    """A curve's value at ``seconds`` (linear in log seconds; clamped at the ends)."""
+    pts = sorted(curve)
+    xs = np.log([p[0] for p in pts])
+    return float(np.interp(math.log(seconds), xs, [p[1] for p in pts]))
+
+
+def load_pack(name: str, views: int, resolution: int, target_vertices: int):
+    from optimizer.scenes.builtin_scenes import resolve_scene
+
+    pack = resolve_scene(str(Path(__file__).resolve().parent.parent / "packs" / "real" / f"{name}.toml")
+                         if name in REAL_PACKS else name)
+    pack.cameras = dataclasses.replace(pack.cameras, views=views)
+    pack.render = dataclasses.replace(pack.render, resolution=(resolution, resolution))
+    pack.object = dataclasses.replace(pack.object, target_vertices=target_vertices)
+    return pack
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# (a) evaluation render
+# ------------------------------------------------------------------------------------------------------------------
+
+def bench_evaluation(name: str, args) -> dict:
+    from evaluation.views import evaluation_cameras, evaluation_plan, render_seed
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.rendering.planner import full_plan
+    from optimizer.rendering.render import coverage_and_depth, render_shaded, render_with_region
+    from optimizer.rendering import scene as scn
+    from optimizer.scenes.environments import get_environment
+
+    pack = load_pack(name, args.views, args.resolution, args.target_vertices)
+    env = get_environment(pack.environment)
+    cams = evaluation_cameras(pack, args.views, seed=args.seed).cams
+    mesh_fn = static_object_fn(pack, prepare_object(pack, target_vertices=args.target_vertices))
+    t0 = time.perf_counter()
+    plan = evaluation_plan(pack, env, cams, args.eval_spp, args.seed)
+    pilot_seconds = time.perf_counter() - t0
+    say(f"{name}: evaluation plan max_depth {plan.max_depth} ({pilot_seconds:.1f} s)")
+    full = full_plan("evaluate").integrator
+    full = dict(full, rr_depth=5)
+    integ = plan.integrator
+    mesh = mesh_fn()
+    sc = scn.build_scene(env.build(), mesh)
+    cov = np.stack([coverage_and_depth(sc, c, mesh)[0] for c in cams])
+    cache: dict = {}  # what render_with_region keeps across objects of one scene (the compact lights)
+
+    def plan_render(spp, seed):
+        bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
+        t = clock()
+        if not plan.region_search:  # the plan renders whole frames here
+            return render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0
+        img, reg = render_with_region(env.build, mesh, cams, integ, spp, seed, bg, cov, plan.region_threshold,
+                                      cache=cache)
+        return img, clock() - t, float(reg.masks.mean())
+
+    def full_render(spp, seed):
+        t = clock()
+        img = render_shaded(env.build(), mesh, cams, full, spp, seed)
+        return img, clock() - t
+
+    base = render_seed(args.seed)
+    ref, _ = full_render(args.ref_spp, base + 999)
+    full_ref, _ = full_render(args.ref_spp, base + 998)  # its distance to ref: twice the reference noise
+    plan_ref, _, _ = plan_render(args.ref_spp, base + 997)
+    ref_var = srgb_rms(full_ref, ref) ** 2 / 2.0
+    bias = math.sqrt(max(srgb_rms(plan_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0))
+    rows = []
+    for spp in args.eval_levels:
+        for k in range(args.warmup):  # untimed: the JIT compiles of this spp's kernels (a render at a new spp, a
+            plan_render(spp, base + k)  # region's growth steps: each a kernel of its own), paid once per scene
+            full_render(spp, base + k)
+        for rep in range(args.reps):
+            seed = base + 17 * spp + rep
+            p_img, p_s, share = plan_render(spp, seed)
+            f_img, f_s = full_render(spp, seed)
+            rows.append({"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
+                         "plan_error": math.sqrt(max(srgb_rms(p_img, ref) ** 2 - ref_var, 0.0)),
+                         "full_error": math.sqrt(max(srgb_rms(f_img, ref) ** 2 - ref_var, 0.0))})
+    plan_curve = _mean_curve(rows, "plan")
+    full_curve = _mean_curve(rows, "full")
+    s = args.eval_spp
+    t_full = value_at([(k, v[0]) for k, v in _by_spp(rows, "full").items()], s)
+    e_full = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "full").items()], s))
+    t_plan = seconds_at(plan_curve, e_full)
+    e_plan_at_s = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "plan").items()], s))
+    return {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
+            "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
+            "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
+            "plan_seconds_at_equal_error": t_plan, "speedup": t_full / t_plan, "rows": rows,
+            "plan_curve": plan_curve, "full_curve": full_curve,
+            "effects": [e.to_dict() for e in plan.effects]}
+
+
+def _by_spp(rows, who):
+    out = {}
+    for spp in sorted({r["spp"] for r in rows}):
+        rs = [r for r in rows if r["spp"] == spp]
+        out[spp] = (float(np.mean([r[f"{who}_seconds"] for r in rs])), float(np.mean([r[f"{who}_error"] for r in rs])))
+    return out
+
+
+def _mean_curve(rows, who):
+    return [v for _, v in sorted(_by_spp(rows, who).items())]
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# (b) Stage 1 loss and gradient
+# ------------------------------------------------------------------------------------------------------------------
+
+MAPS = ("albedo", "metallic", "roughness", "transmittance")
+
+
+def bench_gradient(name: str, args) -> dict:
+    args = argparse.Namespace(**{**vars(args), "views": args.grad_views, "resolution": args.grad_resolution})
+    from optimizer.optimise.planning import measure_plan
     from optimizer.optimise.stage1 import Stage1, Stage1Config
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.rendering.planner import Plan, full_plan
+    from optimizer.scenes.cameras import cameras
+    from optimizer.scenes.environments import get_environment
 
-    s1 = Stage1(pack, env, prepared, cams, plan_, Stage1Config(spp=spp, target_spp=4),
-                AppearanceConfig(map_resolution=128, displacement_resolution=64)).prepare()
-    s1.step()  # JIT compile
-    t = time.perf_counter()
-    for _ in range(reps):
-        s1.step()
-    return (time.perf_counter() - t) / reps / len(cams)
+    pack = load_pack(name, args.views, args.resolution, args.target_vertices)
+    env = get_environment(pack.environment)
+    prepared = prepare_object(pack, target_vertices=args.target_vertices)
+    cams = cameras(pack)
+    app = AppearanceConfig(map_resolution=args.map_resolution, displacement_resolution=args.map_resolution // 2)
+    t0 = time.perf_counter()
+    plan = measure_plan(pack, env, prepared, cams, app, args.seed,
+                        {"training": args.train_spp, "targets": args.target_spp})
+    pilot_seconds = time.perf_counter() - t0
+    say(f"{name}: training plan max_depth {plan.max_depth} ({pilot_seconds:.1f} s)")
+    full = full_plan("optimize", geometry=True)
+    full.integrator = dict(full.integrator, rr_depth=5)
+    full_lt = dataclasses.replace(plan, integrator={"type": "prb_projective", "max_depth": 12, "rr_depth": 5, "sppi": 0},
+                                  max_depth=12, region=False)
+    ref_plan = Plan({"type": "prb", "max_depth": 12, "rr_depth": 5}, False, 12, "", [], rr_depth=5)
+    base_cfg = Stage1Config(spp=args.train_spp, target_spp=args.target_spp, seed=args.seed)
+    # the targets (background, domain) once, rendered with the plan's depth as a run would
+    first = Stage1(pack, env, prepared, cams, plan, base_cfg, app).prepare()
+    targets, values = first.targets, first.current_values()
 
+    def stage(pl: Plan, spp: int) -> Stage1:
+        return Stage1(pack, env, prepared, cams, pl, dataclasses.replace(base_cfg, spp=spp), app,
+                      initial=values).prepare(targets=targets)
+
+    def maps_vector(g: dict[str, np.ndarray]) -> np.ndarray:
+        # as Adam sees them in the fast preset: blurred by --grad-blur texels (AppearanceConfig.grad_blur)
+        from scipy.ndimage import gaussian_filter
+
+        return np.concatenate([gaussian_filter(g[k].astype(np.float64), (args.grad_blur, args.grad_blur, 0)).ravel()
+                               for k in MAPS if k in g])
+
+    def probe(s1: Stage1, k: int) -> tuple[float, np.ndarray, float]:
+        s1.iteration = k
+        t = clock()
+        loss, g = s1.gradient()
+        return loss, maps_vector(g), clock() - t
+
+    ref_stage = stage(ref_plan, args.ref_grad_spp)
+    probe(ref_stage, 10_000)  # compile
+    ref_sum, ref_losses = None, []
+    for k in range(args.ref_grad_seeds):
+        loss, g, _ = probe(ref_stage, 20_000 + k)
+        ref_sum = g if ref_sum is None else ref_sum + g
+        ref_losses.append(loss)
+    ref_g = ref_sum / args.ref_grad_seeds
+    ref_loss = float(np.mean(ref_losses))
+
+    def cosine(g):
+        n = np.linalg.norm(g) * np.linalg.norm(ref_g)
+        return float(g @ ref_g / n) if n > 0 else 0.0
+
+    kinds = {"plan": plan, "full-lt": full_lt, "full": full}
+    rows = []
+    stages = {}
+    for spp in args.train_levels:
+        for who, pl in kinds.items():
+            if who == "full" and spp not in args.full_levels:
+                continue
+            stages[(who, spp)] = st = stage(pl, spp)
+            for k in range(args.warmup):  # compile: every view's kernels (the silhouette term runs on a random
+                probe(st, 30_000 + k)     # subset of views per step; a run's 60 steps amortise the compiles)
+    for spp in args.train_levels:
+        for rep in range(args.reps):
+            for who in kinds:
+                if (who, spp) not in stages:
+                    continue
+                loss, g, secs = probe(stages[(who, spp)], 40_000 + 97 * spp + rep)
+                rows.append({"who": who, "spp": spp, "rep": rep, "seconds": secs, "cosine": cosine(g),
+                             "loss_error": abs(loss - ref_loss)})
+    out = {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "ref_loss": ref_loss,
+           "window_share": float(np.mean([(b[2] - b[0]) * (b[3] - b[1]) / (args.resolution ** 2)
+                                          for b in first.windows])) if first.windows else 1.0,
+           "rows": rows}
+    s = args.train_spp
+    curves = {}
+    for who in kinds:
+        pts = {}
+        for r in rows:
+            if r["who"] == who:
+                pts.setdefault(r["spp"], []).append(r)
+        curves[who] = {spp: (float(np.mean([r["seconds"] for r in rs])), float(np.mean([r["cosine"] for r in rs])),
+                             float(np.sqrt(np.mean([r["loss_error"] ** 2 for r in rs])))) for spp, rs in pts.items()}
+    out["curves"] = {w: {str(k): v for k, v in c.items()} for w, c in curves.items()}
+    plan_err = [(v[0], 1.0 - v[1]) for v in curves["plan"].values()]
+    for who in ("full", "full-lt"):
+        c = curves[who]
+        if s not in c:
+            continue
+        t_f, cos_f, loss_f = c[s]
+        t_p = seconds_at(plan_err, 1.0 - cos_f)
+        cos_p = value_at([(v[0], v[1]) for v in curves["plan"].values()], t_f)
+        out[who] = {"seconds_at_spp": t_f, "cosine_at_spp": cos_f, "loss_error_at_spp": loss_f,
+                    "plan_seconds_at_equal_cosine": t_p, "speedup": t_f / t_p, "plan_cosine_at_same_seconds": cos_p,
+                    "cosine_ratio": cos_p / cos_f if cos_f > 0 else float("nan")}
+    if s in curves["plan"]:
+        out["plan_at_spp"] = {"seconds": curves["plan"][s][0], "cosine": curves["plan"][s][1],
+                              "loss_error": curves["plan"][s][2]}
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------------------
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--views", type=int, default=2)
+    ap.add_argument("--scenes", default="", help="comma list (default: the six built-in scenes)")
+    ap.add_argument("--real", action="store_true", help="also the real packs (packs/real, data in data/real)")
+    ap.add_argument("--only", choices=("eval", "grad", "both"), default="both")
+    ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--resolution", type=int, default=64)
-    ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--ref-spp", type=int, default=512)
-    ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--target-vertices", type=int, default=8000)
-    ap.add_argument("--scenes", default="")
+    ap.add_argument("--map-resolution", type=int, default=128)
+    ap.add_argument("--eval-spp", type=int, default=64, help="the evaluation's spp (equal error is taken there)")
+    ap.add_argument("--eval-levels", default="16,32,64,128,256")
+    ap.add_argument("--ref-spp", type=int, default=2048)
+    ap.add_argument("--train-spp", type=int, default=4, help="the training spp (equal error is taken there)")
+    ap.add_argument("--target-spp", type=int, default=32)
+    ap.add_argument("--train-levels", default="1,2,4,8")
+    ap.add_argument("--full-levels", default="4", help="spp levels of full (indirect visibility on: ~35x a step) "
+                    "(default: the training spp only)")
+    ap.add_argument("--grad-views", type=int, default=4)
+    ap.add_argument("--grad-resolution", type=int, default=64)
+    ap.add_argument("--ref-grad-spp", type=int, default=64)
+    ap.add_argument("--ref-grad-seeds", type=int, default=8)
+    ap.add_argument("--grad-blur", type=float, default=2.0, help="texels (sigma) the map gradients are blurred by "
+                    "before the cosine, as the fast preset's Adam sees them (0: raw)")
+    ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--warmup", type=int, default=1, help="untimed Stage 1 probes per setting before timing (JIT "
+                    "compiles of every view's kernels; a run amortises them over its steps: raise it for steadier timings)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--clock", choices=tuple(CLOCK), default="cpu", help="seconds of the timed renders: the "
+                    "process's CPU seconds (default: fair on a shared machine) or wall seconds")
+    ap.add_argument("--out", default="bench_out")
     args = ap.parse_args()
+    args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
+    args.train_levels = [int(x) for x in args.train_levels.split(",")]
+    args.full_levels = [int(x) for x in args.full_levels.split(",")]
+    global clock
+    clock = CLOCK[args.clock]
 
     from optimizer import backend
     from optimizer.scenes import builtin_scenes
-    from optimizer.scenes.cameras import cameras
-    from optimizer.scenes.environments import get_environment
-    from optimizer.rendering.placement import prepare_object, static_object_fn
-    from optimizer.rendering.planner import full_plan, plan
-    from optimizer.rendering.render import render_shaded
 
     info = backend.init()
-    names = args.scenes.split(",") if args.scenes else builtin_scenes.names()
-    params = {"albedo", "pose", "displacement", "bsdf", "transmittance"}
-    rows = []
+    names = args.scenes.split(",") if args.scenes else list(builtin_scenes.names())
+    if args.real:
+        names += list(REAL_PACKS)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {"args": vars(args), "backend": f"{info.variant}, {info.threads} threads", "eval": [], "grad": []}
+    t_all = time.perf_counter()
     for name in names:
-        pack = builtin_scenes.get(name)
-        pack.cameras = dataclasses.replace(pack.cameras, views=args.views)
-        pack.render = dataclasses.replace(pack.render, resolution=(args.resolution, args.resolution))
-        env = get_environment(pack.environment)
-        prepared = prepare_object(pack, target_vertices=args.target_vertices)
-        cams = cameras(pack)
-        planned, full = plan(pack, env, params), full_plan("optimize", geometry=True)
-        t_plan = time_gradient_pass(pack, env, prepared, cams, planned, args.spp, args.reps)
-        t_full = time_gradient_pass(pack, env, prepared, cams, full, args.spp, args.reps)
-        obj = static_object_fn(pack, prepared)
-        img_plan = render_shaded(env.build(), obj(), cams, {"type": "path", "max_depth": planned.max_depth}, args.ref_spp, 1)
-        img_full = render_shaded(env.build(), obj(), cams, {"type": "path", "max_depth": 12}, args.ref_spp, 1)
-        rows.append((name, planned.integrator, t_plan, t_full, psnr(img_plan, img_full)))
-        print(f"{name}: done", flush=True)
+        if args.only in ("eval", "both"):
+            r = bench_evaluation(name, args)
+            results["eval"].append(r)
+            print(f"{name}: evaluation render {r['speedup']:.2f}x at equal error", flush=True)
+        if args.only in ("grad", "both"):
+            r = bench_gradient(name, args)
+            results["grad"].append(r)
+            print(f"{name}: gradient " + ", ".join(f"vs {w} {r[w]['speedup']:.2f}x (cosine ratio "
+                                                     f"{r[w]['cosine_ratio']:.3f})" for w in ("full", "full-lt") if w in r),
+                  flush=True)
+        (out / "bench_planner.json").write_text(json.dumps(results, indent=1))
+    results["seconds"] = time.perf_counter() - t_all
+    (out / "bench_planner.json").write_text(json.dumps(results, indent=1))
+    print_tables(results)
 
-    print(f"\nbackend {info.variant}, {info.threads} threads; {args.views} views at {args.resolution}^2, "
-          f"{args.spp} spp, {args.target_vertices} vertices; PSNR at {args.ref_spp} spp\n")
-    print("| scene | planned integrator | planned s/view | full s/view | speed-up | PSNR planned vs full (dB) |")
-    print("|---|---|---|---|---|---|")
-    for name, integ, tp, tf, p in rows:
-        desc = f"{integ['type']} depth {integ.get('max_depth', 2)}" + (" sppi 0" if integ.get("sppi") == 0 else "")
-        print(f"| {name} | {desc} | {tp:.3f} | {tf:.3f} | {tf / tp:.1f}x | {p:.1f} |")
+
+def print_tables(results: dict) -> None:
+    a = results["args"]
+    print(f"\nbackend {results['backend']}; {a['views']} views at {a['resolution']}^2; seconds = {a.get('clock', 'wall')} seconds; "
+          f"{results.get('seconds', 0):.0f} s in all\n")
+    if results["eval"]:
+        print(f"(a) evaluation render, error = sRGB RMS over the frame vs full path tracing at {a['ref_spp']} spp "
+              f"(its noise subtracted); equal error at full tracing's error at {a['eval_spp']} spp\n")
+        print("| scene | plan depth | region | pilot s | full s @spp | plan s @ equal error | speed-up | "
+              "bias (/255) | noise @spp (/255) |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for r in results["eval"]:
+            print(f"| {r['scene']} | {r['max_depth']} | {r['region_share']:.0%} | {r['pilot_seconds']:.1f} | "
+                  f"{r['full_seconds_at_spp']:.3f} | {r['plan_seconds_at_equal_error']:.3f} | {r['speedup']:.2f}x | "
+                  f"{r['bias'] * 255:.3f} | {r['noise_at_spp'] * 255:.3f} |")
+        sp = [r["speedup"] for r in results["eval"]]
+        print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x\n")
+    if results["grad"]:
+        print(f"(b) Stage 1 gradient (map gradients' cosine with full tracing at {a['ref_grad_spp']} x "
+              f"{a['ref_grad_seeds']} spp); equal error at full tracing's cosine at {a['train_spp']} spp\n")
+        print("| scene | plan depth | window | vs | full s @spp | full cos | plan s @ equal cos | speed-up | "
+              "plan cos @ full's s | ratio | loss err plan / full |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        for r in results["grad"]:
+            for who in ("full", "full-lt"):
+                if who not in r:
+                    continue
+                w = r[who]
+                pl = r.get("plan_at_spp", {})
+                print(f"| {r['scene']} | {r['max_depth']} | {r['window_share']:.0%} | {who} | {w['seconds_at_spp']:.3f} | "
+                      f"{w['cosine_at_spp']:.3f} | {w['plan_seconds_at_equal_cosine']:.3f} | {w['speedup']:.2f}x | "
+                      f"{w['plan_cosine_at_same_seconds']:.3f} | {w['cosine_ratio']:.3f} | "
+                      f"{pl.get('loss_error', float('nan')):.2e} / {w['loss_error_at_spp']:.2e} |")
+        for who in ("full", "full-lt"):
+            sp = [r[who]["speedup"] for r in results["grad"] if who in r]
+            if sp:
+                print(f"\nvs {who}: mean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x")
 
 
 if __name__ == "__main__":

@@ -40,7 +40,7 @@ def main() -> None:
     from optimizer.scenes.cameras import cameras
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import plan
+    from optimizer.optimise.planning import measure_plan
     from optimizer.rendering.render import uses_batch
     from optimizer.assets.conditions import ablated_switches, parse_ablations
     from optimizer.rendering.appearance import AppearanceConfig
@@ -56,8 +56,8 @@ def main() -> None:
     t = time.perf_counter()
     prepared = prepare_object(pack, target_vertices=args.target_vertices)
     t_mesh = time.perf_counter() - t
-    pl = plan(pack, env, app.planner_params())
     cams = cameras(pack)
+    pl = measure_plan(pack, env, prepared, cams, app, 0, {"training": args.spp, "targets": 64})  # a run's plan
     t = time.perf_counter()
     s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=args.spp, iterations=args.iterations), app).prepare()
     t_setup = time.perf_counter() - t

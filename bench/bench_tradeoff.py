@@ -79,7 +79,8 @@ def main() -> None:
     from optimizer.scenes.cameras import cameras, jitter
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import full_plan, plan
+    from optimizer.optimise.planning import measure_plan
+    from optimizer.rendering.planner import full_plan
     from optimizer.optimise.stage1 import Stage1, Stage1Config
 
     info = backend.init()
@@ -99,8 +100,9 @@ def main() -> None:
         env = env or get_environment(pack.environment)
         prepared = prepare_object(pack, target_vertices=args.target_vertices)
         app = AppearanceConfig(map_resolution=args.map_resolution, displacement_resolution=args.map_resolution // 2)
-        pl = plan(pack, env, app.planner_params()) if planner else full_plan("optimize", geometry=True)
         cams = cameras(pack)
+        pl = measure_plan(pack, env, prepared, cams, app, 0, {"training": spp, "targets": args.eval_spp}) if planner \
+            else full_plan("optimize", geometry=True)
         held = jitter(cams, 0.25, pack.cameras.radius, seed=11)
         s1 = Stage1(pack, env, prepared, cams, pl, Stage1Config(spp=spp, target_spp=args.eval_spp, seed=0), app).prepare()
         if not planner:

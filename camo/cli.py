@@ -53,11 +53,26 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render_args(p)
     p.set_defaults(func=_scenes_render)
 
-    p = sub.add_parser("plan", help="print the effect planner's integrator decision and why")
+    p = sub.add_parser("plan", help="run the effect planner's pilot on a scene and print its decisions, their "
+                       "measured contributions and the accuracy-vs-seconds curve")
     p.add_argument("scene", help="built-in scene name or scene pack .toml")
     p.add_argument("--purpose", choices=("optimize", "render", "evaluate"), default="optimize")
     p.add_argument("--ablate", default="", help="comma list of parts switched off (the ablations of camo optimize)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
+    p.add_argument("--spp", type=Range(int, 1, 1 << 16).arg_type(),
+                   help="optimize: training spp (default 4); evaluate/render: the renders' spp (default 64)")
+    p.add_argument("--target-spp", type=Range(int, 1, 1 << 16).arg_type(), default=64,
+                   help="optimize: the targets' spp (default 64)")
+    p.add_argument("--resolution", type=Range(int, 8, 8192).arg_type(),
+                   help="image width = height in pixels (default: the pack's)")
+    p.add_argument("--views", type=Range(int, 1, 1024).arg_type(), help="number of orbit views (default: the pack's)")
+    p.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0,
+                   help="the run's (or evaluation's) seed: the pilot's random numbers")
+    p.add_argument("--png", metavar="FILE", help="also draw the accuracy-vs-seconds curve to FILE (PNG)")
+    p.add_argument("--no-pilot", action="store_true", help="print the rule-based plan only (what correctness "
+                   "requires, every bounce kept)")
+    p.add_argument("--threads", type=Range(int, 1, 4096).arg_type(),
+                   help="CPU threads for the LLVM backend (default: all cores)")
     p.set_defaults(func=_plan, setting_names=lambda name, args: f"--{name}")
 
     from camo import grid, optimize_cli, video_cli
@@ -112,28 +127,53 @@ def _scenes_render(args) -> int:
 
 
 def _plan(args) -> int:
-    from optimizer.scenes.environments import get_environment
-    from optimizer.rendering.planner import plan
-
     import dataclasses
 
     from optimizer.assets.conditions import ABLATIONS, ablated_switches, parse_ablations
     from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.rendering.planner import curve_png, plan
+    from optimizer.scenes.environments import get_environment
 
-    pack = load_scene_arg(args.scene)
+    pack = load_scene_arg(args.scene, args)
     ablate = parse_ablations(args.ablate)
-    params = AppearanceConfig(**ablated_switches(ablate)).planner_params()
+    app = AppearanceConfig(**ablated_switches(ablate))
+    params = app.planner_params()
     pins = {k: v for a in ablate for k, v in ABLATIONS[a].pins}  # (as camo optimize pins them)
     if pins:
         pack.material = dataclasses.replace(pack.material, **pins)
+    if args.png and not args.png.lower().endswith(".png"):
+        raise CamoError(f"--png {args.png}: the file name must end in .png")
     from optimizer import backend
 
-    backend.init()
+    backend.init(threads=args.threads)
     env = get_environment(pack.environment)
-    pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
     print(f"scene: {pack.name} ({env.description})")
     print(f"purpose: {args.purpose}; optimised parameters: {', '.join(sorted(params)) if args.purpose == 'optimize' else '-'}")
+    if args.no_pilot:
+        pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
+    elif args.purpose == "optimize":
+        from optimizer.optimise.planning import measure_plan
+        from optimizer.rendering.placement import prepare_object
+        from optimizer.scenes.cameras import cameras
+
+        spp = {"training": args.spp or 4, "targets": args.target_spp}
+        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), app, args.seed, spp, args.shadow_gradients)
+    else:
+        from evaluation.views import evaluation_cameras, evaluation_plan
+        from optimizer.scenes.cameras import cameras
+
+        cams = evaluation_cameras(pack, seed=args.seed).cams if args.purpose == "evaluate" else cameras(pack)
+        pl = evaluation_plan(pack, env, cams, args.spp or 64, args.seed)
+    if pl.pilot:
+        p = pl.pilot
+        print(f"pilot: {p['views']} views at {p['width']}x{p['height']}, {p['spp']} spp, full depth {p['max_depth']}, "
+              f"{p['seconds']:.1f} s; the object changes {p['region_share']:.0%} of its frames")
     print(pl.describe())
+    if args.png:
+        if not pl.curve:
+            raise CamoError("--png needs the pilot (drop --no-pilot)")
+        curve_png(pl.curve, args.png, f"{pack.name}: {args.purpose}, max_depth {pl.max_depth}")
+        print(f"wrote {args.png}")
     return 0
 
 

@@ -40,8 +40,9 @@ reproduce bit for bit (s = the run seed, e = the evaluation seed, i = iteration,
                                                                   t``): the background and every result's panel of
                                                                   that frame alike (common random numbers)
 
-``warm_start``, ``initial_render`` and ``pose_search`` are other names of ``targets`` (:data:`ALIASES`): they must
-share its numbers.
+``warm_start``, ``initial_render``, ``pose_search`` and ``pilot`` (the effect planner's pilot renders) are other
+names of ``targets`` (:data:`ALIASES`): they must share its numbers; ``evaluation_pilot`` (the evaluation's pilot)
+is ``evaluation_render``.
 
 What the formulas do not give: for run seeds >= 1 the streams one method draws from never share a number at the
 iteration and view counts runs use (``tests/test_seeds.py`` checks seeds 1-20, 200 iterations, 32 views), but at
@@ -112,7 +113,8 @@ STREAMS: dict[str, Stream] = {s.name: s for s in (
 )}
 
 #: Other names of a stream (the same numbers by design).
-ALIASES = {"warm_start": "targets", "initial_render": "targets", "pose_search": "targets"}
+ALIASES = {"warm_start": "targets", "initial_render": "targets", "pose_search": "targets", "pilot": "targets",
+           "evaluation_pilot": "evaluation_render"}
 
 #: Streams of one run that start at the same number at run seed 0 (today's formulas; see the module doc).
 SEED0_COINCIDENCES = ("step", "stage2_render", "stage2_inpaint", "baseline")

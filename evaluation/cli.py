@@ -52,6 +52,12 @@ def register(sub) -> None:
     for flag, (metric, what) in WEIGHTS_FLAGS.items():
         p.add_argument(f"--{flag}", metavar="PATH", help=f"= --weights {metric}=PATH: {what}")
     p.add_argument("--threads", type=RANGES["threads"].arg_type(), help="CPU threads for the LLVM backend")
+    p.add_argument("--no-planner", action="store_true",
+                   help="full path tracing of every full frame (max_depth 12) instead of the measured plan (a pilot "
+                   "per scene picks the depth; only the region each object can change is rendered)")
+    p.add_argument("--no-noise-match", action="store_true",
+                   help="the same spp everywhere (default: pixels where the render with the object is noisier than "
+                   "the background get more samples, up to 8x, so noise does not give the object away)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_evaluate, setting_names=lambda name, args: "--" + name.replace("_", "-")
                    if name in SETTINGS or name in ("metrics", "weights") else name)
@@ -145,7 +151,8 @@ def evaluation_settings(values: Mapping[str, Any]):
 
     kw = {k: values[k] for k in SETTINGS if values.get(k) is not None}
     return EvalSettings(**kw, metrics=parse_metrics(values.get("metrics")), weights=parse_weights(values),
-                        progress=not values.get("quiet", False))
+                        progress=not values.get("quiet", False), planner=not values.get("no_planner", False),
+                        noise_match=not values.get("no_noise_match", False))
 
 
 def run_evaluate(args) -> int:

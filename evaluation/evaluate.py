@@ -60,6 +60,8 @@ class EvalSettings:
     threads: int | None = None
     progress: bool = True
     write_report: bool = True
+    planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
+    noise_match: bool = True  # more samples where the object's render is noisier than the background's
 
     def validate(self) -> None:
         """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
@@ -283,6 +285,7 @@ def as_specs(inputs: Sequence[str | Path | InputSpec]) -> list[InputSpec]:
 
 
 def _prepare(inputs: Sequence[str | Path | InputSpec], settings: EvalSettings) -> list[_Job]:
+    """Resolve the inputs and their cameras (no rendering: bad input fails before anything is written)."""
     from optimizer.scenes.environments import get_environment
 
     jobs = []
@@ -293,8 +296,26 @@ def _prepare(inputs: Sequence[str | Path | InputSpec], settings: EvalSettings) -
         res = (settings.resolution, settings.resolution) if settings.resolution else tuple(e.pack.render.resolution)
         cams = evaluation_cameras(e.pack, settings.views, settings.jitter, settings.seed, res)
         env = get_environment(e.pack.environment)
-        jobs.append(_Job(e, env, cams, evaluation_plan(e.pack, env)))
+        jobs.append(_Job(e, env, cams))
     return jobs
+
+
+def _plan_jobs(jobs: list[_Job], settings: EvalSettings, say: Callable[[str], None]) -> None:
+    """The evaluation plan of every scene (one pilot per scene and camera set, shared by its inputs:
+    :func:`evaluation.views.evaluation_plan`)."""
+    plans: dict[tuple, Any] = {}
+    for j in jobs:
+        if j.cams is None:
+            continue
+        key = (json.dumps(dataclasses.asdict(j.entry.pack.environment), sort_keys=True, default=str), j.cams.key())
+        if key not in plans:
+            plans[key] = evaluation_plan(j.entry.pack, j.env, j.cams.cams, settings.spp, settings.seed,
+                                         settings.planner)
+            p = plans[key]
+            if p.measured:
+                say(f"plan for {j.entry.scene}: max_depth {p.max_depth}, Russian roulette from {p.rr_depth}, "
+                    f"pilot {p.pilot['seconds']:.1f} s")
+        j.plan = plans[key]
 
 
 def _check_sizes(jobs: list[_Job], names: Sequence[str]) -> None:
@@ -335,7 +356,8 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     backend.init(threads=settings.threads)
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
 
-    renderer = ViewRenderer(settings.spp, settings.seed)
+    _plan_jobs(jobs, settings, say)
+    renderer = ViewRenderer(settings.spp, settings.seed, noise_match=settings.noise_match)
     rows: list[dict[str, Any]] = []
     entries: list[dict[str, Any]] = []
     scenes: dict[str, dict[str, Any]] = {}
@@ -377,11 +399,13 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
             f"{ec.cams[0].width}x{ec.cams[0].height} px, {settings.spp} spp")
         bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
-        objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator)
+        objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator, bg,
+                                    j.plan.region_threshold if j.plan.region_search else None)
         cam_key = ec.key()
         scenes.setdefault(bg.key, {
             "scene": e.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),
             "plan_reasons": [f"{k}: {v}" for k, v in j.plan.reasons], "jitter_bound": ec.bound,
+            "plan_effects": [e_.to_dict() for e_ in j.plan.effects], "pilot": j.plan.pilot,
             "width": ec.cams[0].width, "height": ec.cams[0].height,
             "training_cameras": [list(c.origin) for c in ec.training],
             "cameras": [list(c.origin) for c in ec.cams], "targets": [list(c.target) for c in ec.cams],
@@ -400,6 +424,9 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         per_run.append({"name": e.name, "kind": e.kind, "path": str(e.path.resolve()), "scene": e.scene,
                         "object": e.object, "method": e.method, "ablation": e.ablation, "camera_set": cam_key,
                         "background_key": bg.key, "object_render_seconds": objr.seconds,
+                        "region_seconds": objr.region_seconds,
+                        "region_share": None if objr.region is None else float(objr.region.mean()),
+                        "noise_match": None if objr.noise is None else objr.noise.to_dict(),
                         "seconds": _plain_seconds(secs), "warnings": warnings, **e.placement})
         for wmsg in warnings:
             say(f"warning: {wmsg}")

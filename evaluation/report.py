@@ -556,6 +556,57 @@ def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[li
     return lines, skipped
 
 
+def plans_section(eval_dirs: Sequence[str | Path]) -> tuple[list[str], list[str]]:
+    """``## Effect plans``: per evaluated input, the plan its run trained with (a run directory's ``summary.json``:
+    the measured depth, Russian roulette, the render windows, the pilot's seconds, its decisions) and how the
+    evaluation rendered it (the scene's plan, the share of the frames rendered with the object, the extra samples of
+    noise matching)."""
+    import json
+
+    from evaluation.evaldir import read_eval_config
+
+    rows: list[list[tuple[str, bool]]] = []
+    notes: list[str] = []
+    for d in eval_dirs:
+        cfg = read_eval_config(d)
+        scene_depth = {s.get("scene"): (s.get("integrator") or {}) for s in cfg.get("scenes", [])}
+        for r in cfg.get("runs", []):
+            train = "-"
+            summary = Path(str(r.get("path", ""))) / "summary.json"
+            if r.get("kind") == "run" and summary.is_file():
+                try:
+                    plan = json.loads(summary.read_text()).get("plan") or {}
+                except (OSError, ValueError):
+                    plan = {}
+                if plan:
+                    integ = plan.get("integrator", {})
+                    pilot = plan.get("pilot") or {}
+                    train = (f"{integ.get('type', '?')}, depth {plan.get('max_depth')}, RR from {plan.get('rr_depth')}"
+                             + (", windows" if plan.get("region") else ", full frames")
+                             + (f"; pilot {pilot.get('seconds', 0):.1f} s" if pilot else "; no pilot (--no-planner)"))
+                    dropped = [e["name"] for e in plan.get("effects", []) if not e.get("kept")]
+                    if dropped:
+                        notes.append(f"- `{r.get('name')}` dropped: " + "; ".join(dropped))
+            ev = scene_depth.get(r.get("scene"), {})
+            share = r.get("region_share")
+            nm = r.get("noise_match") or {}
+            evaluation = (f"depth {ev.get('max_depth', '?')}, "
+                          + (f"{share:.0%} of the frames rendered" if share is not None else "whole frames")
+                          + (f", +{nm.get('extra_samples_share', 0):.0%} samples (noise matched)" if nm else ""))
+            rows.append([(str(r.get("name")), False), (str(r.get("scene")), False), (str(r.get("method")), False),
+                         (train, False), (evaluation, False)])
+    if not rows:
+        return [], []
+    header = ["Run", "Scene", "Method", "Training plan", "Evaluation render"]
+    note = ("The effect planner's decisions per run (`camo plan SCENE` prints them with their measured "
+            "contributions): what the run's pilot measured and kept, and how the evaluation rendered it.")
+    md = ["## Effect plans", "", note, "", markdown_table(header, rows), ""] + notes + ([""] if notes else [])
+    ht = ["<h2>Effect plans</h2>", f"<p>{html.escape(note)}</p>", html_table(header, rows)]
+    if notes:
+        ht += ["<ul>"] + [f"<li>{html.escape(n.lstrip('- '))}</li>" for n in notes] + ["</ul>"]
+    return md, ht
+
+
 def skipped_line(metric: str, why: str, needs: str) -> str:
     """One line for the report's "Skipped metrics": why it was not computed and what a user needs for it."""
     why = why.rstrip(".")
@@ -915,6 +966,9 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
     sim_md, sim_ht = simulated_section(df, stimuli_dirs, out)
     md += sim_md
     ht += sim_ht
+    plan_md, plan_ht = plans_section(eval_dirs)
+    md += plan_md
+    ht += plan_ht
     give_md, give_ht, heatmaps = giveaway_section(df, eval_dirs, out)
     md += give_md
     ht += give_ht

@@ -225,7 +225,7 @@ def video_integrator(pack, env, entries: Sequence[Any]) -> tuple[dict[str, Any],
         if rec > depth:
             why.append(f"max_depth {rec}: the recorded plan of {e.name} renders that deep")
             depth = rec
-    integ = dict(base.integrator, max_depth=depth, rr_depth=depth)
+    integ = dict(base.integrator, max_depth=depth)  # the evaluation's Russian roulette kept (unbiased)
     return integ, why
 
 

@@ -21,7 +21,11 @@ renderer's affine map once before the BSDF applies it again, so the BSDF renders
 
 Variance: the background and the with-object render of a view use the same sampler seed (common random
 numbers). Paths that never meet the object then give identical radiance in both images, so the metrics see
-the object's effect (and its shadow) rather than two independent noise patterns.
+the object's effect (and its shadow) rather than two independent noise patterns. Only the region the object can
+change is rendered with it (the rest is the background's: the same paths). With noise matching
+(``ViewRenderer(noise_match=True)``, the default of ``camo evaluate`` and ``camo study build-stimuli``) pixels
+where the object's render is noisier than the background's get more samples (:mod:`optimizer.rendering.noise`), so
+an object cannot be found by its fireflies.
 
 Images are linear float32 ``(V, H, W, 3)``; masks ``(V, H, W)`` bool; depth ``(V, H, W)`` float32 in scene
 units (0 = miss).
@@ -35,6 +39,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -43,9 +48,12 @@ from optimizer.scenes.cameras import Camera
 from camo_base import seeds
 from camo_base.errors import SettingError
 from optimizer.assets.rundir import RunDir, open_run
+from optimizer.rendering.noise import GROUPS
 
 #: The paper's evaluation jitter: up to +-0.25 units per axis at radius 4.
 DEFAULT_JITTER = 0.25
+#: Vertices of the object the evaluation's pilot renders (at the pilot's ~48 pixels).
+PILOT_VERTICES = 4000
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -126,17 +134,30 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 # --------------------------------------------------------------------------------------------------------------
 
 
-def evaluation_plan(pack, env):
-    """The planner's ``purpose="evaluate"`` path tracer, planned for a transmissive, metallic object.
+def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True):
+    """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
-    Every method of a scene must be rendered by the same integrator (the background is shared, and a
-    shallower path tracer for an opaque result would bias the comparison), so the plan does not depend on
-    the particular result: it is deep enough for the most demanding material any method may produce.
-    """
-    from optimizer.rendering.planner import plan
+    Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
+    path tracer for an opaque result would bias the comparison), so the plan does not depend on the particular
+    result: with ``cams`` (the evaluation cameras) and ``measured``, the planner's pilot renders the pack's object
+    made fully transmissive (the deepest light transport any result can have: light through it onto the ground,
+    light seen through it) from those cameras, and keeps every bounce whose light over the whole frame is above
+    0.3 x the noise at ``spp`` (:class:`optimizer.rendering.planner.Planner`, purpose ``evaluate``; stream
+    ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce)."""
+    from camo_base import seeds
+    from optimizer.rendering.planner import Planner, plan
 
-    worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=1.0))
-    return plan(worst, env, set(), "evaluate")
+    worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
+    if cams is None or not measured:
+        return plan(worst, env, set(), "evaluate")
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+
+    # the pilot renders at ~48 px: a light mesh will do (and it is prepared once, then cached)
+    mesh = static_object_fn(worst, prepare_object(worst, target_vertices=min(worst.object.target_vertices,
+                                                                             PILOT_VERTICES)))
+    planner = Planner()
+    pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
+    return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
 
 
 def render_seed(seed: int) -> int:
@@ -151,6 +172,7 @@ class Background:
     depth: np.ndarray  # (V, H, W)
     seconds: float
     key: str
+    groups: np.ndarray | None = None  # (G, V, H, W, 3) means of groups of its samples (noise matching), or None
 
 
 @dataclasses.dataclass
@@ -159,15 +181,21 @@ class ObjectRenders:
     coverage: np.ndarray  # (V, H, W) float32
     mask: np.ndarray  # (V, H, W) bool (coverage >= 0.5)
     seconds: float
+    region: np.ndarray | None = None  # (V, H, W) bool: the pixels rendered (the rest is the background's), or None
+    region_seconds: float = 0.0  # of ``seconds``: finding the region
+    noise: Any = None  # optimizer.rendering.noise.NoiseMatch when the noise was matched
 
 
 class ViewRenderer:
     """Evaluation renders with a background cache (one entry per scene, camera set, spp, integrator, seed)."""
 
-    def __init__(self, spp: int, seed: int = 0, ss: int = 4):
-        self.spp, self.seed, self.ss = int(spp), int(seed), int(ss)
+    def __init__(self, spp: int, seed: int = 0, ss: int = 4, noise_match: bool = False):
+        """``noise_match``: renders with an object get more samples where they are noisier than the background
+        (:mod:`optimizer.rendering.noise`; needs a ``path`` integrator and the background of the same seed)."""
+        self.spp, self.seed, self.ss, self.noise_match = int(spp), int(seed), int(ss), bool(noise_match)
         self.cache: dict[str, Background] = {}
         self.background_renders = 0  # how many times a background was actually rendered
+        self.region_cache: dict[str, dict] = {}  # per background: the region pass' renders without the object
 
     def _key(self, pack, cams: list[Camera], integrator: dict) -> str:
         blob = json.dumps({"env": dataclasses.asdict(pack.environment), "cams": [dataclasses.astuple(c) for c in cams],
@@ -181,20 +209,55 @@ class ViewRenderer:
         key = self._key(pack, cams, integrator)
         if key not in self.cache:
             t = time.perf_counter()
-            img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
+            groups = None
+            if self.noise_match and integrator.get("type") == "path" and self.spp % GROUPS == 0:
+                from optimizer.rendering.render import PathRenderer
+
+                img, groups = PathRenderer(env.build(), None, cams, integrator, self.spp,
+                                           render_seed(self.seed))(groups=GROUPS)
+            else:
+                img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
             sc = scn.build_scene(env.build())
             depth = np.stack([coverage_and_depth(sc, c, None, self.ss)[1] for c in cams])
-            self.cache[key] = Background(img, depth, time.perf_counter() - t, key)
+            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, groups)
             self.background_renders += 1
         return self.cache[key]
 
-    def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict) -> ObjectRenders:
+    def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
+                    background: Background | None = None, region_threshold: float | None = None) -> ObjectRenders:
+        """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
+        ``region_threshold`` (sRGB) only the region the object can change is rendered
+        (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
+        random numbers drew there (``tests/test_region.py``). With noise matching, pixels where the render is
+        noisier than the background get more samples (:mod:`optimizer.rendering.noise`)."""
         from optimizer.rendering import scene as scn
-        from optimizer.rendering.render import coverage_and_depth, render_shaded
+        from optimizer.rendering.render import PathRenderer, coverage_and_depth, render_shaded, render_with_region
 
         t = time.perf_counter()
         mesh = mesh_fn()
-        img = render_shaded(env.build(), mesh, cams, integrator, self.spp, render_seed(self.seed))
         sc = scn.build_scene(env.build(), mesh)
         cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
-        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t)
+        seed = render_seed(self.seed)
+        path = integrator.get("type") == "path"
+        match_noise = self.noise_match and path and background is not None and background.groups is not None
+        g = GROUPS if match_noise else 1
+        region, t_region, groups = None, 0.0, None
+        if background is not None and path and region_threshold is not None:
+            out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.image, cov,
+                                     region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}))
+            img, reg = out[0], out[1]
+            groups = out[2] if match_noise else None
+            region, t_region = reg.masks, reg.seconds
+        elif match_noise:
+            img, groups = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(groups=g)
+        else:
+            img = render_shaded(env.build(), mesh, cams, integrator, self.spp, seed)
+        matched = None
+        if match_noise:
+            from optimizer.rendering.noise import match
+
+            more = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)
+            img, matched = match(lambda sel, spp, first: more(sel, None, spp, first), img, groups,
+                                 background.groups, region if region is not None else np.ones(img.shape[:3], bool),
+                                 self.spp)
+        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched)

@@ -24,7 +24,9 @@ up vector, least squares) until the pinhole projection of the object centre is a
 actual placement is *measured* on the rendered mask and recorded in the manifest (``centroid_x/y``,
 ``bbox``, ``area_share``, ``centre_hit``) next to the draw (``draw_px/py``, ``draw_object_frac``,
 ``fov``, ``target``). Background-only and with-object images use the same camera and sampler seed
-(``evaluation.views.ViewRenderer``: common random numbers).
+(``evaluation.views.ViewRenderer``: common random numbers); only the region the object can change is rendered with
+it, and pixels where that render is noisier than the background get more samples (``noise_match``, the default:
+:mod:`optimizer.rendering.noise`), so a participant cannot find the object by its fireflies.
 
 Views whose mask is empty (object hidden, e.g. occluded) are skipped with a warning. A triplet folder (given
 2D images) has no scene to render from new cameras, so an evaluation holding one needs ``--copy``
@@ -206,6 +208,7 @@ def render_stimuli(
     threads: int | None = None,
     force: bool = False,
     log: Callable[[str], None] | None = None,
+    noise_match: bool = True,
 ) -> dict[str, Any]:
     """Render a stimulus set (see the module docstring); returns the manifest."""
     from evaluation.evaluate import srgb8
@@ -242,11 +245,11 @@ def render_stimuli(
                            for e, p, _ in jobs], "build-stimuli")
 
     backend.init(threads=threads)
-    renderer = ViewRenderer(spp, seed)
+    renderer = ViewRenderer(spp, seed, noise_match=noise_match)
     skipped = 0
+    plans: dict[str, Any] = {}  # one evaluation plan per scene (its pilot on the scene's first placed cameras)
     for e, practice, ev in jobs:
         env = get_environment(e.pack.environment)
-        plan = evaluation_plan(e.pack, env)
         jitter = float(ev.get("jitter", DEFAULT_JITTER))
         ev_seed = int(ev.get("seed", 0))
         base = evaluation_cameras(e.pack, views, jitter, ev_seed, (size, size)).cams
@@ -259,10 +262,14 @@ def render_stimuli(
             cams.append(new)
             draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
                           "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
+        if e.scene not in plans:
+            plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed)
+        plan = plans[e.scene]
         log(f"rendering {e.name} ({e.kind}, {e.scene}, {e.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
             + (" [practice]" if practice else ""))
         bg = renderer.background(e.pack, env, cams, plan.integrator)
-        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator)
+        objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator, bg,
+                                    plan.region_threshold if plan.region_search else None)
         for v in range(len(cams)):
             mask = objr.mask[v]
             if not mask.any():
@@ -273,6 +280,8 @@ def render_stimuli(
                     "ablation": e.ablation, "view": str(v), "source_kind": e.kind,
                     "source_run": str(e.path.resolve()), "spp": spp, "seed": seed, **draws[v],
                     "environment": env_of[id(e)], "background_phash": phash(srgb8(bg.image[v]))}
+            if objr.noise is not None:  # the object's pixels got up to 8x the spp where it was noisier
+                meta["spp_factor_max"] = int(objr.noise.factor[v].max())
             writer.add(srgb8(objr.image[v]), mask, meta, practice)
             # the background of the same camera and seed is kept next to the set (not served)
             _save_background(writer.out, e.scene, v, srgb8(bg.image[v]))

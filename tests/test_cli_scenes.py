@@ -45,10 +45,28 @@ def test_scenes_render_writes_every_view(tmp_path, scene, mi_backend):
 
 
 def test_plan_prints_reasons(capsys):
-    assert main(["plan", "room", "--ablate", "pose,displacement"]) == 0
+    assert main(["plan", "room", "--ablate", "pose,displacement", "--no-pilot"]) == 0
     out = capsys.readouterr().out
-    assert "integrator: {'type': 'prb'" in out and "- max_depth:" in out and "- sensors:" in out
+    assert "integrator: {'type': 'prb'" in out and "- max_depth: 12" in out and "- sensors:" in out
     assert main(["plan", "room", "--ablate", "wings"]) == 2
+
+
+def test_plan_runs_the_pilot_and_draws_the_curve(tmp_path, capsys, mi_backend):
+    """`camo plan`: the pilot's decisions with their measured contributions, spp per stage, and the accuracy-vs-
+    seconds curve of the plan and of full path tracing, as text and as a PNG."""
+    png = tmp_path / "curve.png"
+    assert main(["plan", "meadow", "--resolution", "32", "--views", "4", "--png", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "pilot: 4 views" in out and "measured effects" in out and "transmissive chains" in out
+    assert "spp per stage" in out and "accuracy vs seconds" in out and f"wrote {png}" in out
+    from camo_base.imaging import load_png
+
+    assert load_png(png).shape[0] > 100
+    assert main(["plan", "meadow", "--purpose", "evaluate", "--resolution", "32", "--views", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "integrator: {'type': 'path'" in out and "the whole frame" in out
+    assert main(["plan", "meadow", "--png", str(tmp_path / "curve.jpg")]) == 2
+    assert "must end in .png" in capsys.readouterr().err
 
 
 def test_closed_stdout_is_not_a_traceback():

@@ -211,9 +211,10 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     key = next(k for k in params.keys() if k.startswith("roughness") and k.endswith("data"))
     np.testing.assert_allclose(np.asarray(params[key]).reshape(rough.shape), rough, atol=1e-6)
 
-    integ = run.config["plan"]["integrator"]
-    depth = integ.get("max_depth", 2)
-    shading = {"type": "path", "max_depth": depth, "rr_depth": depth}
+    plan = run.config["plan"]
+    depth = plan["integrator"].get("max_depth", 2)
+    # the plan's path tracer: its measured depth, Russian roulette as the plan records it (from vertex 5)
+    shading = {"type": "path", "max_depth": depth, "rr_depth": plan["rr_depth"]}
     final_render = run.summary()["final_render"]  # the run's final render: spp.target, stream final_render
     assert final_render["spp"] == run.config["spp"]["target"] and final_render["integrator"] == shading
     assert final_render["seed"] == seeds.seed("final_render", run.config["seed"])
@@ -276,6 +277,9 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert "| Ours |" in md and "| w/o Pose + Displacement |" in md
     assert "8 spp, 32x32 px" in md and "2 spp, 160x160 px" in md  # two protocols, reported apart
     assert "## Skipped metrics" in md and "`dreamsim`" in md
+    # the effect plan per run: what its pilot measured (summary.json) and how the evaluation rendered it
+    plans = md[md.index("## Effect plans"):]
+    assert "| ours_full | gravel |" in plans and "; pilot " in plans and "depth " in plans
     grids = sorted((out / "grids").glob("*.png"))
     assert len(grids) == 2 and all(f"grids/{g.name}" in md for g in grids)
     plots = sorted((out / "plots").glob("*.png"))

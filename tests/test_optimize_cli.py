@@ -56,6 +56,13 @@ def test_run_directory_contents(run_dir):
                                                       sppp=1, sppi=0, silhouette_samples=512)
     assert cfg["plan"]["render_spp"] == 0
     assert cfg["stage1"]["silhouette_every"] == 4  # silhouettes on a random quarter of the views per step
+    # the measured plan: recorded with the pilot's figures in summary.json, and in the checkpoint for --resume
+    summary = json.loads((run_dir / "summary.json").read_text())
+    plan = summary["plan"]
+    assert plan["pilot"]["seconds"] > 0 and plan["effects"] and plan["curve"]["rows"]
+    assert plan["max_depth"] == cfg["plan"]["max_depth"] == cfg["plan"]["integrator"]["max_depth"]
+    assert plan["rr_depth"] == 5 and plan["region"] is True
+    assert "plan/json" in np.load(run_dir / "checkpoint.npz").files
 
 
 def test_loss_decreases(run_dir):

@@ -20,40 +20,27 @@ def env_of(name: str) -> Environment:
 ALL = {"albedo", "pose", "displacement", "bsdf", "transmittance"}
 
 
-def test_full_method_outdoors_uses_prb_projective_for_transmission():
-    pack = builtin_scenes.get("meadow")
-    p = plan(pack, env_of("meadow"), ALL)
-    assert p.integrator["type"] == "prb_projective"
-    assert p.integrator["sppi"] == 0 and p.integrator["max_depth"] == 6 == p.integrator["rr_depth"]
-    assert not p.batch
+def test_without_a_pilot_every_bounce_is_kept_and_russian_roulette_stays_on():
+    """The rule-based plan drops nothing it has not measured: depth 12, Russian roulette from 5 (never
+    rr_depth = max_depth, which would turn it off)."""
+    for name in builtin_scenes.names():
+        for purpose in ("optimize", "render", "evaluate"):
+            p = plan(builtin_scenes.get(name), env_of(name), ALL, purpose=purpose)
+            assert p.max_depth == 12 and p.rr_depth == 5
+            assert p.integrator.get("rr_depth", 5) == 5 and p.integrator.get("max_depth", 12) == 12
+            assert not p.region and not p.measured
 
 
-def test_opaque_object_in_open_scene_uses_direct_projective():
-    pack = builtin_scenes.get("meadow")
-    pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    p = plan(pack, env_of("meadow"), ALL - {"transmittance"})
-    assert p.integrator == {"type": "direct_projective", "sppi": 0}
-    assert p.max_depth == 2
-
-
-def test_opaque_object_indoors_keeps_interreflection():
-    pack = builtin_scenes.get("room")
-    pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    p = plan(pack, env_of("room"), {"albedo", "pose", "bsdf"})
-    assert p.integrator["type"] == "prb_projective" and p.integrator["max_depth"] == 4
+def test_geometry_gradients_need_a_projective_integrator():
+    p = plan(builtin_scenes.get("meadow"), env_of("meadow"), ALL)
+    assert p.integrator["type"] == "prb_projective" and p.integrator["sppi"] == 0 and not p.batch
+    assert plan(builtin_scenes.get("meadow"), env_of("meadow"), ALL, max_depth=2).integrator == \
+        {"type": "direct_projective", "sppi": 0}
 
 
 def test_material_only_uses_prb_and_batch():
-    pack = builtin_scenes.get("gravel")
-    p = plan(pack, env_of("gravel"), {"albedo", "bsdf", "transmittance"})
-    assert p.integrator["type"] == "prb" and p.batch and p.integrator["max_depth"] == 6
-
-
-def test_albedo_only_opaque_is_shallow():
-    pack = builtin_scenes.get("gravel")
-    pack.material = dataclasses.replace(pack.material, transmittance=0.0)
-    p = plan(pack, env_of("gravel"), {"albedo"})
-    assert p.integrator == {"type": "prb", "max_depth": 3, "rr_depth": 3}
+    p = plan(builtin_scenes.get("gravel"), env_of("gravel"), {"albedo", "bsdf", "transmittance"})
+    assert p.integrator == {"type": "prb", "max_depth": 12, "rr_depth": 5} and p.batch
 
 
 def test_shadow_gradients_turn_indirect_visibility_on():
@@ -67,8 +54,8 @@ def test_rendering_uses_path_tracing(purpose):
     pack = builtin_scenes.get("occluded")
     p = plan(pack, env_of("occluded"), ALL, purpose=purpose)
     assert p.integrator["type"] == "path" and p.batch
-    assert p.integrator["max_depth"] == 6
     assert any(k == "emitters" and "sun" in v for k, v in p.reasons)
+    assert p.shading_integrator() == {"type": "path", "max_depth": 12, "rr_depth": 5}
 
 
 def test_training_integrator_gives_silhouettes_a_per_view_budget():
@@ -83,7 +70,7 @@ def test_training_integrator_gives_silhouettes_a_per_view_budget():
     assert silhouette_samples(256, 256, 4) == 2 * silhouette_samples(128, 128, 4)  # grows like the outline
     on = plan(pack, env_of("meadow"), ALL, shadow_gradients=True)
     assert training_integrator(on, 4, (32, 32))[0]["sppi"] == 4
-    prb = dataclasses.replace(p, integrator={"type": "prb", "max_depth": 3, "rr_depth": 3})
+    prb = dataclasses.replace(p, integrator={"type": "prb", "max_depth": 3, "rr_depth": 5})
     assert training_integrator(prb, 4, (32, 32)) == (prb.integrator, 4)
     full = training_integrator(full_plan(), 4, (32, 32))[0]  # the bench's reference keeps Mitsuba's pass
     assert full["type"] == "prb_projective" and full["sppp"] == 4 and "silhouette_samples" not in full
@@ -195,3 +182,128 @@ def test_a_sun_baked_into_a_panorama_is_flagged_like_the_sun(tmp_path, mi_backen
         xml.write_text(f'''<scene version="3.0.0"><emitter type="envmap">
             <string name="filename" value="{_pano(tmp_path, spot)}"/></emitter></scene>''')
         assert xml_environment(xml).compact_envmap_light is want
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the measured planner (a pilot on the actual scene)
+# --------------------------------------------------------------------------------------------------------------
+
+def _measured(name, ablate=(), spp=None, cams_res=48):
+    from optimizer.optimise.planning import measure_plan
+    from optimizer.assets.conditions import ablated_switches
+    from optimizer.rendering.appearance import AppearanceConfig
+    from optimizer.rendering.placement import prepare_object
+    from optimizer.scenes.cameras import cameras
+
+    pack = builtin_scenes.get(name)
+    pack.object = dataclasses.replace(pack.object, target_vertices=2000)
+    env = env_of(name)
+    return measure_plan(pack, env, prepare_object(pack), cameras(pack, (cams_res, cams_res)), AppearanceConfig(**ablated_switches(ablate)),
+                        0, spp or {"training": 4, "targets": 64})
+
+
+def _check_depth_rule(p):
+    """The chosen depth is the shallowest whose dropped light is below 0.3 x the noise at the largest spp (or the
+    transmissive floor), as the plan's own figures say."""
+    bounce = {e.name: e for e in p.effects if e.name.startswith("bounce ")}
+    assert all(e.kept == (int(e.name.split()[1]) <= p.max_depth) for e in bounce.values())
+    rest = [e for e in p.effects if e.name.startswith("bounces ")]
+    assert all(not e.kept for e in rest)
+    assert p.integrator.get("max_depth", 2) == p.max_depth and p.rr_depth == 5
+    assert "rr_depth = max_depth would turn it off" in dict(p.reasons)["rr_depth"]
+
+
+@pytest.mark.slow
+def test_measured_plans_follow_the_light_transport(mi_backend):
+    """A transmissive start keeps the transmissive chains (depth >= 4) and measures them; an opaque start in the
+    open drops them; every decision comes with its measured contribution."""
+    transmissive = _measured("meadow")
+    opaque = _measured("meadow", ablate=("transmittance",))
+    room = _measured("room", ablate=("transmittance",))
+    for p in (transmissive, opaque, room):
+        _check_depth_rule(p)
+        assert p.measured and p.region and p.pilot["seconds"] > 0 and p.curve["rows"]
+        assert {"training", "targets"} <= set(p.spp) and p.spp["training"]["noise"] > p.spp["targets"]["noise"]
+    assert transmissive.max_depth >= 4 > opaque.max_depth
+    chains = next(e for e in transmissive.effects if "transmissive chains" in e.name)
+    assert chains.kept and chains.contribution > 0
+    assert next(e for e in opaque.effects if "transmissive chains" in e.name).contribution == 0.0
+    # the shadow's share of the pose response is measured and reported with the indirect-visibility decision
+    shadow = next(e for e in transmissive.effects if e.name.startswith("indirect visibility"))
+    assert not shadow.kept and "%" in shadow.name
+    text = transmissive.describe()
+    assert "measured effects" in text and "accuracy vs seconds" in text and "needs" in text
+
+
+def test_pilot_bias_predicts_the_renders(mi_backend):
+    """The pilot's bias of stopping at depth 3 (its two halves' product, sRGB to first order) matches the RMS
+    difference of renders at depth 3 and 12 that share their samples (1024 spp, the same pixels and views)."""
+    from camo_base.imaging import linear_to_srgb
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.pilot import PilotSettings, pick_views, pilot_camera, run_pilot
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.rendering.tracer import render_views
+    from optimizer.scenes.cameras import cameras
+
+    pack = builtin_scenes.get("room")
+    pack.object = dataclasses.replace(pack.object, target_vertices=2000)
+    env = env_of("room")
+    mesh = static_object_fn(pack, prepare_object(pack))
+    cams = cameras(pack, (32, 32))
+    settings = PilotSettings(views=2, resolution=24, spp=128)
+    pilot = run_pilot(env.build, mesh, cams, settings, seed=3)
+    predicted = pilot.depth_figures(None).bias[2]  # max_depth 3
+    picked = [pilot_camera(cams[i], 24) for i in pick_views(cams, 2)]
+    sc = scn.build_scene(env.build(), mesh(), [scn.batch(picked, 1024)])
+    w, h = picked[0].width, picked[0].height
+    deep, short = (render_views(sc, 2, w, h, 1024, 9, d, 12) for d in (12, 3))  # no roulette before 12: same paths
+    enc = lambda x: linear_to_srgb(np.clip(x, 0, None)).astype(np.float64)  # noqa: E731
+    from optimizer.rendering.tracer import LUMA
+
+    actual = float(np.sqrt(np.mean((enc(deep @ np.asarray(LUMA)) - enc(short @ np.asarray(LUMA))) ** 2)))
+    assert actual > 1.0 / 255
+    assert 0.75 < predicted / actual < 1.33, (predicted * 255, actual * 255)
+
+
+def test_plan_survives_its_record(mi_backend):
+    from optimizer.rendering.planner import Plan
+
+    p = _measured("gravel")
+    back = Plan.from_dict(p.to_dict())
+    assert back.to_dict() == p.to_dict()
+    assert back.describe() == p.describe()
+
+
+def test_an_emitter_below_the_noise_is_dropped(mi_backend):
+    """A second light contributing nothing measurable (1e-7 of the sun) is dropped; the plan's environment builds
+    without it. A second light that matters stays."""
+    import trimesh
+
+    mi, _ = mi_backend
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.planner import Planner
+    from optimizer.scenes.cameras import Camera
+
+    def env_with(level):
+        def build():
+            return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
+                               "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.4, 0.4, 0.4]}}},
+                    "sun": {"type": "directional", "direction": [-0.5, -0.2, -0.8],
+                            "irradiance": {"type": "rgb", "value": [3.0, 3.0, 3.0]}},
+                    "fill": {"type": "constant", "radiance": {"type": "rgb", "value": [level] * 3}}}
+        return Environment("test", "test", build, ("sun", "sky"))
+
+    box = trimesh.creation.box(extents=[0.5, 0.5, 0.8])
+    v = (np.asarray(box.vertices) + [0, 0, 0.4]).astype(np.float32)
+
+    def mesh():
+        return scn.object_mesh(v, np.asarray(box.faces), None, {"type": "diffuse"}, smooth=False)
+
+    cams = [Camera((3.0, -2.0, 1.5), (0.0, 0.0, 0.4), 40.0, 32, 32), Camera((-2.5, -2.5, 1.8), (0.0, 0.0, 0.4), 40.0, 32, 32)]
+    pack = builtin_scenes.get("meadow")
+    planner = Planner()
+    for level, dropped in ((3e-7, True), (0.3, False)):
+        env = env_with(level)
+        p = planner.plan(pack, env, {"albedo"}, "optimize", planner.pilot(env, mesh, cams, seed=1), {"targets": 64})
+        assert (p.drop_emitters == ["fill"]) is dropped, (level, p.drop_emitters)
+        assert ("fill" in p.environment(env).build()) is not dropped

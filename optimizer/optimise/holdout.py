@@ -33,7 +33,9 @@ numbers) and splits the error (:func:`split_error`): ``d1 d2`` estimates the squ
 the evaluation's default).
 
 Cost (demo sizes, 4 views at 96 px, 16 spp): about 0.25 s per check plus two background renders; every second of it
-counts in the stage's seconds (the time budget, snapshots and ``summary.json`` include it).
+counts in the stage's seconds (the time budget, snapshots and ``summary.json`` include it). With a measured plan
+(its ``region``), a check after the first renders only the domain's pixels (each pair's background fills the rest:
+the same seed draws the same paths there, and the score reads only the domain).
 """
 
 from __future__ import annotations
@@ -133,6 +135,9 @@ class Holdout:
         self.since_best = 0  # checks since the best one (patience)
         self.seconds = 0.0
         self._memo: dict[str, tuple[float, float, float]] = {}  # digest of scored values -> score (see score)
+        # render(values, cams, spp, seed, masks, fill) restricted to ``masks``: once the domain is known, a check
+        # renders only it (the score reads nothing else); set by :meth:`for_stage` for a measured plan
+        self.masked_render: Callable | None = None
 
     @classmethod
     def for_stage(cls, settings: HoldoutSettings, stage) -> "Holdout":
@@ -158,8 +163,14 @@ class Holdout:
             sc = scn.build_scene(stage.env.build(), m)
             return np.stack([coverage_and_depth(sc, c, m)[0] for c in cams])
 
-        return cls(settings, stage.pack, stage.cfg.seed, render, background, coverage, stage.cfg.shadow_threshold,
-                   stage.cfg.domain_dilate)
+        def masked(values, cams, spp, seed, masks, fill):
+            return render_shaded(stage.env.build(), mesh(values), cams, integrator, spp, seed, masks, fill)
+
+        out = cls(settings, stage.pack, stage.cfg.seed, render, background, coverage, stage.cfg.shadow_threshold,
+                  stage.cfg.domain_dilate)
+        if getattr(stage.plan, "region", False) and integrator.get("type") == "path":
+            out.masked_render = masked
+        return out
 
     # ------------------------------------------------------------------------------------------------------
     def due(self, iteration: int, done: bool) -> bool:
@@ -177,7 +188,11 @@ class Holdout:
         if key in self._memo:  # e.g. Stage 1's first check of the start the start search just scored
             return self._memo[key]
         s = self.settings
-        img = [self._render(values, self.cams, s.spp, sd) for sd in self.render_seeds]
+        if self.bg is not None and self.masked_render is not None:  # only the domain: the score reads nothing else
+            img = [self.masked_render(values, self.cams, s.spp, sd, self.domain > 0, self.bg[i])
+                   for i, sd in enumerate(self.render_seeds)]
+        else:
+            img = [self._render(values, self.cams, s.spp, sd) for sd in self.render_seeds]
         if self.bg is None:  # first score: the backgrounds and the object+shadow domain of these views
             self.bg = np.stack([self._background(self.cams, s.spp, sd) for sd in self.render_seeds])
             cov = self._coverage(values, self.cams)

@@ -132,7 +132,7 @@ def optimize_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threa
     inpainter = _inpainter(spec)  # first: a bad weights folder must fail before Stage 1 runs
     say = (lambda s: print(s, file=sys.stderr)) if progress else (lambda s: None)
     t_setup = time.perf_counter()
-    setup = _setup(spec, pack, env, rough_note, say)
+    setup = _setup(spec, pack, env, rough_note, say, state)
     s1, hold, warm_seconds = _prepare_stage1(spec, setup, state, say)
     setup_seconds = time.perf_counter() - t_setup - warm_seconds
     history = _restore(s1, hold, state, resume_stage, out) if state is not None else []
@@ -156,13 +156,13 @@ def optimize_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threa
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, setup.pack, setup.env, history, setup_seconds, spec, s1.warm_start_info,
                values=values, holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
-               start=s1.start_search_info)
+               start=s1.start_search_info, plan=setup.plan)
 
 
 @dataclasses.dataclass
 class _Setup:
-    """What both stages share: the pack (its start roughness made glint-safe), environment, prepared object,
-    cameras, Stage 1's plan and the appearance config."""
+    """What both stages share: the pack (its start roughness made glint-safe), environment (without the emitters
+    the plan dropped), prepared object, cameras, Stage 1's plan (measured by the pilot) and the appearance config."""
 
     pack: ScenePack
     env: Any
@@ -174,20 +174,24 @@ class _Setup:
     plan_for: Any
 
 
-def _setup(spec: RunSpec, pack: ScenePack, env, rough_note: str | None, say) -> _Setup:
+def _setup(spec: RunSpec, pack: ScenePack, env, rough_note: str | None, say, state=None) -> _Setup:
+    """The prepared object, cameras and the run's effect plan: the pilot on this scene and start
+    (:func:`optimizer.optimise.planning.run_plan`; a resumed run's plan comes from its checkpoint)."""
     from optimizer.scenes.cameras import cameras
     from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import full_plan, plan
+    from optimizer.optimise.planning import narrowed, run_plan
+    from optimizer.rendering.planner import full_plan
 
     prepared = prepare_object(pack)
+    cams = cameras(pack)
+    pl = run_plan(spec, pack, env, prepared, cams, spec.appearance, say, state)
+    env = pl.environment(env)
 
     def plan_for(a: AppearanceConfig):
         params = a.planner_params()
-        return plan(pack, env, params, "optimize", spec.shadow_gradients) if spec.planner else \
+        return narrowed(pl, pack, env, params, spec.shadow_gradients) if spec.planner else \
             full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
 
-    pl = plan_for(spec.appearance)
-    cams = cameras(pack)
     advice = dict(pl.reasons).get("initial roughness")
     if rough_note:
         say(f"note: {rough_note}")
@@ -261,7 +265,9 @@ def _restore(s1: Stage1, hold: Holdout | None, state: dict[str, np.ndarray], res
 
 
 def _plan_record(setup: _Setup, s1: Stage1) -> dict[str, Any]:
-    rec = {"integrator": setup.plan.integrator, "reasons": [f"{k}: {v}" for k, v in setup.plan.reasons],
+    from optimizer.optimise.planning import config_record
+
+    rec = {**config_record(setup.plan),
            # as built for the training renders: explicit per-term sample counts, mi.render(spp=render_spp)
            "training_integrator": s1.scene_integrator, "render_spp": s1.render_spp}
     if setup.rough_note:
@@ -287,10 +293,14 @@ class _Loop:
     s1_iterations: int = 0
 
     def held(self, extra=None) -> dict[str, np.ndarray]:
-        """Checkpoint entries beside a stage's own: the held-out views' best iterate, the searches' choices."""
+        """Checkpoint entries beside a stage's own: the held-out views' best iterate, the searches' choices, the
+        measured plan (a resumed run does not run the pilot again)."""
+        from optimizer.optimise.planning import checkpoint_entry
+
         s1 = self.s1
         turn = {"pose_search/info": np.array(json.dumps(s1.pose_search_info.to_dict()))} if s1.pose_search_info \
             else {}
+        turn.update(checkpoint_entry(s1.plan))
         if s1.start_search_info:
             turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
         return {**(extra or {}), **(self.hold.state() if self.hold is not None else {}), **turn}
@@ -499,7 +509,7 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
-               holdout: dict[str, Any] | None = None, pose=None, start=None) -> None:
+               holdout: dict[str, Any] | None = None, pose=None, start=None, plan=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
     the result's parameters (default: the last stage's current ones); ``holdout``, ``pose`` and ``start``: the
     held-out views', the turn search's and the start search's records for ``summary.json``."""
@@ -521,4 +531,5 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
            extra={"fingerprint": spec.fingerprint(), "preset": spec.preset, "time_budget": spec.time_budget,
                   "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout,
                   "pose_search": pose.to_dict() if pose is not None else None,
-                  "start_search": start.to_dict() if start is not None else None})
+                  "start_search": start.to_dict() if start is not None else None,
+                  "plan": plan.to_dict() if plan is not None else None})

@@ -123,29 +123,54 @@ def target_seed(seed: int) -> int:
     return seeds.seed("targets", seed)
 
 
-def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: dict, cfg: Stage1Config
-                   ) -> tuple[Targets, np.ndarray]:
+def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: dict, cfg: Stage1Config,
+                   region: bool = False, region_threshold: float | None = None) -> tuple[Targets, np.ndarray]:
     """Background targets, coverage, depth and loss domain of every view, and the initial render ``(V, H, W, 3)``
     of the object ``obj_mesh`` (its initial appearance; it marks the object+shadow domain). Stage 1 and every
-    baseline render them here, so a baseline and ``ours`` with the same settings see bit-identical targets."""
-    bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
-    init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
+    baseline render them here, so a baseline and ``ours`` with the same settings see bit-identical targets.
+
+    ``region`` (a measured plan): the initial render covers only the region the object can change
+    (:func:`optimizer.rendering.region.render_region`; threshold ``region_threshold``), the rest is the background
+    target (the same seed: the same paths)."""
     sc_obj = scn.build_scene(env.build(), obj_mesh)
     sc_bg = scn.build_scene(env.build())
-    cov, depth, dom = [], [], []
+    cov, depth = [], []
+    for c in cams:
+        cov.append(coverage_and_depth(sc_obj, c, obj_mesh)[0])
+        depth.append(coverage_and_depth(sc_bg, c)[1])
+    coverage = np.stack(cov)
+    bg = render_shaded(env.build(), None, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
+    if region and integrator.get("type") == "path":
+        from optimizer.rendering.render import render_with_region
+
+        init = render_with_region(env.build, obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed), bg,
+                                  coverage, region_threshold)[0]
+    else:
+        init = render_shaded(env.build(), obj_mesh, cams, integrator, cfg.target_spp, target_seed(cfg.seed))
     px = max(1, round(cfg.domain_dilate * max(cams[0].width, cams[0].height)))
-    for i, c in enumerate(cams):
-        cv, _ = coverage_and_depth(sc_obj, c, obj_mesh)
-        _, d = coverage_and_depth(sc_bg, c)
-        cov.append(cv)
-        depth.append(d)
-        dom.append(influence_domain(bg[i], init[i], cv, cfg.shadow_threshold, px))
-    return Targets(bg, np.stack(cov), np.stack(dom), np.stack(depth)), init
+    dom = [influence_domain(bg[i], init[i], coverage[i], cfg.shadow_threshold, px) for i in range(len(cams))]
+    return Targets(bg, coverage, np.stack(dom), np.stack(depth)), init
+
+
+def training_windows(domain: np.ndarray, mode: str) -> list[tuple[int, int, int, int]] | None:
+    """Per view, the window ``(x0, y0, x1, y1)`` of the training render: the bounding box of the loss domain
+    ``(V, H, W)`` (pixels outside it weigh 0 in the loss, so the loss and its gradient are those of the full frame;
+    the silhouette pass is splatted into the window, :func:`optimizer.rendering.projective.silhouette_pass`).
+    None (full frames) for ``mode == "frame"``; a view with an empty domain keeps a 1 x 1 window."""
+    from optimizer.rendering.region import bbox
+
+    if mode == "frame":
+        return None
+    out = []
+    for d in domain:
+        b = bbox(np.asarray(d) > 0)
+        out.append(b if b is not None else (0, 0, 1, 1))
+    return out
 
 
 def shading_integrator(plan: Plan) -> dict:
-    """The plain path tracer matching a training plan's depth (targets, final renders)."""
-    return {"type": "path", "max_depth": plan.max_depth, "rr_depth": plan.max_depth}
+    """The plain path tracer matching a training plan's depth and Russian roulette (targets, final renders)."""
+    return plan.shading_integrator()
 
 
 class Stage1:
@@ -191,6 +216,8 @@ class Stage1:
         self._warm_cache: dict = {}  # the warm start's geometry-only work, shared by the start search's candidates
         self._warm = bool(cfg.warm_start and not self._initial_given)
         self.opt = None  # built by build()
+        self.windows: list[tuple[int, int, int, int]] | None = None  # per view, the training render's window (build)
+        self._batched = uses_batch(plan.integrator)
 
     # --- preparation: the named steps ------------------------------------------------
     def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
@@ -230,8 +257,10 @@ class Stage1:
             self.targets = targets
         else:
             self._log("rendering background targets and the loss domain")
-            self.targets, self.initial_render = render_targets(self.env, self.cams, self._object(),
-                                                               self.shading_integrator(), self.cfg)
+            self.targets, self.initial_render = render_targets(
+                self.env, self.cams, self._object(), self.shading_integrator(), self.cfg,
+                region=getattr(self.plan, "region_search", False),
+                region_threshold=getattr(self.plan, "region_threshold", None))
         return self.targets
 
     def warm_start(self, start_search_info=None):
@@ -256,12 +285,16 @@ class Stage1:
         if self.targets is None:
             raise RuntimeError("Stage 1 is built after its targets (render_targets first)")
         self._make_optimiser()
+        # the window of each view the loss reads (its domain's bounding box): training renders only it
+        self.windows = training_windows(self.targets.domain, self.cfg.domain) \
+            if getattr(self.plan, "region", False) else None
+        self._batched = uses_batch(self.plan.integrator) and self.windows is None
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
-        self._bg = [mi.TensorXf(self.targets.background[v]) for v in range(len(self.cams))]
-        self._w = [self.targets.domain[v] for v in range(len(self.cams))] if self.cfg.domain != "frame" \
-            else [None] * len(self.cams)
+        self._bg = [mi.TensorXf(self.window(v, self.targets.background[v])) for v in range(len(self.cams))]
+        self._w = [self.window(v, self.targets.domain[v]) for v in range(len(self.cams))] \
+            if self.cfg.domain != "frame" else [None] * len(self.cams)
         dr.eval()
         return self
 
@@ -276,7 +309,7 @@ class Stage1:
             values, info = warm_start_albedo(
                 values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
-                self._log, cache=self._warm_cache)
+                self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False))
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info
@@ -323,11 +356,20 @@ class Stage1:
         """A path tracer consistent with the training integrator (same depth) for targets and final renders."""
         return shading_integrator(self.plan)
 
+    def window(self, view: int, image: np.ndarray) -> np.ndarray:
+        """The part of a full-frame ``image`` (``(H, W, ...)``) of ``view`` that its training render covers."""
+        if self.windows is None:
+            return image
+        x0, y0, x1, y1 = self.windows[view]
+        return image[y0:y1, x0:x1]
+
     def _training_scene(self):
-        if uses_batch(self.plan.integrator):
+        if self._batched:
             sensors = [scn.batch(self.cams, self.cfg.spp)]
         else:
-            sensors = [scn.perspective(c, self.cfg.spp, sample_border=True) for c in self.cams]
+            sensors = [scn.perspective(c, self.cfg.spp, sample_border=True,
+                                       crop=None if self.windows is None else self.windows[v])
+                       for v, c in enumerate(self.cams)]
         self.scene_integrator, self.render_spp = training_integrator(
             self.plan, self.cfg.spp, (self.cams[0].width, self.cams[0].height))
         return scn.build_scene(self.env.build(), self._object(), sensors, dict(self.scene_integrator))
@@ -428,20 +470,34 @@ class Stage1:
         t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps)
         return t.total, t
 
-    def step(self) -> dict[str, Any]:
+    def gradient(self) -> tuple[float, dict[str, np.ndarray]]:
+        """The photometric loss of this iteration's renders and its gradient with respect to every trainable
+        parameter (NumPy arrays shaped like the values; raw: before sanitising, blurring and Adam), without taking a
+        step (the bench's probe; the seeds are this iteration's, so the result is what :meth:`step` would use)."""
+        import drjit as dr
+
+        photo, _, _, _ = self._photometric_backward(self.views_for_step())
+        out = {}
+        for name in self.opt.values:
+            x = self.opt[name]
+            out[name] = dr_numpy(dr.grad(x)).reshape(self.values[name].shape)
+            dr.clear_grad(x)
+        return photo, out
+
+    def _photometric_backward(self, views: list[int]) -> tuple[float, float, float, bool]:
+        """Render ``views`` with the current parameters, evaluate the loss (Eq. 10) and back-propagate it into the
+        parameters' gradients; returns ``(loss, luminance term, chroma term, has_terms)``."""
         import drjit as dr
         import mitsuba as mi
 
         if self.opt is None:
             raise RuntimeError("Stage 1 steps once prepared (prepare(), or its four steps)")
-        t0 = time.perf_counter()
-        views = self.views_for_step()
         V = len(views)
         # Loss terms stay Dr.Jit values (detached) and are read back once, after all views: a
         # read-back per view would stall the pipeline.
         photo, lum, chroma = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
         has_terms = False
-        if uses_batch(self.plan.integrator):
+        if self._batched:
             self._apply()
             s, sg = self._seeds(0)
             img = mi.render(self.scene, self.params, spp=self.render_spp, seed=s, seed_grad=sg)
@@ -476,7 +532,13 @@ class Stage1:
             dr.schedule(photo, lum, chroma)
             if dr.grad_enabled(total):
                 dr.backward(total)
-        photo, lum, chroma = float(photo[0]), float(lum[0]), float(chroma[0])
+        return float(photo[0]), float(lum[0]), float(chroma[0]), has_terms
+
+    def step(self) -> dict[str, Any]:
+        import drjit as dr
+
+        t0 = time.perf_counter()
+        photo, lum, chroma, has_terms = self._photometric_backward(self.views_for_step())
         disp = 0.0
         if "displacement" in self.opt:
             l_disp = self.app.displacement_weight * dr.mean(dr.abs(self.opt["displacement"].array))

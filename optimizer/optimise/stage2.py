@@ -109,7 +109,7 @@ class Stage2(Stage1):
         self.inpaint_seconds.append(time.perf_counter() - t0)
         out = np.clip(np.asarray(out, dtype=np.float32), 0.0, 1.0)
         self.pseudo_np[view] = out
-        self.pseudo[view] = mi.TensorXf(out)
+        self.pseudo[view] = mi.TensorXf(np.ascontiguousarray(self.window(view, out)))
         return out
 
     def _batch_loss(self, img, views: list[int]):
@@ -165,7 +165,7 @@ class Stage2(Stage1):
                 v = int(key.split("/")[1])
                 self.pseudo_np[v] = st[key]
                 self.inputs_np[v] = st[f"pseudo_input/{v}"]
-                self.pseudo[v] = mi.TensorXf(st[key])
+                self.pseudo[v] = mi.TensorXf(np.ascontiguousarray(self.window(v, st[key])))
 
 
 def pseudo_gt_strip(stage: Stage2, view: int) -> np.ndarray:

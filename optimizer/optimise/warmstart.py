@@ -122,7 +122,8 @@ def texel_views(positions: np.ndarray, geometry, resolution: int, env, cams: Seq
 
 def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: Sequence[Camera], integrator: dict,
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
-                      say=lambda s: None, cache: dict | None = None) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
+                      say=lambda s: None, cache: dict | None = None, region: bool = False
+                      ) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
     ``geometry``: :class:`optimizer.rendering.appearance.Geometry`; ``values``: the initial parameters (their displacement
@@ -130,6 +131,8 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     object's pixel coverage in the training views ``cams``; ``integrator`` the shading path tracer of the
     targets. Other maps are unchanged. ``cache``: a dict kept across calls on the same geometry, views and targets
     (a start search): the :class:`TexelViews` are computed once per object placement and map resolution.
+    ``region`` (a measured plan, a ``path`` integrator): the two renders cover only the object's pixels (its coverage
+    dilated by 2 pixels: every bilinear tap of a texel with weight > 0), the only pixels the solve reads.
     """
     import hashlib
 
@@ -149,12 +152,18 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
         if cache is not None:
             cache[key] = tv
 
+    masks = None
+    if region and integrator.get("type") == "path":
+        from optimizer.rendering.region import dilate_px
+
+        masks = np.stack([dilate_px(c > 0, 2) for c in coverage])
     renders = []
     for grey in (0.0, 1.0):
         v = dict(values)
         v["albedo"] = np.full_like(values["albedo"], grey)
         mesh = scn.object_mesh(positions, geometry.faces, geometry.uvs, object_bsdf(v, app))
-        renders.append(render_shaded(env.build(), mesh, cams, integrator, spp, seed))
+        renders.append(render_shaded(env.build(), mesh, cams, integrator, spp, seed, masks,
+                                     None if masks is None else background))
     black, white = renders
     n = len(tv.surface)
     albedo = np.zeros((n, 3), np.float32)

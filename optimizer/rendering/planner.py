@@ -1,46 +1,82 @@
-"""Effect planner: simulate only the light-transport effects a scene calls for.
+"""Effect planner: simulate only the light transport a scene calls for, decided from a measured pilot.
 
-From the scene (its emitters, geometry near the object, the object's material)
-and the parameters being optimised, choose the integrator and its settings, and
-say why. Rules (Mitsuba 3.9):
+Two parts, kept apart:
 
-* **Gradients w.r.t. geometry** (pose, displacement) move silhouettes; plain
-  ``prb`` is biased there, so a projective integrator is needed:
-  ``direct_projective`` for an opaque object in an open scene (direct light
-  dominates), else ``prb_projective``. Indirect-visibility sampling (``sppi``)
-  costs ~35x and is off unless ``shadow_gradients`` asks for the object's
-  shadow/reflection boundaries to drive the pose. Primary-silhouette samples
-  are a budget per view, ``2 * (W + H) * spp`` (:func:`training_integrator`,
-  :mod:`optimizer.rendering.projective`), not Mitsuba's ``sppp`` per *pixel*: a
-  silhouette is a 1-D curve, and its term's variance stays ~1e-4 of the
-  continuous term's or less (gravel, 128^2, 256 to 16384 samples).
-* **Only material maps** optimised: ``prb`` (unbiased for BSDF parameters),
-  and all views in one ``batch`` sensor.
-* **max_depth** just deep enough: 3 for an opaque object outdoors (direct light
-  plus one bounce: ground light under the object, its colour on the ground);
-  +1 with nearby walls/occluders (interreflection); 6 for a transmissive object
-  (camera -> front face -> back face -> background -> light, plus one bounce);
-  ``rr_depth = max_depth`` so Russian roulette never truncates these short paths.
-* **Masks and depth** come from a ray-cast AOV pass (no shading).
-* Emitters: only those the scene has are sampled (Mitsuba samples the scene's
-  own emitters; the planner adds none and reports which exist).
+**What correctness requires** (:func:`plan`, from the optimised parameters alone, no measurement): gradients with
+respect to geometry (pose, displacement) move silhouettes, and plain ``prb`` is biased there, so they need a
+projective integrator (``prb_projective``; ``direct_projective`` when the measured depth is 2); its primary-silhouette
+samples are a budget per view, ``2 * (W + H) * spp`` (:func:`training_integrator`, :mod:`optimizer.rendering.projective`),
+not Mitsuba's ``sppp`` per pixel; indirect-visibility sampling (``sppi``, the shadow's outline) costs ~35x per step
+and is off unless ``shadow_gradients``; only material maps: ``prb``. Masks and depth come from a ray-cast AOV pass.
+Without a pilot this plan keeps every bounce (``max_depth`` 12, the full setting) with Russian roulette from vertex
+5 (Mitsuba's default; unbiased): it never drops what it has not measured.
 
-``FULL`` is the reference "always full path tracing" setting used by the bench.
+**What the scene calls for** (:meth:`Planner.plan`, from a :class:`~optimizer.rendering.pilot.Pilot`): a few seconds
+of rendering of the actual scene, object and stage (:meth:`Planner.pilot`, a named step; the constructor only reads
+settings) measure, over the pixels that matter (the object's region when optimising, the whole frame for renders
+shown whole), in sRGB units:
+
+* each bounce: the light that needs path depth ``M``, and the bias of stopping before it;
+* the transmissive chains (light through the object onto its surroundings: the caustics that lighten a
+  transmissive object's shadow; light seen through it) and the light the object reflects onto its surroundings;
+* each emitter's share of the light;
+* with geometry gradients, where the image responds to the pose: on the silhouette (the projective term), inside the
+  object, around it (its shadow: what only indirect visibility sampling differentiates);
+* the Monte Carlo noise per sample, and the cost (path vertices per sample) of each depth.
+
+``max_depth`` is the smallest depth whose dropped light (RMS over the pixels that matter) stays below
+``bias_fraction`` (0.3) of the noise at the stage's spp (the largest spp the plan's depth serves: a squared error at
+most 9 % above the noise alone). Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
+``rr_depth = max_depth`` would turn it off). An emitter whose light is below the same bound is dropped. The plan
+states the noise each stage's spp gives and the spp a stated accuracy (``accuracy``, sRGB RMS; 1/255) needs, and
+the accuracy-vs-seconds curve of the plan and of full path tracing for the stage's render (:meth:`Plan.curve`).
+Renders are restricted to the region the object can change (:mod:`optimizer.rendering.region`; training renders to
+the loss domain's window, :func:`optimizer.optimise.stage1.training_windows`); ``region`` says so.
+
+``FULL`` (:func:`full_plan`) is the reference "always full path tracing" setting (``--no-planner``, the bench).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+import math
+from typing import Any, Callable, Sequence
 
+from optimizer.rendering.pilot import FULL_DEPTH, RR_DEPTH, Pilot, PilotSettings, run_pilot
 from optimizer.scenes.environments import Environment
 from optimizer.scenes.scenepack import ScenePack
 
 PARAMETERS = ("pose", "displacement", "bsdf", "transmittance", "albedo")
+PURPOSES = ("optimize", "render", "evaluate")
 
-FULL_MAX_DEPTH = 12
+FULL_MAX_DEPTH = FULL_DEPTH
 SILHOUETTE_SAMPLES_PER_EDGE = 2  # primary-silhouette samples per view = 2 * (W + H) * spp
 PROJECTIVE = ("direct_projective", "prb_projective")
+#: A transmissive chain (camera -> front face -> back face -> ground -> light, or ground -> object -> object ->
+#: light) needs this depth; a plan for an optimisation that may make an opaque start transmissive keeps it.
+TRANSMISSIVE_DEPTH = 4
+#: Indirect-visibility sampling (``sppi``) multiplies a projective step's cost by about this much.
+SPPI_COST = 35
+#: A region render pays for the search (its growth steps) when the region holds at most this share of a full
+#: render's cost (measured at 96 px, 4 views, 64 spp: meadow, 43 % of the pixels, 1.2-1.3x faster; gravel, 73 %,
+#: not faster).
+REGION_PAYS = 0.6
+
+
+@dataclasses.dataclass
+class Effect:
+    """One measured effect and the planner's decision about it (sRGB units over the pixels that matter)."""
+
+    name: str
+    contribution: float | None  # RMS of the light the effect adds (None: not measured)
+    noise: float | None  # RMS Monte Carlo noise of the stage's render at its spp
+    kept: bool
+    why: str
+
+    def to_dict(self) -> dict[str, Any]:
+        r = (lambda x: None if x is None else float(x))
+        return {"name": self.name, "contribution": r(self.contribution), "noise": r(self.noise), "kept": self.kept,
+                "why": self.why}
 
 
 @dataclasses.dataclass
@@ -51,55 +87,109 @@ class Plan:
     aov_pass: str
     reasons: list[tuple[str, str]]  # (setting, why)
     silhouette_budget: bool = True  # projective: per-view silhouette sample budget (False: Mitsuba's sppp = spp)
+    rr_depth: int = RR_DEPTH
+    region: bool = False  # renders restricted to the region the object can change
+    purpose: str = "optimize"
+    effects: list[Effect] = dataclasses.field(default_factory=list)
+    spp: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)  # stage -> spp, noise, spp for accuracy
+    pilot: dict[str, Any] | None = None  # the pilot's figures (Pilot.to_dict)
+    curve: dict[str, Any] | None = None  # accuracy vs seconds of the plan and of full path tracing
+    drop_emitters: list[str] = dataclasses.field(default_factory=list)
+    region_threshold: float = 0.5 / 255  # sRGB: a change below this is left to the background render
+    region_search: bool = False  # searching the region of a render with the object pays (evaluation, targets)
+
+    @property
+    def measured(self) -> bool:
+        return self.pilot is not None
+
+    def shading_integrator(self) -> dict[str, Any]:
+        """The path tracer of the plan's radiance renders (targets, final renders, evaluation)."""
+        return {"type": "path", "max_depth": int(self.max_depth), "rr_depth": int(self.rr_depth)}
 
     def describe(self) -> str:
-        lines = [f"integrator: {self.integrator}", f"batch sensor: {'yes' if self.batch else 'no (one perspective sensor per view)'}"]
+        lines = [f"integrator: {self.integrator}",
+                 f"batch sensor: {'yes' if self.batch else 'no (one perspective sensor per view)'}"]
         lines += [f"- {k}: {v}" for k, v in self.reasons]
+        if self.effects:
+            lines.append("measured effects (sRGB, RMS over the pixels that matter; noise at the stage's spp):")
+            w = max(len(e.name) for e in self.effects)
+            for e in self.effects:
+                c = "-" if e.contribution is None else f"{e.contribution * 255:7.3f}/255"
+                n = "-" if e.noise is None else f"{e.noise * 255:6.3f}/255"
+                lines.append(f"  {'keep' if e.kept else 'drop'}  {e.name:<{w}}  {c:>12}  noise {n:>11}  {e.why}")
+        if self.spp:
+            lines.append("spp per stage (noise: sRGB RMS over the pixels that matter):")
+            for stage, d in self.spp.items():
+                lines.append(f"  {stage:<12} {d['spp']:>6} spp  noise {d['noise'] * 255:6.3f}/255  "
+                             f"{d['accuracy'] * 255:.2f}/255 needs {d['spp_for_accuracy']} spp")
+        if self.curve:
+            lines.append(curve_text(self.curve))
         return "\n".join(lines)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"purpose": self.purpose, "integrator": dict(self.integrator), "batch": self.batch,
+                "max_depth": int(self.max_depth), "rr_depth": int(self.rr_depth), "region": self.region,
+                "silhouette_budget": self.silhouette_budget, "aov_pass": self.aov_pass,
+                "reasons": [[k, v] for k, v in self.reasons], "effects": [e.to_dict() for e in self.effects],
+                "spp": self.spp, "pilot": self.pilot, "curve": self.curve, "drop_emitters": list(self.drop_emitters),
+                "region_threshold": float(self.region_threshold), "region_search": self.region_search}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Plan":
+        """A plan recorded by :meth:`to_dict` (a resumed run uses it instead of running the pilot again)."""
+        return cls(dict(d["integrator"]), bool(d["batch"]), int(d["max_depth"]), str(d.get("aov_pass", "")),
+                   [(str(k), str(v)) for k, v in d.get("reasons", [])], bool(d.get("silhouette_budget", True)),
+                   int(d.get("rr_depth", RR_DEPTH)), bool(d.get("region", False)), str(d.get("purpose", "optimize")),
+                   [Effect(**e) for e in d.get("effects", [])], dict(d.get("spp", {})), d.get("pilot"),
+                   d.get("curve"), list(d.get("drop_emitters", [])), float(d.get("region_threshold", 0.5 / 255)),
+                   bool(d.get("region_search", False)))
+
+    def environment(self, env: Environment) -> Environment:
+        """``env`` without the emitters the plan dropped (``env`` itself when none)."""
+        if not self.drop_emitters:
+            return env
+        drop = set(self.drop_emitters)
+        build = env.build
+
+        def filtered() -> dict[str, Any]:
+            return {k: v for k, v in build().items() if k not in drop}
+
+        return dataclasses.replace(env, build=filtered)
+
+
+AOV = "ray-cast AOV pass (no shading): visible-object coverage (4x4 rays/pixel, occlusion aware) and depth"
 
 
 def plan(pack: ScenePack, env: Environment, params: set[str] | frozenset[str] = frozenset(), purpose: str = "optimize",
          shadow_gradients: bool = False, max_depth: int | None = None) -> Plan:
-    """Decide integrator settings for ``purpose`` in {"optimize", "render", "evaluate"}.
-
-    ``params`` are the optimised parameters (subset of :data:`PARAMETERS`);
-    ignored unless ``purpose == "optimize"``.
-    """
+    """The integrator correctness requires for ``purpose`` in :data:`PURPOSES` and the optimised ``params``
+    (subset of :data:`PARAMETERS`; read when ``purpose == "optimize"``), with every bounce kept (``max_depth``: 12,
+    or as given). :meth:`Planner.plan` refines it from a pilot."""
     unknown = set(params) - set(PARAMETERS)
     if unknown:
         raise ValueError(f"unknown parameters {sorted(unknown)}")
-    reasons: list[tuple[str, str]] = []
+    if purpose not in PURPOSES:
+        raise ValueError(f"unknown purpose {purpose!r}; one of {', '.join(PURPOSES)}")
+    depth = FULL_MAX_DEPTH if max_depth is None else int(max_depth)
+    reasons: list[tuple[str, str]] = [
+        ("max_depth", f"{depth}: " + ("set explicitly" if max_depth is not None else
+                                      "every bounce (no pilot measured what could be dropped)")),
+        ("rr_depth", f"{RR_DEPTH}: Russian roulette from vertex {RR_DEPTH} (Mitsuba's default; unbiased)")]
+    return _structure(pack, env, params, purpose, shadow_gradients, depth, RR_DEPTH, reasons)
+
+
+def _structure(pack, env, params, purpose, shadow_gradients, depth, rr_depth, reasons) -> Plan:
     optimise = purpose == "optimize"
     geometry = optimise and bool({"pose", "displacement"} & set(params))
-    transmissive = pack.material.transmittance > 0 or (optimise and "transmittance" in params)
-    reflective = pack.material.metallic > 0 or (optimise and "bsdf" in params)
-
-    depth = 3
-    why = ["direct light + one bounce (ground light under the object, the object's colour on the ground)"]
-    if env.nearby_geometry:
-        depth += 1
-        why.append("+1 for interreflection with nearby walls/occluders")
-    if transmissive:
-        depth = max(depth, 6)
-        why.append("6 for refraction through a closed transmissive mesh (front face, back face, background, light)")
-    if reflective:
-        why.append("metallic reflections of the surroundings are covered by the same depth")
-    if max_depth is not None:
-        depth = max_depth
-        why = [f"set explicitly to {max_depth}"]
-    reasons.append(("max_depth", f"{depth}: " + "; ".join(why)))
-
     if geometry:
-        open_opaque = not transmissive and not env.nearby_geometry and max_depth is None
-        if open_opaque:
+        if depth <= 2:
             integ: dict[str, Any] = {"type": "direct_projective"}
-            depth = 2
-            reasons.append(("integrator", "direct_projective: pose/displacement move silhouettes (prb is biased there); "
-                            "opaque object in an open scene, direct light dominates"))
+            reasons.append(("integrator", "direct_projective: pose/displacement move silhouettes (prb is biased "
+                            "there); direct light is all the measured transport needs"))
         else:
-            integ = {"type": "prb_projective", "max_depth": depth, "rr_depth": depth}
+            integ = {"type": "prb_projective", "max_depth": depth, "rr_depth": rr_depth}
             reasons.append(("integrator", "prb_projective: pose/displacement move silhouettes (prb is biased there); "
-                            + ("transmission" if transmissive else "interreflection") + " needs multi-bounce paths"))
+                            f"paths up to depth {depth}"))
         if not shadow_gradients:
             integ["sppi"] = 0
         reasons.append(("sppi", "default (on): shadow/reflection boundaries drive the pose (~35x cost)" if shadow_gradients
@@ -111,22 +201,249 @@ def plan(pack: ScenePack, env: Environment, params: set[str] | frozenset[str] = 
         batch = False
         reasons.append(("sensors", "one perspective sensor per view (the batch sensor crashes projective integrators)"))
     elif optimise:
-        integ = {"type": "prb", "max_depth": depth, "rr_depth": depth}
+        integ = {"type": "prb", "max_depth": depth, "rr_depth": rr_depth}
         reasons.append(("integrator", "prb: only material maps are optimised, prb is unbiased for them"))
         batch = True
         reasons.append(("sensors", "one batch sensor renders every view in one pass"))
     else:
-        integ = {"type": "path", "max_depth": depth, "rr_depth": depth}
+        integ = {"type": "path", "max_depth": depth, "rr_depth": rr_depth}
         reasons.append(("integrator", f"path: {purpose} needs radiance only, no gradients"))
         batch = True
         reasons.append(("sensors", "one batch sensor renders every view in one pass"))
-    reasons.append(("emitters", f"scene has {', '.join(env.emitters)}; only these are sampled"))
+    reasons.append(("emitters", f"scene has {', '.join(env.emitters)}"))
     advice = glint_advice(pack, env, params) if optimise else None
     if advice:
         reasons.append(("initial roughness", advice))
-    aov = "ray-cast AOV pass (no shading): visible-object coverage (4x4 rays/pixel, occlusion aware) and depth"
-    reasons.append(("masks/depth", aov))
-    return Plan(integ, batch, depth, aov, reasons)
+    reasons.append(("masks/depth", AOV))
+    return Plan(integ, batch, depth, AOV, reasons, rr_depth=rr_depth, purpose=purpose)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerSettings:
+    """What the measured planner reads (:class:`Planner`)."""
+
+    pilot: PilotSettings = PilotSettings()
+    bias_fraction: float = 0.3  # an effect is dropped when its RMS is below this fraction of the stage's noise
+    accuracy: float = 1.0 / 255  # the stated accuracy (sRGB RMS noise) the spp table is computed for
+    rr_depth: int = RR_DEPTH
+    region: bool = True  # restrict renders to what the object can change
+
+
+class Planner:
+    """The measured planner (module doc). ``Planner(settings)`` only keeps its settings; :meth:`pilot` renders,
+    :meth:`plan` decides (pure, from the pilot's figures)."""
+
+    def __init__(self, settings: PlannerSettings = PlannerSettings()):
+        self.settings = settings
+
+    def pilot(self, env: Environment, mesh_fn: Callable[[], Any], cams: Sequence, seed: int = 0,
+              geometry: bool = False, size: float = 1.0) -> Pilot:
+        """The pilot of the object ``mesh_fn()`` in ``env`` seen from (a few of) ``cams``
+        (:func:`optimizer.rendering.pilot.run_pilot`)."""
+        return run_pilot(env.build, mesh_fn, cams, self.settings.pilot, seed=seed, geometry=geometry, size=size)
+
+    def plan(self, pack: ScenePack, env: Environment, params: set[str] | frozenset[str], purpose: str, pilot: Pilot,
+             spp: dict[str, int], shadow_gradients: bool = False) -> Plan:
+        """The plan for ``purpose`` from ``pilot``; ``spp``: each stage's samples per pixel served by the plan's
+        depth (``training``, ``targets``, ``holdout``; ``evaluation``; ...). The depth is decided at the largest."""
+        st = self.settings
+        if not spp:
+            raise ValueError("spp: at least one stage")
+        optimise = purpose == "optimize"
+        pixels = pilot.region() if optimise else None
+        where = "the object's region" if optimise else "the whole frame"
+        # what the stage's comparison sees: optimising, the loss compares the render with the object to background
+        # targets of the same depth (the light both lack cancels): the bias of the object's effect; rendered whole
+        # (evaluation, stimuli), the image itself
+        f = pilot.depth_figures(pixels, difference=optimise)
+        K = pilot.K
+        s_max = max(int(v) for v in spp.values())
+        noise_full = math.sqrt(f.variance[K - 1] / s_max)
+        limit = st.bias_fraction * noise_full
+        floor = 2
+        if optimise and "transmittance" in params:
+            floor = TRANSMISSIVE_DEPTH
+        depth = next((M for M in range(floor, K + 1) if f.bias[M - 1] <= limit), K)
+        rr = min(st.rr_depth, FULL_DEPTH)
+        effects: list[Effect] = []
+        noise_at = math.sqrt(f.variance[depth - 1] / s_max)
+        for M in range(2, min(K, depth + 1) + 1):
+            kept = M <= depth
+            why = "kept" if kept else f"dropped: it and every deeper bounce {f.bias[depth - 1] * 255:.3f}/255 RMS"
+            if kept and M == depth and depth > floor:
+                why = f"kept: stopping before it would leave {f.bias[M - 2] * 255:.3f}/255 > {limit * 255:.3f}/255"
+            elif kept and M == floor and floor > 2 and f.bias[M - 2] <= limit:
+                why = "kept: an optimised transmittance may open transmissive chains (they need depth 4)"
+            effects.append(Effect(f"bounce {M} (depth {M})", float(f.bounce[M - 1]), noise_at, kept, why))
+        if depth + 1 < K:
+            effects.append(Effect(f"bounces {depth + 2}-{K}", float(f.bias[depth]), noise_at, False,
+                                  "dropped with the one above"))
+        for name, label in (("via_t", "light through the object onto its surroundings (transmissive chains)"),
+                            ("seen_t", "light seen through the object"),
+                            ("via", "light the object reflects or lets through onto its surroundings")):
+            rms, per_sample = pilot.category(name, pixels)
+            need = TRANSMISSIVE_DEPTH if name in ("via_t", "seen_t") else 3
+            kept = depth >= need
+            why = (f"{'kept' if kept else 'dropped'} (needs depth >= {need})" +
+                   (f"; its own noise {per_sample * 255:.2f}/255 per sample" if per_sample else ""))
+            effects.append(Effect(label, rms, noise_at, kept, why))
+        drop: list[str] = []
+        shares = pilot.emitter_shares(pixels)
+        mean_y = _mean_srgb_light(pilot, pixels)
+        keys = _element_ids(env) if len(shares) > 1 else set()
+        for i, share in enumerate(shares):
+            label = pilot.emitters[i] if i < len(pilot.emitters) else f"emitter {i}"
+            key = label.split(" (")[0]
+            contribution = share * mean_y
+            dropped = len(shares) > 1 and contribution < limit and key in keys
+            if dropped:
+                drop.append(key)
+            effects.append(Effect(f"emitter {label}: {share:.0%} of the light", contribution, noise_at, not dropped,
+                                  "dropped: below the noise" if dropped else
+                                  ("kept" if len(shares) > 1 else "kept: the only emitter")))
+        deeper = "changes the object's effect (with minus without it) by" if optimise else "is"
+        reasons: list[tuple[str, str]] = [
+            ("max_depth", f"{depth}: the light of deeper paths {deeper} {f.bias[depth - 1] * 255:.3f}/255 RMS over "
+                          f"{where}, "
+                          f"below {st.bias_fraction:g} x the noise at {s_max} spp ({noise_full * 255:.3f}/255)"
+                          + (f"; at least {floor}: an optimised transmittance may open transmissive chains"
+                             if floor > 2 else "")),
+            ("rr_depth", f"{rr}: Russian roulette from vertex {rr} as in full path tracing (unbiased; "
+                         "rr_depth = max_depth would turn it off)" + (f"; paths stop at depth {depth} before it"
+                                                                       if depth <= rr else "")),
+        ]
+        geometry = optimise and bool({"pose", "displacement"} & set(params))
+        out = _structure(pack, env, params, purpose, shadow_gradients, depth, rr, reasons)
+        if geometry and pilot.sensitivity:
+            sens = pilot.sensitivity
+            effects.append(Effect(f"silhouette term ({sens['silhouette']:.0%} of the image's response to the pose)",
+                                  None, None, True, "kept: projective sampling (camo_" + out.integrator["type"] +
+                                  ", a per-view budget)"))
+            effects.append(Effect(f"indirect visibility ({sens['surroundings']:.0%} of the response: the shadow)",
+                                  None, None, bool(shadow_gradients),
+                                  "on (--shadow-gradients)" if shadow_gradients else
+                                  f"off: sppi costs ~{SPPI_COST}x per step; the pose follows the silhouette "
+                                  f"({sens['silhouette']:.0%}) and the inside ({sens['inside']:.0%}); "
+                                  "--shadow-gradients turns it on"))
+        out.region_threshold = max(0.5 / 255, limit)
+        reg = pilot.region()
+        share, cost_share = float(reg.mean()), pilot.cost_share(reg)
+        pays = cost_share <= REGION_PAYS
+        out.region = bool(st.region) and (pays or optimise)
+        out.region_search = bool(st.region) and pays
+        if st.region:
+            changed = (f"the pilot's object changes {share:.0%} of its frames, {cost_share:.0%} of a render's cost, "
+                       f"by more than {out.region_threshold * 255:.2f}/255 (half an 8-bit step, or "
+                       f"{st.bias_fraction:g} x the noise if larger)")
+            if pays:
+                why = f"renders cover only what the object can change ({changed}), the rest is the background render's"
+            else:
+                why = (f"whole frames: {changed}; above {REGION_PAYS:.0%} of the cost, finding the region would not "
+                       "pay for the pixels it leaves out")
+            if optimise:
+                why += "; training renders the loss domain's window" + ("" if pays else
+                                                                       " (its domain is known: no search)")
+            out.reasons.append(("region", why))
+            effects.append(Effect(f"pixels the object does not change ({1 - share:.0%} of the frame, "
+                                  f"{1 - cost_share:.0%} of the cost)", None, None, not (pays or optimise),
+                                  "taken from the background render" if pays else "rendered: too little to gain"))
+        out.effects = effects
+        out.drop_emitters = drop
+        acc = st.accuracy
+        out.spp = {stage: {"spp": int(n), "noise": math.sqrt(f.variance[depth - 1] / max(int(n), 1)),
+                           "accuracy": acc, "spp_for_accuracy": int(math.ceil(f.variance[depth - 1] / acc ** 2))}
+                   for stage, n in spp.items()}
+        out.pilot = pilot.to_dict()
+        out.curve = curve(pilot, depth, rr, pilot.region(), out.region_search)
+        return out
+
+
+def _mean_srgb_light(pilot: Pilot, pixels) -> float:
+    """RMS sRGB-slope-weighted luminance over ``pixels`` (what a light's share of the pixels is worth in sRGB)."""
+    import numpy as np
+
+    from optimizer.rendering.pilot import srgb_slope
+
+    sel = np.ones(pilot.obj.shape[:3], bool) if pixels is None else pixels
+    y = pilot.luminance(pilot.obj)[sel]
+    return float(np.sqrt(np.mean((srgb_slope(y) * y) ** 2))) if y.size else 0.0
+
+
+def _element_ids(env: Environment) -> set[str]:
+    try:
+        return set(env.build())
+    except Exception:  # pragma: no cover - a build that needs a variant; nothing can be dropped then
+        return set()
+
+
+def curve(pilot: Pilot, depth: int, rr: int, pixels, region: bool,
+          spps: Sequence[int] = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)) -> dict[str, Any]:
+    """Predicted accuracy (sRGB RMS error over the frame against converged full path tracing) against seconds of one
+    render of the pilot's views at the pilot's resolution, for the plan (depth ``depth``; with ``region`` only the
+    region's pixels rendered, the rest from the background render at the same spp) and for full path tracing
+    (depth 12, every pixel). Seconds: the vertices traced times the pilot's own seconds per vertex."""
+    import numpy as np
+
+    K = pilot.K
+    sel = np.ones(pilot.obj.shape[:3], bool) if pixels is None else np.asarray(pixels, bool)
+    if not region:
+        sel = np.ones_like(sel)
+    inside = pilot.depth_figures(sel)
+    full = pilot.depth_figures(None)
+    outside = pilot.depth_figures(~sel, with_object=False) if (~sel).any() else None
+    n_all = sel.size
+    n_in = int(sel.sum())
+    spv = pilot.seconds_per_vertex()
+    rows = []
+    for s in spps:
+        e_full = math.sqrt(full.variance[K - 1] / s)
+        t_full = spv * s * n_all * full.cost[K - 1]
+        mse = n_in * (inside.bias[depth - 1] ** 2 + inside.variance[depth - 1] / s)
+        if outside is not None:
+            mse += (n_all - n_in) * outside.variance[K - 1] / s
+        e_plan = math.sqrt(mse / n_all)
+        t_plan = spv * s * n_in * inside.cost[depth - 1]
+        rows.append({"spp": int(s), "plan_seconds": t_plan, "plan_error": e_plan, "full_seconds": t_full,
+                     "full_error": e_full})
+    return {"views": int(pilot.obj.shape[0]), "width": pilot.width, "height": pilot.height, "rows": rows,
+            "note": "predicted from the pilot: error = sRGB RMS against converged full path tracing over the frame; "
+                    "seconds = path vertices x the pilot's seconds per vertex"}
+
+
+def curve_text(c: dict[str, Any]) -> str:
+    lines = [f"accuracy vs seconds ({c['views']} views at {c['width']}x{c['height']}; {c['note']}):",
+             "   spp   plan s    plan err   full s    full err"]
+    for r in c["rows"]:
+        lines.append(f"  {r['spp']:>5}  {r['plan_seconds']:7.3f}  {r['plan_error'] * 255:7.3f}/255  "
+                     f"{r['full_seconds']:7.3f}  {r['full_error'] * 255:7.3f}/255")
+    return "\n".join(lines)
+
+
+def curve_png(c: dict[str, Any], path, title: str = "") -> None:
+    """The accuracy-vs-seconds curve of a plan and of full path tracing (log-log), as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from camo_base import atomic
+
+    rows = c["rows"]
+    fig, ax = plt.subplots(figsize=(5.2, 3.6), dpi=120)
+    ax.loglog([r["full_seconds"] for r in rows], [r["full_error"] * 255 for r in rows], "o-", label="full path tracing")
+    ax.loglog([r["plan_seconds"] for r in rows], [r["plan_error"] * 255 for r in rows], "s-", label="plan")
+    for r in rows[::2]:
+        ax.annotate(f"{r['spp']}", (r["plan_seconds"], r["plan_error"] * 255), fontsize=7, xytext=(3, 3),
+                    textcoords="offset points")
+    ax.set_xlabel("seconds (predicted from the pilot)")
+    ax.set_ylabel("RMS error (sRGB, /255)")
+    ax.set_title(title or "accuracy vs seconds", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
 
 
 COMPACT_EMITTERS = ("sun", "area")
@@ -151,7 +468,8 @@ def glint_advice(pack: ScenePack, env: Environment, params: set[str] | frozenset
 
 
 def full_plan(purpose: str = "optimize", geometry: bool = True) -> Plan:
-    """The bench's reference: full path tracing, max_depth 12, projective sampling on."""
+    """The bench's reference: full path tracing, max_depth 12, Russian roulette from 5 (Mitsuba's defaults),
+    projective sampling on (indirect visibility included), Mitsuba's per-pixel silhouette samples, full frames."""
     if purpose == "optimize" and geometry:
         integ = {"type": "prb_projective", "max_depth": FULL_MAX_DEPTH}
         batch = False
@@ -161,7 +479,8 @@ def full_plan(purpose: str = "optimize", geometry: bool = True) -> Plan:
     else:
         integ = {"type": "path", "max_depth": FULL_MAX_DEPTH}
         batch = True
-    return Plan(integ, batch, FULL_MAX_DEPTH, "", [("integrator", "always full")], silhouette_budget=False)
+    return Plan(integ, batch, FULL_MAX_DEPTH, "", [("integrator", "always full")], silhouette_budget=False,
+                rr_depth=RR_DEPTH, purpose=purpose)
 
 
 def silhouette_samples(width: int, height: int, spp: int) -> int:

@@ -110,15 +110,57 @@ def _budgeted(base):
         def render_primarily_visible_silhouette(self, scene, sensor, sampler, spp):
             weight = self._view_weight  # Mitsuba divides each sample by spp: dividing spp multiplies the term
             if self.silhouette_samples <= 0:
-                return super().render_primarily_visible_silhouette(scene, sensor, sampler, spp / weight)
+                return silhouette_pass(self, scene, sensor, sampler, spp / weight)
             w, h = sensor.film().crop_size()
             sampler.set_samples_per_wavefront(1)
             sampler.seed(mi.UInt32(self._seed) ^ _SEED_SALT, self.silhouette_samples)
-            return super().render_primarily_visible_silhouette(
-                scene, sensor, sampler, equivalent_spp(int(w), int(h), self.silhouette_samples) / weight)
+            return silhouette_pass(self, scene, sensor, sampler,
+                                   equivalent_spp(int(w), int(h), self.silhouette_samples) / weight)
 
         def to_string(self):
             return f"Budgeted{base.__name__}[silhouette_samples={self.silhouette_samples}]"
 
     Budgeted.__name__ = Budgeted.__qualname__ = f"Budgeted{base.__name__}"
     return Budgeted
+
+
+def silhouette_pass(integrator, scene, sensor, sampler, spp: float):
+    """The primary-silhouette term of ``integrator`` (a Mitsuba projective integrator): Mitsuba 3.9's
+    ``render_primarily_visible_silhouette`` with one correction, the splat position under a film crop window.
+
+    Each sample picks a point on a silhouette seen from the sensor, evaluates the radiance difference across it and
+    the point's motion, and splats ``difference * motion * J / pdf / spp`` where the point projects. The sensor's
+    ``sample_direction`` returns that position *relative to the crop window*, while the film's image block
+    subtracts the window's offset again; Mitsuba's pass thus drops or misplaces every sample of a cropped film
+    (measured: the z-translation gradient of a sphere -1.23 full frame, -0.05 cropped). Adding the offset back
+    makes a cropped render's silhouette gradient equal the full frame's on the window
+    (tests/test_projective.py); without a crop the two are the same code."""
+    import drjit as dr
+    import mitsuba as mi
+
+    film = sensor.film()
+    aovs = integrator.aov_names()
+    detail = integrator.proj_detail
+    with dr.suspend_grad():
+        centre = sensor.world_transform() @ mi.Point3f(0)
+        ss = detail.sample_primarily_visible_silhouette(scene, centre, sampler.next_2d(), True)
+        active = ss.is_valid() & (ss.pdf > 0)
+        J = detail.sensor_jacobian(sensor, ss)
+        dL, wavelengths = detail.eval_primary_silhouette_radiance_difference(scene, sampler, ss, sensor, active=active)
+        active &= dr.any(dL != 0)
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.p, si.prim_index, si.uv = ss.p, ss.prim_index, ss.uv
+    motion = dr.dot(ss.shape.differential_motion(dr.detach(si), active), ss.n)
+    derivative = dL * motion * dr.rcp(ss.pdf) * J
+    film.prepare(aovs)
+    with dr.suspend_grad():
+        it = dr.zeros(mi.Interaction3f)
+        it.p = ss.p
+        ds, _ = sensor.sample_direction(it, mi.Point2f(0))
+    offset = film.crop_offset()
+    block = film.create_block(normalize=True)
+    block.set_coalesce(block.coalesce() and spp >= 4)
+    block.put(pos=ds.uv + mi.Point2f(float(offset[0]), float(offset[1])), wavelengths=wavelengths,
+              value=derivative * dr.rcp(mi.ScalarFloat(spp)), weight=0, alpha=1, active=active)
+    film.put_block(block)
+    return film.develop()

@@ -37,10 +37,48 @@ def uses_batch(integrator: dict[str, Any]) -> bool:
     return integrator.get("type") not in PROJECTIVE
 
 
-def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0) -> np.ndarray:
-    """Render every view; returns ``(V, H, W, 3)`` linear radiance."""
+class PathRenderer:
+    """One scene (environment ``elements`` and an optional object ``obj``) seen from ``cams`` through a ``batch``
+    sensor, rendered any number of times by :mod:`optimizer.rendering.tracer` (Mitsuba's ``path`` estimator with
+    per-pixel random streams; ``integrator``: a ``path`` dict, its ``max_depth`` and ``rr_depth``). Renders with
+    and without the object at one seed share their random numbers, and a render of some pixels equals those
+    pixels of the full frame."""
+
+    def __init__(self, elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0):
+        if integrator.get("type") != "path":
+            raise ValueError(f"PathRenderer renders the path integrator, not {integrator.get('type')!r}")
+        self.cams, self.spp, self.seed = list(cams), int(spp), int(seed)
+        self.max_depth = int(integrator.get("max_depth", 12))
+        self.rr_depth = int(integrator.get("rr_depth", 5))
+        self.scene = scn.build_scene(elements, obj, [scn.batch(self.cams, self.spp)])
+
+    def __call__(self, masks: np.ndarray | None = None, fill: np.ndarray | None = None, spp: int | None = None,
+                 first_sample: int = 0, moments: bool = False, groups: int = 1):
+        """``(V, H, W, 3)`` linear radiance: the pixels where ``masks (V, H, W)`` is set (None: all), the others
+        copied from ``fill`` (zeros when None); samples ``first_sample`` on, ``spp`` of them (default the
+        renderer's). ``moments``: also the mean squared luminance per sample ``(V, H, W)``; ``groups`` > 1: also the
+        means of that many consecutive groups of samples ``(G, V, H, W, 3)`` (a tuple after the image)."""
+        from optimizer.rendering.tracer import render_views
+
+        c = self.cams[0]
+        return render_views(self.scene, len(self.cams), c.width, c.height, self.spp if spp is None else int(spp),
+                            self.seed, self.max_depth, self.rr_depth, masks, fill, moments=moments,
+                            first_sample=first_sample, groups=groups)
+
+
+def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,
+                  masks: np.ndarray | None = None, fill: np.ndarray | None = None) -> np.ndarray:
+    """Render every view; returns ``(V, H, W, 3)`` linear radiance.
+
+    A ``path`` integrator renders through :class:`PathRenderer` (only the pixels where ``masks (V, H, W)`` is set,
+    the others copied from ``fill (V, H, W, 3)``: typically the background render of the same seed). Other
+    integrators render through ``mi.render`` (``masks`` must be None)."""
     import mitsuba as mi
 
+    if integrator.get("type") == "path":
+        return PathRenderer(elements, obj, cams, integrator, spp, seed)(masks, fill)
+    if masks is not None:
+        raise ValueError(f"a masked render needs the path integrator, not {integrator.get('type')!r}")
     if uses_batch(integrator):
         sc = scn.build_scene(elements, obj, [scn.batch(cams, spp)], integrator)
         img = np.asarray(mi.render(sc, spp=spp, seed=seed), dtype=np.float32)
@@ -49,6 +87,36 @@ def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict,
     return np.stack(
         [np.asarray(mi.render(sc, sensor=i, spp=spp, seed=seed * 1009 + i), dtype=np.float32) for i in range(len(cams))]
     )
+
+
+def render_with_region(elements_fn, mesh, cams: Sequence[Camera], integrator: dict, spp: int, seed: int,
+                       background: np.ndarray, coverage: np.ndarray, threshold: float | None = None,
+                       groups: int = 1, cache: dict | None = None):
+    """The render with the object ``mesh`` over the region it can change
+    (:func:`optimizer.rendering.region.render_region`), the rest from ``background`` (same spp and seed); returns
+    ``(image, regions)`` or, with ``groups`` > 1, ``(image, regions, group_means)`` (``(G, V, H, W, 3)``, zeros
+    outside the region). ``elements_fn()``: fresh environment elements; ``cache``: a dict kept across objects of
+    one scene."""
+    from optimizer.rendering.region import THRESHOLD, RegionSettings, render_region
+
+    r = PathRenderer(elements_fn(), mesh, cams, integrator, spp, seed)
+    grouped = np.zeros((groups, *np.asarray(background).shape), np.float32) if groups > 1 else None
+
+    def render(masks, fill):
+        if grouped is None:
+            return r(masks, fill)
+        img, g = r(masks, fill, groups=groups)
+        grouped[:, masks] = g[:, masks]
+        return img
+
+    sc_bg = cache.get("scene") if cache is not None else None
+    if sc_bg is None:
+        sc_bg = scn.build_scene(elements_fn())
+        if cache is not None:
+            cache["scene"] = sc_bg
+    settings = RegionSettings(threshold=max(THRESHOLD, float(threshold or 0.0)))
+    img, reg = render_region(render, background, sc_bg, mesh, cams, coverage, settings, seed, cache)
+    return (img, reg, grouped) if grouped is not None else (img, reg)
 
 
 def split_batch(img: np.ndarray, views: int) -> np.ndarray:

@@ -82,7 +82,10 @@ def object_mesh(vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray | None,
     return mesh
 
 
-def perspective(cam: Camera, spp: int = 16, film: bool = True, sample_border: bool = False) -> dict:
+def perspective(cam: Camera, spp: int = 16, film: bool = True, sample_border: bool = False,
+                crop: tuple[int, int, int, int] | None = None) -> dict:
+    """A perspective sensor of ``cam``; ``crop = (x0, y0, x1, y1)`` (pixels, end exclusive) renders only that window
+    of the film (Mitsuba's crop window: same camera, fewer pixels)."""
     import mitsuba as mi
 
     d: dict[str, Any] = {
@@ -95,6 +98,11 @@ def perspective(cam: Camera, spp: int = 16, film: bool = True, sample_border: bo
     }
     if film:
         d["film"] = hdrfilm(cam.width, cam.height, sample_border)
+        if crop is not None:
+            x0, y0, x1, y1 = (int(c) for c in crop)
+            if not (0 <= x0 < x1 <= cam.width and 0 <= y0 < y1 <= cam.height):
+                raise ValueError(f"crop {crop} is not a window of the {cam.width}x{cam.height} film")
+            d["film"].update(crop_offset_x=x0, crop_offset_y=y0, crop_width=x1 - x0, crop_height=y1 - y0)
         d["sampler"] = {"type": "independent", "sample_count": int(spp)}
     return d
 

@@ -171,16 +171,16 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
     from optimizer.scenes.cameras import cameras
     from optimizer.scenes.environments import get_environment
     from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import full_plan, plan
+    from optimizer.optimise.planning import run_plan
 
     pack, stage1 = spec.pack, spec.stage1_config()
     prepared = prepare_object(pack)
     env = env if env is not None else get_environment(pack.environment)
     full = AppearanceConfig()  # the planner sees the full parameter set: one renderer for every method
-    pl = plan(pack, env, full.planner_params(), "optimize", spec.shadow_gradients) if spec.planner else \
-        full_plan("optimize", geometry=True)
-    integ = shading_integrator(pl)
     cams = cameras(pack)
+    pl = run_plan(spec, pack, env, prepared, cams, full, say)
+    env = pl.environment(env)
+    integ = shading_integrator(pl)
     app = dataclasses.replace(spec.appearance, pose=False, displacement=False, bsdf=True, transmittance=True)
     geometry = Geometry.build(prepared, pack.object, app)
     # The loss domain uses the object with the initial appearance of `ours` (same domain as Stage 1).
@@ -190,7 +190,7 @@ def setup(spec, say: Callable[[str], None] = lambda s: None, env=None) -> Setup:
 
     obj = scn.object_mesh(geometry.positions_np(), geometry.faces, geometry.uvs, object_bsdf(init_vals, init_app))
     say("rendering background targets and the loss domain")
-    targets, init = render_targets(env, cams, obj, integ, stage1)
+    targets, init = render_targets(env, cams, obj, integ, stage1, region=pl.region_search, region_threshold=pl.region_threshold)
     return Setup(pack, env, cams, pl, integ, app, geometry, targets, init, stage1, say, seed=spec.seed)
 
 
@@ -227,6 +227,7 @@ def run_directory(spec, out: str | Path,
     from camo_base.provenance import versions
     from optimizer.assets.rundir import write_config, write_log
     from optimizer.optimise.finish import finish
+    from optimizer.optimise.planning import config_record
 
     out = Path(out)
     backend.init(threads=threads)
@@ -239,7 +240,7 @@ def run_directory(spec, out: str | Path,
     seconds_method = time.perf_counter() - t1
     write_config(out, spec.to_dict(), {
         **(provenance or {"versions": versions()}),
-        "plan": {"integrator": st.plan.integrator, "reasons": [f"{k}: {v}" for k, v in st.plan.reasons]},
+        "plan": config_record(st.plan),
         "fingerprint": {"value": spec.fingerprint()},
         "baseline": {"method": spec.method, **info},
     })
@@ -247,5 +248,6 @@ def run_directory(spec, out: str | Path,
     say("rendering the result")
     res = Result(spec.pack, st.env, st.cams, st.geometry, values, st.app, st.integrator, st.stage1.target_spp, st.targets)
     finish(out, res, history, st.stage1, st.initial_render, method=spec.method,
-           seconds={"setup": seconds_setup, "method": seconds_method}, extra={"fingerprint": spec.fingerprint()})
+           seconds={"setup": seconds_setup, "method": seconds_method},
+           extra={"fingerprint": spec.fingerprint(), "plan": st.plan.to_dict()})
     return out

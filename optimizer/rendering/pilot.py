@@ -1,0 +1,302 @@
+"""The planner's pilot: a few seconds of rendering that measure what each light-transport effect contributes.
+
+:func:`run_pilot` renders a few views of the actual scene, object and stage at low resolution, with and without the
+object, with the same random numbers, through :mod:`optimizer.rendering.tracer`'s recording path tracer (full
+depth, Russian roulette from vertex 5: the "always full path tracing" setting). Per pixel it then knows the light
+that needs each path depth, the per-sample variance and cost of stopping at each depth, the light that went through
+or was reflected by the object onto its surroundings, the light seen through the object, and each emitter's
+light. With ``geometry`` it also renders the object moved by a small step along x and along y (finite differences,
+same random numbers) to see where the image responds to the pose: on the silhouette (Mitsuba's projective
+silhouette term), inside the object (the continuous term), or around it (its shadow: indirect visibility).
+
+:class:`Pilot` turns those per-pixel records into per-effect figures over the pixels that matter (the object's
+region, or the whole frame), in sRGB units (the first-order effect of a linear change on the 8-bit encoding,
+``d srgb / d linear`` at each pixel's luminance; 0 where the pixel clips). The planner
+(:mod:`optimizer.rendering.planner`) decides from these figures; every figure it prints comes from here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+from optimizer.scenes.cameras import Camera
+
+#: The full setting the pilot measures against: Mitsuba's ``path`` defaults kept by the bench's reference.
+FULL_DEPTH = 12
+RR_DEPTH = 5
+
+
+@dataclasses.dataclass(frozen=True)
+class PilotSettings:
+    views: int = 4  # evenly spaced among the stage's views
+    resolution: int = 48  # pixels on the shorter side
+    spp: int = 32
+    max_depth: int = FULL_DEPTH
+    rr_depth: int = RR_DEPTH
+    threshold: float = 0.5 / 255  # sRGB change that marks a pixel as changed by the object
+    shift: float = 0.02  # finite-difference step of the pose sensitivity, a fraction of the object's size
+
+
+@dataclasses.dataclass
+class DepthFigures:
+    """Per candidate ``max_depth`` M = 1..K over a pixel set (sRGB units, per sample where it says so)."""
+
+    bias: np.ndarray  # (K,) RMS of the light that needs a depth > M (the bias of stopping at M)
+    variance: np.ndarray  # (K,) mean per-sample variance of a render at depth M
+    cost: np.ndarray  # (K,) mean vertices traced per sample at depth M
+    bounce: np.ndarray  # (K,) RMS of the light that needs exactly depth M
+    pixels: int
+
+
+def srgb_slope(y: np.ndarray) -> np.ndarray:
+    """``d srgb(x) / dx`` at linear ``y`` (IEC 61966-2-1); 0 at and above 1 (clipped pixels show no change)."""
+    y = np.asarray(y, np.float64)
+    lin = 12.92 * np.ones_like(y)
+    pw = 1.055 / 2.4 * np.power(np.maximum(y, 0.0031308), 1.0 / 2.4 - 1.0)
+    out = np.where(y <= 0.0031308, lin, pw)
+    return np.where(y >= 1.0, 0.0, out)
+
+
+class Pilot:
+    """The pilot's renders of one scene, object and stage (module doc); :func:`run_pilot` makes one.
+
+    Each render is two independent halves (samples ``0 .. spp/2 - 1`` and ``spp/2 .. spp - 1`` of the same
+    streams): a squared mean is estimated without its noise as the product of the halves' means
+    (``E[a b] = E[a] E[b]`` for independent halves), as :func:`optimizer.optimise.holdout.split_error` does."""
+
+    def __init__(self, settings: PilotSettings, names: list[str], obj: np.ndarray, bg: np.ndarray,
+                 coverage: np.ndarray, emitters: list[str], seconds: float, vertices: float,
+                 sensitivity: dict | None = None, width: int = 0, height: int = 0):
+        self.settings = settings
+        self.names = names
+        self.index = {n: i for i, n in enumerate(names)}
+        self.halves = {"obj": obj, "bg": bg}  # (2, V, h, w, R) mean records of each half, with / without the object
+        self.obj, self.bg = obj.mean(0), bg.mean(0)  # (V, h, w, R) over both halves
+        self.coverage = coverage  # (V, h, w) object coverage at the pilot's resolution
+        self.emitters = emitters
+        self.seconds = seconds
+        self.vertices = vertices  # path vertices traced by the pilot's renders (its cost, for the time model)
+        self.sensitivity = sensitivity
+        self.width, self.height = width, height
+        self.changed = self._changed()
+
+    # -- per pixel ---------------------------------------------------------------------------------------------
+    def channel(self, rec: np.ndarray, name: str) -> np.ndarray:
+        return rec[..., self.index[name]].astype(np.float64)
+
+    @property
+    def K(self) -> int:
+        return self.settings.max_depth
+
+    def luminance(self, rec: np.ndarray) -> np.ndarray:
+        return sum(self.channel(rec, f"m{m}") for m in range(1, self.K + 1))
+
+    def _changed(self) -> np.ndarray:
+        from scipy.ndimage import uniform_filter
+
+        from camo_base.imaging import linear_to_srgb
+
+        d = np.abs(linear_to_srgb(np.clip(self.luminance(self.obj), 0, None)) -
+                   linear_to_srgb(np.clip(self.luminance(self.bg), 0, None)))
+        return np.stack([uniform_filter(x, 3) > self.settings.threshold for x in d]) | (self.coverage > 0)
+
+    def region(self) -> np.ndarray:
+        """``(V, h, w)`` bool: the pixels the object changes (its coverage and the measured change), dilated by one
+        pixel."""
+        from optimizer.rendering.region import dilate_px
+
+        return np.stack([dilate_px(c, 1) for c in self.changed])
+
+    def _tails(self, rec: np.ndarray, sel: np.ndarray) -> np.ndarray:
+        """``(N, K)``: per selected pixel, the light that needs a depth above M = 1..K."""
+        m = np.stack([self.channel(rec, f"m{i}")[sel] for i in range(1, self.K + 1)], -1)
+        return m.sum(-1, keepdims=True) - np.cumsum(m, -1)
+
+    # -- figures -----------------------------------------------------------------------------------------------
+    def depth_figures(self, pixels: np.ndarray | None = None, with_object: bool = True,
+                      difference: bool = False) -> DepthFigures:
+        """:class:`DepthFigures` over ``pixels`` (``(V, h, w)`` bool; None: all) of the render with (or without)
+        the object. ``difference``: the bias is that of the object's *effect* (the render with the object minus
+        the one without, the same random numbers): what a loss or a metric comparing the two sees, since the light
+        both lack cancels."""
+        rec = self.obj if with_object else self.bg
+        sel = np.ones(rec.shape[:3], bool) if pixels is None else np.asarray(pixels, bool)
+        K = self.K
+        y = self.luminance(rec)[sel]
+        s2 = srgb_slope(y) ** 2
+        m = np.stack([self.channel(rec, f"m{i}")[sel] for i in range(1, K + 1)], -1)
+        q = np.stack([self.channel(rec, f"q{i}")[sel] for i in range(1, K + 1)], -1)
+        n = np.stack([self.channel(rec, f"n{i}")[sel] for i in range(K)], -1)
+        partial = np.cumsum(m, -1)
+        var = np.maximum(q - partial ** 2, 0.0)
+        key = "obj" if with_object else "bg"
+        a, b = (self._tails(h, sel) for h in self.halves[key])
+        if difference:
+            a = a - self._tails(self.halves["bg"][0], sel)
+            b = b - self._tails(self.halves["bg"][1], sel)
+        cnt = max(int(sel.sum()), 1)
+        bias2 = (s2[:, None] * a * b).sum(0) / cnt  # E[a b] = squared mean: the halves are independent
+        ma, mb = (np.stack([self.channel(h, f"m{i}")[sel] for i in range(1, K + 1)], -1) for h in self.halves[key])
+        return DepthFigures(
+            bias=np.sqrt(np.maximum(bias2, 0.0)),
+            variance=(s2[:, None] * var).sum(0) / cnt,
+            cost=np.cumsum(n, -1).sum(0) / cnt,
+            bounce=np.sqrt(np.maximum((s2[:, None] * ma * mb).sum(0) / cnt, 0.0)),
+            pixels=int(sel.sum()),
+        )
+
+    def category(self, name: str, pixels: np.ndarray | None = None) -> tuple[float, float]:
+        """``(rms, noise)`` of a recorded category (``via``, ``via_t``, ``seen_t`` or ``e{i}``) of the render with
+        the object over ``pixels``: the RMS of its mean and, for ``via_t`` / ``seen_t``, the RMS of its per-sample
+        standard deviation (sRGB)."""
+        sel = np.ones(self.obj.shape[:3], bool) if pixels is None else np.asarray(pixels, bool)
+        y = self.luminance(self.obj)[sel]
+        s2 = srgb_slope(y) ** 2
+        c = self.channel(self.obj, name)[sel]
+        rms = float(np.sqrt(np.mean(s2 * c ** 2))) if c.size else 0.0
+        noise = 0.0
+        if name + "2" in self.index and c.size:
+            sq = self.channel(self.obj, name + "2")[sel]
+            noise = float(np.sqrt(np.mean(s2 * np.maximum(sq - c ** 2, 0.0))))
+        return rms, noise
+
+    def emitter_shares(self, pixels: np.ndarray | None = None) -> list[float]:
+        """Each emitter's share of the light in ``pixels`` of the render with the object."""
+        sel = np.ones(self.obj.shape[:3], bool) if pixels is None else np.asarray(pixels, bool)
+        total = max(float(self.luminance(self.obj)[sel].sum()), 1e-12)
+        return [float(self.channel(self.obj, f"e{i}")[sel].sum()) / total
+                for i in range(min(len(self.emitters), sum(1 for n in self.names if n.startswith("e"))))]
+
+    def noise_ratio(self, pixels: np.ndarray | None = None) -> tuple[float, float]:
+        """``(with, without)``: the per-sample sRGB standard deviation (RMS over ``pixels``, default the region) of
+        the render with the object and of the background in the same pixels."""
+        sel = self.region() if pixels is None else np.asarray(pixels, bool)
+        out = []
+        for rec in (self.obj, self.bg):
+            y = self.luminance(rec)[sel]
+            var = np.maximum(self.channel(rec, f"q{self.K}")[sel] - y ** 2, 0.0)
+            out.append(float(np.sqrt(np.mean(srgb_slope(y) ** 2 * var))) if y.size else 0.0)
+        return out[0], out[1]
+
+    def cost_share(self, pixels: np.ndarray) -> float:
+        """The share of a full render's cost (path vertices per sample, with the object) that ``pixels`` hold."""
+        n = sum(self.channel(self.obj, f"n{k}") for k in range(self.K))
+        return float(n[np.asarray(pixels, bool)].sum() / max(float(n.sum()), 1e-12))
+
+    def seconds_per_vertex(self) -> float:
+        return self.seconds / max(self.vertices, 1.0)
+
+    def to_dict(self) -> dict:
+        s = self.settings
+        reg = self.region()
+        return {"views": int(self.obj.shape[0]), "width": self.width, "height": self.height, "spp": s.spp,
+                "max_depth": s.max_depth, "rr_depth": s.rr_depth, "seconds": round(self.seconds, 3),
+                "region_share": round(float(reg.mean()), 4), "emitters": list(self.emitters),
+                "sensitivity": self.sensitivity}
+
+
+def pick_views(cams: Sequence[Camera], k: int) -> list[int]:
+    from optimizer.scenes.cameras import evenly_spaced
+
+    return evenly_spaced(len(cams), min(k, len(cams)))
+
+
+def pilot_camera(cam: Camera, resolution: int) -> Camera:
+    s = resolution / max(1, min(cam.width, cam.height))
+    return dataclasses.replace(cam, width=max(4, round(cam.width * s)), height=max(4, round(cam.height * s)))
+
+
+def shifted(mesh_fn: Callable[[], object], offset: Sequence[float]):
+    """A fresh mesh from ``mesh_fn()`` moved by ``offset`` (world units)."""
+    import mitsuba as mi
+
+    mesh = mesh_fn()
+    params = mi.traverse(mesh)
+    v = np.asarray(params["vertex_positions"], np.float32).reshape(-1, 3) + np.asarray(offset, np.float32)
+    params["vertex_positions"] = mi.Float(v.ravel())
+    params.update()
+    return mesh
+
+
+def emitter_names(scene) -> list[str]:
+    """``"id (Kind)"`` of each of ``scene``'s emitters (id: the scene element's key, empty for an area light)."""
+    out = []
+    for e in scene.emitters():
+        kind = e.class_name() if hasattr(e, "class_name") else type(e).__name__
+        out.append(f"{e.id() or '-'} ({kind})")
+    return out
+
+
+def run_pilot(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object], cams: Sequence[Camera],
+              settings: PilotSettings = PilotSettings(), seed: int = 0, geometry: bool = False,
+              size: float = 1.0) -> Pilot:
+    """The pilot (module doc) of the object ``mesh_fn()`` in the environment ``elements_fn()`` seen from ``cams``
+    (``settings.views`` of them, evenly spaced, at ``settings.resolution``). ``geometry``: also measure where the
+    image responds to the pose (four more renders); ``size``: the object's size (scale of that step)."""
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.render import coverage_and_depth
+    from optimizer.rendering.tracer import record_names, render_views
+
+    t0 = time.perf_counter()
+    picked = [pilot_camera(cams[i], settings.resolution) for i in pick_views(cams, settings.views)]
+    V, w, h = len(picked), picked[0].width, picked[0].height
+    mesh = mesh_fn()
+    sc_obj = scn.build_scene(elements_fn(), mesh, [scn.batch(picked, settings.spp)])
+    sc_bg = scn.build_scene(elements_fn(), None, [scn.batch(picked, settings.spp)])
+    names = record_names(settings.max_depth, len(sc_obj.emitters()))
+    half = max(1, settings.spp // 2)
+
+    def halves(sc):
+        return np.stack([render_views(sc, V, w, h, half, seed, settings.max_depth, settings.rr_depth, record=True,
+                                      first_sample=i * half)[1] for i in range(2)])
+
+    obj, bg = halves(sc_obj), halves(sc_bg)
+    sc_cov = scn.build_scene(elements_fn(), mesh)
+    coverage = np.stack([coverage_and_depth(sc_cov, c, mesh, 2)[0] for c in picked])
+    n_idx = [names.index(f"n{k}") for k in range(settings.max_depth)]
+    vertices = float((obj[..., n_idx].sum() + bg[..., n_idx].sum()) * half)
+    seconds = time.perf_counter() - t0
+    sens = None
+    if geometry:
+        sens = pose_sensitivity(elements_fn, mesh_fn, picked, coverage, settings, seed, size)
+    return Pilot(settings, names, obj, bg, coverage, emitter_names(sc_obj), seconds, vertices, sens, w, h)
+
+
+def pose_sensitivity(elements_fn, mesh_fn, cams: Sequence[Camera], coverage: np.ndarray, settings: PilotSettings,
+                     seed: int, size: float) -> dict:
+    """Where the image responds to moving the object: finite differences (central, step ``settings.shift *
+    size`` along x and y; renders sharing their random numbers) of the sRGB image, their energy split into the
+    silhouette band (pixels partly covered, or within one pixel of the outline), the object's inside and its
+    surroundings (shadow, reflections, light it blocks: what only indirect visibility sampling differentiates)."""
+    from camo_base.imaging import linear_to_srgb
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.region import dilate_px
+    from optimizer.rendering.tracer import render_views
+
+    V, w, h = len(cams), cams[0].width, cams[0].height
+    eps = settings.shift * size
+    energy = np.zeros((V, h, w))
+    for axis in range(2):
+        imgs = []
+        for sign in (1.0, -1.0):
+            off = [0.0, 0.0, 0.0]
+            off[axis] = sign * eps
+            sc = scn.build_scene(elements_fn(), shifted(mesh_fn, off), [scn.batch(cams, settings.spp)])
+            img = render_views(sc, V, w, h, settings.spp, seed, settings.max_depth, settings.rr_depth)
+            imgs.append(linear_to_srgb(np.clip(img, 0, None)))
+        d = (imgs[0] - imgs[1]) / (2 * eps)
+        energy += (d ** 2).sum(-1)
+    from scipy.ndimage import binary_erosion
+
+    full = coverage >= 0.999
+    band = np.stack([dilate_px(c > 0, 1) & ~binary_erosion(f, iterations=1) for c, f in zip(coverage, full)])
+    inside = full & ~band
+    total = max(float(energy.sum()), 1e-30)
+    return {"silhouette": round(float(energy[band].sum()) / total, 4),
+            "inside": round(float(energy[inside].sum()) / total, 4),
+            "surroundings": round(float(energy[~band & ~inside].sum()) / total, 4),
+            "step": eps}

@@ -1,0 +1,97 @@
+"""optimizer.rendering.noise: the render with the object gets more samples where it is noisier than the background,
+until its noise matches (so a participant cannot find the object by its fireflies)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def test_factors_are_the_power_of_two_that_matches_the_variance():
+    from optimizer.rendering.noise import factors
+
+    bg = np.ones((1, 12, 16))
+    obj = np.ones((1, 12, 16))
+    obj[0, :, 4:8] = 3.0  # 3x the noise variance: 4x the samples
+    obj[0, :, 8:12] = 100.0  # capped at 8x
+    obj[0, :, 12:] = 1.05  # within the tolerance
+    region = np.ones((1, 12, 16), bool)
+    region[0, 0] = False
+    k, ratio = factors(obj, bg, region, window=3, max_factor=8)
+    assert k[0, 5, 1] == 1 and k[0, 5, 5] == 4 and k[0, 5, 9] == 8 and k[0, 5, 13] == 1
+    assert np.all(k[0, 0] == 1)  # outside the region: the background's samples only
+    np.testing.assert_allclose(ratio[0, 5, 5], 3.0)
+
+
+def test_a_pixel_is_judged_by_its_neighbours_only():
+    """The extra samples of a pixel never depend on its own samples: a bright firefly in one pixel raises its
+    neighbours' factors, not its own."""
+    from optimizer.rendering.noise import factors
+
+    obj = np.ones((1, 9, 9))
+    obj[0, 4, 4] = 50.0
+    k, _ = factors(obj, np.ones((1, 9, 9)), np.ones((1, 9, 9), bool), window=3)
+    assert k[0, 4, 4] == 1 and k[0, 3, 4] > 1 and k[0, 0, 0] == 1
+
+
+def _glass_scene(mi):
+    def build():
+        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
+                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.45, 0.4]}}},
+                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
+
+    from optimizer.rendering import scene as scn
+
+    def mesh():
+        import trimesh
+
+        m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+        v = (np.asarray(m.vertices) + [0, 0, 0.5]).astype(np.float32)
+        # the built-in scenes' transmissive start: rough (0.5) transmission under the sun
+        return scn.object_mesh(v, np.asarray(m.faces), None, scn.principled({"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": 0.9}))
+
+    return build, mesh
+
+
+def test_a_transmissive_object_under_the_sun_is_no_noisier_than_the_background(mi_backend):
+    """Rough transmission under the sun: at the same spp its pixels and surroundings are noisier than the
+    background's (light through it, the sun seen through it); noise matching brings them to the background's noise
+    (measured from two independent renders), and its mean stays the unmatched render's (more samples of the same
+    estimator, their number decided by an independent probe)."""
+    mi, _ = mi_backend
+    from evaluation.views import ViewRenderer
+    from optimizer.rendering.noise import noise_rms
+    from optimizer.scenes.cameras import Camera
+    from optimizer.scenes.environments import Environment
+
+    build, mesh = _glass_scene(mi)
+    env = Environment("glass", "glass", build, ("sun", "sky"))
+    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 48, 48), Camera((-2.0, -3.0, 1.2), (0.0, 0.0, 0.4), 45.0, 48, 48)]
+    integ = {"type": "path", "max_depth": 8, "rr_depth": 5}
+
+    from optimizer.scenes import builtin_scenes
+
+    Pack = builtin_scenes.get("meadow")  # only its environment spec keys the background cache
+
+    out = {}
+    for matched in (False, True):
+        renders = []
+        for seed in (0, 1):
+            r = ViewRenderer(64, seed, noise_match=matched)
+            bg = r.background(Pack, env, cams, integ)
+            renders.append((bg.image, r.with_object(env, mesh, cams, integ, bg, 0.5 / 255)))
+        out[matched] = renders
+    (bg0, o0), (bg1, o1) = out[False]
+    from optimizer.rendering.region import dilate_px
+
+    near = np.stack([dilate_px(m, 2) for m in o0.mask])  # the object and its rim
+    before = noise_rms(o0.image, o1.image, near) / noise_rms(bg0, bg1, near)
+    (mbg0, m0), (mbg1, m1) = out[True]
+    after = noise_rms(m0.image, m1.image, near) / noise_rms(mbg0, mbg1, near)
+    print("noise ratio before", before, "after", after)
+    assert before > 1.3, before
+    assert after < 1.15, after
+    assert m0.noise.to_dict()["extra_samples_share"] > 0
+    # unbiased: the matched mean agrees with the plain one within their noise (object pixels, four renders)
+    sel = o0.mask
+    diff = abs(float((m0.image[sel] + m1.image[sel]).mean() - (o0.image[sel] + o1.image[sel]).mean())) / 2
+    assert diff < 0.05 * float(o0.image[sel].mean()), diff
