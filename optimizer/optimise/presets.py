@@ -68,7 +68,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
         # start, and the best start is scene-dependent (0.7 against 0.5: meadow +0.46 dB, gravel +0.51, occluded
         # +0.61; split -0.74, room -0.63), which the score after the warm start predicts
         stage1={"iterations": 60, "loss": "mse", "warm_start": True, "lr_schedule": "constant",
-                "silhouette_every": 4, "pose_search": 16, "roughness_search": (0.5, 0.7)},
+                "silhouette_every": 4, "pose_search": 16, "roughness_search": (0.5, 0.7),
+                "loss_clamp": 8.0, "grad_clip": 4.0, "init_search": True},
         stage2={"iterations": 4},
         # grad_blur 2: the maps' gradients blurred by 2 texels (AppearanceConfig.grad_blur); one run per scene at demo
         # sizes: meadow +0.35 dB / -0.012 LPIPS-proxy, split +0.69 / -0.022, room +0.88 / -0.040, gravel and
@@ -87,7 +88,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
         "the paper's schedule exactly (Eq. 9 loss, grey start, constant rates 1e-2 / 1e-1, 50 + 20 iterations, "
         "silhouette term on every view)",
         stage1={"iterations": 50, "loss": "gated", "warm_start": False, "lr_schedule": "constant",
-                "silhouette_every": 1, "pose_search": 0, "roughness_search": ()},
+                "silhouette_every": 1, "pose_search": 0, "roughness_search": (), "loss_clamp": 0.0, "grad_clip": 0.0,
+                "init_search": False},
         stage2={"iterations": 20},
         appearance={"lr_maps": 1e-2, "lr_displacement": 1e-1, "displacement_shrink": 0.0, "grad_blur": 0.0},
         holdout={},  # the last iterate is the result
