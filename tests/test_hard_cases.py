@@ -210,3 +210,25 @@ def test_hard_case_meets_the_targets(case, tmp_path, mi_backend):
     assert row["result"] >= row["start"] - b.TOLERANCE_DB, row
     if math.isfinite(row["mean"]):
         assert row["result"] >= row["mean"] - b.TOLERANCE_DB, row
+
+
+@pytest.mark.slow  # two tiny runs: ~30 s idle, ~110 s at a load average of 11
+def test_init_search_tries_the_start_without_init_and_keeps_the_best(tmp_path, mi_backend):
+    """``--init`` of one map (metallic 1) under the fast preset: the init search scores the ``init`` start and the
+    start without it at each of the preset's starting roughness values on the held-out views, starts Stage 1 from
+    the lowest score, and records it in summary.json; ``--init-search off`` records nothing and keeps the start."""
+    import json
+
+    from optimizer.optimise.run import run
+    from optimizer.optimise.spec import RunSpec
+
+    tiny = {"scene": "meadow", "init": "metallic=1", "views": 2, "resolution": 16, "iterations": 1, "stages": "1",
+            "map_resolution": 16, "displacement_resolution": 16, "target_vertices": 500, "target_spp": 8,
+            "pose_search": 0, "holdout_views": 2, "holdout_spp": 4, "roughness_search": "off"}
+    run(RunSpec.from_options(tiny), tmp_path / "on", progress=False)
+    info = json.loads((tmp_path / "on" / "summary.json").read_text())["init_search"]
+    assert info["candidates"] == ["init", "without init, roughness 0.5", "without init, roughness 0.7"]
+    assert len(info["scores"]) == 3 and all(math.isfinite(s) for s in info["scores"])
+    assert info["chosen"] == info["candidates"][int(np.argmin(info["scores"]))]
+    run(RunSpec.from_options({**tiny, "init_search": "off"}), tmp_path / "off", progress=False)
+    assert json.loads((tmp_path / "off" / "summary.json").read_text())["init_search"] is None

@@ -156,7 +156,7 @@ def optimize_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threa
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, setup.pack, setup.env, history, setup_seconds, spec, s1.warm_start_info,
                values=values, holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
-               start=s1.start_search_info)
+               start=s1.start_search_info, init=s1.init_search_info)
 
 
 @dataclasses.dataclass
