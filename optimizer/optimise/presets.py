@@ -51,8 +51,9 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
     Preset(
         "fast",
         "least-squares albedo warm start, transmittance start 0.75, squared-error loss, proximal L1 step on the "
-        "displacement, map gradients blurred by 2 texels, 60 + 4 iterations, a 16-turn pose search and a "
-        "two-value roughness start search first, the best iterate on 4 held-out views is the result",
+        "displacement, map gradients blurred by 2 texels, a soft-clamped loss and gradients clipped at 4x their running "
+        "norm (glints), 60 + 4 iterations, a 16-turn pose search, a two-value roughness start search and (with --init) "
+        "the start without --init tried first, the best iterate on 4 held-out views is the result",
         # loss "mse": Eq. 9's absolute values are median-seeking, and with the decorrelated adjoint of a 4-spp render
         # that is a biased target: under Eq. 9 the training loss rises again after ~20 iterations and novel views get
         # worse (meadow 31.2 dB at 20 iterations, 30.2 at 87); the squared error's fixed point is the mean, so more
