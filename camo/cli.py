@@ -67,7 +67,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     for module in (optimize_cli, evaluation_cli, video_cli, study_cli, data, grid):
         module.register(sub)
+    _name_settings_by_flags(parser)
     return parser
+
+
+def _name_settings_by_flags(parser: argparse.ArgumentParser) -> None:
+    """Give every command without its own ``setting_names`` one that shows a library's setting name (a
+    :class:`SettingError` names ``time_budget``, ``out``, ...) as that command's flag (``--time-budget``,
+    ``--out``): the flag whose argparse ``dest`` it is; a name no flag carries stays as it is."""
+    for action in parser._actions:  # argparse keeps its sub-parsers only here
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                _name_settings_by_flags(child)
+    if parser.get_default("func") is None or parser.get_default("setting_names") is not None:
+        return
+    flags = {a.dest: max(a.option_strings, key=len) for a in parser._actions
+             if a.option_strings and a.dest not in (argparse.SUPPRESS, "help")}
+    parser.set_defaults(setting_names=lambda name, args, flags=flags: flags.get(name, name))
 
 
 def _doctor(args) -> int:

@@ -34,6 +34,16 @@ class SettingError(CamoError):
         self.template, self.names = template, tuple(names)
         super().__init__(template.format(*names))
 
+    @classmethod
+    def of(cls, name: str, rest: str) -> "SettingError":
+        """A message that starts with the setting ``name``; ``rest`` is plain text (its braces are kept as they are).
+
+        >>> e = SettingError.of("env_width", " must be >= 64, got {3}")
+        >>> str(e), e.renamed({"env_width": "--env-width"})
+        ('env_width must be >= 64, got {3}', '--env-width must be >= 64, got {3}')
+        """
+        return cls("{0}" + literal(rest), name)
+
     def renamed(self, rename: Mapping[str, str] | Callable[[str], str]) -> str:
         """The message with each name passed through ``rename`` (a mapping: names it lacks stay as they are)."""
         fn = rename if callable(rename) else (lambda n: rename.get(n, n))

@@ -47,7 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from camo_base.documents import read_toml
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 
 KINDS = ("run", "asset", "triplets")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
@@ -110,14 +110,15 @@ class Entry:
 
 
 def finite_seconds(v: Any, where: str) -> float | None:
+    """``v`` as seconds (None stays None); a SettingError naming ``inputs`` (``where``: the entry) otherwise."""
     if v is None:
         return None
     try:
         f = float(v)
     except (TypeError, ValueError):
-        raise CamoError(f"{where}: seconds must be a number, got {v!r}") from None
+        raise SettingError.of("inputs", f"{where}: seconds must be a number, got {v!r}") from None
     if not math.isfinite(f) or f < 0:
-        raise CamoError(f"{where}: seconds must be a finite number >= 0, got {v!r}")
+        raise SettingError.of("inputs", f"{where}: seconds must be a finite number >= 0, got {v!r}")
     return f
 
 
@@ -127,20 +128,20 @@ def read_input_list(path: str | Path) -> list[InputSpec]:
     doc = read_toml(p, "--inputs list")
     unknown = sorted(set(doc) - set(KINDS))
     if unknown:
-        raise CamoError(f"--inputs {p}: unknown table(s) {', '.join(unknown)}; use [[run]], [[asset]], [[triplets]]")
+        raise SettingError.of("inputs", f" {p}: unknown table(s) {', '.join(unknown)}; use [[run]], [[asset]], [[triplets]]")
     fields = {f.name for f in dataclasses.fields(InputSpec)} - {"kind"}
     out = []
     for kind in KINDS:
         items = doc.get(kind, [])
         if not isinstance(items, list):
-            raise CamoError(f"--inputs {p}: {kind} must be an array of tables ([[{kind}]])")
+            raise SettingError.of("inputs", f" {p}: {kind} must be an array of tables ([[{kind}]])")
         for i, item in enumerate(items):
-            where = f"--inputs {p}: [[{kind}]] #{i + 1}"
+            where = f" {p}: [[{kind}]] #{i + 1}"
             if not isinstance(item, dict) or "path" not in item:
-                raise CamoError(f"{where}: needs a path")
+                raise SettingError.of("inputs", f"{where}: needs a path")
             bad = sorted(set(item) - fields)
             if bad:
-                raise CamoError(f"{where}: unknown key(s) {', '.join(bad)}; known: {', '.join(sorted(fields))}")
+                raise SettingError.of("inputs", f"{where}: unknown key(s) {', '.join(bad)}; known: {', '.join(sorted(fields))}")
             item = dict(item)
             given = Path(str(item["path"])).expanduser()
             item["path"] = str(given if given.is_absolute() else p.parent / given)
@@ -151,10 +152,10 @@ def read_input_list(path: str | Path) -> list[InputSpec]:
             item["seconds"] = finite_seconds(item.get("seconds"), where)
             for k in ("method", "scene", "name", "placement", "object"):
                 if k in item and not isinstance(item[k], str):
-                    raise CamoError(f"{where}: {k} must be a string")
+                    raise SettingError.of("inputs", f"{where}: {k} must be a string")
             out.append(InputSpec(kind=kind, **item))
     if not out:
-        raise CamoError(f"--inputs {p}: lists no input ([[run]], [[asset]] or [[triplets]])")
+        raise SettingError.of("inputs", f" {p}: lists no input ([[run]], [[asset]] or [[triplets]])")
     return out
 
 

@@ -41,7 +41,7 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 
 from camo_base import seeds
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 from optimizer.scenes.cameras import Camera
 
 DEFAULT_FRAMES = 120
@@ -432,7 +432,7 @@ def choose_spp(job: Job, budget: float, missing: int, say: Callable[[str], None]
     spp = spp_for_budget(left, missing, a, b)
     if spp < 1:
         need = missing * (a + b)
-        raise CamoError(f"--time-budget {budget:g} s is too short: after the {spent:.1f} s pilot, {missing} panel "
+        raise SettingError.of("time_budget", f" {budget:g} s is too short: after the {spent:.1f} s pilot, {missing} panel "
                         f"frames at 1 spp need about {need:.0f} s; raise it, or lower --frames / --resolution")
     est = missing * (a + b * spp)
     say(f"pilot ({spent:.1f} s): {a:.3f} s + {b:.4f} s/spp per panel frame -> {spp} spp for {missing} panel frames "
@@ -568,7 +568,7 @@ def _number(name: str, v: Any, lo: float | None = None, hi: float | None = None,
     if not ok:
         rng = (f" in {'(' if open_lo else '['}{lo:g}, {hi:g}]" if lo is not None and hi is not None else
                f" > {lo:g}" if lo is not None and open_lo else f" >= {lo:g}" if lo is not None else "")
-        raise CamoError(f"--{name} must be a{'n integer' if integer else ' number'}{rng}, got {v!r}")
+        raise SettingError.of(name, f" must be a{'n integer' if integer else ' number'}{rng}, got {v!r}")
 
 
 def check_settings(s: VideoSettings, out: str | Path) -> None:
@@ -589,7 +589,7 @@ def check_settings(s: VideoSettings, out: str | Path) -> None:
     if s.time_budget is not None:
         if s.spp is not None:
             raise CamoError("give --spp or --time-budget, not both (the budget chooses the spp)")
-        _number("time-budget", s.time_budget, 0.0, 1e7, open_lo=True)
+        _number("time_budget", s.time_budget, 0.0, 1e7, open_lo=True)
     _number("seed", s.seed, 0, 2**31 - 1, integer=True)
     _number("fps", s.fps, *LIMITS["fps"])
     _number("preview-width", s.preview_width, 16, 4096, integer=True)
@@ -598,7 +598,7 @@ def check_settings(s: VideoSettings, out: str | Path) -> None:
         _number("threads", s.threads, 1, 1024, integer=True)
     check_codec(s.codec, out, s.quality)
     if s.preview and Path(s.preview).suffix.lower() not in PREVIEW_SUFFIXES:
-        raise CamoError(f"--preview {s.preview}: an animated image must end in {' or '.join(PREVIEW_SUFFIXES)}")
+        raise SettingError.of("preview", f" {s.preview}: an animated image must end in {' or '.join(PREVIEW_SUFFIXES)}")
 
 
 def preview_path(out: Path, s: VideoSettings) -> Path | None:
@@ -619,11 +619,11 @@ def make_video(specs: Sequence[Any], out: str | Path, s: VideoSettings, say: Cal
 
     out = Path(out)
     if out.is_dir():
-        raise CamoError(f"--out {out} is a folder; give a video file (.mp4, .webm, .mkv)")
+        raise SettingError.of("out", f" {out} is a folder; give a video file (.mp4, .webm, .mkv)")
     check_settings(s, out)
     prev = preview_path(out, s)
     if prev is not None and prev.resolve() == out.resolve():
-        raise CamoError(f"--preview {prev} is the video itself")
+        raise SettingError.of("preview", f" {prev} is the video itself")
     entries = resolve(specs)
     side = s.side_by_side or s.difference or len(entries) > 1
     panels = panels_of(entries, background=side)

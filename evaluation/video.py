@@ -28,7 +28,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,7 +61,7 @@ def container_of(path: str | Path) -> str:
     """The container (``mp4``, ``webm``, ``mkv``) named by a video file's suffix; CamoError for another suffix."""
     suffix = Path(path).suffix.lower().lstrip(".")
     if suffix not in CONTAINERS:
-        raise CamoError(f"--out {path}: a video file must end in {', '.join('.' + c for c in CONTAINERS)}")
+        raise SettingError.of("out", f" {path}: a video file must end in {', '.join('.' + c for c in CONTAINERS)}")
     return suffix
 
 
@@ -73,12 +73,12 @@ def check_codec(codec: str, path: str | Path, quality: int | None = None) -> Cod
         raise CamoError(f"unknown --codec {codec!r}; known: {', '.join(CODECS)} (browsers play all three)")
     cont = container_of(path)
     if cont not in c.containers:
-        raise CamoError(f"--codec {c.name} cannot be written to a .{cont} file; use "
+        raise SettingError.of("codec", f" {c.name} cannot be written to a .{cont} file; use "
                         f"{' or '.join('.' + x for x in c.containers)}")
     if quality is not None:
         lo, hi = c.quality_range
         if isinstance(quality, bool) or not isinstance(quality, int) or not lo <= quality <= hi:
-            raise CamoError(f"--quality for {c.name} must be an integer in [{lo}, {hi}] (lower is better), got "
+            raise SettingError.of("quality", f" for {c.name} must be an integer in [{lo}, {hi}] (lower is better), got "
                             f"{quality!r}")
     import av
 
@@ -195,7 +195,7 @@ def write_animation(path: str | Path, frames: list[np.ndarray], fps: float, qual
 
     suffix = Path(path).suffix.lower()
     if suffix not in PREVIEW_SUFFIXES:
-        raise CamoError(f"--preview {path}: an animated image must end in {' or '.join(PREVIEW_SUFFIXES)}")
+        raise SettingError.of("preview", f" {path}: an animated image must end in {' or '.join(PREVIEW_SUFFIXES)}")
     if not frames:
         raise ValueError("no frames")
     ims = [Image.fromarray(np.ascontiguousarray(f, dtype=np.uint8)) for f in frames]

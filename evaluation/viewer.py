@@ -42,7 +42,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 
 REPO = Path(__file__).resolve().parents[1]
 MANIFEST = REPO / "data_manifests" / "viewer.toml"
@@ -151,7 +151,7 @@ def environment_panorama(pack, width: int = ENV_WIDTH, spp: int = ENV_SPP, seed:
     from optimizer.scenes.panorama import render_equirect
 
     if width < 64 or width % 4:
-        raise CamoError(f"--env-width must be a multiple of 4 and >= 64, got {width}")
+        raise SettingError.of("env_width", f" must be a multiple of 4 and >= 64, got {width}")
     origin = capture_point(pack)
     env_spec = dataclasses.asdict(pack.environment)
     key = hashlib.sha256(json.dumps({"env": env_spec, "origin": origin, "w": width, "spp": spp, "seed": seed,
@@ -471,11 +471,11 @@ def write_run_viewer(run_dir: str | Path, out: str | Path | None = None, video: 
     (entry,) = resolve([InputSpec("run", str(run_dir))])
     out = Path(out) if out else Path(run_dir) / "viewer"
     if out.exists() and not out.is_dir():
-        raise CamoError(f"--out {out} exists and is not a folder")
+        raise SettingError.of("out", f" {out} exists and is not a folder")
     if video is None and (Path(run_dir) / "turntable.mp4").is_file():
         video = Path(run_dir) / "turntable.mp4"
     if video is not None and not Path(video).is_file():
-        raise CamoError(f"--video {video}: no such file")
+        raise SettingError.of("video", f" {video}: no such file")
     from optimizer.scenes.cameras import cameras
 
     glb = glb_of(entry)
@@ -522,7 +522,7 @@ def make_server(root: str | Path, port: int = 8030):
     import http.server
 
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-        raise CamoError(f"--port must be an integer in [0, 65535], got {port!r}")
+        raise SettingError.of("port", f" must be an integer in [0, 65535], got {port!r}")
 
     class Quiet(http.server.SimpleHTTPRequestHandler):
         def log_message(self, *a):  # no line per request on the terminal
@@ -577,9 +577,9 @@ def report_sections(eval_dirs: Sequence[str | Path], videos: Sequence[str | Path
     exist before anything is written (CamoError)."""
     for v in videos:
         if not Path(v).is_file():
-            raise CamoError(f"--video {v}: no such file")
+            raise SettingError.of("video", f" {v}: no such file")
     if viewer and (env_width < 64 or env_width % 4):
-        raise CamoError(f"--env-width must be a multiple of 4 and >= 64, got {env_width}")
+        raise SettingError.of("env_width", f" must be a multiple of 4 and >= 64, got {env_width}")
 
     def make(out: Path) -> list[Section]:
         copied = copy_videos(videos, out)
@@ -601,7 +601,7 @@ def copy_videos(videos: Sequence[str | Path], out: Path) -> list[dict[str, Any]]
     for v in videos:
         v = Path(v)
         if not v.is_file():
-            raise CamoError(f"--video {v}: no such file")
+            raise SettingError.of("video", f" {v}: no such file")
         rec = read_sidecar(v) or {}
         item = {"label": v.name, "record": rec}
         for key, src in (("href", v), ("preview", Path(rec["preview"]) if rec.get("preview") else None)):

@@ -15,6 +15,7 @@ import time
 
 from camo_base.errors import CamoError
 from camo_base.ranges import Range
+from study_site.ranges import ADULT_AGE, CONFIG_RANGES, SIMULATE_RANGES
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -108,9 +109,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     s.add_argument("--secret-key-file", metavar="FILE",
                    help="cookie-signing key (`camo study make-key FILE`; another key than --id-key-file)")
     s.add_argument("--admin-token-file", metavar="FILE", help="admin token (enables /admin/)")
-    s.add_argument("--time-limit", type=Range(float, 1.0, 600.0).arg_type(), metavar="S", help="seconds per trial (default 40)")
-    s.add_argument("--practice-trials", type=Range(int, 0, 50).arg_type(), metavar="N", help="practice trials (default 5)")
-    s.add_argument("--min-age", type=Range(int, 10, 99).arg_type(), metavar="YEARS", help="youngest age bracket (default 18)")
+    s.add_argument("--time-limit", type=CONFIG_RANGES["TRIAL_TIME_LIMIT_S"].arg_type(), metavar="S", help="seconds per trial (default 40)")
+    s.add_argument("--practice-trials", type=CONFIG_RANGES["PRACTICE_TRIALS"].arg_type(), metavar="N", help="practice trials (default 5)")
+    # 10-17 parse, so that the config check refuses them with its reason (adults only)
+    s.add_argument("--min-age", type=Range(int, 10, CONFIG_RANGES["MIN_AGE"].hi).arg_type(), metavar="YEARS",
+                   help=f"youngest age bracket ({ADULT_AGE}-{CONFIG_RANGES['MIN_AGE'].hi}; default 18)")
     s.add_argument("--completion-code", metavar="CODE", help="study-wide completion code (Prolific)")
     s.add_argument("--completion-url", metavar="URL", help="e.g. https://app.prolific.com/submissions/complete?cc={code}")
     s.add_argument("--consent-file", metavar="FILE", help="plain-text consent statement")
@@ -167,7 +170,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     q.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
     q.add_argument("--observer", metavar="KEY=VALUE,...",
                    help="observer parameters (evaluation.observer.ObserverConfig), e.g. display_deg=14,criterion=4")
-    q.add_argument("--time-limit", type=Range(float, 1.0, 600.0).arg_type(), metavar="S", help="seconds per trial (default: the site's 40)")
+    q.add_argument("--time-limit", type=CONFIG_RANGES["TRIAL_TIME_LIMIT_S"].arg_type(), metavar="S", help="seconds per trial (default: the site's 40)")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_predict)
 
@@ -180,13 +183,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         "generator. See study_site/simulate.py and docs/observer.md.",
     )
     m.add_argument("--url", required=True, help="the running study, e.g. http://127.0.0.1:5000")
-    m.add_argument("--participants", type=Range(int, 1, 10_000).arg_type(), default=100, help="simulated participants (default 100)")
-    m.add_argument("--concurrency", type=Range(int, 1, 500).arg_type(), default=20, help="participants at once (default 20)")
+    m.add_argument("--participants", type=SIMULATE_RANGES["participants"].arg_type(), default=100, help="simulated participants (default 100)")
+    m.add_argument("--concurrency", type=SIMULATE_RANGES["concurrency"].arg_type(), default=20, help="participants at once (default 20)")
     m.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0, help="participant ids sim-SEED-K and their random streams")
     m.add_argument("--observer", metavar="KEY=VALUE,...",
                    help="observer parameters (evaluation.observer.ObserverConfig), e.g. display_deg=14,criterion=4")
-    m.add_argument("--ramp", type=Range(float, 0.0, 86_400.0).arg_type(), default=0.0, metavar="S", help="spread arrivals over S seconds")
-    m.add_argument("--max-seconds", type=Range(float, 1.0, 86_400.0).arg_type(), default=3600.0, help="deadline of the whole run (default 3600)")
+    m.add_argument("--ramp", type=SIMULATE_RANGES["ramp"].arg_type(), default=0.0, metavar="S", help="spread arrivals over S seconds")
+    m.add_argument("--max-seconds", type=SIMULATE_RANGES["max_seconds"].arg_type(), default=3600.0, help="deadline of the whole run (default 3600)")
     m.add_argument("--json", metavar="FILE", help="also write the summary and every simulated trial as JSON")
     m.set_defaults(func=cmd_simulate)
     return p

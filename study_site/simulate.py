@@ -37,7 +37,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
+from study_site.ranges import SIMULATE_RANGES
 
 CSRF_RE = re.compile(r'name="csrf_token" value="([^"]+)"')
 COOKIE = "camo_study"
@@ -54,19 +55,19 @@ def check_loopback(url: str) -> tuple[str, int]:
     """``(host, port)`` of an ``http://`` URL on the loopback interface; CamoError otherwise."""
     u = urllib.parse.urlsplit(url)
     if u.scheme != "http" or not u.hostname:
-        raise CamoError(f"--url must be http://127.0.0.1:PORT (loopback), not {url!r}")
+        raise SettingError.of("url", f" must be http://127.0.0.1:PORT (loopback), not {url!r}")
     host = u.hostname
     try:
         loop = host == "localhost" or ipaddress.ip_address(host).is_loopback
     except ValueError:
         loop = False
     if not loop:
-        raise CamoError(f"--url {url}: simulated participants only go to the loopback interface (127.0.0.1, ::1, "
+        raise SettingError.of("url", f" {url}: simulated participants only go to the loopback interface (127.0.0.1, ::1, "
                         "localhost)")
     try:
         port = u.port or 80
     except ValueError:
-        raise CamoError(f"--url {url}: bad port") from None
+        raise SettingError.of("url", f" {url}: bad port") from None
     return host, port
 
 
@@ -272,12 +273,9 @@ def simulate(url: str, participants: int, concurrency: int = 20, seed: int = 0, 
     from evaluation.observer import ObserverConfig
 
     host, port = check_loopback(url)
-    if not 1 <= participants <= 10_000:
-        raise CamoError("--participants must be 1-10000")
-    if not 1 <= concurrency <= 500:
-        raise CamoError("--concurrency must be 1-500")
-    if not 1 <= max_seconds <= 86_400:
-        raise CamoError("--max-seconds must be 1-86400")
+    for name, value in (("participants", participants), ("concurrency", concurrency), ("max_seconds", max_seconds),
+                        ("ramp", ramp_s)):
+        SIMULATE_RANGES[name].check(value, name)
     cfg = observer_config or ObserverConfig()
     cfg.validate()
     try:
@@ -345,19 +343,19 @@ def parse_observer(text: str | None):
         if not item.strip():
             continue
         if "=" not in item:
-            raise CamoError(f"--observer expects KEY=VALUE,..., not {item!r}")
+            raise SettingError.of("observer", f" expects KEY=VALUE,..., not {item!r}")
         k, v = (x.strip() for x in item.split("=", 1))
         tuples = ("centre_sigmas_deg", "object_deg")
         if k not in fields or k in tuples:
             known = ", ".join(n for n in fields if n not in tuples)
-            raise CamoError(f"--observer: unknown key {k!r}; known: {known}")
+            raise SettingError.of("observer", f": unknown key {k!r}; known: {known}")
         if k in ("start", "saliency_model"):
             kw[k] = v
             continue
         try:
             kw[k] = float(v)
         except ValueError:
-            raise CamoError(f"--observer {k}: not a number: {v!r}") from None
+            raise SettingError.of("observer", f" {k}: not a number: {v!r}") from None
     cfg = ObserverConfig(**kw)
     cfg.validate()
     return cfg
