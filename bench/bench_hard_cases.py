@@ -280,6 +280,8 @@ def run_case(options: dict[str, Any], out: Path) -> dict[str, Any]:
     return {"spec": spec, "values": values, "nonfinite": nonfinite, "spike": loss_spike(photo),
             "spike_linear": loss_spike(linear), "loss": photo, "loss_linear": linear, "seconds": seconds,
             "clipped": sum(bool(r.get("grad_clipped")) for r in recs),
+            "iterations": len(recs), "seconds_per_iteration": float(summary.get("seconds_iterations", float("nan")))
+            / max(len(recs), 1),
             "init_search": (summary.get("init_search") or {}).get("chosen"),
             "holdout": [(c["stage"], c["iteration"], round(c["psnr"], 2)) for c in
                         (summary.get("holdout") or {}).get("checks", [])]}
@@ -313,6 +315,7 @@ def measure(name: str, options: dict[str, Any], variants: list[str], work: Path,
         row = {"case": name, "variant": variant, "nonfinite": r["nonfinite"], "spike": r["spike"],
                "spike_linear": r["spike_linear"], "start": start, "result": result, "mean": mean, "ok": ok,
                "seconds": r["seconds"], "clipped_steps": r["clipped"], "init_search": r["init_search"],
+               "iterations": r["iterations"], "seconds_per_iteration": r["seconds_per_iteration"],
                "coverage": scorer.coverage(), "loss": r["loss"], "loss_linear": r["loss_linear"],
                "holdout": r["holdout"]}
         say(f"  {variant:>14}: nonfinite {row['nonfinite']}, spike {row['spike']:.3g} (linear "
@@ -326,8 +329,8 @@ def measure(name: str, options: dict[str, Any], variants: list[str], work: Path,
 # the table
 
 def table(rows: list[dict[str, Any]], what: dict[str, str]) -> str:
-    head = ("| case | variant | non-finite | spike | spike (linear) | start dB | result dB | Mean dB | targets | s |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---|---:|\n")
+    head = ("| case | variant | non-finite | spike | spike (linear) | start dB | result dB | Mean dB | targets | s | "
+            "s/it |\n|---|---|---:|---:|---:|---:|---:|---:|---|---:|---:|\n")
     lines = []
     for r in rows:
         def f(x, d=2):
@@ -335,7 +338,8 @@ def table(rows: list[dict[str, Any]], what: dict[str, str]) -> str:
 
         lines.append(f"| {r['case']} | {r['variant']} | {r['nonfinite']} | {r['spike']:.3g} | "
                      f"{r['spike_linear']:.3g} | {f(r['start'])} | {f(r['result'])} | {f(r['mean'])} | "
-                     f"{'met' if r['ok'] else '**missed**'} | {f(r['seconds'], 0)} |")
+                     f"{'met' if r['ok'] else '**missed**'} | {f(r['seconds'], 0)} | "
+                     f"{f(r.get('seconds_per_iteration', float('nan')), 1)} |")
     cases = "\n".join(f"* `{k}`: {v}" for k, v in what.items())
     return head + "\n".join(lines) + "\n\n" + cases + "\n"
 
@@ -363,7 +367,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="", help="comma list of case names (default: all)")
     ap.add_argument("--variants", default="after", help=f"comma list of {', '.join(VARIANTS)}")
     ap.add_argument("--builtin", action="store_true", help="the six built-in scenes at equal seconds instead")
-    ap.add_argument("--time-budget", type=float, default=40.0, help="seconds per --builtin run (default 40)")
+    ap.add_argument("--time-budget", type=float, default=40.0,
+                    help="seconds per --builtin run (default 40); 0: the hard cases' sizes and iterations instead")
     ap.add_argument("--scenes", default=",".join(BUILTIN), help="--builtin: comma list of scenes")
     ap.add_argument("--json", default=None, help="also write every row (with loss curves) to this JSON file")
     ap.add_argument("--write", default=None, help="write the table into this Markdown file's generated block")
@@ -393,10 +398,13 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
         if args.builtin:
-            what = {s: f"built-in scene {s} at --time-budget {args.time_budget:g} s" for s in args.scenes.split(",")}
+            budget = f"--time-budget {args.time_budget:g} s" if args.time_budget > 0 else \
+                f"{SIZES['iterations']} + {SIZES['stage2_iterations']} iterations"
+            what = {s: f"built-in scene {s} at {budget}" for s in args.scenes.split(",")}
             for scene in what:
                 say(f"{scene}")
-                opts = {"scene": scene, **BUILTIN_SIZES, "time_budget": args.time_budget}
+                opts = {"scene": scene, **BUILTIN_SIZES, "time_budget": args.time_budget} if args.time_budget > 0 \
+                    else {"scene": scene, **SIZES}
                 rows += measure(scene, opts, variants, work, say)
         else:
             names = [c for c in args.cases.split(",") if c] or [c.name for c in CASES]
