@@ -18,7 +18,12 @@ Beyond the paper (``--preset fast``, the default; ``--preset paper`` turns both 
 * a proximal L1 step on the displacement after each Adam step (``AppearanceConfig.displacement_shrink``);
 * optionally, a cosine decay of every learning rate over the stage's progress (:mod:`optimizer.optimise.schedule`);
   ``time_budget`` (seconds of iterations) ends the stage early; progress is then the larger of the iteration
-  and the time fraction.
+  and the time fraction;
+* glint defences (issue 32, docs/results/hard_cases.md): ``loss_clamp`` compares renders and targets through
+  :func:`~optimizer.optimise.loss.soft_clamp` at a white point relative to the background (a sun glint adds a
+  bounded loss and no gradient; ``loss_linear`` in the log is the loss without it), ``grad_clip`` clips each
+  parameter's gradient to a multiple of its running norm (:class:`~optimizer.optimise.adam.Adam`), and
+  :meth:`Stage1.search_init` tries the start ``--init`` replaced (:mod:`optimizer.optimise.startsearch`).
 
 Determinism: the primal and adjoint seeds differ and change per iteration and
 view; one machine and one seed give the same numbers (resume included; a run ended
