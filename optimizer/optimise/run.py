@@ -241,6 +241,9 @@ def _prepare_stage1(spec: RunSpec, setup: _Setup, state, say) -> tuple[Stage1, H
         alternatives = init_alternatives(spec, setup.app)
         if alternatives:
             s1.search_init(alternatives, lambda values: hold.score(values)[0])
+    elif state is not None and "init_search/info" in state:
+        # a resumed run: the maps come from the checkpoint; the record is the search's (summary.json)
+        s1.init_search_info = checkpointed_init(state)
     warm_seconds = sum(info.seconds for info in (s1.warm_start_info, s1.pose_search_info, s1.start_search_info,
                                                  s1.init_search_info) if info is not None)
     if budget1:
@@ -389,6 +392,18 @@ def checkpointed_start(state: dict[str, np.ndarray] | None):
         return info
     except (TypeError, ValueError):
         raise CamoError("checkpoint is corrupt: bad start_search/info") from None
+
+
+def checkpointed_init(state: dict[str, np.ndarray]):
+    """The init search's record in a checkpoint (CamoError when it is unreadable)."""
+    from optimizer.optimise.startsearch import InitSearchInfo
+
+    try:
+        info = InitSearchInfo(**json.loads(str(state["init_search/info"])))
+        info.seconds = 0.0  # spent by the earlier attempt, whose seconds the resumed run does not count again
+        return info
+    except (TypeError, ValueError):
+        raise CamoError("checkpoint is corrupt: bad init_search/info") from None
 
 
 def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, str | None]:
