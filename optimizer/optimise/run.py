@@ -399,9 +399,7 @@ def checkpointed_init(state: dict[str, np.ndarray]):
     from optimizer.optimise.startsearch import InitSearchInfo
 
     try:
-        info = InitSearchInfo(**json.loads(str(state["init_search/info"])))
-        info.seconds = 0.0  # spent by the earlier attempt, whose seconds the resumed run does not count again
-        return info
+        return InitSearchInfo(**json.loads(str(state["init_search/info"])))  # its seconds count, as the turn's do
     except (TypeError, ValueError):
         raise CamoError("checkpoint is corrupt: bad init_search/info") from None
 
