@@ -416,8 +416,8 @@ def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, st
     old = pack.material.roughness
     pack = dataclasses.replace(pack, material=dataclasses.replace(pack.material, roughness=GLINT_ROUGHNESS))
     return pack, (f"initial roughness {old:g} -> {GLINT_ROUGHNESS:g}: the scene has a compact light, and a smoother "
-                  "start keeps specular glints (docs/optimizer.md, 'Why the built-in scenes start rough'); --init roughness=X or "
-                  "--preset paper keeps the pack's value")
+                  "start keeps specular glints (docs/optimizer.md, 'Why the built-in scenes start rough'); --init roughness=X with "
+                  "--init-search off, or --preset paper, keeps the pack's value")
 
 
 def stage1_budget(spec: RunSpec) -> float | None:
