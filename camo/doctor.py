@@ -1,11 +1,13 @@
 """``camo doctor``: can the toolkit run here, and which optional local weights are found.
 
-Weights are never downloaded; the lookup rules are those of the metrics
-(:mod:`evaluation.metrics.weights`: ``$TORCH_HOME/hub/checkpoints`` and the
-``lpips`` / ``torchmetrics`` wheels) and of the Stage 2 diffusers backend
-(``CAMO_SDXL_PATH`` / ``CAMO_CONTROLNET_PATH``). Exit 0 when the renderer works
-(weights are optional: every learned metric has a weight-free proxy and Stage 2
-has an offline inpainter).
+Weights are never downloaded at run time. The LPIPS weights are installed as data
+(``camo data fetch data_manifests/lpips_weights.toml``, run by ``make demo`` /
+``make test``) into ``$CAMO_WEIGHTS`` / ``$CAMO_CACHE/weights``; each file is listed
+as ok, missing or corrupt (SHA-256 against its pin) with the command that fixes it.
+The other lookups are those of the metrics (:mod:`evaluation.metrics.weights`) and
+of the Stage 2 diffusers backend (``CAMO_SDXL_PATH`` / ``CAMO_CONTROLNET_PATH``).
+Exit 0 when the renderer works (weights are optional: every learned metric has a
+weight-free proxy and Stage 2 has an offline inpainter).
 """
 
 from __future__ import annotations
@@ -47,26 +49,34 @@ def _renderer() -> bool:
     return False
 
 
-def _weights() -> list[tuple[str, str]]:
-    from evaluation.metrics.weights import find_lpips_lin_weights, find_trunk_weights
+def lpips_rows() -> list[tuple[str, str]]:
+    """``(label, status)`` of each installed LPIPS weight file: ``ok``, ``missing`` or ``corrupt`` with the path
+    and, when not ok, the command that installs or replaces it."""
+    from evaluation.metrics.weights import LPIPS_FILES, LPIPS_FILE_SHA256, fetch_command, weights_dir, weights_sha256
 
     rows = []
-    for kind, what in (("alex", "LPIPS AlexNet trunk"), ("vgg", "LPIPS VGG16 trunk"), ("inception", "SIFID Inception v3")):
-        try:
-            rows.append((kind, f"{find_trunk_weights(kind)}  [{what}]"))
-        except CamoError:
-            rows.append((kind, f"not found  [{what}; the metric is skipped, its weight-free proxy is reported]"))
-    for net in ("alex", "vgg"):
-        try:
-            rows.append((f"lpips-lin-{net}", str(find_lpips_lin_weights(net))))
-        except CamoError:
-            rows.append((f"lpips-lin-{net}", "not found  [install the 'lpips' extra: pip install '.[lpips]']"))
-    try:
-        import dreamsim  # noqa: F401
+    for net, parts in LPIPS_FILES.items():
+        for part, name in parts.items():
+            p = weights_dir() / name
+            what = "trunk" if part == "trunk" else "heads"
+            if not p.is_file():
+                rows.append((f"lpips {net} {what}", f"missing: {p}  [run: {fetch_command()}]"))
+            elif weights_sha256(p) != LPIPS_FILE_SHA256[name]:
+                rows.append((f"lpips {net} {what}", f"corrupt (SHA-256 mismatch): {p}  [run: {fetch_command()}]"))
+            else:
+                rows.append((f"lpips {net} {what}", f"ok: {p}"))
+    return rows
 
-        rows.append(("dreamsim", "package installed; give --dreamsim-weights to use it"))
-    except ImportError:
-        rows.append(("dreamsim", "not installed  [optional extra: pip install '.[dreamsim]']"))
+
+def _weights() -> list[tuple[str, str]]:
+    from evaluation.metrics import METRICS, metric_unavailable
+
+    rows = lpips_rows()
+    for name, m in METRICS.items():  # every learned metric of the registry: can it run here, else what it needs
+        if m.needs_weights:
+            why = metric_unavailable(name)
+            rows.append((f"metric {name}", "ok (its weights are found)" if why is None
+                         else f"not available here  [needs {m.needs or why}]"))
     try:
         from optimizer.optimise.inpaint import diffusers_status
 
@@ -146,7 +156,7 @@ def run_doctor() -> int:
         ok = False
         _line("torch", f"NOT AVAILABLE: {exc}")
     _line("python", f"{platform.python_version()} on {platform.machine()}")
-    print("optional local weights (never downloaded):")
+    print("learned-metric weights (installed by camo data fetch; never downloaded at run time):")
     for label, status in _weights():
         _line(f"  {label}", status)
     _real_packs_report()

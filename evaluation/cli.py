@@ -46,14 +46,15 @@ def register(sub) -> None:
     p.add_argument("--resolution", type=RANGES["resolution"].arg_type(), help="image width = height in pixels (default: the run's)")
     p.add_argument("--metrics", help=Deferred(_metrics_help))  # (the registry imports torch: only for --help)
     p.add_argument("--seed", type=RANGES["seed"].arg_type(), default=0, help="camera jitter and sampler seed (same for every run)")
-    p.add_argument("--lpips-weights", metavar="PATH",
-                   help="AlexNet trunk (torchvision .pth), or a folder with it and LPIPS v0.1 alex.pth")
-    p.add_argument("--inception-weights", metavar="PATH", help="Inception v3 state dict for SIFID")
-    p.add_argument("--dreamsim-weights", metavar="PATH", help="DreamSim weights folder (its cache_dir)")
+    p.add_argument("--weights", metavar="NAME=PATH[,NAME=PATH]",
+                   help="weights of learned metrics other than the installed ones, per metric (what a path may be: "
+                   "docs/evaluation.md), e.g. lpips=DIR_OR_TRUNK,sifid=INCEPTION.pth,dreamsim=DIR")
+    for flag, (metric, what) in WEIGHTS_FLAGS.items():
+        p.add_argument(f"--{flag}", metavar="PATH", help=f"= --weights {metric}=PATH: {what}")
     p.add_argument("--threads", type=RANGES["threads"].arg_type(), help="CPU threads for the LLVM backend")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_evaluate, setting_names=lambda name, args: "--" + name.replace("_", "-")
-                   if name in SETTINGS or name == "metrics" else name)
+                   if name in SETTINGS or name in ("metrics", "weights") else name)
 
     p = sub.add_parser("report", help="merge evaluation directories into one Table II report")
     p.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate`")
@@ -98,8 +99,43 @@ def input_specs(args) -> list:
 
 
 #: ``camo evaluate`` options that are :class:`evaluation.evaluate.EvalSettings` fields of the same name.
-SETTINGS = ("views", "jitter", "spp", "resolution", "seed", "lpips_weights", "inception_weights", "dreamsim_weights",
-            "threads")
+SETTINGS = ("views", "jitter", "spp", "resolution", "seed", "threads")
+
+#: Short flags for ``--weights NAME=PATH`` of the built-in learned metrics (kept for existing command lines and
+#: grids): flag -> (metric, what the path is). A new metric needs none: ``--weights`` takes any metric whose
+#: record has ``from_path`` (:class:`evaluation.metrics._common.Metric`).
+WEIGHTS_FLAGS = {
+    "lpips-weights": ("lpips", "an AlexNet trunk (torchvision layout, .pth or .safetensors), or a folder with the "
+                      "trunk and the v0.1 heads (alex.pth, or the files `camo data fetch "
+                      "data_manifests/lpips_weights.toml` lands)"),
+    "inception-weights": ("sifid", "Inception v3 state dict for SIFID"),
+    "dreamsim-weights": ("dreamsim", "DreamSim weights folder (its cache_dir)"),
+}
+
+
+def parse_weights(values: Mapping[str, Any]) -> dict[str, str]:
+    """``{metric: path}`` of ``--weights NAME=PATH[,NAME=PATH]`` and the short flags (:data:`WEIGHTS_FLAGS`);
+    CamoError (one line) for an item without ``=`` or a metric given twice. The paths are checked by the metrics
+    (:func:`evaluation.evaluate.weights_of`)."""
+    from camo_base.errors import CamoError
+
+    out: dict[str, str] = {}
+
+    def put(name: str, path: str, where: str) -> None:
+        if not name or not path:
+            raise CamoError(f"{where}: expected NAME=PATH, e.g. lpips=/path/to/weights")
+        if name in out:
+            raise CamoError(f"{where}: weights for {name} given twice")
+        out[name] = path
+
+    for item in (values.get("weights") or "").split(","):
+        if item.strip():
+            name, _, path = item.strip().partition("=")
+            put(name.strip(), path.strip(), f"--weights {item.strip()}")
+    for flag, (metric, _) in WEIGHTS_FLAGS.items():
+        if values.get(flag.replace("-", "_")):
+            put(metric, str(values[flag.replace("-", "_")]), f"--{flag}")
+    return out
 
 
 def evaluation_settings(values: Mapping[str, Any]):
@@ -108,7 +144,8 @@ def evaluation_settings(values: Mapping[str, Any]):
     from evaluation.evaluate import EvalSettings, parse_metrics
 
     kw = {k: values[k] for k in SETTINGS if values.get(k) is not None}
-    return EvalSettings(**kw, metrics=parse_metrics(values.get("metrics")), progress=not values.get("quiet", False))
+    return EvalSettings(**kw, metrics=parse_metrics(values.get("metrics")), weights=parse_weights(values),
+                        progress=not values.get("quiet", False))
 
 
 def run_evaluate(args) -> int:

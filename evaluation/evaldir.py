@@ -25,6 +25,14 @@ KEY_COLUMNS = ("run", "scene", "object", "method", "ablation", "view", "seed", "
 #: ``seconds_stage2`` from a run directory (:meth:`optimizer.assets.rundir.RunDir.seconds`), ``seconds_method`` their sum
 #: or the user's ``seconds`` for an asset or triplets (NaN when unknown).
 METHOD_SECONDS_COLUMNS = ("seconds_setup", "seconds_stage1", "seconds_stage2", "seconds_method")
+#: Where the object gives itself away (:mod:`evaluation.giveaway`): the region's pixels split into the object (mask
+#: + 1-px ring), its cast shadow (darker with the object, outside it; noise-aware threshold ``shadow_threshold`` in
+#: sRGB luma) and the rest; per part the pixel count, its part of the region's mean squared error (sRGB [0, 1]; the
+#: three add up to the MSE) and of its LPIPS (Shapley split of the ``lpips`` metric; the three add up to ``lpips``,
+#: NaN without LPIPS weights).
+SPLIT_PARTS = ("object", "shadow", "rest")
+SPLIT_COLUMNS = ("shadow_threshold", *(f"pixels_{p}" for p in SPLIT_PARTS), *(f"sqerr_{p}" for p in SPLIT_PARTS),
+                 *(f"lpips_{p}" for p in SPLIT_PARTS))
 
 
 def _metric_columns() -> dict[str, tuple[str, ...]]:
@@ -34,9 +42,9 @@ def _metric_columns() -> dict[str, tuple[str, ...]]:
     * ``VARIANT_COLUMNS``: ``{name}_variant`` of the metrics that have one ("" where not computed);
     * ``SHA_COLUMNS``: ``{name}_weights_sha256``, the SHA-256 of the weight files behind each learned metric;
     * ``METRIC_SECONDS_COLUMNS``: seconds of each metric on the row's image pair;
-    * ``COLUMNS``: every column of metrics.parquet / metrics.csv, in order (``seconds_render``: evaluation rendering
-      of this view -- with-object render + its share of the scene's background render; NaN for triplets --,
-      ``seconds_metrics``: all metrics of the row);
+    * ``COLUMNS``: every column of metrics.parquet / metrics.csv, in order (the split :data:`SPLIT_COLUMNS` after
+      the metrics; ``seconds_render``: evaluation rendering of this view -- with-object render + its share of the
+      scene's background render; NaN for triplets --, ``seconds_metrics``: all metrics of the row);
     * ``SECONDS_COLUMNS``: the ``seconds_*`` columns."""
     from evaluation.metrics import METRICS
 
@@ -45,7 +53,8 @@ def _metric_columns() -> dict[str, tuple[str, ...]]:
     sha = tuple(f"{n}_weights_sha256" for n, m in METRICS.items() if m.needs_weights)
     metric_seconds = tuple(f"seconds_{n}" for n in metric)
     columns = (*KEY_COLUMNS, "region_y0", "region_x0", "region_height", "region_width", "mask_pixels", *metric,
-               *variant, *sha, "seconds_render", "seconds_metrics", *metric_seconds, *METHOD_SECONDS_COLUMNS)
+               *variant, *sha, *SPLIT_COLUMNS, "seconds_render", "seconds_metrics", *metric_seconds,
+               *METHOD_SECONDS_COLUMNS)
     return {"METRIC_COLUMNS": metric, "VARIANT_COLUMNS": variant, "SHA_COLUMNS": sha,
             "METRIC_SECONDS_COLUMNS": metric_seconds, "COLUMNS": columns,
             "SECONDS_COLUMNS": tuple(c for c in columns if c.startswith("seconds_"))}

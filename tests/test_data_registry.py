@@ -12,18 +12,16 @@ from __future__ import annotations
 
 import base64
 import hashlib
-import http.server
 import os
 import shutil
 import tomllib
-import urllib.parse
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fixture_archives import tar_bytes, zip_bytes
+from fixture_archives import files_handler, tar_bytes, zip_bytes
 from camo.cli import main
 from optimizer.scenes.data import fetch as fetch_mod
 from optimizer.scenes.data import registry as reg
@@ -112,26 +110,9 @@ def server(fixtures, monkeypatch, loopback_http):
         "pypi/packages/ab/cd/fixture-1.0-py3-none-any.whl": fixtures["whl"],
     }
     state = _Server(files)
-
-    class Handler(http.server.BaseHTTPRequestHandler):
-        def log_message(self, *args):
-            pass
-
-        def do_GET(self):
-            path = urllib.parse.unquote(urllib.parse.urlsplit(self.path).path.lstrip("/"))
-            state.log.append(path)
-            data = state.files.get(path)
-            if data is None:
-                self.send_error(404)
-                return
-            self.send_response(200)
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            self.wfile.write(data)
-
     for var in ("CAMO_NPM_REGISTRY", "CAMO_PYPI_FILES"):
         monkeypatch.delenv(var, raising=False)
-    base = loopback_http(Handler)
+    base = loopback_http(files_handler(state.files, state.log))
     state.npm, state.pypi = base + "npm/", base + "pypi/"
     return state
 

@@ -120,6 +120,20 @@ def test_metrics_table_schema_and_rows(eval_dir):
     assert (df["seconds_render"] > 0).all() and (df["seconds_metrics"] > 0).all()
     np.testing.assert_allclose(csv["psnr"], df["psnr"], rtol=1e-12)
     assert (df["ssim"] < 1).all() and (df["psnr"] > 10).all()
+    # where the object gives itself away: the parts tile the region and add up to its MSE (= PSNR's)
+    parts = ("object", "shadow", "rest")
+    area = df["region_height"] * df["region_width"]
+    np.testing.assert_array_equal(sum(df[f"pixels_{p}"] for p in parts), area)
+    assert (df["pixels_object"] >= df["mask_pixels"]).all() and (df["shadow_threshold"] >= 2 / 255).all()
+    np.testing.assert_allclose(sum(df[f"sqerr_{p}"] for p in parts), 10 ** (-df["psnr"] / 10), rtol=1e-6)
+    assert df[[f"lpips_{p}" for p in parts]].isna().all().all()  # no LPIPS weights: no LPIPS split
+    # the same columns recomputed from the saved renders (for evaluations written before them)
+    from evaluation.evaldir import SPLIT_COLUMNS
+    from evaluation.giveaway import split_eval_dir
+
+    again = split_eval_dir(eval_dir).set_index(["run", "view", "region"])
+    mine = df.set_index(["run", "view", "region"])[list(SPLIT_COLUMNS)]
+    pd.testing.assert_frame_equal(again.loc[mine.index, list(SPLIT_COLUMNS)], mine, check_dtype=False)
 
 
 def test_psnr_ssim_equal_skimage_on_saved_renders(eval_dir):
@@ -247,7 +261,7 @@ def test_renders_json_in_the_study_format(eval_dir):
 
 
 def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
-    from evaluation.report import TABLE_II_HEADER, load_metrics, method_label
+    from evaluation.report import load_metrics, method_label, table_header
 
     out = tmp_path / "merged"
     assert main(["report", str(eval_dir), str(eval_dir_big), str(eval_dir), "--out", str(out), "--env-width",
@@ -255,7 +269,10 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     merged = load_metrics([eval_dir, eval_dir_big, eval_dir])
     assert len(merged) == 16 + 4  # the repeated evaluation is de-duplicated
     md = (out / "report.md").read_text()
-    assert TABLE_II_HEADER in md
+    # only computed metrics get a column (no weights here: no LPIPS, SIFID, DreamSim), the proxies as cross-checks
+    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy"]) in md
+    assert "SIFID-proxy↓ (cross-check)" in md and "| LPIPS↓ |" not in md and "**LPIPS was not computed**" in md
+    assert "- `lpips`: " in md and "camo data fetch data_manifests/lpips_weights.toml" in md  # what it needs
     assert "| Ours |" in md and "| w/o Pose + Displacement |" in md
     assert "8 spp, 32x32 px" in md and "2 spp, 160x160 px" in md  # two protocols, reported apart
     assert "## Skipped metrics" in md and "`dreamsim`" in md
@@ -271,7 +288,7 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     # the Table II value of "Ours" is the mean over views of its rows (one scene)
     df = pd.read_parquet(eval_dir / "metrics.parquet")
     ours = df[(df["run"] == "ours_full") & (df["region"] == "crop")]["psnr"].mean()
-    assert f"| Ours | — | — | — | " in md and f"{ours:.2f}" in md
+    assert "| Ours | " in md and f"{ours:.2f}" in md and "| Ours | — |" not in md
     assert method_label("ours", "none") == "Ours" and method_label("ours", "bsdf") == "w/o BSDF (Only Albedo)"
     assert method_label("ganmouflage", "none") == "GANmouflage [7]"
 
@@ -307,6 +324,11 @@ def test_bad_input_is_one_line_exit_2_and_keeps_outputs(runs, eval_dir, tmp_path
         ([a, "--jitter", "0"], "--jitter"),
         ([a, "--inception-weights", str(bad_weights)], "cannot read"),
         ([a, "--lpips-weights", str(bad_weights)], "weights"),
+        ([a, "--weights", f"psnr={bad_weights}"], "psnr takes no weights"),
+        ([a, "--weights", f"colourfulness={bad_weights}"], "unknown metric"),
+        ([a, "--weights", "lpips"], "NAME=PATH"),
+        ([a, "--weights", f"sifid={bad_weights}", "--inception-weights", str(bad_weights)], "given twice"),
+        ([a, "--weights", f"dreamsim={tmp_path / 'nowhere'}"], "folder not found"),
         ([a, "--metrics", "dreamsim"], "DreamSim"),
         ([a, "--resolution", "16"], "too small"),
     ]
@@ -323,6 +345,21 @@ def test_bad_input_is_one_line_exit_2_and_keeps_outputs(runs, eval_dir, tmp_path
 
 
 # --- learned metrics (random weights in the real layouts; nothing is downloaded) -----------------------------
+
+
+def test_weights_option_is_the_metrics_from_path(tiny_metric_weights):
+    """``--weights NAME=PATH`` hands each path to its metric's ``from_path`` (the one place a learned metric's
+    weights option is written); the short flags are the same thing."""
+    from evaluation.cli import evaluation_settings
+    from evaluation.evaluate import weights_of
+    from evaluation.metrics import METRICS
+
+    lp, inc = tiny_metric_weights["lpips_dir"], tiny_metric_weights["sifid"]
+    long = weights_of(evaluation_settings({"weights": f"lpips={lp}, sifid={inc}"}))
+    short = weights_of(evaluation_settings({"lpips_weights": lp, "inception_weights": inc}))
+    assert long == short == {**METRICS["lpips"].from_path(lp), "sifid": inc}
+    assert long["lpips_trunk"].endswith("alexnet-test.pth") and long["lpips_lin"].endswith("alex.pth")
+    assert {n for n, m in METRICS.items() if m.from_path} == {n for n, m in METRICS.items() if m.needs_weights}
 
 
 def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights):
@@ -345,6 +382,41 @@ def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights)
     assert row["sifid"] == pytest.approx(float(sifid(obj / 255.0, bg / 255.0, load_sifid_inception(inc))[0]), rel=1e-5)
     md = (out / "report.md").read_text()
     assert "`lpips`" not in md.split("## Table II")[0]  # computed, so not listed as skipped
+    # the LPIPS split (Shapley parts) adds up to each row's LPIPS
+    total = df["lpips_object"] + df["lpips_shadow"] + df["lpips_rest"]
+    np.testing.assert_allclose(total, df["lpips"], rtol=1e-4, atol=1e-6)
+
+
+def test_installed_lpips_leads_the_report(runs, tmp_path, installed_lpips):
+    """With the weights `make demo` / `make test` install: LPIPS is computed by default, leads Table II, its
+    object / shadow / rest split is in the metrics table, and the report shows the give-away table and the LPIPS
+    heat maps."""
+    from evaluation.metrics import load_lpips, lpips
+
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(runs[0]), str(runs[1]), "--out", str(out), "--spp", "4", "--views", "2",
+                 "--resolution", "64", "--quiet"]) == 0
+    df = pd.read_parquet(out / "metrics.parquet")
+    assert np.isfinite(df["lpips"]).all() and (df["lpips_variant"] == "alex-v0.1").all()
+    assert df["lpips_vgg"].isna().all()  # only on request
+    row = df[(df["region"] == "crop") & (df["run"] == "ours_full")].iloc[0]
+    d = out / "renders" / "ours_full"
+    y0, x0, side = int(row["region_y0"]), int(row["region_x0"]), int(row["region_height"])
+    crop = lambda a: a[y0:y0 + side, x0:x0 + side]  # noqa: E731
+    want = float(lpips(crop(png(d / f"view_{int(row['view']):02d}_obj.png")),
+                       crop(png(d / f"view_{int(row['view']):02d}_bg.png")), load_lpips("alex")))
+    assert row["lpips"] == pytest.approx(want, rel=1e-5)
+    np.testing.assert_allclose(df["lpips_object"] + df["lpips_shadow"] + df["lpips_rest"], df["lpips"], rtol=1e-4)
+    md = (out / "report.md").read_text()
+    table = md.split("## Table II — object crop")[1].split("\n\n")[1]
+    assert table.startswith("| Model | LPIPS↓ | SSIM↑ | PSNR↑ | LPIPS-proxy↓ (cross-check) |")
+    assert "LPIPS was not computed" not in md and "## Where the object gives itself away" in md
+    assert "LPIPS: object / shadow / rest" in md
+    heat = list((out / "giveaway").glob("*.png"))
+    assert len(heat) == 1 and f"giveaway/{heat[0].name}" in md
+    with Image.open(heat[0]) as im:
+        assert im.size[0] > 300 and np.asarray(im.convert("L")).std() > 10  # a picture, not a blank
+    assert "numbers: each view's LPIPS" in md  # the image grids carry each view's LPIPS
 
 
 # --- small units --------------------------------------------------------------------------------------------

@@ -552,3 +552,12 @@ def test_shipped_grid_files_load(name, cells, methods):
                                                                        "panorama"}
     gm = [c for c in grid.cells if c.method == "ganmouflage"]
     assert all(c.spec["options"]["iterations"] in (300, 2000) for c in gm)
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "grids").glob("*.toml")),
+                         ids=lambda p: p.name)
+def test_every_shipped_grid_loads(path):
+    """Each grid of grids/ parses with today's flags (an [evaluate] option `camo evaluate` dropped is caught here,
+    not after hours of optimisation) and names its cells."""
+    grid = load_grid(path)
+    assert grid.cells and all(c.evaluation_settings() is not None for c in grid.cells[:3])

@@ -159,10 +159,11 @@ def test_official_lpips_linear_layers_when_a_wheel_ships_them(alex_files):
 def test_lpips_missing_or_bad_weights_raise_camo_error(tmp_path, monkeypatch, alex_files):
     trunk, lin = alex_files
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
-    with pytest.raises(CamoError, match="never downloaded"):
+    with pytest.raises(CamoError, match="never downloaded") as err:
         load_lpips("alex", None, lin)
+    assert "camo data fetch data_manifests/lpips_weights.toml --dest" in str(err.value)  # names the fix
     monkeypatch.setattr(weights_mod, "lpips_lin_candidates", lambda net: [])
-    with pytest.raises(CamoError, match="lpips.*torchmetrics"):
+    with pytest.raises(CamoError, match="not installed.*camo data fetch"):
         load_lpips("alex", trunk, None)
     assert "never downloaded" in metric_unavailable("lpips")
     with pytest.raises(CamoError, match="not found"):

@@ -1,6 +1,6 @@
 """Stress tests of the image metrics (evaluation.metrics): degenerate images, range policy, rank deficiency.
 
-Every metric of the registry runs: the weight-free ones as they are, ``lpips`` and ``sifid`` with tiny
+Every metric of the registry runs: the weight-free ones as they are, ``lpips``, ``lpips_vgg`` and ``sifid`` with tiny
 random weights in the torchvision key layout (tests/conftest.py ``tiny_metric_weights``, as
 tests/test_metrics_learned.py builds them),
 ``dreamsim`` only when its optional package and a local weights folder exist (never here: skipped).
@@ -23,16 +23,18 @@ from evaluation.metrics import METRICS, MIN_SIZE, RANGE_TOL, compute_metrics, fr
 from camo_base.errors import CamoError
 
 #: the value each metric gives an image compared with itself
-IDEAL = {"psnr": math.inf, "ssim": 1.0, "lpips": 0.0, "lpips_proxy": 0.0, "sifid": 0.0, "sifid_proxy": 0.0}
+IDEAL = {"psnr": math.inf, "ssim": 1.0, "lpips": 0.0, "lpips_vgg": 0.0, "lpips_proxy": 0.0, "sifid": 0.0,
+         "sifid_proxy": 0.0}
 #: documented value ranges (registry ``value_range``)
-RANGES = {"psnr": (0.0, math.inf), "ssim": (-1.0, 1.0), "lpips": (0.0, math.inf), "lpips_proxy": (0.0, 1.0),
+RANGES = {"psnr": (0.0, math.inf), "ssim": (-1.0, 1.0), "lpips": (0.0, math.inf), "lpips_vgg": (0.0, math.inf),
+          "lpips_proxy": (0.0, 1.0),
           "sifid": (0.0, math.inf), "sifid_proxy": (0.0, math.inf)}
 
 
 @pytest.fixture(scope="module")
 def weights(tiny_metric_weights):
     """Tiny random AlexNet trunk, LPIPS v0.1 linear layers and Inception v3 stem files (tests/conftest.py)."""
-    return {k: tiny_metric_weights[k] for k in ("lpips_trunk", "lpips_lin", "sifid")}
+    return {k: tiny_metric_weights[k] for k in ("lpips_trunk", "lpips_lin", "lpips_vgg_trunk", "lpips_vgg_lin", "sifid")}
 
 
 ALL = [n for n in METRICS if n != "dreamsim"]

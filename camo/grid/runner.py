@@ -125,6 +125,9 @@ def run_grid(grid_path: str | Path, out: str | Path, executor: str = "local", wo
         from camo.grid.executors import import_ray
 
         import_ray()  # the missing-extra error comes before anything is written
+    from camo.grid.spec import check_metrics_available
+
+    check_metrics_available(grid)  # e.g. lpips without its installed weights: one line, before any cell runs
     _check_out(out)
     with _driver_lock(out):
         _prepare_out(out, grid)

@@ -491,6 +491,24 @@ def cell_spec(options: dict[str, Any], where: str) -> dict[str, Any]:
         raise CamoError(f"{where}: {renamed(exc, grid_names(options.get('method')))}") from None
 
 
+def check_metrics_available(grid: Grid) -> None:
+    """CamoError (one line, naming the fix) when a metric the grid's ``[evaluate]`` asks for cannot run on this
+    machine (e.g. ``lpips`` without its installed weights): checked before ``camo grid run`` starts any cell, so
+    a grid does not optimise for hours and then fail every evaluation. Loads nothing."""
+    from evaluation.evaluate import select_metrics, weights_of
+
+    seen: set[tuple] = set()
+    for c in grid.cells:
+        if c.evaluate in seen:
+            continue
+        seen.add(c.evaluate)
+        try:
+            settings = c.evaluation_settings()
+            select_metrics(settings.metrics, weights_of(settings))
+        except CamoError as exc:
+            raise CamoError(f"{grid.path}: [evaluate]: {exc}") from None
+
+
 def validate_cells(grid: Grid) -> None:
     """Check every cell's evaluation settings the way `camo evaluate` does (cheap: no rendering, no Mitsuba) so
     that bad settings fail before the first cell starts (the optimisation's are checked when its run spec is

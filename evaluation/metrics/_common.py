@@ -40,6 +40,7 @@ MIN_SIZE = {
     "haarpsi": 16,
     "lpips_proxy": 16,
     "lpips": 32,
+    "lpips_vgg": 32,
     "sifid": 32,
     "sifid_proxy": 32,
     "dreamsim": 32,
@@ -133,6 +134,14 @@ def to_batch(x: ImageLike, name: str = "image", data_range: float = 1.0) -> torc
     return t
 
 
+def check_data_range(data_range: float, metric: str) -> None:
+    """CamoError (one line) unless ``data_range`` is a finite number > 0 (NaN, inf, 0, negatives, non-numbers)."""
+    ok = (isinstance(data_range, (int, float, np.number)) and not isinstance(data_range, (bool, np.bool_))
+          and math.isfinite(float(data_range)) and float(data_range) > 0)
+    if not ok:
+        raise CamoError(f"{metric}: data_range must be a finite number > 0, got {data_range!r}")
+
+
 def check_size(t: torch.Tensor, metric: str, name: str = "image", min_size: Optional[int] = None) -> None:
     """Raise CamoError when ``t``'s smaller side is below ``min_size`` (default ``MIN_SIZE[metric]``, else 1)."""
     need = min_size if min_size is not None else MIN_SIZE.get(metric, 1)
@@ -148,8 +157,7 @@ def prepare_pair(
     """Convert and check an image pair for ``metric``: same batch size (and size unless ``same_size=False``),
     at least ``min_size`` px (default ``MIN_SIZE[metric]``, else 1), values in ``[0, data_range]``. Both get the
     wider of the two dtypes."""
-    if data_range <= 0:
-        raise CamoError(f"{metric}: data_range must be > 0, got {data_range}")
+    check_data_range(data_range, metric)
     tx = to_batch(x, "x", data_range)
     ty = to_batch(y, "y", data_range)
     if same_size and tx.shape != ty.shape:
@@ -197,7 +205,13 @@ class Metric:
     ``table_order``: position in Table II (the paper's five first); ``variant``: its rows carry
     ``{name}_variant``; ``weights_key``: the weights entry whose presence asks for a learned metric;
     ``unavailable(weights)``: why it cannot run with these weights (None: it can; raise CamoError or return a
-    reason)."""
+    reason); ``needs``: one line saying what a user needs to compute it (printed where it is skipped and in the
+    docs table; "" for weight-free metrics); ``by_default``: computed without ``--metrics`` whenever it can run
+    (False: only when asked for by name, e.g. ``lpips_vgg``); ``cross_check``: a weight-free stand-in on its own
+    scale (reports label its column "(cross-check)"; it is not the metric it approximates); ``from_path(path)``:
+    the weights entries of the path a user gives for this metric (``camo evaluate --weights NAME=PATH``, a grid's
+    ``[evaluate] weights``; CamoError, one line, when the path does not hold them): a learned metric's weights
+    option is this function, no flag or settings field elsewhere."""
 
     name: str
     compute: Compute
@@ -213,6 +227,10 @@ class Metric:
     variant: bool = False
     weights_key: str = ""
     unavailable: Optional[Callable[[Mapping[str, Any]], Optional[str]]] = None
+    needs: str = ""
+    by_default: bool = True
+    cross_check: bool = False
+    from_path: Optional[Callable[[str], dict[str, str]]] = None
 
     @property
     def header(self) -> str:

@@ -130,11 +130,22 @@ def _compute(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tu
     return dreamsim_distance(x, y, model), {"variant": kind, "weights_sha256": model.camo_weights_sha256}
 
 
-def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
-    return None if weights.get("dreamsim") else "DreamSim needs a local weights folder"
+def _from_path(path: str) -> dict[str, str]:
+    p = Path(path).expanduser()
+    if not p.is_dir():
+        raise CamoError(f"dreamsim weights: folder not found: {p}")
+    return {"dreamsim": str(p)}
 
+
+def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
+    return None if weights.get("dreamsim") else f"DreamSim needs {DREAMSIM_NEEDS}"
+
+
+#: What a user needs for DreamSim (one line).
+DREAMSIM_NEEDS = ("the optional 'dreamsim' package (pip install '.[dreamsim]') and a local weights folder "
+                  "(--weights dreamsim=DIR); no registry package ships its weights")
 
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("dreamsim", _compute, False, "1", "[0, 2]", "DreamSim (optional package, local weights folder)",
                   "DreamSim", needs_weights=True, order=6, table_order=2, variant=True, weights_key="dreamsim",
-                  unavailable=_unavailable),)
+                  unavailable=_unavailable, needs=DREAMSIM_NEEDS, from_path=_from_path),)

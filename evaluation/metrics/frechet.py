@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Union
 
 import numpy as np
@@ -46,8 +47,10 @@ def frechet_distance(
     fails or returns non-finite values is a ridge ``eps * I`` added to both covariances inside the square-root
     term (pytorch-fid's and SinGAN's fallback). It is not added by default because it moves the result by about
     ``2 sqrt(eps * var)`` per direction that is flat in one image only (~2e-3 for unit variance), the size of the
-    SIFID values in the paper's Table II. Round-off can make the sum slightly negative; the result is clamped
-    at 0.
+    SIFID values in the paper's Table II. The covariance term is computed on covariances divided by their largest
+    entry and scaled back (the distance is homogeneous), so covariances of any magnitude -- entries of 1e-200,
+    whose product would underflow -- keep float64's relative precision. Round-off can make the sum slightly
+    negative; the result is clamped at 0.
 
     Args:
         mu1, mu2: means ``(D,)``.
@@ -75,6 +78,22 @@ def frechet_distance(
     diff = m1 - m2
     if np.array_equal(s1, s2):
         return float(diff @ diff)  # identical covariances: the covariance term is exactly 0
+    # The distance is homogeneous: features scaled by c give c^2 d^2. Compute it on covariances scaled to a largest
+    # entry of 1 and scale back, so that tiny covariances (entries <= ~1e-160, whose product underflows to 0 and
+    # would drop the cross term) and large ones keep full float64 precision.
+    scale = max(float(np.abs(s1).max()), float(np.abs(s2).max()))
+    if scale > 0 and math.isfinite(scale):
+        cov_term = scale * _covariance_term(s1 / scale, s2 / scale, eps, d)
+    else:
+        cov_term = _covariance_term(s1, s2, eps, d)
+    value = float(diff @ diff) + cov_term
+    if not np.isfinite(value):
+        raise CamoError("frechet_distance: the result overflows float64; rescale the features")
+    return max(value, 0.0)
+
+
+def _covariance_term(s1: np.ndarray, s2: np.ndarray, eps: float, d: int) -> float:
+    """``tr S1 + tr S2 - 2 tr sqrt(S1 S2)`` (with the ridge fallback of :func:`frechet_distance`)."""
     try:
         tr_covmean = trace_sqrt_product(s1, s2)
         ok = np.isfinite(tr_covmean)
@@ -86,10 +105,7 @@ def frechet_distance(
             tr_covmean = trace_sqrt_product(s1 + ridge, s2 + ridge)
         except np.linalg.LinAlgError as exc:
             raise CamoError(f"frechet_distance: the eigen-solver failed on sigma1 @ sigma2 ({exc})") from None
-    value = float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * tr_covmean)
-    if not np.isfinite(value):
-        raise CamoError("frechet_distance: the result overflows float64; rescale the features")
-    return max(value, 0.0)
+    return float(np.trace(s1) + np.trace(s2) - 2.0 * tr_covmean)
 
 
 #: Largest covariance entry accepted: the product of two such matrices (D up to ~1e4 terms per entry) stays finite.

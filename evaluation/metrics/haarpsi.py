@@ -160,5 +160,5 @@ def lpips_proxy(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Te
 
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("lpips_proxy", plain(lpips_proxy, "1-haarpsi"), False, "1", "[0, 1]",
-                  "1 - HaarPSI; weight-free, NOT LPIPS, different scale", "LPIPS-proxy", order=3, table_order=5,
-                  variant=True),)
+                  "1 - HaarPSI; weight-free cross-check, NOT LPIPS, different scale", "LPIPS-proxy", order=3,
+                  table_order=5, variant=True, cross_check=True),)

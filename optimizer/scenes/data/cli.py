@@ -255,6 +255,10 @@ def run_pack(args) -> int:
         raise CamoError(f"{out} exists; pass --overwrite to replace it")
     a = man.get(args.name)
     other, other_man = _resolve_with(args.with_asset, man) if args.with_asset else (None, None)
+    for x in (a, other):
+        if x is not None and x.kind == "weights":
+            raise CamoError(f"asset {x.name!r} is network weights (for a learned metric), not part of a scene; "
+                            "`camo data pack` takes a mesh, an hdri or a scene")
     if args.with_dest and other is None:
         raise CamoError("--with-dest needs --with")
     where = {id(a): (dest, man.path)}

