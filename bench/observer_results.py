@@ -60,6 +60,7 @@ def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100) -
     from PIL import Image
 
     from evaluation.observer import ObserverConfig, evidence_maps, make_cells, simulate_search
+    from study_site.stimuli import background_path
 
     rows = []
     for d in stim_dirs:
@@ -72,7 +73,9 @@ def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100) -
         img = np.asarray(Image.open(d / "images" / f"{s['id']}.png").convert("RGB"))
         mask = np.asarray(Image.open(d / "masks" / f"{s['id']}.png").convert("L")) > 127
         cfg = ObserverConfig()
-        maps = evidence_maps(img, cfg)
+        bgp = background_path(d, s["scene"], s["view"])
+        bg = np.asarray(Image.open(bgp).convert("RGB")) if bgp.is_file() else None
+        maps = evidence_maps(img, cfg, bg)
         res = simulate_search(img, n=n, seed=0, config=cfg, mask=mask, cells=make_cells(img, cfg, maps=maps))
         ax[0].imshow(img)
         ax[0].contour(mask, [0.5], colors="m", linewidths=0.7)
@@ -83,9 +86,9 @@ def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100) -
         ax[0].set_title(f"{s['scene']} {lab} view {s['view']}: found {res.found.mean():.0%}, miss {miss.mean():.0%}, "
                         f"timeout {res.timed_out.mean():.0%}", fontsize=7)
         ax[1].imshow(maps.guidance, cmap="magma")
-        ax[1].set_title("priority G (object-sized, + near shadows)", fontsize=7)
-        ax[2].imshow(maps.verify, cmap="magma")
-        ax[2].set_title("verification evidence V", fontsize=7)
+        ax[1].set_title("priority G (object-sized, on the ground, + near shadows)", fontsize=7)
+        ax[2].imshow(maps.verify, cmap="magma", vmin=-3, vmax=3 * cfg.criterion)
+        ax[2].set_title(f"verification z vs the background (criterion {cfg.criterion:g})", fontsize=7)
         for a in ax:
             a.set_xticks([])
             a.set_yticks([])

@@ -226,7 +226,7 @@ def score_view(obj8: np.ndarray, bg8: np.ndarray, mask: np.ndarray, names: Seque
         if a is not None:
             for name in names:  # one call per metric so that each one's seconds are known
                 t_m = time.perf_counter()
-                row.update(compute_metrics(a, b, [name], weights))
+                row.update(compute_metrics(a, b, [name], weights, mask=m))
                 row[f"seconds_{name}"] = time.perf_counter() - t_m
             row.update(_giveaway(a, b, m, sh, names, weights), shadow_threshold=tau)
         row["seconds_metrics"] = time.perf_counter() - t

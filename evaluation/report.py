@@ -82,6 +82,11 @@ TIME_COLUMNS = (("seconds_setup", "Setup s"), ("seconds_stage1", "Stage 1 s"), (
                 ("seconds_method", "Method s"), ("seconds_render", "Render s/view"))
 METRIC_TIME_HEADER = "{} s/img"
 
+#: Below this many samples per pixel the report warns that the give-away measures include render noise. Measured
+#: (bench_giveaways' meadow result, 4 views at 64 px, `camo evaluate --spp N`): mean detail ratio 0.93 at 64 spp,
+#: 0.75 at 256, 0.60 at 1024, 0.56 at 4096 (noise reads as detail); the tint moved by < 0.2 between 64 and 4096.
+GIVEAWAY_SPP = 1024
+
 REGION_TITLES = {"crop": "object crop (GANmouflage protocol)", "full": "full frame"}
 
 
@@ -238,6 +243,9 @@ def _best(values: dict[str, float], metric: str) -> set[str]:
     finite = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
     if len(finite) < 2:
         return set()
+    if metric in METRICS:  # directed metrics and those best at a target value (the detail ratio: 1)
+        bad = {k: METRICS[metric].badness(v) for k, v in finite.items()}
+        return {k for k, b in bad.items() if b == min(bad.values())}
     target = max(finite.values()) if metric in HIGHER_IS_BETTER else min(finite.values())
     return {k for k, v in finite.items() if v == target}
 
@@ -466,7 +474,10 @@ def quality_vs_seconds(df, out: Path, name: str, region: str = "crop") -> tuple[
                     pts.append((x, y))
                     labs.append(lab)
                     ax.scatter([x], [y], color=colours[lab], s=28, zorder=3, label=lab)
-            front = pareto_front(pts, m in HIGHER_IS_BETTER)
+            if METRICS[m].target is not None:  # best at a value: the front of the distance to it
+                front = pareto_front([(px, METRICS[m].badness(py)) for px, py in pts], False)
+            else:
+                front = pareto_front(pts, m in HIGHER_IS_BETTER)
             if front:
                 ax.plot([pts[i][0] for i in front], [pts[i][1] for i in front], "-", color="0.3", lw=1, zorder=2)
                 ax.scatter([pts[i][0] for i in front], [pts[i][1] for i in front], s=110, facecolors="none",
@@ -636,8 +647,9 @@ def observer_agreement(df, views) -> tuple[list[dict[str, Any]], list[dict[str, 
         if len(labels) < 2:
             continue
         for m in metrics:
-            sign = 1.0 if m in HIGHER_IS_BETTER else -1.0  # camouflage direction: larger = better hidden
-            good = [sign * float(pm.loc[lab, m]) for lab in labels]
+            # camouflage direction: larger = better hidden (for a metric best at a target value: closer to it)
+            good = [-METRICS[m].badness(float(pm.loc[lab, m])) if m in METRICS else float(pm.loc[lab, m])
+                    for lab in labels]
             taus.append({"scene": scene, "metric": m, "tau": _kendall([float(conf[lab]) for lab in labels], good),
                          "labels": len(labels)})
             for i, j in combinations(range(len(labels)), 2):
@@ -837,6 +849,16 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
               "Bold: best in the column. Metrics compare the view with the object to the same view without it "
               "(sRGB, 8 bit). " + lead + "`LPIPS-proxy` (1 − HaarPSI) and `SIFID-proxy` are weight-free "
               "cross-checks, **not** on the scale of LPIPS / SIFID.")
+    giveaways = [m for m in METRICS.values() if m.masked and m.name in df.columns and df[m.name].notna().any()]
+    if giveaways:
+        low = sorted({int(s) for s in df.loc[df[giveaways[0].name].notna() & (df["spp"] > 0), "spp"]
+                      if s < GIVEAWAY_SPP})
+        method += (" Give-away measures of the object's own pixels (mask): "
+                   + "; ".join(f"`{m.header}` {m.description.split(': ', 1)[-1]}" for m in giveaways) + ".")
+        if low:
+            method += (f" Rendered at {', '.join(map(str, low))} spp, below {GIVEAWAY_SPP}: Monte Carlo noise of the "
+                       "object's paths still counts as detail (speckle); evaluate with a higher --spp to measure the "
+                       "material alone.")
     hidden = df.loc[(df["region"] == "crop") & (df["mask_pixels"] == 0)]
     if len(hidden):
         method += (f" In {len(hidden)} view(s) the object is not visible at all (empty mask): their crop rows have "

@@ -303,9 +303,8 @@ def render_stimuli(
 
 
 def _save_background(out: Path, scene: str, view: int, rgb: np.ndarray) -> None:
-    from study_site.stimuli import _save_png
+    from study_site.stimuli import _save_png, background_path
 
-    name = hashlib.sha256(f"{scene}:{view}".encode()).hexdigest()[:16]
-    path = out / "backgrounds" / f"{name}.png"
+    path = background_path(out, scene, view)
     if not path.exists():
         _save_png(path, rgb)

@@ -224,6 +224,14 @@ def check_no_leak(formal_scenes: set[str], practice_scenes: set[str], where: Any
 PHASH_MAX_DISTANCE = 8
 
 
+def background_path(root: str | Path, scene: str, view: str | int) -> Path:
+    """Where a rendered set keeps the object-free render of ``scene``'s view ``view`` (``backgrounds/``, shared by
+    every method of that framing; never served). It may not exist (``--copy`` sets, practice)."""
+    import hashlib
+
+    return Path(root) / "backgrounds" / f"{hashlib.sha256(f'{scene}:{view}'.encode()).hexdigest()[:16]}.png"
+
+
 def phash(rgb: np.ndarray) -> str:
     """64-bit DCT perceptual hash (``imagehash.phash``: 32 x 32 greyscale, 8 x 8 lowest frequencies against their
     median) of an ``(H, W, 3)`` uint8 sRGB image, as 16 hex digits."""

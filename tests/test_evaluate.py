@@ -270,7 +270,7 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert len(merged) == 16 + 4  # the repeated evaluation is de-duplicated
     md = (out / "report.md").read_text()
     # only computed metrics get a column (no weights here: no LPIPS, SIFID, DreamSim), the proxies as cross-checks
-    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy"]) in md
+    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy", "detail_ratio", "tint"]) in md
     assert "SIFID-proxy↓ (cross-check)" in md and "| LPIPS↓ |" not in md and "**LPIPS was not computed**" in md
     assert "- `lpips`: " in md and "camo data fetch data_manifests/lpips_weights.toml" in md  # what it needs
     assert "| Ours |" in md and "| w/o Pose + Displacement |" in md
@@ -481,3 +481,24 @@ def test_report_settings_group_identical_protocols(eval_dir, eval_dir_big, tmp_p
     assert heads[0].startswith("- 5 evaluations (`cell_0`, `cell_1`, `cell_2` and 2 more): views ")
     assert heads[1].startswith(f"- `{eval_dir_big.resolve().name}`: ") and "2 spp" in heads[1]
     assert sum(ln.startswith("  - integrator: ") for ln in lines) == 2
+
+
+def test_giveaway_measures_recomputed_from_the_saved_png_and_mask(eval_dir):
+    """The detail ratio and the tint in metrics.parquet are those of the saved PNGs inside the saved mask (crop and
+    full frame measure the same object pixels), and the report's Table II shows them with their spp."""
+    from skimage.color import deltaE_cie76, rgb2lab
+
+    from evaluation.metrics.detail_ratio import detail_ratio
+
+    df = pd.read_parquet(eval_dir / "metrics.parquet")
+    assert np.isfinite(df["tint"]).all() and (df["tint"] >= 0).all()
+    d = eval_dir / "renders" / "ours_full"
+    x, y = png(d / "view_02_obj.png") / 255.0, png(d / "view_02_bg.png") / 255.0
+    m = png(d / "view_02_mask.png") > 0
+    rows = df[(df["run"] == "ours_full") & (df["view"] == 2)].set_index("region")
+    want = deltaE_cie76(rgb2lab(x)[m].mean(0), rgb2lab(y)[m].mean(0))
+    for region in ("full", "crop"):
+        assert rows.loc[region, "tint"] == pytest.approx(want, rel=2e-3)
+        assert rows.loc[region, "detail_ratio"] == pytest.approx(float(detail_ratio(x, y, m)), rel=1e-4, nan_ok=True)
+    report = (eval_dir / "report.md").read_text()
+    assert "Detail→1" in report and "Tint↓" in report and "below 1024" in report  # 8 spp: the noise warning

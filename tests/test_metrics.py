@@ -513,7 +513,9 @@ def test_object_crop_box_properties(h, w, y, x, bh, bw):
 
 
 def test_registry_flags_and_compute_metrics():
-    assert set(METRICS) == {"psnr", "ssim", "lpips", "lpips_vgg", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim"}
+    assert set(METRICS) == {"psnr", "ssim", "lpips", "lpips_vgg", "lpips_proxy", "sifid", "sifid_proxy", "dreamsim",
+                            "detail_ratio", "tint"}
+    assert {n for n, s in METRICS.items() if s.masked} == {"detail_ratio", "tint"}
     assert {n for n, s in METRICS.items() if s.higher_is_better} == {"psnr", "ssim"}
     assert {n for n, s in METRICS.items() if s.needs_weights} == {"lpips", "lpips_vgg", "sifid", "dreamsim"}
     a = _astronaut(64)

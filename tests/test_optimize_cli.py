@@ -482,7 +482,7 @@ def test_every_flag_lands_in_its_spec_field():
 
     argv = ["gravel", "--out", "x", "--time-budget", "30", "--snapshot-every", "2", "--checkpoint-every", "3",
             "--warm-start", "off", "--lr-schedule", "cosine", "--lr-maps", "0.02", "--lr-displacement", "0.03",
-            "--grad-blur", "1.5", "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
+            "--grad-blur", "1.5", "--map-update", "large_steps", "--map-smoothness", "4", "--displacement-bound", "0.01", "--stage2-fixed-displacement", "--stage2-backend", "diffusers",
             "--sdxl-path", "/a", "--controlnet-path", "/b", "--stage2-strength", "0.7", "--silhouette-every", "2",
             "--domain", "frame", "--loss", "mse", "--map-resolution", "40", "--displacement-resolution", "20",
             "--target-vertices", "500", "--views", "3", "--resolution", "16", "--spp", "3", "--target-spp", "9",
@@ -507,6 +507,7 @@ def test_every_flag_lands_in_its_spec_field():
     app = d["appearance"]
     assert (app["lr_maps"], app["lr_displacement"], app["displacement_bound"], app["map_resolution"],
             app["displacement_resolution"], app["pose"], app["grad_blur"]) == (0.02, 0.03, 0.01, 40, 20, False, 1.5)
+    assert (app["map_update"], app["map_smoothness"]) == ("large_steps", 4.0)
     assert d["holdout"] == {"views": 3, "every": 7, "spp": 5, "patience": 2, "noise_spp": 64}
     pack = d["pack"]
     assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}

@@ -44,6 +44,8 @@ MIN_SIZE = {
     "sifid": 32,
     "sifid_proxy": 32,
     "dreamsim": 32,
+    "detail_ratio": 3,
+    "tint": 1,
 }
 
 
@@ -227,6 +229,12 @@ class Metric:
     variant: bool = False
     weights_key: str = ""
     unavailable: Optional[Callable[[Mapping[str, Any]], Optional[str]]] = None
+    #: a give-away measure of the object's own pixels: ``compute(x, y, weights, mask)`` also takes the object's
+    #: mask ``(N, 1, H, W)`` bool (:func:`masked`); without a mask it measures the whole image
+    masked: bool = False
+    #: the ideal value when it is neither end of the range (a ratio: 1); ``higher_is_better`` is then ignored and
+    #: "better" means closer to it in log ratio (:meth:`badness`)
+    target: Optional[float] = None
     needs: str = ""
     by_default: bool = True
     cross_check: bool = False
@@ -234,8 +242,46 @@ class Metric:
 
     @property
     def header(self) -> str:
-        """The column header with the better direction: ``"PSNR↑"``, ``"LPIPS↓"``."""
+        """The column header with the better direction: ``"PSNR↑"``, ``"LPIPS↓"``, ``"Detail→1"``."""
+        if self.target is not None:
+            return f"{self.label}→{self.target:g}"
         return f"{self.label}{'↑' if self.higher_is_better else '↓'}"
+
+    def badness(self, value: float) -> float:
+        """How far ``value`` is from the best (smaller is better): ``-value`` / ``value`` for a directed metric,
+        ``|log(value / target)|`` for one with a :attr:`target` (0.8 and 1.25 are equally far from 1)."""
+        if self.target is not None:
+            return abs(math.log(max(value, 1e-12) / self.target))
+        return -value if self.higher_is_better else value
+
+
+def masked(fn: Callable[..., torch.Tensor]) -> Compute:
+    """The ``compute`` of a weight-free give-away measure ``fn(x, y, mask)`` (``mask`` ``(N, 1, H, W)`` bool or
+    None for the whole image); declare its :class:`Metric` with ``masked=True``."""
+    def run(x: torch.Tensor, y: torch.Tensor, weights: Mapping[str, Any],
+            mask: Optional[torch.Tensor] = None) -> "tuple[torch.Tensor, dict[str, Any]]":
+        return fn(x, y, mask), {}
+
+    return run
+
+
+def to_mask(mask: Any, like: torch.Tensor, metric: str) -> torch.Tensor:
+    """``mask`` (NumPy or torch, ``(H, W)``, ``(N, H, W)`` or ``(N, 1, H, W)``, bool or 0/1 or 0/255) as a
+    ``(N, 1, H, W)`` bool tensor matching the image batch ``like``; None gives all True. CamoError on a shape that
+    does not fit."""
+    n, _, h, w = like.shape
+    if mask is None:
+        return torch.ones((n, 1, h, w), dtype=torch.bool)
+    m = torch.from_numpy(np.ascontiguousarray(mask)) if isinstance(mask, np.ndarray) else mask
+    if not isinstance(m, torch.Tensor):
+        raise CamoError(f"{metric}: mask must be a NumPy array or torch tensor, got {type(mask).__name__}")
+    if m.ndim == 2:
+        m = m[None, None]
+    elif m.ndim == 3:
+        m = m[:, None]
+    if m.ndim != 4 or m.shape[1] != 1 or tuple(m.shape[-2:]) != (h, w) or m.shape[0] not in (1, n):
+        raise CamoError(f"{metric}: mask shape {tuple(mask.shape)} does not fit images of shape {tuple(like.shape)}")
+    return (m != 0).expand(n, 1, h, w)
 
 
 def plain(fn: Callable[..., torch.Tensor], variant: str = "") -> Compute:

@@ -44,6 +44,7 @@ RANGES: dict[str, Range] = {
     "appearance.lr_maps": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.lr_displacement": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.grad_blur": Range(float, 0.0, 64.0),
+    "appearance.map_smoothness": Range(float, 0.0, 1e6, lo_open=True),
     "holdout.views": Range(int, 0, 1024), "holdout.every": Range(int, 1, UNCAPPED), "holdout.spp": Range(int, 1, 2**20),
     "holdout.patience": Range(int, 0, UNCAPPED),
     "pack.object.target_vertices": Range(int, 100, 10_000_000),
@@ -148,6 +149,14 @@ def _options() -> tuple[Option, ...]:
           "blur the BSDF maps' gradients by a Gaussian of this sigma before each Adam step (0: off)"
           + _p("appearance.grad_blur") + "; averages the per-texel Monte Carlo noise that otherwise speckles the maps",
           metavar="TEXELS"),
+        o("map_update", "appearance.map_update", str,
+          "how the BSDF maps step: 'adam' (per-texel Adam, the paper) or 'large_steps' (the gradient preconditioned "
+          "by (I + lambda L)^-2 on the texel grid and one Adam normalisation per map, after Nicolet et al. 2021: "
+          "no texel moves alone, so no salt-and-pepper)" + _p("appearance.map_update"),
+          choices=("adam", "large_steps")),
+        o("map_smoothness", "appearance.map_smoothness", float,
+          "lambda of --map-update large_steps, in texels^2 (a spike spreads over ~sqrt(lambda) texels)"
+          + _p("appearance.map_smoothness"), metavar="LAMBDA"),
         o("average", "stage1.average", float,
           "the result is the moving average of the iterates with this decay (about the last 1 / (1 - DECAY) "
           "iterates; 0: the iterate itself)", metavar="DECAY"),

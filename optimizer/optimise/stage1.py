@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from optimizer.rendering import scene as scn
-from optimizer.optimise.adam import Adam, blur_texels, dr_numpy
+from optimizer.optimise.adam import Adam, blur_texels, dr_numpy, smooth_texels
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, clamp_projections, initial_values, object_mesh, pose_record, world_positions
 from optimizer.scenes.bsdf_maps import ALBEDO_MIN, MAPS
 from optimizer.scenes.cameras import Camera
@@ -304,7 +304,8 @@ class Stage1:
     def _make_optimiser(self) -> None:
         import mitsuba as mi
 
-        self.opt = Adam(self.app.learning_rates(), average=self.cfg.average, clip=self.cfg.grad_clip)
+        uniform = tuple(n for n in MAPS if self.app.map_update == "large_steps")
+        self.opt = Adam(self.app.learning_rates(), average=self.cfg.average, uniform=uniform, clip=self.cfg.grad_clip)
         for name in self.app.trainable():
             v = self.values[name]
             self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
@@ -553,6 +554,8 @@ class Stage1:
         nonfinite = self.opt.sanitise_grads()
         if self.app.grad_blur > 0:
             self._blur_map_grads(self.app.grad_blur)
+        if self.app.map_update == "large_steps":
+            self._smooth_map_grads(self.app.map_smoothness)
         scale = self.lr_scale()
         self.opt.step(self.project, scale)
         if "displacement" in self.opt and self.app.displacement_shrink > 0:
@@ -588,6 +591,17 @@ class Stage1:
             if name in self.opt:
                 x = self.opt[name]
                 dr.set_grad(x, type(x)(blur_texels(dr_numpy(dr.grad(x)), sigma)))
+
+    def _smooth_map_grads(self, smoothness: float) -> None:
+        """Precondition each BSDF map's gradient by :func:`~optimizer.optimise.adam.smooth_texels`
+        (``AppearanceConfig.map_update`` "large_steps")."""
+        import drjit as dr
+
+        for name in MAPS:
+            if name in self.opt:
+                x = self.opt[name]
+                g = dr_numpy(dr.grad(x))
+                dr.set_grad(x, type(x)(smooth_texels(g, smoothness) if g.ndim >= 2 else g))
 
     def _shrink_displacement(self, scale: float) -> None:
         """Proximal L1 step on the normalised displacement: ``d <- sign(d) max(|d| - k lr_t, 0)``, k =

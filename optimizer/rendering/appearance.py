@@ -68,6 +68,12 @@ class AppearanceConfig:
     # blurred gradient keeps the smooth signal and averages the per-texel noise (a Sobolev-style preconditioner);
     # the drift left is smooth. 0 = the paper (per-texel gradients).
     grad_blur: float = 0.0
+    # "large_steps": each BSDF map's gradient is preconditioned by (I + map_smoothness L)^-2 (L the texel grid's
+    # Laplacian; optimizer.optimise.adam.smooth_texels) and its Adam step normalised by the map's largest second
+    # moment (uniform Adam), after Nicolet et al. 2021, "Large Steps in Inverse Rendering of Geometry": a texel
+    # cannot move alone, so the maps cannot turn salt-and-pepper. "adam": per-texel Adam (the paper).
+    map_update: str = "adam"
+    map_smoothness: float = 16.0  # lambda of map_update "large_steps", in texels^2
     freeze_displacement: bool = False  # displacement applied from the initial values, not optimised (Stage 2 option)
 
     def map_on(self, name: str) -> bool:

@@ -1,0 +1,179 @@
+"""Give-away measures at equal seconds: today's map update (per-texel Adam + ``--grad-blur 2``) against the
+"large steps" update (``--map-update large_steps``) and a lower transmittance start, on the six built-in scenes.
+
+    python bench/bench_giveaways.py --out /tmp/giveaways            # optimise (resumable), evaluate, print tables
+    python bench/bench_giveaways.py --out /tmp/giveaways --seconds 60 --eval-spp 1024 --docs docs/results
+
+Every arm of a scene gets the same ``--time-budget`` in the same process sequence (the machine's load moves
+absolute seconds; compare arms within one run of this script). The Mean baseline is run once per scene for the
+contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same jittered views, common
+random numbers) at ``--eval-spp`` (converged: the render noise must not count against the material); the
+give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views; the shadow share is the
+shadow's part of the crop's squared error (:mod:`evaluation.giveaway`'s object / shadow / rest split). Prints one Markdown table
+of crop PSNR, LPIPS-proxy, detail ratio and tint per scene and arm, and their means.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+SCENES = ("meadow", "gravel", "split", "room", "occluded", "panorama")
+#: arm -> extra `camo optimize` flags (the default preset otherwise)
+ARMS = {
+    "today": [],
+    "large_steps": ["--map-update", "large_steps", "--grad-blur", "0"],
+    "large_steps_t0.3": ["--map-update", "large_steps", "--grad-blur", "0", "--init", "transmittance=0.3"],
+    "today_t0.3": ["--init", "transmittance=0.3"],
+}
+SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
+
+
+def camo(*args: str) -> None:
+    cmd = [sys.executable, "-m", "camo.cli", *args]
+    print("$", " ".join(cmd), file=sys.stderr, flush=True)
+    subprocess.run(cmd, check=True)
+
+
+def optimise(out: Path, scene: str, arms, budget: list[str]) -> None:
+    for arm in [*arms, "mean"]:
+        run = out / "runs" / f"{scene}-{arm}"
+        if (run / "config.toml").is_file():
+            continue
+        if arm == "mean":
+            camo("optimize", scene, "--method", "mean", "--out", str(run), *SIZE, "--quiet")
+        else:
+            camo("optimize", scene, "--out", str(run), *SIZE, "--displacement-resolution", "64", *budget,
+                 *ARMS[arm], "--quiet")
+
+
+def evaluate(out: Path, scene: str, arms, spp: int, views: int) -> None:
+    ev = out / "eval" / scene
+    if (ev / "metrics.parquet").is_file():
+        return
+    runs = [str(out / "runs" / f"{scene}-{a}") for a in [*arms, "mean"]]
+    camo("evaluate", *runs, "--out", str(ev), "--spp", str(spp), "--views", str(views),
+         "--metrics", "psnr,lpips_proxy,detail_ratio,tint", "--quiet")
+
+
+def _seconds_per_iteration(run: Path) -> float:
+    """Median seconds of a Stage 1 iteration (log.jsonl), NaN for a method without iterations."""
+    import json
+
+    secs = [r["seconds"] for r in map(json.loads, (run / "log.jsonl").read_text().splitlines())
+            if r.get("stage") == 1 and "seconds" in r] if (run / "log.jsonl").is_file() else []
+    return float(sorted(secs)[len(secs) // 2]) if secs else float("nan")  # median: the first one compiles
+
+
+def table(out: Path, scenes, arms) -> str:
+    import pandas as pd
+
+    from evaluation.giveaway import split_eval_dir
+
+    rows = []
+    for scene in scenes:
+        # eval/SCENE, and eval_*/SCENE for arms added later (same seed: the same cameras and render seeds)
+        evals = [d for d in sorted(out.glob(f"eval*/{scene}")) if (d / "metrics.parquet").is_file()]
+        if not evals:
+            continue
+        t = pd.concat([pd.read_parquet(d / "metrics.parquet") for d in evals])
+        t = t[t.region == "crop"]
+        # the shadow's share of the crop's squared error: the object / shadow / rest split (evaluation.giveaway),
+        # recomputed from the saved renders so that evaluations made before the split had columns count too
+        split = pd.concat([split_eval_dir(d) for d in evals])
+        split = split[split.region == "crop"]
+        for arm in [*arms, "mean"]:
+            r = t[t.run == f"{scene}-{arm}"]
+            if r.empty:
+                continue
+            sp = split[split.run == f"{scene}-{arm}"]
+            parts = sp[["sqerr_object", "sqerr_shadow", "sqerr_rest"]].sum(axis=1).clip(lower=1e-12)
+            rows.append({"scene": scene, "arm": arm, "psnr": r.psnr.mean(), "lpips_proxy": r.lpips_proxy.mean(),
+                         "shadow": float((sp.sqerr_shadow / parts).mean()),
+                         "detail_ratio": r.detail_ratio.mean(), "tint": r.tint.mean(),
+                         "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
+                         "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}")})
+    df = pd.DataFrame(rows)
+    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | method s | s / Stage 1 it |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in df.itertuples():
+        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.detail_ratio:.2f} | "
+                     f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
+    for arm, g in df.groupby("arm", sort=False):
+        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | "
+                     f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
+                     f"{g.s_per_it.mean():.2f} |")
+    return "\n".join(lines)
+
+
+LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
+          "today_t0.3": "ours, T0=0.3",
+          "mean": "Mean"}
+
+
+def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path:
+    """One PNG per scene: a row per evaluation view, columns background | each arm | Mean (the converged
+    evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible)."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    arms = [a for a in arms if (ev / "renders" / f"{scene}-{a}").is_dir()]  # the arms this evaluation has
+    cols = [("background", f"{scene}-{arms[0]}", "bg")] + [(LABELS.get(a, a), f"{scene}-{a}", "obj")
+                                                           for a in [*arms, "mean"]]
+    views = sorted({p.name[:7] for p in (ev / "renders" / f"{scene}-{arms[0]}").glob("view_*_obj.png")})
+    tiles = [[np.asarray(Image.open(ev / "renders" / run / f"{v}_{kind}.png").convert("RGB")) for _, run, kind in cols]
+             for v in views]
+    h, w = tiles[0][0].shape[:2]
+    th, tw, pad, top = h * zoom, w * zoom, 4, 22
+    sheet = Image.new("RGB", (len(cols) * (tw + pad) + pad, top + len(views) * (th + pad) + pad), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for c, (label, _, _) in enumerate(cols):
+        draw.text((pad + c * (tw + pad) + 4, 5), label, fill=(0, 0, 0))
+    for r, row in enumerate(tiles):
+        for c, img in enumerate(row):
+            tile = Image.fromarray(img).resize((tw, th), Image.NEAREST)
+            sheet.paste(tile, (pad + c * (tw + pad), top + pad + r * (th + pad)))
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(dest, optimize=True)
+    return dest
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--arms", default=",".join(ARMS))
+    ap.add_argument("--iterations", type=int, default=24, help="Stage 1 iterations of every optimised arm")
+    ap.add_argument("--seconds", type=float, help="instead: this time budget for every optimised arm")
+    ap.add_argument("--eval-spp", type=int, default=512)
+    ap.add_argument("--eval-views", type=int, default=4)
+    ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
+    ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
+                    "markers of giveaways.md) here, e.g. docs/results")
+    a = ap.parse_args(argv)
+    out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
+    budget = ["--time-budget", str(a.seconds)] if a.seconds else ["--iterations", str(a.iterations)]
+    for scene in scenes:  # scene by scene, so that a partial run already gives whole rows
+        if a.phase in ("all", "optimize"):
+            optimise(out, scene, arms, budget)
+        if a.phase in ("all", "evaluate"):
+            evaluate(out, scene, arms, a.eval_spp, a.eval_views)
+    if a.phase in ("all", "evaluate", "table"):
+        text = table(out, scenes, arms)
+        print(text)
+        if a.docs:
+            docs = Path(a.docs)
+            for scene in scenes:
+                print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.png"))
+            doc = docs / "giveaways.md"
+            start, end = "<!-- bench_giveaways: table -->", "<!-- /bench_giveaways -->"
+            body = doc.read_text(encoding="utf-8") if doc.is_file() else f"{start}\n{end}\n"
+            i, j = body.index(start) + len(start), body.index(end)
+            doc.write_text(body[:i] + "\n" + text + "\n" + body[j:], encoding="utf-8")  # the table between the markers
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
