@@ -15,6 +15,16 @@ average of the last ~``1 / (1 - beta)`` iterates sits closer to it without slowi
 rate does (Polyak-Ruppert averaging). The gradients are always taken at ``x_t``; the average is what a caller
 reads as the result (:meth:`averaged`). A convex combination of projected iterates lies inside the box
 constraints; the last step's projection is applied to it once more against float rounding.
+
+Gradient clipping (``clip`` > 0, beyond the paper; the ``fast`` preset, issue 32): before its moments are updated,
+each parameter's gradient is scaled down to at most ``clip`` times the running norm of its earlier (clipped)
+gradients, ``r_t = 0.9 r_{t-1} + 0.1 min(|g_t|, clip r^_{t-1})`` read bias-corrected as ``r^_t = r_t / (1 - 0.9^t)``;
+the first step is not clipped (no history). Why Adam's normalisation alone does not do it: one sun glint sampled by a
+near-mirror at 4 spp makes one step's gradient ~1e3 times the usual; Adam then moves every texel it touches by up to
+``lr (1 - beta_1) / sqrt(1 - beta_2)`` ~ 3 rates at once, keeps moving them for ~``1 / (1 - beta_1)`` steps as the
+first moment decays, and its second moment remembers the spike for ~``1 / (1 - beta_2)`` = 1000 steps, freezing those
+texels. Clipped, the spike counts as a gradient ``clip`` times the usual one. A clipped direction is still the
+gradient's, so a parameter's fixed point is unchanged; the running norm travels in the checkpoint.
 """
 
 from __future__ import annotations
@@ -24,19 +34,29 @@ from typing import Any, Callable
 import numpy as np
 
 
+#: Decay of the running gradient norm that ``clip`` is relative to (about the last 10 steps).
+GNORM_DECAY = 0.9
+
+
 class Adam:
     def __init__(self, lrs: dict[str, float], beta_1: float = 0.9, beta_2: float = 0.999, eps: float = 1e-8,
-                 average: float = 0.0, uniform: tuple[str, ...] = ()):
+                 average: float = 0.0, uniform: tuple[str, ...] = (), clip: float = 0.0):
         """``uniform``: parameters whose step is normalised by the *largest* second moment over the whole array
         instead of each entry's own (Nicolet et al. 2021's "uniform Adam"): the direction of a smooth
         (preconditioned) gradient is kept, where per-entry normalisation would blow a near-zero entry up to a full
-        step and bring the salt-and-pepper back."""
+        step and bring the salt-and-pepper back. ``clip``: gradient clipping relative to the running norm (module
+        doc; 0: off)."""
         if not (0.0 <= average < 1.0):
             raise ValueError(f"iterate-average decay must be in [0, 1), got {average}")
+        if not (0.0 <= clip < float("inf")):
+            raise ValueError(f"gradient clip must be a finite number >= 0, got {clip}")
         self.uniform = frozenset(uniform)
         self.lrs = dict(lrs)
         self.b1, self.b2, self.eps = beta_1, beta_2, eps
         self.average = float(average)
+        self.clip = float(clip)
+        self.gnorm: dict[str, float] = {}  # clip > 0: uncorrected running norm of each parameter's clipped gradients
+        self.clipped: dict[str, float] = {}  # the last step's factor per parameter (1: not clipped)
         self.values: dict[str, Any] = {}
         self.m: dict[str, Any] = {}
         self.v: dict[str, Any] = {}
@@ -55,6 +75,8 @@ class Adam:
         self.v[name] = dr.zeros(type(value), dr.shape(value))
         if self.average:
             self.avg[name] = dr.zeros(type(value), dr.shape(value))
+        if self.clip:
+            self.gnorm[name] = 0.0
 
     def __getitem__(self, name: str):
         return self.values[name]
@@ -76,6 +98,28 @@ class Adam:
                 dr.set_grad(x, dr.select(ok, g, 0.0))
         return bad
 
+    def clip_grads(self) -> dict[str, float]:
+        """Scale each parameter's gradient down to at most ``clip`` times its running norm (module doc) and update
+        the running norms; returns ``{name: factor}`` of the parameters clipped this step (empty when none, or with
+        ``clip`` 0). Called by :meth:`step`; the gradients must be finite (:meth:`sanitise_grads` first)."""
+        import drjit as dr
+
+        self.clipped = {}
+        if not self.clip:
+            return {}
+        decay, t = GNORM_DECAY, self.t
+        for name, x in self.values.items():
+            g = dr.grad(x)
+            norm = float(np.linalg.norm(dr_numpy(g).ravel().astype(np.float64)))
+            limit = self.clip * self.gnorm[name] / (1.0 - decay**t) if t and self.gnorm[name] > 0 else float("inf")
+            if norm > limit:
+                factor = limit / norm
+                dr.set_grad(x, type(g)(g * factor))
+                self.clipped[name] = factor
+                norm = limit
+            self.gnorm[name] = decay * self.gnorm[name] + (1.0 - decay) * norm
+        return dict(self.clipped)
+
     def step(self, project: dict[str, Callable] | None = None, scale: float = 1.0) -> None:
         """One Adam update of every parameter from its gradient; then ``project[name](x)`` (e.g. a clamp).
 
@@ -85,6 +129,7 @@ class Adam:
 
         if not (scale >= 0.0 and scale < float("inf")):
             raise ValueError(f"learning-rate scale must be finite and >= 0, got {scale}")
+        self.clip_grads()
         self.t += 1
         self._project = project or {}
         c1 = 1.0 - self.b1**self.t
@@ -127,6 +172,8 @@ class Adam:
             out[f"v/{name}"] = np.asarray(dr_numpy(self.v[name]))
             if self.average:
                 out[f"avg/{name}"] = np.asarray(dr_numpy(self.avg[name]))
+            if self.clip:
+                out[f"gnorm/{name}"] = np.array(self.gnorm[name], np.float64)
         return out
 
     def check_state(self, state: dict[str, np.ndarray]) -> None:
@@ -147,6 +194,10 @@ class Adam:
                                     f"{tuple(arr.shape)}, expected {want}")
                 if not np.isfinite(arr).all():
                     raise CamoError(f"checkpoint is corrupt: {key}/{name} has NaN or infinite values")
+            if self.clip:
+                arr = state.get(f"gnorm/{name}")
+                if arr is None or arr.shape != () or not np.isfinite(arr) or arr < 0:
+                    raise CamoError(f"checkpoint is corrupt or from another configuration: bad gnorm/{name}")
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         import drjit as dr
@@ -160,6 +211,8 @@ class Adam:
                 arr = state[f"{key}/{name}"]
                 store[name] = kind(arr) if dr.is_tensor_v(x) else kind(arr.ravel())
             dr.enable_grad(self.values[name])
+            if self.clip:
+                self.gnorm[name] = float(state[f"gnorm/{name}"])
 
 
 def dr_numpy(x) -> np.ndarray:

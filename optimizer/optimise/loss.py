@@ -105,6 +105,9 @@ __all__ = [
     "gated_loss_np",
     "gated_loss_terms_np",
     "mse_loss_np",
+    "white_point",
+    "soft_clamp",
+    "soft_clamp_np",
 ]
 
 
@@ -401,3 +404,56 @@ def mse_loss_np(obj, bg, weight=None) -> float:
     """Float64 NumPy reference of :func:`mse_loss`."""
     o, b, w_eff, _ = _prepare_np(obj, bg, weight)
     return _wmean(w_eff, ((o - b) ** 2).mean(axis=1))
+
+
+# ---------------------------------------------------------------------------------------------
+# Glint-robust loss domain (beyond the paper; the ``fast`` preset's ``stage1.loss_clamp``, issue 32)
+
+#: The background quantile the white point of :func:`white_point` is a multiple of.
+WHITE_QUANTILE = 0.99
+
+
+def white_point(background: np.ndarray, domain: np.ndarray | None, factor: float) -> float:
+    """The white point of :func:`soft_clamp`: ``factor`` times the :data:`WHITE_QUANTILE` quantile of the linear
+    background targets' channel values ``(V, H, W, 3)`` inside the loss ``domain`` ``(V, H, W)`` (the whole frames
+    when None or empty), floored at 1e-3. Relative to the scene's own brightness, so the clamp means the same at any
+    exposure.
+
+    >>> white_point(np.full((1, 2, 2, 3), 0.5), None, 4.0)
+    2.0
+    """
+    bg = np.asarray(background, np.float64)
+    if not (math.isfinite(factor) and factor > 0):
+        raise CamoError(f"white point factor must be a finite number > 0, got {factor}")
+    vals = bg[np.asarray(domain) > 0] if domain is not None and np.any(np.asarray(domain) > 0) else bg.reshape(-1, 3)
+    vals = vals[np.isfinite(vals)]
+    q = float(np.quantile(vals, WHITE_QUANTILE)) if vals.size else 0.0
+    return max(factor * q, 1e-3)
+
+
+def soft_clamp(img, white: float):
+    """``white * tanh(img / white)`` per channel (Dr.Jit, differentiable): the linear image below ``white`` (at
+    ``x = white / 4`` the value is 2 % low and the slope 6 % below 1), saturating at ``white`` with a slope that
+    falls as ``4 exp(-2 x / white)``, exactly 0 in float32 past ~9 white points.
+
+    Why: with a near-mirror under the sun one 4-spp pixel that samples the sun carries ~1e3-1e5 times a lit pixel's
+    radiance; its squared error is then the whole loss (meadow from a mirror start: 0.01 -> 87 at one iteration) and
+    its gradient the whole step. Compared through this curve, no pixel adds more than ``white^2`` per channel, and a
+    saturated glint adds no gradient. The bias this adds: the loss compares ``E[f(x)]`` (f concave above 0), not
+    ``f(E[x])``: a pixel whose mean is below ``white`` but whose 4-spp estimates reach it (rare bright paths, glints)
+    counts as darker than it is, by ``E[x - f(x)]`` (about ``E[x^3] / (3 white^2)`` for ``x`` well below ``white``),
+    so the optimiser under-penalises sparse glints and sees bright pixels' errors shrunk by the slope ``1 -
+    tanh^2``; the evaluation's sRGB metrics clip at display white 1, so radiance far above ``white`` is invisible to
+    them as well."""
+    import drjit as dr
+
+    return white * dr.tanh(img / white)
+
+
+def soft_clamp_np(img: np.ndarray, white: float) -> np.ndarray:
+    """Float64 reference of :func:`soft_clamp`.
+
+    >>> soft_clamp_np(np.array([0.0, 1.0, 1e6]), 4.0).round(4).tolist()
+    [0.0, 0.9797, 4.0]
+    """
+    return white * np.tanh(np.asarray(img, np.float64) / white)

@@ -35,6 +35,7 @@ RANGES: dict[str, Range] = {
     "stage1.silhouette_every": Range(int, 1, 10_000),
     "stage1.pose_search": Range(int, 0, 3600),
     "stage1.average": Range(float, 0.0, 0.999),
+    "stage1.loss_clamp": Range(float, 0.0, 1e6), "stage1.grad_clip": Range(float, 0.0, 1e6),
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
     "time_budget": Range(float, 0.0, None, lo_open=True),
@@ -159,6 +160,17 @@ def _options() -> tuple[Option, ...]:
         o("average", "stage1.average", float,
           "the result is the moving average of the iterates with this decay (about the last 1 / (1 - DECAY) "
           "iterates; 0: the iterate itself)", metavar="DECAY"),
+        o("loss_clamp", "stage1.loss_clamp", float,
+          "compare the renders in the loss through w tanh(x / w), w = this many times the background's 99th "
+          "percentile in the loss domain: a sun glint's pixel adds at most w^2 and no gradient (0: linear)"
+          + _p("stage1.loss_clamp"), metavar="FACTOR"),
+        o("grad_clip", "stage1.grad_clip", float,
+          "clip each parameter's gradient to this many times its running norm, so one glint's step cannot move a "
+          "whole map (0: off)" + _p("stage1.grad_clip"), metavar="FACTOR"),
+        o("init_search", "stage1.init_search", str,
+          "when --init sets maps, also warm-start the start the run takes without it (at each starting roughness of "
+          "the preset's search) and start from whichever scores best on the held-out views"
+          + _p("stage1.init_search") + "; off: the --init start as given", choices=("on", "off")),
         o("roughness_search", "stage1.roughness_search", str,
           "before Stage 1, warm-start each of these uniform starting roughness values and start from the one that "
           "scores best on the held-out views" + _p("stage1.roughness_search") + "; off with 'off' or --init "

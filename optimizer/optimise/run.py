@@ -156,7 +156,7 @@ def optimize_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threa
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, setup.pack, setup.env, history, setup_seconds, spec, s1.warm_start_info,
                values=values, holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
-               start=s1.start_search_info, plan=setup.plan)
+               start=s1.start_search_info, init=s1.init_search_info, plan=setup.plan)
 
 
 @dataclasses.dataclass
@@ -241,11 +241,38 @@ def _prepare_stage1(spec: RunSpec, setup: _Setup, state, say) -> tuple[Stage1, H
     hold = Holdout.for_stage(spec.holdout, s1) if spec.holdout.views else None
     if state is None and hold is not None and s1cfg.roughness_search and "roughness" in setup.app.trainable():
         s1.search_start(s1cfg.roughness_search, lambda values: hold.score(values)[0])
-    warm_seconds = sum(info.seconds for info in (s1.warm_start_info, s1.pose_search_info, s1.start_search_info)
-                       if info is not None)
+    if state is None and hold is not None and s1cfg.init_search:
+        alternatives = init_alternatives(spec, setup.app)
+        if alternatives:
+            s1.search_init(alternatives, lambda values: hold.score(values)[0])
+    elif state is not None and "init_search/info" in state:
+        # a resumed run: the maps come from the checkpoint; the record is the search's (summary.json)
+        s1.init_search_info = checkpointed_init(state)
+    warm_seconds = sum(info.seconds for info in (s1.warm_start_info, s1.pose_search_info, s1.start_search_info,
+                                                 s1.init_search_info) if info is not None)
     if budget1:
         s1.time_budget = max(budget1 - warm_seconds, 1e-3)
     return s1, hold, warm_seconds
+
+
+def init_alternatives(spec: RunSpec, app: AppearanceConfig) -> dict[str, dict[str, np.ndarray]]:
+    """The init search's alternatives (:mod:`optimizer.optimise.startsearch`): the BSDF maps of the start
+    ``spec`` takes without ``init`` (:meth:`RunSpec.start_without_init`), one per starting roughness of its preset's
+    roughness search (or the start's own roughness), labelled; empty when ``init`` changed nothing."""
+    from optimizer.optimise.presets import PRESETS
+    from optimizer.rendering.appearance import initial_values
+    from optimizer.scenes.bsdf_maps import MAPS
+
+    material = spec.start_without_init()
+    if material is None:
+        return {}
+    preset = PRESETS.get(spec.preset) if spec.preset is not None else None
+    rough = tuple((preset.stage1.get("roughness_search") if preset else None) or (material.roughness,))
+    out = {}
+    for r in rough if app.map_on("roughness") else (material.roughness,):
+        maps = initial_values(app, dataclasses.replace(material, roughness=float(r)))
+        out[f"without init, roughness {float(r):g}"] = {k: maps[k] for k in MAPS}
+    return out
 
 
 def _restore(s1: Stage1, hold: Holdout | None, state: dict[str, np.ndarray], resume_stage: int,
@@ -303,6 +330,8 @@ class _Loop:
         turn.update(checkpoint_entry(s1.plan))
         if s1.start_search_info:
             turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
+        if s1.init_search_info:
+            turn["init_search/info"] = np.array(json.dumps(s1.init_search_info.to_dict()))
         return {**(extra or {}), **(self.hold.state() if self.hold is not None else {}), **turn}
 
     def loop(self, stage: Stage1, label: str, extra=None) -> None:
@@ -375,6 +404,16 @@ def checkpointed_start(state: dict[str, np.ndarray] | None):
         raise CamoError("checkpoint is corrupt: bad start_search/info") from None
 
 
+def checkpointed_init(state: dict[str, np.ndarray]):
+    """The init search's record in a checkpoint (CamoError when it is unreadable)."""
+    from optimizer.optimise.startsearch import InitSearchInfo
+
+    try:
+        return InitSearchInfo(**json.loads(str(state["init_search/info"])))  # its seconds count, as the turn's do
+    except (TypeError, ValueError):
+        raise CamoError("checkpoint is corrupt: bad init_search/info") from None
+
+
 def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, str | None]:
     """With ``spec.rough_start``, a pack whose initial roughness would keep sun glints (the planner's "initial
     roughness" advice: a compact light and roughness below ``planner.GLINT_ROUGHNESS``) starts at that roughness
@@ -387,8 +426,8 @@ def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, st
     old = pack.material.roughness
     pack = dataclasses.replace(pack, material=dataclasses.replace(pack.material, roughness=GLINT_ROUGHNESS))
     return pack, (f"initial roughness {old:g} -> {GLINT_ROUGHNESS:g}: the scene has a compact light, and a smoother "
-                  "start keeps specular glints (docs/optimizer.md, 'Why the built-in scenes start rough'); --init roughness=X or "
-                  "--preset paper keeps the pack's value")
+                  "start keeps specular glints (docs/optimizer.md, 'Why the built-in scenes start rough'); --init roughness=X with "
+                  "--init-search off, or --preset paper, keeps the pack's value")
 
 
 def stage1_budget(spec: RunSpec) -> float | None:
@@ -509,7 +548,7 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
-               holdout: dict[str, Any] | None = None, pose=None, start=None, plan=None) -> None:
+               holdout: dict[str, Any] | None = None, pose=None, start=None, init=None, plan=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
     the result's parameters (default: the last stage's current ones); ``holdout``, ``pose`` and ``start``: the
     held-out views', the turn search's and the start search's records for ``summary.json``."""
@@ -520,16 +559,19 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
     warm_s = float(warm.seconds) if warm is not None else 0.0
     pose_s = float(pose.seconds) if pose is not None else 0.0
     start_s = float(start.seconds) if start is not None else 0.0
+    init_s = float(init.seconds) if init is not None else 0.0
     s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
-    pre = pose_s + start_s + warm_s
+    pre = pose_s + start_s + init_s + warm_s
     # wall-clock seconds of the optimisation: Stage 1 = pose search + start search + warm start + its iterations,
     # Stage 2 = its iterations with their pseudo-ground-truth renders and inpainting (``seconds_iterations``: gradient
     # steps only)
     seconds = {"setup": setup_seconds, "warm_start": warm_s, "pose_search": pose_s, "start_search": start_s,
+               "init_search": init_s,
                "stage1": pre + s1_s, "stage2": s2_s, "optimisation": pre + s1_s + s2_s}
     finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
            extra={"fingerprint": spec.fingerprint(), "preset": spec.preset, "time_budget": spec.time_budget,
                   "warm_start": warm.to_dict() if warm is not None else None, "holdout": holdout,
                   "pose_search": pose.to_dict() if pose is not None else None,
                   "start_search": start.to_dict() if start is not None else None,
+                  "init_search": init.to_dict() if init is not None else None,
                   "plan": plan.to_dict() if plan is not None else None})

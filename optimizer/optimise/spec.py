@@ -246,6 +246,10 @@ class RunSpec:
             s1 = dataclasses.replace(s1, warm_start=vals["warm_start"] == "on")
         elif "albedo" in init:  # an explicit starting albedo is kept (the warm start would replace it)
             s1 = dataclasses.replace(s1, warm_start=False)
+        if "init_search" in vals:
+            s1 = dataclasses.replace(s1, init_search=vals["init_search"] == "on")
+        elif not holdout.views:  # nothing to score the starts on
+            s1 = dataclasses.replace(s1, init_search=False)
         if "roughness_search" in vals:
             s1 = dataclasses.replace(s1, roughness_search=parse_roughness_list(vals["roughness_search"]))
         elif "roughness" in init or "bsdf" in ablate or not holdout.views:
@@ -276,6 +280,22 @@ class RunSpec:
         mine, ref = _flat(self.full_dict()), _flat(self._defaults().full_dict())
         m = self.method_info
         return sorted(p for p in set(mine) | set(ref) if not m.reads_path(p) and mine.get(p) != ref.get(p))
+
+    def start_without_init(self):
+        """The starting material this spec's run would take had ``init`` named nothing: the scene's pack, the
+        preset's start, the ablations' pins (a :class:`~optimizer.scenes.scenepack.MaterialSpec`); None when it is
+        the spec's own (no ``init``, or ``init`` named the values it had anyway) or the scene cannot be read again.
+        The init search (``stage1.init_search``) tries it beside the ``init`` start."""
+        from optimizer.scenes.builtin_scenes import resolve_scene
+
+        try:
+            material = resolve_scene(self.scene).material
+        except (CamoError, OSError):
+            return None
+        preset = PRESETS.get(self.preset) if self.preset is not None else None
+        pins = {k: v for a in self.ablate if a in ABLATIONS for k, v in ABLATIONS[a].pins}
+        material = dataclasses.replace(material, **(preset.material if preset else {}), **pins)
+        return None if material == self.pack.material else material
 
     def normalised(self) -> "RunSpec":
         """This spec with every field the method does not read back at its default (what :meth:`to_dict` keeps)."""
@@ -333,6 +353,8 @@ class RunSpec:
                                    "stage1.roughness_search")
             if not self.holdout.views:
                 raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.roughness_search", "holdout.views")
+        if m.reads_path("stage1.init_search") and self.stage1.init_search and not self.holdout.views:
+            raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.init_search", "holdout.views")
         if self.preset is not None:
             one_of("preset", tuple(PRESETS))
         one_of("stage1.loss", ("gated", "mse"))
@@ -363,7 +385,7 @@ class RunSpec:
 
 #: Options whose value is not their field's value as given (read and converted by :meth:`RunSpec.from_options`).
 _SPECIAL = ("scene", "method", "preset", "resolution", "views", "target_vertices", "init", "ablate", "stages",
-            "warm_start", "no_planner", "stage2_fixed_displacement", "roughness_search")
+            "warm_start", "init_search", "no_planner", "stage2_fixed_displacement", "roughness_search")
 
 
 def option_applies(method_name: str, name: str) -> bool:

@@ -18,7 +18,12 @@ Beyond the paper (``--preset fast``, the default; ``--preset paper`` turns both 
 * a proximal L1 step on the displacement after each Adam step (``AppearanceConfig.displacement_shrink``);
 * optionally, a cosine decay of every learning rate over the stage's progress (:mod:`optimizer.optimise.schedule`);
   ``time_budget`` (seconds of iterations) ends the stage early; progress is then the larger of the iteration
-  and the time fraction.
+  and the time fraction;
+* glint defences (issue 32, docs/results/hard_cases.md): ``loss_clamp`` compares renders and targets through
+  :func:`~optimizer.optimise.loss.soft_clamp` at a white point relative to the background (a sun glint adds a
+  bounded loss and no gradient; ``loss_linear`` in the log is the loss without it), ``grad_clip`` clips each
+  parameter's gradient to a multiple of its running norm (:class:`~optimizer.optimise.adam.Adam`), and
+  :meth:`Stage1.search_init` tries the start ``--init`` replaced (:mod:`optimizer.optimise.startsearch`).
 
 Determinism: the primal and adjoint seeds differ and change per iteration and
 view; one machine and one seed give the same numbers (resume included; a run ended
@@ -41,14 +46,14 @@ from optimizer.scenes.cameras import Camera
 from optimizer.scenes.environments import Environment
 from camo_base import seeds
 from camo_base.imaging import REC709_LUMA
-from optimizer.optimise.loss import gated_loss_terms, mse_loss
+from optimizer.optimise.loss import gated_loss_terms, mse_loss, soft_clamp, soft_clamp_np, white_point
 from optimizer.rendering.planner import Plan, training_integrator
 from optimizer.rendering.render import coverage_and_depth, render_shaded, uses_batch
 from optimizer.scenes.scenepack import ScenePack
 from optimizer.optimise.schedule import lr_scale, progress, soft_threshold
 
 if TYPE_CHECKING:
-    from optimizer.optimise.startsearch import StartSearchInfo
+    from optimizer.optimise.startsearch import InitSearchInfo, StartSearchInfo
 
 
 @dataclasses.dataclass
@@ -74,6 +79,13 @@ class Stage1Settings:
     average: float = 0.0  # > 0: the result is the moving average of the iterates with this decay (optimise/adam.py)
     # starting roughness values tried on the held-out views before Stage 1 (optimizer/optimise/startsearch.py); [] off
     roughness_search: tuple[float, ...] = ()
+    # > 0: the loss compares soft-clamped images, w tanh(x / w) with the white point w = loss_clamp x the background
+    # targets' 99th percentile in the loss domain (optimizer/optimise/loss.py soft_clamp: glints bounded); 0: linear
+    loss_clamp: float = 0.0
+    # > 0: each parameter's gradient is clipped to this many times its running norm (optimizer/optimise/adam.py)
+    grad_clip: float = 0.0
+    # when `init` set maps: also try the start without it (warm-started) on the held-out views (startsearch.py)
+    init_search: bool = False
 
 
 @dataclasses.dataclass
@@ -209,6 +221,7 @@ class Stage1:
         self._log = log
         self.pose_search_info = None
         self.start_search_info = None
+        self.init_search_info = None
         self.warm_start_info = None
         self.targets: Targets | None = None
         self.initial_render: np.ndarray | None = None
@@ -292,18 +305,25 @@ class Stage1:
         self.scene = self._training_scene()
         self.params = mi.traverse(self.scene)
         self._keys = self._param_keys()
-        self._bg = [mi.TensorXf(self.window(v, self.targets.background[v])) for v in range(len(self.cams))]
         self._w = [self.window(v, self.targets.domain[v]) for v in range(len(self.cams))] \
             if self.cfg.domain != "frame" else [None] * len(self.cams)
+        self.white = white_point(self.targets.background, self.targets.domain if self.cfg.domain != "frame" else None,
+                                 self.cfg.loss_clamp) if self.cfg.loss_clamp > 0 and self.STAGE == 1 else None
+        # (Stage 2's loss is its own, on gamma-encoded renders clipped at 1: no clamp there)
+        bg = [self.window(v, self.targets.background[v]) for v in range(len(self.cams))]
+        self._bg = [mi.TensorXf(self._tonemap_np(b)) for b in bg]
+        self._bg_linear = [mi.TensorXf(b) for b in bg] if self.white is not None else self._bg
+        self._batch_key = None
         dr.eval()
         return self
 
     # --- set-up -------------------------------------------------------------
-    def _prepare(self, values: dict[str, np.ndarray]):
-        """A start as Stage 1 takes it: the warm-started albedo (when on), clipped above ``ALBEDO_MIN`` (a zero
-        albedo channel has an infinite gradient under transmission); returns ``(values, warm-start info or None)``."""
+    def _prepare(self, values: dict[str, np.ndarray], warm: bool | None = None):
+        """A start as Stage 1 takes it: the warm-started albedo (when on; ``warm`` overrides the stage's choice),
+        clipped above ``ALBEDO_MIN`` (a zero albedo channel has an infinite gradient under transmission); returns
+        ``(values, warm-start info or None)``."""
         info = None
-        if self._warm:
+        if self._warm if warm is None else warm:
             from optimizer.optimise.warmstart import warm_start_albedo
 
             values, info = warm_start_albedo(
@@ -318,7 +338,7 @@ class Stage1:
         import mitsuba as mi
 
         uniform = tuple(n for n in MAPS if self.app.map_update == "large_steps")
-        self.opt = Adam(self.app.learning_rates(), average=self.cfg.average, uniform=uniform)
+        self.opt = Adam(self.app.learning_rates(), average=self.cfg.average, uniform=uniform, clip=self.cfg.grad_clip)
         for name in self.app.trainable():
             v = self.values[name]
             self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
@@ -347,6 +367,29 @@ class Stage1:
         info.seconds = time.perf_counter() - t0 + before - chosen
         self._make_optimiser()
         self.start_search_info = info
+        return info
+
+    def search_init(self, alternatives: dict[str, dict[str, np.ndarray]], score) -> "InitSearchInfo":
+        """Start from the best of the prepared start (``"init"``: what ``--init`` set) and each of
+        ``alternatives`` (label -> BSDF map values replacing the start's; warm-started), scored by
+        ``score(values)`` (lower is better; the run's held-out views), before the first step
+        (:func:`optimizer.optimise.startsearch.init_search`). The turn and displacement stay the start's."""
+        from optimizer.optimise.startsearch import init_search
+
+        if self.iteration or self.opt is None:
+            raise RuntimeError("the init search runs after Stage 1 is built and before its first step")
+        have = (self.values, self.warm_start_info)
+
+        def prepare(label: str, maps: dict[str, np.ndarray] | None):
+            if maps is None:
+                return have
+            return self._prepare({**self.values, **maps}, warm=True)
+
+        self.values, self.warm_start_info, info = init_search(["init", *alternatives],
+                                                              {"init": None, **alternatives}, prepare, score,
+                                                              self._log)
+        self._make_optimiser()
+        self.init_search_info = info
         return info
 
     def _object(self):
@@ -454,17 +497,39 @@ class Stage1:
             for v in views:
                 w = np.ones((H, W)) if self._w[v] is None else self._w[v].astype(np.float64)
                 weight[:, v * W:(v + 1) * W] = w / max(w.sum(), 1e-12) / len(views)
-            self._batch_bg = mi.TensorXf(np.concatenate(list(self.targets.background), axis=1))
+            film = np.concatenate(list(self.targets.background), axis=1)
+            self._batch_bg = mi.TensorXf(self._tonemap_np(film))
+            self._batch_bg_linear = mi.TensorXf(film) if self.white is not None else self._batch_bg
             self._batch_w = weight.astype(np.float32)
             self._batch_key = key
         cfg = self.cfg
+        img = self._tonemap(img)
         if cfg.loss == "mse":
             return mse_loss(img, self._batch_bg, self._batch_w), None
         t = gated_loss_terms(img, self._batch_bg, self._batch_w, cfg.alpha, cfg.eps)
         return t.total, t
 
+    def _linear_loss(self, img, view: int | None):
+        """The configured loss of ``img`` on linear radiance (no soft clamp; detached): what ``loss_clamp`` changed,
+        logged as ``loss_linear``. ``view`` None: the batch film."""
+        import drjit as dr
+
+        img = dr.detach(img)
+        bg, w = (self._batch_bg_linear, self._batch_w) if view is None else (self._bg_linear[view], self._w[view])
+        if self.cfg.loss == "mse":
+            return mse_loss(img, bg, w)
+        return gated_loss_terms(img, bg, w, self.cfg.alpha, self.cfg.eps).total
+
+    def _tonemap(self, img):
+        """The loss domain's image: ``img`` soft-clamped at the white point (``loss_clamp``), or as it is."""
+        return img if self.white is None else soft_clamp(img, self.white)
+
+    def _tonemap_np(self, img: np.ndarray) -> np.ndarray:
+        return img if self.white is None else soft_clamp_np(img, self.white).astype(np.float32)
+
     def _view_loss(self, img, view: int):
         cfg = self.cfg
+        img = self._tonemap(img)
         if cfg.loss == "mse":
             return mse_loss(img, self._bg[view], self._w[view]), None
         t = gated_loss_terms(img, self._bg[view], self._w[view], cfg.alpha, cfg.eps)
@@ -476,7 +541,7 @@ class Stage1:
         step (the bench's probe; the seeds are this iteration's, so the result is what :meth:`step` would use)."""
         import drjit as dr
 
-        photo, _, _, _ = self._photometric_backward(self.views_for_step())
+        photo, _, _, _, _ = self._photometric_backward(self.views_for_step())
         out = {}
         for name in self.opt.values:
             x = self.opt[name]
@@ -484,9 +549,10 @@ class Stage1:
             dr.clear_grad(x)
         return photo, out
 
-    def _photometric_backward(self, views: list[int]) -> tuple[float, float, float, bool]:
+    def _photometric_backward(self, views: list[int]) -> tuple[float, float, float, float, bool]:
         """Render ``views`` with the current parameters, evaluate the loss (Eq. 10) and back-propagate it into the
-        parameters' gradients; returns ``(loss, luminance term, chroma term, has_terms)``."""
+        parameters' gradients; returns ``(loss, luminance term, chroma term, loss without the soft clamp (0 when
+        off), has_terms)``."""
         import drjit as dr
         import mitsuba as mi
 
@@ -495,13 +561,15 @@ class Stage1:
         V = len(views)
         # Loss terms stay Dr.Jit values (detached) and are read back once, after all views: a
         # read-back per view would stall the pipeline.
-        photo, lum, chroma = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
+        photo, lum, chroma, linear = mi.Float(0.0), mi.Float(0.0), mi.Float(0.0), mi.Float(0.0)
         has_terms = False
         if self._batched:
             self._apply()
             s, sg = self._seeds(0)
             img = mi.render(self.scene, self.params, spp=self.render_spp, seed=s, seed_grad=sg)
             total, terms = self._batch_loss(img, views)
+            if self.white is not None:
+                linear = self._linear_loss(img, None)
             if terms is not None:
                 has_terms = True
                 lum, chroma = dr.detach(terms.luminance), dr.detach(terms.chroma)
@@ -524,21 +592,23 @@ class Stage1:
                 img = mi.render(self.scene, self.params, sensor=v, spp=self.render_spp, seed=s, seed_grad=sg)
                 lv, terms = self._view_loss(img, v)
                 total += lv / V
+                if self.white is not None:
+                    linear += self._linear_loss(img, v) / V
                 if terms is not None:
                     has_terms = True
                     lum += dr.detach(terms.luminance) / V
                     chroma += dr.detach(terms.chroma) / V
             photo = dr.detach(total)
-            dr.schedule(photo, lum, chroma)
+            dr.schedule(photo, lum, chroma, linear)
             if dr.grad_enabled(total):
                 dr.backward(total)
-        return float(photo[0]), float(lum[0]), float(chroma[0]), has_terms
+        return float(photo[0]), float(lum[0]), float(chroma[0]), float(linear[0]), has_terms
 
     def step(self) -> dict[str, Any]:
         import drjit as dr
 
         t0 = time.perf_counter()
-        photo, lum, chroma, has_terms = self._photometric_backward(self.views_for_step())
+        photo, lum, chroma, linear, has_terms = self._photometric_backward(self.views_for_step())
         disp = 0.0
         if "displacement" in self.opt:
             l_disp = self.app.displacement_weight * dr.mean(dr.abs(self.opt["displacement"].array))
@@ -566,6 +636,10 @@ class Stage1:
             "nonfinite_grads": nonfinite,
             "lr_scale": scale,
         }
+        if self.white is not None:
+            rec["loss_linear"] = linear  # the photometric loss without the soft clamp
+        if self.opt.clip:
+            rec["grad_clipped"] = sorted(self.opt.clipped)
         if has_terms:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         self.history.append(rec)

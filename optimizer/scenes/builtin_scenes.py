@@ -33,7 +33,7 @@ SCENES: dict[str, tuple[str, float, tuple[float, float], str]] = {
 #: sun outshines twice the background's 99.5th percentile up to roughness 0.4 and falls below it from 0.5 on all
 #: five sunlit scenes (``bench/glint_roughness.py``). From 0.5 the glints never form and Stage 1 + 2 beats Stage 1
 #: alone on every scene (docs/results, "The built-in scenes start rough"). Packs written by users keep the
-#: paper's start (``MaterialSpec()``); ``camo optimize --init roughness=0`` restores it for a built-in scene.
+#: paper's start (``MaterialSpec()``); ``camo optimize --init roughness=0 --init-search off`` restores it for a built-in scene.
 INITIAL_MATERIAL = MaterialSpec(roughness=0.5)
 
 
