@@ -206,7 +206,12 @@ def test_production_command_gunicorn_on_postgres(pg, stim, tmp_path):
                     break
             except OSError:
                 time.sleep(0.2)
-        workers = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        # the first worker may answer /healthz before the master has forked the second (seen under load): wait
+        while True:
+            workers = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+            if len(workers) >= 2 or time.monotonic() > t_end:
+                break
+            time.sleep(0.2)
         assert len(workers) == 2
         res = simulate(f"http://127.0.0.1:{port}", 8, concurrency=8, seed=5, max_seconds=120)
         assert res["completed"] == 8 and res["n_errors"] == 0, res["errors"]
