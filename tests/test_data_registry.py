@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from fixture_archives import files_handler, tar_bytes, zip_bytes
+from fixture_real_data import Y_UP_OBJ, fake_real_data
 from camo.cli import main
 from optimizer.scenes.data import fetch as fetch_mod
 from optimizer.scenes.data import registry as reg
@@ -34,7 +35,6 @@ REPO = Path(__file__).resolve().parents[1]
 MANIFESTS = REPO / "data_manifests"
 PACKS = REPO / "packs" / "real"
 
-Y_UP_OBJ = "# a tetrahedron, +Y up\nmtllib t.mtl\nv 0 0 0\nv 1 0 0\nv 0 0 1\nv 0 2 0\nvn 0 1 0\nusemtl m\nf 1 2 3\nf 1 2 4\nf 2 3 4\nf 1 3 4\n"
 
 
 def _pano() -> np.ndarray:
@@ -449,22 +449,10 @@ def test_real_registry_manifests_fetch_nothing_without_network_when_data_is_abse
     assert not (tmp_path / "pybullet_duck.obj").exists()
 
 
-def _fake_data(root: Path) -> None:
-    """Stand-in files named as the manifests land them (packs are validated without the real data)."""
-    d = root / "data" / "real"
-    d.mkdir(parents=True)
-    for m in ("pmndrs_hdris.toml", "registry_objects.toml"):
-        for a in load_manifest(MANIFESTS / m).assets:
-            if a.kind == "hdri":
-                (d / a.filename).write_bytes(reg.write_exr_float32(np.ones((8, 16, 3), np.float32)))
-            else:
-                (d / a.filename).write_text(Y_UP_OBJ)
-
-
 def test_real_packs_validate_and_name_manifest_files(tmp_path):
     from optimizer.scenes.scenepack import load_pack
 
-    _fake_data(tmp_path)
+    fake_real_data(tmp_path)
     (tmp_path / "packs").mkdir()
     shutil.copytree(PACKS, tmp_path / "packs" / "real", ignore=shutil.ignore_patterns("*.py", "__pycache__"))
     landed = {a.filename: a for m in ("pmndrs_hdris.toml", "registry_objects.toml")
@@ -491,7 +479,7 @@ def test_doctor_lists_real_packs(tmp_path, cli):
     rows = real_packs(tmp_path)
     assert len(rows) >= 26 and not any(ok for _, ok, _ in rows)
     assert dict((n, d) for n, _, d in rows)["sky-duck"] == "missing pybullet_duck.obj, pmndrs_sky.exr"
-    _fake_data(tmp_path)
+    fake_real_data(tmp_path)
     assert all(ok for _, ok, _ in real_packs(tmp_path))
 
 
