@@ -30,6 +30,9 @@ ARMS = {
     # the perceptual term (optimizer/optimise/perceptual.py): weight 1e-3 makes its gradient about twice the
     # squared error's at a converged meadow run (rms over the body's pixels: 6.1e-3 x W against 2.7e-6)
     "lpips": ["--perceptual", "1e-3"],
+    # a lower shared index of refraction: less Fresnel reflection of the sky on the transmissive parts, and what is
+    # seen through them is displaced less (the glassy tint, point 3 of the issue)
+    "eta1.2": ["--eta", "1.2"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -114,7 +117,7 @@ def table(out: Path, scenes, arms) -> str:
 
 
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
-          "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS",
+          "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "mean": "Mean"}
 
 

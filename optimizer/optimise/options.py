@@ -42,6 +42,7 @@ RANGES: dict[str, Range] = {
     "time_budget": Range(float, 0.0, None, lo_open=True),
     "appearance.map_resolution": Range(int, 8, 16384), "appearance.displacement_resolution": Range(int, 8, 16384),
     "appearance.displacement_bound": Range(float, 0.0, 0.5),
+    "appearance.eta": Range(float, 1.0, 4.0, lo_open=True),
     "appearance.lr_maps": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.lr_displacement": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.grad_blur": Range(float, 0.0, 64.0),
@@ -218,6 +219,9 @@ def _options() -> tuple[Option, ...]:
         o("map_resolution", "appearance.map_resolution", int, "BSDF map resolution (default 800, the paper's)"),
         o("displacement_resolution", "appearance.displacement_resolution", int,
           "displacement map resolution (default 256)"),
+        o("eta", "appearance.eta", float,
+          "index of refraction shared by the whole surface (default 1.5, the paper's; it sets the Fresnel reflection "
+          "of the transmissive parts and how far they displace what is seen through them)", metavar="IOR"),
         o("displacement_bound", "appearance.displacement_bound", float,
           "displacement amplitude bound, fraction of object size (default 0.02)"),
         o("target_vertices", "pack.object.target_vertices", int, "remeshing target (paper: ~30,000)"),
