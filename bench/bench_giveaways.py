@@ -57,11 +57,11 @@ def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
                  *ARMS[arm], "--quiet")
 
 
-def evaluate(out: Path, scene: str, arms, spp: int, views: int) -> None:
-    ev = out / "eval" / scene
+def evaluate(out: Path, scene: str, arms, spp: int, views: int, into: str = "eval", mean: bool = True) -> None:
+    ev = out / into / scene
     if (ev / "metrics.parquet").is_file():
         return
-    runs = [str(out / "runs" / f"{scene}-{a}") for a in [*arms, "mean"]]
+    runs = [str(out / "runs" / f"{scene}-{a}") for a in ([*arms, "mean"] if mean else arms)]
     camo("evaluate", *runs, "--out", str(ev), "--spp", str(spp), "--views", str(views),
          "--metrics", "psnr,lpips_proxy,detail_ratio,tint", "--quiet")
 
@@ -123,16 +123,23 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
 
 def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path:
     """One PNG per scene: a row per evaluation view, columns background | each arm | Mean (the converged
-    evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible)."""
+    evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible). An arm's renders are
+    looked up in ``ev`` and then in the other ``eval*/SCENE`` directories beside it (arms evaluated later, same
+    seed: the same views)."""
     import numpy as np
     from PIL import Image, ImageDraw
 
-    arms = [a for a in arms if (ev / "renders" / f"{scene}-{a}").is_dir()]  # the arms this evaluation has
-    cols = [("background", f"{scene}-{arms[0]}", "bg")] + [(LABELS.get(a, a), f"{scene}-{a}", "obj")
-                                                           for a in [*arms, "mean"]]
-    views = sorted({p.name[:7] for p in (ev / "renders" / f"{scene}-{arms[0]}").glob("view_*_obj.png")})
-    tiles = [[np.asarray(Image.open(ev / "renders" / run / f"{v}_{kind}.png").convert("RGB")) for _, run, kind in cols]
-             for v in views]
+    dirs = [ev, *(d for d in sorted(ev.parent.parent.glob(f"eval*/{scene}")) if d != ev)]
+    where = {}
+    for a in [*arms, "mean"]:
+        found = next((d / "renders" / f"{scene}-{a}" for d in dirs if (d / "renders" / f"{scene}-{a}").is_dir()), None)
+        if found is not None:
+            where[a] = found
+    arms = [a for a in arms if a in where]
+    cols = [("background", where[arms[0]], "bg")] + [(LABELS.get(a, a), where[a], "obj")
+                                                      for a in [*arms, "mean"] if a in where]
+    views = sorted({p.name[:7] for p in where[arms[0]].glob("view_*_obj.png")})
+    tiles = [[np.asarray(Image.open(d / f"{v}_{kind}.png").convert("RGB")) for _, d, kind in cols] for v in views]
     h, w = tiles[0][0].shape[:2]
     th, tw, pad, top = h * zoom, w * zoom, 4, 22
     sheet = Image.new("RGB", (len(cols) * (tw + pad) + pad, top + len(views) * (th + pad) + pad), (255, 255, 255))
@@ -161,6 +168,8 @@ def main(argv=None) -> int:
                     "script does)")
     ap.add_argument("--eval-spp", type=int, default=512)
     ap.add_argument("--eval-views", type=int, default=4)
+    ap.add_argument("--eval-dir", default="eval", help="evaluate into OUT/EVAL_DIR/SCENE (arms added later: "
+                    "eval_NAME; the table and the contact sheets read every eval*/SCENE)")
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
@@ -172,7 +181,7 @@ def main(argv=None) -> int:
             own = dict((k, int(v)) for k, v in (p.split("=") for p in a.arm_iterations.split(",") if p))
             optimise(out, scene, arms, budget, mean=not a.no_mean, iterations=own)
         if a.phase in ("all", "evaluate"):
-            evaluate(out, scene, arms, a.eval_spp, a.eval_views)
+            evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
         text = table(out, scenes, arms)
         print(text)
