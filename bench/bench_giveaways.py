@@ -1,16 +1,19 @@
-"""Give-away measures at equal seconds: today's map update (per-texel Adam + ``--grad-blur 2``) against the
-"large steps" update (``--map-update large_steps``) and a lower transmittance start, on the six built-in scenes.
+"""Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
+built-in scenes: the perceptual term (``lpips``: ``--perceptual 1e-3``), a lower shared IOR (``eta1.2``), a lower
+transmittance start (``today_t0.3``) and the "large steps" map update; docs/results/giveaways.md.
 
-    python bench/bench_giveaways.py --out /tmp/giveaways            # optimise (resumable), evaluate, print tables
-    python bench/bench_giveaways.py --out /tmp/giveaways --seconds 60 --eval-spp 1024 --docs docs/results
+    python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split --arms today,lpips,eta1.2 \
+        --arm-iterations lpips=20 --eval-spp 512 --docs docs/results   # optimise (resumable), evaluate, table, sheets
 
-Every arm of a scene gets the same ``--time-budget`` in the same process sequence (the machine's load moves
-absolute seconds; compare arms within one run of this script). The Mean baseline is run once per scene for the
-contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same jittered views, common
-random numbers) at ``--eval-spp`` (converged: the render noise must not count against the material); the
-give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views; the shadow share is the
-shadow's part of the crop's squared error (:mod:`evaluation.giveaway`'s object / shadow / rest split). Prints one Markdown table
-of crop PSNR, LPIPS-proxy, detail ratio and tint per scene and arm, and their means.
+Every optimised arm gets the same Stage 1 iterations (``--iterations``), or the same ``--seconds`` budget; an arm
+whose step costs more gets fewer (``--arm-iterations ARM=N``: equal seconds). The machine's load moves absolute
+seconds: compare arms within one run of this script; each run's seconds are in the table. The Mean baseline is run
+once per scene for the contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same
+jittered views, common random numbers) at ``--eval-spp`` (converged: the render noise must not count against the
+material); the give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views; the shadow share
+is the shadow's part of the crop's squared error (:mod:`evaluation.giveaway`'s object / shadow / rest split); the
+real LPIPS (AlexNet) of the saved frames when its weights are installed. Prints one Markdown table per scene and arm,
+and their means; ``--docs`` also writes the contact sheets (background | arms | Mean).
 """
 
 from __future__ import annotations
@@ -75,6 +78,25 @@ def _seconds_per_iteration(run: Path) -> float:
     return float(sorted(secs)[len(secs) // 2]) if secs else float("nan")  # median: the first one compiles
 
 
+def real_lpips(renders: Path) -> float:
+    """Mean real LPIPS (v0.1, AlexNet, installed weights) of a run's evaluation renders, with against without the
+    object, over the whole 64 px frames (the saved PNGs; NaN when the weights are not installed)."""
+    import numpy as np
+    from PIL import Image
+
+    try:
+        from evaluation.metrics.lpips import load_lpips, lpips
+        model = load_lpips("alex")
+    except Exception:  # noqa: BLE001 - weights missing: the column says NaN
+        return float("nan")
+    vals = []
+    for o in sorted(renders.glob("view_*_obj.png")):
+        x = np.asarray(Image.open(o).convert("RGB"), np.float32) / 255
+        y = np.asarray(Image.open(o.with_name(o.name.replace("_obj", "_bg"))).convert("RGB"), np.float32) / 255
+        vals.append(float(lpips(x, y, model)[0]))
+    return float(np.mean(vals)) if vals else float("nan")
+
+
 def table(out: Path, scenes, arms) -> str:
     import pandas as pd
 
@@ -101,16 +123,18 @@ def table(out: Path, scenes, arms) -> str:
             rows.append({"scene": scene, "arm": arm, "psnr": r.psnr.mean(), "lpips_proxy": r.lpips_proxy.mean(),
                          "shadow": float((sp.sqerr_shadow / parts).mean()),
                          "detail_ratio": r.detail_ratio.mean(), "tint": r.tint.mean(),
+                         "lpips": next((real_lpips(d / "renders" / f"{scene}-{arm}") for d in evals
+                                        if (d / "renders" / f"{scene}-{arm}").is_dir()), float("nan")),
                          "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
                          "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}")})
     df = pd.DataFrame(rows)
-    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | method s | s / Stage 1 it |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | LPIPS (frame)↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | "
+             "method s | s / Stage 1 it |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in df.itertuples():
-        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.detail_ratio:.2f} | "
+        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.lpips:.3f} | {r.detail_ratio:.2f} | "
                      f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
     for arm, g in df.groupby("arm", sort=False):
-        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | "
+        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
                      f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
                      f"{g.s_per_it.mean():.2f} |")
     return "\n".join(lines)
