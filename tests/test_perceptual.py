@@ -69,9 +69,12 @@ def test_missing_provider_is_a_clear_error(monkeypatch):
         perceptual.network("alex")
 
 
-def test_surrogate_gradient_is_the_terms_gradient(mi_backend, monkeypatch):
+@pytest.mark.parametrize("batched", [False, True], ids=["per-view", "batch-film"])
+def test_surrogate_gradient_is_the_terms_gradient(mi_backend, monkeypatch, batched):
     """With a provider whose distance is the sum of squared differences, ``W = 1 / (H W 3)`` makes the perceptual
-    term the frame's squared error again: the parameter gradient of Stage 1 (loss mse, domain frame) doubles."""
+    term the frame's squared error again: the parameter gradient of Stage 1 (loss mse, domain frame) doubles. Both
+    training paths: one render per view (projective integrator), and one batch film of all views (prb: no geometry
+    trains)."""
     import drjit as dr
 
     from optimizer.optimise import perceptual
@@ -91,12 +94,14 @@ def test_surrogate_gradient_is_the_terms_gradient(mi_backend, monkeypatch):
     pack.cameras = dataclasses.replace(pack.cameras, views=2)
     pack.render = dataclasses.replace(pack.render, resolution=(24, 24))
     app = dataclasses.replace(AppearanceConfig(), map_resolution=32, displacement_resolution=16)
+    if batched:
+        app = dataclasses.replace(app, pose=False, freeze_displacement=True)
     env = get_environment(pack.environment)
     cfg = Stage1Config(spp=2, target_spp=4, seed=0, loss="mse", domain="frame", silhouette_every=1,
                        perceptual=1.0 / (24 * 24 * 3))
     s1 = Stage1(pack, env, prepare_object(pack, target_vertices=800), cameras(pack),
                 plan(pack, env, app.planner_params()), cfg, app).prepare()
-    assert s1._perceptual is squared
+    assert s1._perceptual is squared and s1._batched == batched
     threads = dr.thread_count()
     dr.set_thread_count(1)  # same seeds, one thread: the same renders in both calls
     try:
@@ -108,7 +113,7 @@ def test_surrogate_gradient_is_the_terms_gradient(mi_backend, monkeypatch):
         dr.set_thread_count(threads)
     assert loss1 == pytest.approx(loss0)  # the logged photometric loss is the photometric loss alone
     assert term == pytest.approx(loss0, rel=1e-3)  # W x sum of squares / V = the frame's MSE
-    for name in ("albedo", "roughness", "translation"):
+    for name in ("albedo", "roughness") if batched else ("albedo", "roughness", "translation"):
         scale = np.abs(without[name]).max()
         assert scale > 0, name
         np.testing.assert_allclose(with_term[name], 2.0 * without[name], rtol=0, atol=2e-3 * scale, err_msg=name)
