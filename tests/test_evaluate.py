@@ -391,6 +391,15 @@ def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights)
     np.testing.assert_allclose(total, df["lpips"], rtol=1e-4, atol=1e-6)
 
 
+def test_a_tiny_evaluation_reports_with_lpips_installed(runs, tmp_path, installed_lpips):
+    """Crops smaller than LPIPS takes (24 px frames): the report's LPIPS heat map leaves them out instead of failing
+    the evaluation after its metrics were written (it did: "lpips: x is 24x24 px")."""
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(runs[0]), "--out", str(out), "--spp", "2", "--views", "2", "--resolution", "24",
+                 "--metrics", "psnr", "--quiet"]) == 0
+    assert (out / "report.md").is_file() and not list((out / "giveaway").glob("*.png"))
+
+
 def test_installed_lpips_leads_the_report(runs, tmp_path, installed_lpips):
     """With the weights `make demo` / `make test` install: LPIPS is computed by default, leads Table II, its
     object / shadow / rest split is in the metrics table, and the report shows the give-away table and the LPIPS
