@@ -89,15 +89,19 @@ def build_parser() -> argparse.ArgumentParser:
 def _name_settings_by_flags(parser: argparse.ArgumentParser) -> None:
     """Give every command without its own ``setting_names`` one that shows a library's setting name (a
     :class:`SettingError` names ``time_budget``, ``out``, ...) as that command's flag (``--time-budget``,
-    ``--out``): the flag whose argparse ``dest`` it is; a name no flag carries stays as it is."""
+    ``--out``): the flag whose argparse ``dest`` it is; a positional argument's as its metavar (``run_dirs``:
+    ``RUN_DIR``); a key of the command's ``setting_keys`` default (``{library name: dest}``, e.g. a config key a
+    flag sets) as the name and its flag (``MIN_AGE (--min-age)``); a name nothing carries stays as it is."""
     for action in parser._actions:  # argparse keeps its sub-parsers only here
         if isinstance(action, argparse._SubParsersAction):
             for child in dict.fromkeys(action.choices.values()):  # aliases share a parser
                 _name_settings_by_flags(child)
     if parser.get_default("func") is None or parser.get_default("setting_names") is not None:
         return
-    flags = {a.dest: max(a.option_strings, key=len) for a in parser._actions
-             if a.option_strings and a.dest not in (argparse.SUPPRESS, "help")}
+    flags = {a.dest: max(a.option_strings, key=len) if a.option_strings else (a.metavar or a.dest.upper())
+             for a in parser._actions
+             if a.dest not in (argparse.SUPPRESS, "help") and not isinstance(a, argparse._SubParsersAction)}
+    flags.update({key: f"{key} ({flags[dest]})" for key, dest in (parser.get_default("setting_keys") or {}).items()})
     parser.set_defaults(setting_names=lambda name, args, flags=flags: flags.get(name, name))
 
 
