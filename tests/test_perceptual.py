@@ -57,7 +57,7 @@ def test_option_parsing_and_errors():
     assert RunSpec.from_options({"scene": "meadow"}).stage1.perceptual == 0.0  # off by default
     with pytest.raises(CamoError, match="perceptual"):
         RunSpec.from_options({"scene": "meadow", "perceptual": -1})
-    with pytest.raises(CamoError, match="perceptual net"):
+    with pytest.raises(CamoError, match="perceptual_net must be one of"):
         perceptual.network("resnet")
 
 

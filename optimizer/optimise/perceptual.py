@@ -27,7 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import SettingError
 
 #: ``fn(x, y) -> (values, grad)``: ``x``, ``y`` float32 ``(N, H, W, 3)`` linear radiance (``y`` the targets);
 #: ``values`` ``(N,)`` the distance of each pair, ``grad`` ``(N, H, W, 3)`` its derivative with respect to ``x``.
@@ -51,10 +51,10 @@ def provide(factory: Callable[[str], PerceptualFn]) -> None:
 def network(net: str) -> PerceptualFn:
     """The registered perceptual distance ``net`` (one of :data:`NETS`); a clear error when none is registered."""
     if net not in NETS:
-        raise CamoError(f"perceptual net must be one of {', '.join(NETS)}, got {net!r}")
+        raise SettingError(f"{{0}} must be one of {', '.join(NETS)}, got {net!r}", "stage1.perceptual_net")
     if _factory is None:
-        raise CamoError("the perceptual term (--perceptual > 0) needs the LPIPS network: import camo (it registers "
-                        "evaluation.metrics.lpips) or call optimizer.optimise.perceptual.provide(...)")
+        raise SettingError("{0} > 0 needs the LPIPS network: import camo (it registers evaluation.metrics.lpips) "
+                           "or call optimizer.optimise.perceptual.provide(...)", "stage1.perceptual")
     return _factory(net)
 
 
