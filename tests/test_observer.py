@@ -401,7 +401,7 @@ def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     core = None
     o, d, sh = [], [], []
     for k in (0.0, 0.6, 1.0):
-        m = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_discount=k), background=bg)
+        m = evidence_maps(img, ObserverConfig(shadow_discount=k), background=bg)
         core = _feature_mask(ellipse(100, 160, 24, 8), m.obj.shape) if core is None else core
         o.append(float(m.obj[core].mean()))
         d.append(float(m.d[core].mean()))
@@ -409,14 +409,13 @@ def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     assert d[0] == d[1] == d[2] and sh[0] == sh[1] == sh[2] and sh[0] > 1.0
     assert o[0] > o[1] + 1.0 > o[2] + 2.0, o
     tinted = with_object(bg, region, 0.7)
-    v = [float(evidence_maps(tinted, ObserverConfig(shadow_reference="surround", shadow_discount=k),
-                                background=bg).verify.max())
+    v = [float(evidence_maps(tinted, ObserverConfig(shadow_discount=k), background=bg).verify.max())
          for k in (0.0, 1.0)]
     assert v[1] > 0.9 * v[0] and v[1] > 2 * ObserverConfig().criterion, v
 
 
 def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_shadow():
-    """The ratio image with the object-free view (``shadow_reference="background"``, the default): a bluish-grey
+    """The ratio image with the object-free view (``shadow_reference="background"``): a bluish-grey
     object standing in the scene's own shade (the left half, in the background too) is darker than its pooled
     surround, so "surround" takes it for shadow and discounts it; it is no darker than the shaded ground at its
     place, so "background" keeps its evidence. A cast shadow pasted on the lit half (not in the background) is
@@ -438,9 +437,10 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     img2 = shadowed(bg_shade, cast)
     c = _feature_mask(ellipse(190, 170, 20, 7), m_sur.shadow.shape)
     o_sur = float(evidence_maps(img2, ObserverConfig(shadow_reference="surround"), bg_shade).obj[c].mean())
-    m2 = evidence_maps(img2, ObserverConfig(), bg_shade)
+    ratio = ObserverConfig(shadow_reference="background")
+    m2 = evidence_maps(img2, ratio, bg_shade)
     assert float(m2.obj[c].mean()) < o_sur and float(m2.verify[c].max()) < 1.0  # 0.12 vs 0.27; V 0.12
-    res = simulate_search(img2, n=300, seed=3, mask=cast, background=bg_shade)
+    res = simulate_search(img2, n=300, seed=3, config=ratio, mask=cast, background=bg_shade)
     assert res.found.mean() <= max(0.05, 3 * cast.mean())
 
 
@@ -451,5 +451,5 @@ def test_shadow_settings_are_checked():
         ObserverConfig(shadow_reference="sky").validate()
     from study_site.simulate import parse_observer
 
-    cfg = parse_observer("shadow_reference=surround,shadow_discount=1")
-    assert (cfg.shadow_reference, cfg.shadow_discount) == ("surround", 1.0)
+    cfg = parse_observer("shadow_reference=background,shadow_discount=1")
+    assert (cfg.shadow_reference, cfg.shadow_discount) == ("background", 1.0)
