@@ -144,9 +144,10 @@ class ObserverConfig:
     #: :data:`SHADOW_FACTOR_RATIO`, while a dark object standing in the scene's own shade is no darker than the
     #: shaded ground there), discounted fully; the background is only used to discount, and a place the object
     #: leaves unchanged is discounted in neither the image nor the verification's null, so it cannot point at
-    #: the object. Measured on the built-in scenes' stimuli (docs/results/observer.md), each puts 3 of the 9
-    #: visible-baseline cells in the human range, but not the same ones: "background" all of meadow's (the cast
-    #: shadows are no longer clicked), "surround" gravel's Mean and Random and split's Random (with "background" a
+    #: the object. Measured on the built-in scenes' stimuli (docs/results/observer.md), neither wins, and they
+    #: fail on different cells: "background" puts meadow's three visible baselines in or at the edge of the human
+    #: range (the cast shadows are no longer clicked; Mean's mean time 1.498 s), "surround" gravel's Mean and
+    #: Random and split's Random, 3 of the 9 (with "background" a
     #: plain box's face turned from the sun -- 36 % of the light of the gravel behind it, darker than gravel's
     #: own cast shadows, 42-47 % -- is discounted as a shadow). Default "surround": the lower mean confusion
     #: over the 9 cells (32 % vs 37 %).
