@@ -129,10 +129,10 @@ def bench_evaluation(name: str, args) -> dict:
         bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
         t = clock()
         if not plan.region_search:  # the plan renders whole frames here
-            return render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0
+            return render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0, 0
         img, reg = render_with_region(env.build, mesh, cams, integ, spp, seed, bg, cov, plan.region_threshold,
                                       cache=cache)
-        return img, clock() - t, float(reg.masks.mean())
+        return img, clock() - t, float(reg.masks.mean()), reg.steps
 
     def full_render(spp, seed):
         t = clock()
@@ -142,7 +142,7 @@ def bench_evaluation(name: str, args) -> dict:
     base = render_seed(args.seed)
     ref, _ = full_render(args.ref_spp, base + 999)
     full_ref, _ = full_render(args.ref_spp, base + 998)  # its distance to ref: twice the reference noise
-    plan_ref, _, _ = plan_render(args.ref_spp, base + 997)
+    plan_ref, _, _, _ = plan_render(args.ref_spp, base + 997)
     ref_var = srgb_rms(full_ref, ref) ** 2 / 2.0
     bias = math.sqrt(max(srgb_rms(plan_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0))
     rows = []
@@ -152,9 +152,10 @@ def bench_evaluation(name: str, args) -> dict:
             full_render(spp, base + k)
         for rep in range(args.reps):
             seed = base + 17 * spp + rep
-            p_img, p_s, share = plan_render(spp, seed)
+            p_img, p_s, share, steps = plan_render(spp, seed)
             f_img, f_s = full_render(spp, seed)
             rows.append({"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
+                         "region_launches": steps,
                          "plan_error": math.sqrt(max(srgb_rms(p_img, ref) ** 2 - ref_var, 0.0)),
                          "full_error": math.sqrt(max(srgb_rms(f_img, ref) ** 2 - ref_var, 0.0))})
     plan_curve = _mean_curve(rows, "plan")
@@ -164,19 +165,26 @@ def bench_evaluation(name: str, args) -> dict:
     e_full = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "full").items()], s))
     t_plan = seconds_at(plan_curve, e_full)
     e_plan_at_s = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "plan").items()], s))
+    top = max(args.eval_levels)
+    equal_spp = _by_spp(rows, "full")[top][0] / _by_spp(rows, "plan")[top][0]
     return {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
             "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
             "plan_seconds_at_equal_error": t_plan, "speedup": t_full / t_plan, "rows": rows,
+            "top_spp": top, "speedup_equal_spp": equal_spp,
+            "region_launches": float(np.mean([r["region_launches"] for r in rows])),
             "plan_curve": plan_curve, "full_curve": full_curve,
             "effects": [e.to_dict() for e in plan.effects]}
 
 
 def _by_spp(rows, who):
+    """``{spp: (seconds, error)}``: the least seconds of the repetitions (what the render costs undisturbed: on a
+    shared machine a repetition can be slowed several-fold by other jobs, CPU seconds included, as threads spin
+    waiting for a core) and the mean error."""
     out = {}
     for spp in sorted({r["spp"] for r in rows}):
         rs = [r for r in rows if r["spp"] == spp]
-        out[spp] = (float(np.mean([r[f"{who}_seconds"] for r in rs])), float(np.mean([r[f"{who}_error"] for r in rs])))
+        out[spp] = (float(np.min([r[f"{who}_seconds"] for r in rs])), float(np.mean([r[f"{who}_error"] for r in rs])))
     return out
 
 
@@ -281,7 +289,7 @@ def bench_gradient(name: str, args) -> dict:
         for r in rows:
             if r["who"] == who:
                 pts.setdefault(r["spp"], []).append(r)
-        curves[who] = {spp: (float(np.mean([r["seconds"] for r in rs])), float(np.mean([r["cosine"] for r in rs])),
+        curves[who] = {spp: (float(np.min([r["seconds"] for r in rs])), float(np.mean([r["cosine"] for r in rs])),
                              float(np.sqrt(np.mean([r["loss_error"] ** 2 for r in rs])))) for spp, rs in pts.items()}
     out["curves"] = {w: {str(k): v for k, v in c.items()} for w, c in curves.items()}
     plan_err = [(v[0], 1.0 - v[1]) for v in curves["plan"].values()]
@@ -375,13 +383,16 @@ def print_tables(results: dict) -> None:
     if results["eval"]:
         print(f"(a) evaluation render, error = sRGB RMS over the frame vs full path tracing at {a['ref_spp']} spp "
               f"(its noise subtracted); equal error at full tracing's error at {a['eval_spp']} spp\n")
-        print("| scene | plan depth | region | pilot s | full s @spp | plan s @ equal error | speed-up | "
-              "bias (/255) | noise @spp (/255) |")
-        print("|---|---|---|---|---|---|---|---|---|")
+        top = results["eval"][0].get("top_spp", "top")
+        print(f"| scene | plan depth | region rendered (launches) | pilot s | full CPU s @{a['eval_spp']} spp | "
+              f"plan CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | bias (/255) | "
+              f"noise @{a['eval_spp']} spp (/255) |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for r in results["eval"]:
-            print(f"| {r['scene']} | {r['max_depth']} | {r['region_share']:.0%} | {r['pilot_seconds']:.1f} | "
-                  f"{r['full_seconds_at_spp']:.3f} | {r['plan_seconds_at_equal_error']:.3f} | {r['speedup']:.2f}x | "
-                  f"{r['bias'] * 255:.3f} | {r['noise_at_spp'] * 255:.3f} |")
+            print(f"| {r['scene']} | {r['max_depth']} | {r['region_share']:.0%} ({r.get('region_launches', 0):.1f}) | "
+                  f"{r['pilot_seconds']:.1f} | {r['full_seconds_at_spp']:.2f} | {r['plan_seconds_at_equal_error']:.2f} | "
+                  f"{r['speedup']:.2f}x | {r.get('speedup_equal_spp', float('nan')):.2f}x | {r['bias'] * 255:.3f} | "
+                  f"{r['noise_at_spp'] * 255:.3f} |")
         sp = [r["speedup"] for r in results["eval"]]
         print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x\n")
     if results["grad"]:
