@@ -469,6 +469,17 @@ def print_tables(results: dict) -> None:
                       f"{w['plan_cosine_at_same_seconds']:.3f} ({w.get('plan_spp_at_same_seconds', float('nan')):.1f}"
                       f"{', clamped' if w.get('clamped') else ''}) | {w['cosine_ratio']:.2f} | {w['speedup']:.2f}x | "
                       f"{pl.get('loss_error', float('nan')):.2e} / {w['loss_error_at_spp']:.2e} |")
+        print("\nAt equal spp, pooled over the levels both measured (sum of the plan's mean cosines over sum of full's; "
+              "median over the levels of the ratio of least step seconds):")
+        for r in results["grad"]:
+            c = r["curves"]
+            for who in ("full", "full-lt"):
+                common = [k for k in c.get(who, {}) if k in c.get("plan", {})]
+                if common:
+                    cp, cf = sum(c["plan"][k][1] for k in common), sum(c[who][k][1] for k in common)
+                    ts = float(np.median([c["plan"][k][0] / c[who][k][0] for k in common]))
+                    print(f"- {r['scene']} vs {who}: cosine {cp / cf:.2f} of full's, step seconds {ts:.2f} of full's "
+                          f"({', '.join(common)} spp)")
         for who in ("full", "full-lt"):
             sp = [r[who]["speedup"] for r in results["grad"] if who in r]
             cr = [r[who]["cosine_ratio"] for r in results["grad"] if who in r]
