@@ -125,7 +125,10 @@ def finite_seconds(v: Any, where: str) -> float | None:
 def read_input_list(path: str | Path) -> list[InputSpec]:
     """The inputs of a TOML list (see the module docstring)."""
     p = Path(path)
-    doc = read_toml(p, "--inputs list")
+    try:
+        doc = read_toml(p, "list")
+    except CamoError as exc:  # "list ... not found": the CLI shows the setting as --inputs
+        raise SettingError.of("inputs", f" {exc}") from None
     unknown = sorted(set(doc) - set(KINDS))
     if unknown:
         raise SettingError.of("inputs", f" {p}: unknown table(s) {', '.join(unknown)}; use [[run]], [[asset]], [[triplets]]")
