@@ -25,13 +25,12 @@ case takes ~10-15 min on a 2-core machine (each run ~30 s idle, ~60-90 s at a lo
 
 Variants (``--variants``): ``after`` (the fast preset as it is), ``before`` (its three issue-32 additions off:
 ``--loss-clamp 0 --grad-clip 0 --init-search off``, the optimiser as it was) and one ablation per addition
-(``no-clamp``, ``no-clip``, ``no-init-search``). ``--builtin`` instead runs the six built-in scenes at equal seconds
-(``--time-budget``, demo-like sizes) with the same variants and scores them the same way.
+(``no-clamp``, ``no-clip``, ``no-init-search``). The built-in scenes with the same variants at equal CPU seconds,
+several seeds, scored by ``camo evaluate``'s metrics: ``bench/bench_equal_seconds.py``.
 
     python bench/bench_hard_cases.py                                     # every case, variant after
-    python bench/bench_hard_cases.py --variants before,after --write docs/results/hard_cases.md
+    python bench/bench_hard_cases.py --variants before,after --write     # the table in docs/results/hard_cases.md
     python bench/bench_hard_cases.py --cases start_mirror,light_hot_pixel --variants before,after,no-clip
-    python bench/bench_hard_cases.py --builtin --variants before,after --time-budget 40
 """
 
 from __future__ import annotations
@@ -190,9 +189,9 @@ CASES: tuple[Case, ...] = (
          lambda w: {"scene": _pack(w, "grazing", cameras="elevation = 2.0\nradius = 4.0")}),
 )
 
+#: The built-in scenes (bench/bench_equal_seconds.py runs them).
 BUILTIN = ("meadow", "gravel", "split", "room", "occluded", "panorama")
-BUILTIN_SIZES = {"views": 4, "resolution": 64, "map_resolution": 256, "displacement_resolution": 128,
-                 "target_vertices": 5000, "target_spp": 32}
+DOC = ROOT / "docs" / "results" / "hard_cases.md"
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -368,16 +367,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="", help="comma list of case names (default: all)")
     ap.add_argument("--variants", default="after", help=f"comma list of {', '.join(VARIANTS)}")
-    ap.add_argument("--builtin", action="store_true", help="the six built-in scenes at equal seconds instead")
-    ap.add_argument("--time-budget", type=float, default=40.0,
-                    help="seconds per --builtin run (default 40); 0: the hard cases' sizes and iterations instead")
-    ap.add_argument("--scenes", default=",".join(BUILTIN), help="--builtin: comma list of scenes")
     ap.add_argument("--json", default=None, help="also write every row (with loss curves) to this JSON file")
-    ap.add_argument("--write", default=None, help="write the table into this Markdown file's generated block")
+    ap.add_argument("--write", nargs="?", const=str(DOC), default=None,
+                    help=f"write the table into this Markdown file's generated block (default "
+                         f"{DOC.relative_to(ROOT)})")
     ap.add_argument("--work", default=None, help="keep the run directories here (default: a temporary folder)")
     ap.add_argument("--rows", default=None, help="no runs: the table of rows an earlier --json wrote")
-    ap.add_argument("--block", default=None,
-                    help="the --write block's name (default: builtin with --builtin, else cases)")
+    ap.add_argument("--block", default="cases", help="the --write block's name (default cases)")
     args = ap.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
     bad = [v for v in variants if v not in VARIANTS]
@@ -401,29 +397,19 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="hard_cases_") as tmp:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
-        if args.builtin:
-            budget = f"--time-budget {args.time_budget:g} s" if args.time_budget > 0 else \
-                f"{SIZES['iterations']} + {SIZES['stage2_iterations']} iterations"
-            what = {s: f"built-in scene {s} at {budget}" for s in args.scenes.split(",")}
-            for scene in what:
-                say(f"{scene}")
-                opts = {"scene": scene, **BUILTIN_SIZES, "time_budget": args.time_budget} if args.time_budget > 0 \
-                    else {"scene": scene, **SIZES}
-                rows += measure(scene, opts, variants, work, say)
-        else:
-            names = [c for c in args.cases.split(",") if c] or [c.name for c in CASES]
-            known = {c.name: c for c in CASES}
-            unknown = [n for n in names if n not in known]
-            if unknown:
-                ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(known)}")
-            what = {n: known[n].what for n in names}
-            for n in names:
-                say(f"{n}: {known[n].what}")
-                rows += measure(n, {**known[n].make(work), **SIZES}, variants, work, say)
+        names = [c for c in args.cases.split(",") if c] or [c.name for c in CASES]
+        known = {c.name: c for c in CASES}
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(known)}")
+        what = {n: known[n].what for n in names}
+        for n in names:
+            say(f"{n}: {known[n].what}")
+            rows += measure(n, {**known[n].make(work), **SIZES}, variants, work, say)
     elapsed, load = time.perf_counter() - t0, os.getloadavg()[0]
     if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "what": what, "seconds": elapsed, "load": load,
-                                               "builtin": args.builtin}, indent=1, default=float))
+        Path(args.json).write_text(json.dumps({"rows": rows, "what": what, "seconds": elapsed, "load": load},
+                                              indent=1, default=float))
     return _report(rows, what, elapsed, load, args)
 
 
@@ -434,7 +420,7 @@ def _report(rows, what, elapsed: float, load: float, args) -> int:
              f"the end.\n")
     print(text)
     if args.write:
-        write_block(Path(args.write), text, args.block or ("builtin" if args.builtin else "cases"))
+        write_block(Path(args.write), text, args.block)
     return 0
 
 
