@@ -406,11 +406,17 @@ def main(argv: list[str] | None = None) -> int:
         for n in names:
             say(f"{n}: {known[n].what}")
             rows += measure(n, {**known[n].make(work), **SIZES}, variants, work, say)
+            if args.json:  # after every case: a run stopped part-way still leaves its rows (--rows tables them)
+                _save(args.json, rows, {k: what[k] for k in dict.fromkeys(r["case"] for r in rows)}, t0)
     elapsed, load = time.perf_counter() - t0, os.getloadavg()[0]
     if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "what": what, "seconds": elapsed, "load": load},
-                                              indent=1, default=float))
+        _save(args.json, rows, what, t0)
     return _report(rows, what, elapsed, load, args)
+
+
+def _save(path: str, rows: list[dict[str, Any]], what: dict[str, str], t0: float) -> None:
+    Path(path).write_text(json.dumps({"rows": rows, "what": what, "seconds": time.perf_counter() - t0,
+                                      "load": os.getloadavg()[0]}, indent=1, default=float))
 
 
 def _report(rows, what, elapsed: float, load: float, args) -> int:
