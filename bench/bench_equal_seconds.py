@@ -23,26 +23,28 @@ engineer's load does not consume, and the run's seconds in ``log.jsonl`` / ``sum
 one LLVM thread a CPU second is a second of one core. Nothing in the optimiser waits on that clock (no timeouts or
 sleeps read it), so only the budget's and the timers' unit changes.
 
-Before the measured runs every scene runs each variant once unscored (:data:`WARMUP`): a cold first run spent 51 CPU
-seconds where the same run warm took 15, compiling kernels that Dr.Jit then keeps in its on-disk cache for every
-later process. The measured runs go in alternating order from seed to seed (``before`` first for even seed
-indices). ``--jobs N`` runs N processes at a time (the warm-ups, then one task per scene and seed with its variants
-back to back, then one ``camo evaluate`` per scene): the budget is CPU time, so the number of jobs and the load do
-not change what a run gets. Wall and CPU seconds of each whole process (set-up and final render included:
-``getrusage`` of the child) are reported beside the iterations each budget bought.
+Before each measured run the same command runs once unscored with a budget of :data:`WARMUP_BUDGET` (same scene,
+variant and seed): a cold first run spent 51 CPU seconds where the same run warm took 15, compiling kernels that
+Dr.Jit keeps in its on-disk cache for later processes, and a warm-up with another seed and fixed iterations did not
+warm them (the measured runs' first Stage 1 iteration still took 7-11 CPU s against 0.5 for their third). The
+measured runs go in alternating order from seed to seed (``before`` first for even seed indices). ``--jobs N`` runs
+N tasks at a time (one per scene and seed: its warm-ups, then its variants back to back; then one ``camo evaluate``
+per scene): the budget is CPU time, so the number of jobs and the load do not change what a run gets. Wall and CPU
+seconds of each whole process (set-up and final render included: ``getrusage`` of the child) are reported beside the
+iterations each budget bought.
 
-All runs of a scene are then scored together by one ``camo evaluate`` process:
-8 jittered novel views (jitter 0.25, the evaluation's seed ``EVAL_SEED``, not any run's), 64 spp with the
-evaluation's noise matching, shared background renders, metrics ``psnr`` and ``lpips`` (AlexNet v0.1 with the
-installed weights) on the GANmouflage object crop (``region == "crop"``), averaged over the views. The table gives,
-per scene, each variant's mean and sample standard deviation over seeds, the paired difference ``after - before``
-(same seed) with its standard deviation, and a verdict: **worse** when the mean paired difference is worse than zero
-by more than two standard errors (``2 sd / sqrt(n)``) on either metric, **better** when better by that much on
-either and worse on neither, **same** otherwise. With 3 seeds that is a loose test (it flags "worse" readily),
-which is the safe side for a keep-only-if-not-worse rule.
+All runs of a scene are then scored together by one ``camo evaluate`` process: 8 jittered novel views (jitter 0.25,
+the evaluation's seed ``EVAL_SEED``, not any run's), 64 spp with the evaluation's noise matching, shared background
+renders, metrics ``psnr`` and ``lpips`` (AlexNet v0.1 with the installed weights) on the GANmouflage object crop
+(``region == "crop"``), averaged over the views. The table gives, per scene, each variant's mean and sample standard
+deviation over seeds, the paired difference ``after - before`` (same seed) with its standard deviation, and a
+verdict: **worse** when the mean paired difference is worse than zero by more than two standard errors (``2 sd /
+sqrt(n)``) on either metric, **better** when better by that much on either and worse on neither, **same** otherwise.
+With 3 seeds that is a loose test (it flags "worse" readily), which is the safe side for a keep-only-if-not-worse
+rule.
 
-    python bench/bench_equal_seconds.py --jobs 4 --write            # six scenes, 3 seeds, 20 CPU s: the doc's table
-    python bench/bench_equal_seconds.py --scenes occluded --seeds 0,1,2,3,4 --budget 60
+    python bench/bench_equal_seconds.py --jobs 2 --write            # six scenes, 3 seeds, 60 CPU s: the doc's table
+    python bench/bench_equal_seconds.py --scenes occluded --seeds 0,1,2,3,4 --budget 90
     python bench/bench_equal_seconds.py --rows runs.json --write    # re-table an earlier --json, no runs
     python bench/bench_equal_seconds.py --variants before,after,no-clamp --scenes occluded
 
@@ -90,13 +92,12 @@ SIZES = {"views": 4, "resolution": 64, "map_resolution": 128, "displacement_reso
          "target_spp": 32, "threads": 1}
 DEFAULT_SEEDS = (0, 1, 2)
 #: CPU seconds of optimisation per run (``--time-budget`` on the process clock, module doc).
-DEFAULT_BUDGET = 20.0
+DEFAULT_BUDGET = 60.0
 #: The child process: ``camo optimize`` with the optimiser's clock on the process's CPU time (module doc).
 CHILD = "import sys, time; time.perf_counter = time.process_time; from camo.cli import main; sys.exit(main())"
-#: The unscored warm-up run of each scene and variant before its measured ones: it fills Dr.Jit's on-disk kernel
-#: cache (a cold first run spent 51 CPU s where the same run warm took 15, 18.6 s of them in its first iteration).
-WARMUP = {"iterations": 1, "stage2_iterations": 1}
-WARMUP_SEED = 999
+#: CPU seconds of the unscored warm-up that runs the measured command first (module doc): it fills Dr.Jit's on-disk
+#: kernel cache, so that no measured run pays compilation from its budget.
+WARMUP_BUDGET = 1.0
 #: The evaluation's camera-jitter and sampler seed (no run uses it).
 EVAL_SEED = 4099
 EVAL_VIEWS = 8
@@ -124,12 +125,12 @@ def cli_args(options: dict[str, Any]) -> list[str]:
     return args
 
 
-def optimise(scene: str, variant: str, seed: int, budget: float | None, out: Path, say) -> dict[str, Any]:
-    """One ``camo optimize`` process of ``scene`` / ``variant`` / ``seed`` with ``--time-budget budget`` into
-    ``out``; its seconds (wall, CPU of the process, the optimiser's own), iterations and held-out record. ``budget``
-    None: the warm-up (:data:`WARMUP`) instead."""
-    limit = {"time_budget": budget} if budget else WARMUP
-    options = {"scene": scene, **SIZES, **HC.VARIANTS[variant], "seed": seed, **limit, "snapshot_every": 100_000}
+def optimise(scene: str, variant: str, seed: int, budget: float, out: Path, say) -> dict[str, Any]:
+    """One ``camo optimize`` process of ``scene`` / ``variant`` / ``seed`` with ``--time-budget budget`` (CPU
+    seconds) into ``out``; its seconds (wall, CPU of the process, the optimiser's own), iterations and held-out
+    record."""
+    options = {"scene": scene, **SIZES, **HC.VARIANTS[variant], "seed": seed, "time_budget": budget,
+               "snapshot_every": 100_000}
     cmd = [sys.executable, "-c", CHILD, "optimize", *cli_args(options), "--out", str(out), "--quiet"]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -330,6 +331,9 @@ def main(argv: list[str] | None = None) -> int:
             return list(pool.map(lambda item: fn(*item), items))
 
     def pair(scene: str, i: int, seed: int) -> list[dict[str, Any]]:
+        for v in variants:  # unscored: the kernels of this seed and variant are compiled before any measured run
+            optimise(scene, v, seed, WARMUP_BUDGET, work / "warmup" / f"{scene}_{v}_s{seed}",
+                     lambda t: say(f"{scene}: warm-up {t.strip()}"))
         return [optimise(scene, v, seed, args.budget, work / f"{scene}_{v}_s{seed}",
                          lambda t: say(f"{scene}: {t.strip()}")) for v in order(variants, i)]
 
@@ -345,14 +349,10 @@ def main(argv: list[str] | None = None) -> int:
         taken = [s for s in scenes if any(work.glob(f"{s}_*_s*"))]
         if taken:
             raise SystemExit(f"error: {work} already holds runs of {', '.join(taken)}; give a new --work folder")
-        # 1. unscored warm-ups: every scene's kernels of every variant are in the cache before any measured run
-        pmap(lambda scene, v: optimise(scene, v, WARMUP_SEED, None, work / "warmup" / f"{scene}_{v}",
-                                       lambda t: say(f"{scene}: warm-up {t.strip()}")),
-             [(scene, v) for scene in scenes for v in variants])
-        # 2. the measured runs: one task per scene and seed, its variants back to back
+        # the measured runs: one task per scene and seed, its warm-ups and then its variants back to back
         for got in pmap(pair, [(scene, i, seed) for i, seed in enumerate(seeds) for scene in scenes]):
             rows += got
-        # 3. scoring: one camo evaluate per scene
+        # scoring: one camo evaluate per scene
         pmap(evaluate, [(scene,) for scene in scenes])
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "variants": variants, "meta": {

@@ -25,12 +25,14 @@ case takes ~10-15 min on a 2-core machine (each run ~30 s idle, ~60-90 s at a lo
 
 Variants (``--variants``): ``after`` (the fast preset as it is), ``before`` (its three issue-32 additions off:
 ``--loss-clamp 0 --grad-clip 0 --init-search off``, the optimiser as it was) and one ablation per addition
-(``no-clamp``, ``no-clip``, ``no-init-search``). The built-in scenes with the same variants at equal CPU seconds,
-several seeds, scored by ``camo evaluate``'s metrics: ``bench/bench_equal_seconds.py``.
+(``no-clamp``, ``no-clip``, ``no-init-search``). ``--builtin`` instead runs the six built-in scenes with the same
+variants at the hard cases' sizes and iterations (one run each, equal iterations) and scores them the same way; at
+equal CPU seconds, several seeds, with ``camo evaluate``'s metrics: ``bench/bench_equal_seconds.py``.
 
     python bench/bench_hard_cases.py                                     # every case, variant after
     python bench/bench_hard_cases.py --variants before,after --write     # the table in docs/results/hard_cases.md
     python bench/bench_hard_cases.py --cases start_mirror,light_hot_pixel --variants before,after,no-clip
+    python bench/bench_hard_cases.py --builtin --variants before,after --write     # its "builtin" block
 """
 
 from __future__ import annotations
@@ -189,7 +191,7 @@ CASES: tuple[Case, ...] = (
          lambda w: {"scene": _pack(w, "grazing", cameras="elevation = 2.0\nradius = 4.0")}),
 )
 
-#: The built-in scenes (bench/bench_equal_seconds.py runs them).
+#: The built-in scenes (``--builtin``; bench/bench_equal_seconds.py runs them too).
 BUILTIN = ("meadow", "gravel", "split", "room", "occluded", "panorama")
 DOC = ROOT / "docs" / "results" / "hard_cases.md"
 
@@ -367,13 +369,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="", help="comma list of case names (default: all)")
     ap.add_argument("--variants", default="after", help=f"comma list of {', '.join(VARIANTS)}")
+    ap.add_argument("--builtin", action="store_true",
+                    help="the six built-in scenes at the cases' sizes and iterations instead (equal iterations)")
+    ap.add_argument("--scenes", default=",".join(BUILTIN), help="--builtin: comma list of scenes")
     ap.add_argument("--json", default=None, help="also write every row (with loss curves) to this JSON file")
     ap.add_argument("--write", nargs="?", const=str(DOC), default=None,
                     help=f"write the table into this Markdown file's generated block (default "
                          f"{DOC.relative_to(ROOT)})")
     ap.add_argument("--work", default=None, help="keep the run directories here (default: a temporary folder)")
     ap.add_argument("--rows", default=None, help="no runs: the table of rows an earlier --json wrote")
-    ap.add_argument("--block", default="cases", help="the --write block's name (default cases)")
+    ap.add_argument("--block", default=None,
+                    help="the --write block's name (default: builtin with --builtin, else cases)")
     args = ap.parse_args(argv)
     variants = [v for v in args.variants.split(",") if v]
     bad = [v for v in variants if v not in VARIANTS]
@@ -397,15 +403,21 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="hard_cases_") as tmp:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
-        names = [c for c in args.cases.split(",") if c] or [c.name for c in CASES]
-        known = {c.name: c for c in CASES}
-        unknown = [n for n in names if n not in known]
-        if unknown:
-            ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(known)}")
-        what = {n: known[n].what for n in names}
-        for n in names:
-            say(f"{n}: {known[n].what}")
-            rows += measure(n, {**known[n].make(work), **SIZES}, variants, work, say)
+        if args.builtin:
+            what = {sc: f"built-in scene {sc} at {SIZES['iterations']} + {SIZES['stage2_iterations']} iterations"
+                    for sc in args.scenes.split(",") if sc}
+            cases = [(sc, {"scene": sc, **SIZES}) for sc in what]
+        else:
+            names = [c for c in args.cases.split(",") if c] or [c.name for c in CASES]
+            known = {c.name: c for c in CASES}
+            unknown = [n for n in names if n not in known]
+            if unknown:
+                ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(known)}")
+            what = {n: known[n].what for n in names}
+            cases = [(n, None) for n in names]
+        for n, opts in cases:
+            say(f"{n}: {what[n]}")
+            rows += measure(n, opts or {**known[n].make(work), **SIZES}, variants, work, say)
             if args.json:  # after every case: a run stopped part-way still leaves its rows (--rows tables them)
                 _save(args.json, rows, {k: what[k] for k in dict.fromkeys(r["case"] for r in rows)}, t0)
     elapsed, load = time.perf_counter() - t0, os.getloadavg()[0]
@@ -426,7 +438,7 @@ def _report(rows, what, elapsed: float, load: float, args) -> int:
              f"the end.\n")
     print(text)
     if args.write:
-        write_block(Path(args.write), text, args.block)
+        write_block(Path(args.write), text, args.block or ("builtin" if args.builtin else "cases"))
     return 0
 
 
