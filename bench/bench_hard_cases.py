@@ -25,13 +25,14 @@ case takes ~10-15 min on a 2-core machine (each run ~30 s idle, ~60-90 s at a lo
 
 Variants (``--variants``): ``after`` (the fast preset as it is), ``before`` (its three issue-32 additions off:
 ``--loss-clamp 0 --grad-clip 0 --init-search off``, the optimiser as it was) and one ablation per addition
-(``no-clamp``, ``no-clip``, ``no-init-search``). ``--builtin`` instead runs the six built-in scenes at equal seconds
-(``--time-budget``, demo-like sizes) with the same variants and scores them the same way.
+(``no-clamp``, ``no-clip``, ``no-init-search``). ``--builtin`` instead runs the six built-in scenes with the same
+variants at the hard cases' sizes and iterations (one run each, equal iterations) and scores them the same way; at
+equal CPU seconds, several seeds, with ``camo evaluate``'s metrics: ``bench/bench_equal_seconds.py``.
 
     python bench/bench_hard_cases.py                                     # every case, variant after
-    python bench/bench_hard_cases.py --variants before,after --write docs/results/hard_cases.md
+    python bench/bench_hard_cases.py --variants before,after --write     # the table in docs/results/hard_cases.md
     python bench/bench_hard_cases.py --cases start_mirror,light_hot_pixel --variants before,after,no-clip
-    python bench/bench_hard_cases.py --builtin --variants before,after --time-budget 40
+    python bench/bench_hard_cases.py --builtin --variants before,after --write     # its "builtin" block
 """
 
 from __future__ import annotations
@@ -190,9 +191,9 @@ CASES: tuple[Case, ...] = (
          lambda w: {"scene": _pack(w, "grazing", cameras="elevation = 2.0\nradius = 4.0")}),
 )
 
+#: The built-in scenes (``--builtin``; bench/bench_equal_seconds.py runs them too).
 BUILTIN = ("meadow", "gravel", "split", "room", "occluded", "panorama")
-BUILTIN_SIZES = {"views": 4, "resolution": 64, "map_resolution": 256, "displacement_resolution": 128,
-                 "target_vertices": 5000, "target_spp": 32}
+DOC = ROOT / "docs" / "results" / "hard_cases.md"
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -368,12 +369,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="", help="comma list of case names (default: all)")
     ap.add_argument("--variants", default="after", help=f"comma list of {', '.join(VARIANTS)}")
-    ap.add_argument("--builtin", action="store_true", help="the six built-in scenes at equal seconds instead")
-    ap.add_argument("--time-budget", type=float, default=40.0,
-                    help="seconds per --builtin run (default 40); 0: the hard cases' sizes and iterations instead")
+    ap.add_argument("--builtin", action="store_true",
+                    help="the six built-in scenes at the cases' sizes and iterations instead (equal iterations)")
     ap.add_argument("--scenes", default=",".join(BUILTIN), help="--builtin: comma list of scenes")
     ap.add_argument("--json", default=None, help="also write every row (with loss curves) to this JSON file")
-    ap.add_argument("--write", default=None, help="write the table into this Markdown file's generated block")
+    ap.add_argument("--write", nargs="?", const=str(DOC), default=None,
+                    help=f"write the table into this Markdown file's generated block (default "
+                         f"{DOC.relative_to(ROOT)})")
     ap.add_argument("--work", default=None, help="keep the run directories here (default: a temporary folder)")
     ap.add_argument("--rows", default=None, help="no runs: the table of rows an earlier --json wrote")
     ap.add_argument("--block", default=None,
@@ -402,14 +404,9 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(args.work or tmp)
         work.mkdir(parents=True, exist_ok=True)
         if args.builtin:
-            budget = f"--time-budget {args.time_budget:g} s" if args.time_budget > 0 else \
-                f"{SIZES['iterations']} + {SIZES['stage2_iterations']} iterations"
-            what = {s: f"built-in scene {s} at {budget}" for s in args.scenes.split(",")}
-            for scene in what:
-                say(f"{scene}")
-                opts = {"scene": scene, **BUILTIN_SIZES, "time_budget": args.time_budget} if args.time_budget > 0 \
-                    else {"scene": scene, **SIZES}
-                rows += measure(scene, opts, variants, work, say)
+            what = {sc: f"built-in scene {sc} at {SIZES['iterations']} + {SIZES['stage2_iterations']} iterations"
+                    for sc in args.scenes.split(",") if sc}
+            cases = [(sc, {"scene": sc, **SIZES}) for sc in what]
         else:
             names = [c for c in args.cases.split(",") if c] or [c.name for c in CASES]
             known = {c.name: c for c in CASES}
@@ -417,14 +414,21 @@ def main(argv: list[str] | None = None) -> int:
             if unknown:
                 ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(known)}")
             what = {n: known[n].what for n in names}
-            for n in names:
-                say(f"{n}: {known[n].what}")
-                rows += measure(n, {**known[n].make(work), **SIZES}, variants, work, say)
+            cases = [(n, None) for n in names]
+        for n, opts in cases:
+            say(f"{n}: {what[n]}")
+            rows += measure(n, opts or {**known[n].make(work), **SIZES}, variants, work, say)
+            if args.json:  # after every case: a run stopped part-way still leaves its rows (--rows tables them)
+                _save(args.json, rows, {k: what[k] for k in dict.fromkeys(r["case"] for r in rows)}, t0)
     elapsed, load = time.perf_counter() - t0, os.getloadavg()[0]
     if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "what": what, "seconds": elapsed, "load": load,
-                                               "builtin": args.builtin}, indent=1, default=float))
+        _save(args.json, rows, what, t0)
     return _report(rows, what, elapsed, load, args)
+
+
+def _save(path: str, rows: list[dict[str, Any]], what: dict[str, str], t0: float) -> None:
+    Path(path).write_text(json.dumps({"rows": rows, "what": what, "seconds": time.perf_counter() - t0,
+                                      "load": os.getloadavg()[0]}, indent=1, default=float))
 
 
 def _report(rows, what, elapsed: float, load: float, args) -> int:

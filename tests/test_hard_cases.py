@@ -192,6 +192,88 @@ def test_loss_spike_is_relative_to_the_running_median():
     assert b.loss_spike([1.0, float("nan")]) == float("inf")
 
 
+def _equal_seconds():
+    _bench()
+    spec = importlib.util.spec_from_file_location("bench_equal_seconds", ROOT / "bench" / "bench_equal_seconds.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _rows(psnr_before, psnr_after, lpips_before, lpips_after, scene="occluded"):
+    rows = []
+    for seed, (pb, pa, lb, la) in enumerate(zip(psnr_before, psnr_after, lpips_before, lpips_after)):
+        for variant, p, lp in (("before", pb, lb), ("after", pa, la)):
+            rows.append({"scene": scene, "variant": variant, "seed": seed, "psnr": p, "lpips": lp, "budget": 30.0,
+                         "stage1_iterations": 30, "stage2_iterations": 4, "wall_seconds": 90.0, "cpu_seconds": 40.0})
+    return rows
+
+
+def test_equal_seconds_pairs_by_seed_and_judges_against_two_standard_errors():
+    b = _equal_seconds()
+    rows = _rows([30.0, 31.0, 29.0], [29.8, 30.7, 28.9], [0.10, 0.12, 0.11], [0.10, 0.12, 0.11])
+    rows.reverse()  # pairing goes by seed, not by row order
+    d = b.paired(rows, "occluded", "psnr", "before", "after")
+    assert d == pytest.approx([-0.2, -0.3, -0.1])
+    # mean -0.2, sd 0.1, 2 sd / sqrt(3) = 0.115: worse beyond the seeds' noise although the seeds spread by 1 dB
+    assert b.verdict({"psnr": d, "lpips": b.paired(rows, "occluded", "lpips", "before", "after")}) == "worse"
+    # an LPIPS rise alone is "worse" too (lower is better); a mixed, noisy difference is "same"
+    assert b.verdict({"psnr": [0.0, 0.0, 0.0], "lpips": [0.010, 0.012, 0.011]}) == "worse"
+    assert b.verdict({"psnr": [0.3, -0.2, 0.1], "lpips": [0.001, -0.002, 0.0]}) == "same"
+    assert b.verdict({"psnr": [0.3, 0.2, 0.25], "lpips": [0.0, 0.0, 0.0]}) == "better"
+    assert b.mean_sd([1.0, 2.0, 4.0]) == pytest.approx((7 / 3, np.std([1.0, 2.0, 4.0], ddof=1)))
+
+
+def test_equal_seconds_table_regenerates_its_block_only(tmp_path, capsys):
+    import json
+
+    b = _equal_seconds()
+    rows = _rows([30.0, 31.0, 29.0], [30.2, 31.1, 29.3], [0.10, 0.12, 0.11], [0.09, 0.12, 0.10])
+    saved = tmp_path / "rows.json"
+    saved.write_text(json.dumps({"rows": rows, "variants": ["before", "after"],
+                                 "meta": {"seconds": 100.0, "load_start": 1.0, "load_end": 2.0, "jobs": 2}}))
+    doc = tmp_path / "doc.md"
+    doc.write_text("# head\n<!-- bench_hard_cases: equal_seconds -->\nstale\n<!-- /bench_hard_cases -->\ntail\n")
+    assert b.main(["--rows", str(saved), "--write", str(doc)]) == 0
+    text = doc.read_text()
+    assert text.startswith("# head\n") and text.endswith("tail\n") and "stale" not in text
+    assert "| occluded | before | 3 | 30.00 ± 1.00 | 0.1100 ± 0.0100 | 30.0 + 4.0 | 90 | 40 |" in text
+    assert "| occluded | after - before | 3 | 0.20 ± 0.10 | -0.0067 ± 0.0058 | 3 of 3 | **better** |" in text
+    assert "6 runs of `--time-budget 30 s` (CPU seconds" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--variants", "before"], "two or more"),
+    (["--variants", "before,later"], "unknown: later"),
+    (["--scenes", "moon"], "unknown scene"),
+    (["--seeds", "1,x"], "comma list of integers"),
+    (["--budget", "0"], "budget must be > 0"),
+])
+def test_equal_seconds_refuses_bad_arguments_in_one_line(argv, match, capsys):
+    b = _equal_seconds()
+    with pytest.raises(SystemExit) as exc:
+        b.main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert match in err
+
+
+def test_equal_seconds_child_counts_cpu_seconds():
+    """The child's clock is the process's CPU time: a sleep does not advance it, a busy loop does."""
+    import subprocess
+
+    b = _equal_seconds()
+    probe = b.CHILD.split("from camo.cli")[0] + (
+        "t0 = time.perf_counter(); time.sleep(0.3); slept = time.perf_counter() - t0\n"
+        "t0 = time.perf_counter(); x = sum(i * i for i in range(3_000_000)); busy = time.perf_counter() - t0\n"
+        "print(slept, busy)")
+    slept, busy = map(float, subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                                            check=True).stdout.split())
+    assert slept < 0.05 and busy > 0.05
+    assert b.cli_args({"scene": "room", "time_budget": 30.0, "threads": 1}) == \
+        ["room", "--time-budget", "30.0", "--threads", "1"]
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # hard cases end to end (a subset of bench/bench_hard_cases.py)
 
