@@ -62,6 +62,20 @@ def resplit(df, dirs: list[Path]):
     return df.merge(new, on=["_eval_dir", "run", "view", "region"], how="left")
 
 
+def coverage(grid: Path) -> tuple[int, int, int]:
+    """Of a grid folder's scenes (``cells/*/cell.json``, grouped by the scene as the grid wrote it): how many have
+    every one of their cells evaluated, how many at least one, and how many there are. A scene ranks methods only
+    when all its methods finished, so this is the coverage the page states (a stopped grid: the finished prefix)."""
+    import json
+
+    done: dict[str, list[bool]] = {}
+    for cj in grid.glob("cells/*/cell.json"):
+        cell = json.loads(cj.read_text(encoding="utf-8"))
+        finished = any(cj.parent.glob("eval/*/metrics.parquet"))
+        done.setdefault(cell["scene_label"], []).append(finished)
+    return (sum(all(v) for v in done.values()), sum(any(v) for v in done.values()), len(done))
+
+
 def load(grid: Path):
     from evaluation.report import load_metrics
 
@@ -182,6 +196,11 @@ def giveaway_rows(df) -> list[str]:
     return lines
 
 
+def _scenes(grid: Path) -> str:
+    full, some, total = coverage(grid)
+    return f"{full} of {total} scenes with every method" + (f", {some - full} partly" if some > full else "")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", action="append", required=True, metavar="NAME=DIR", help="a camo grid output folder")
@@ -203,7 +222,8 @@ def main(argv=None) -> int:
         grids[name] = (Path(d), *load(Path(d)))
     md = ["# Do the weight-free metrics agree with LPIPS? (issue 31)", "",
           f"Generated on {datetime.date.today().isoformat()} by", "", "```bash", command, "```", "", "from "
-          + ", ".join(f"`{n}` ({done} of {total} cells finished)" for n, (_, _, done, total) in grids.items())
+          + ", ".join(f"`{n}` ({done} of {total} cells finished; {_scenes(d)})" for n, (d, _, done, total)
+                      in grids.items())
           + ". Object crop; LPIPS = LPIPS v0.1 AlexNet on the installed weights (docs/evaluation.md). "
           "Each metric is oriented as a distance (PSNR and SSIM negated): +1 = the same order as LPIPS. "
           "τ = Kendall's tau-b, ρ = Spearman's rho; per scene over that scene's crop rows (every method's "
