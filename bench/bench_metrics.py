@@ -58,15 +58,6 @@ def make_pairs(n: int, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray
     return np.stack(xs), np.stack(ys)
 
 
-def best_time(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
-
-
 def load_piq_haarpsi() -> Optional[Callable]:
     """piq's haarpsi without ``import piq`` (whose __init__ needs torchvision); None if piq is absent."""
     spec = importlib.util.find_spec("piq")

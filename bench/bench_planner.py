@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from optimizer.scenes.bsdf_maps import MAPS
+
 REAL_PACKS = ("sky-duck", "city-cone", "forest-teddy", "dawn-soccerball", "sunset-mug", "venice-duplo",
               "apartment-bunny", "warehouse-tray")
 
@@ -187,9 +189,6 @@ def _mean_curve(rows, who):
 # ------------------------------------------------------------------------------------------------------------------
 # (b) Stage 1 loss and gradient
 # ------------------------------------------------------------------------------------------------------------------
-
-MAPS = ("albedo", "metallic", "roughness", "transmittance")
-
 
 def bench_gradient(name: str, args) -> dict:
     args = argparse.Namespace(**{**vars(args), "views": args.grad_views, "resolution": args.grad_resolution})

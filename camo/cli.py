@@ -20,16 +20,22 @@ from typing import Callable, Sequence
 
 from camo.cli_common import load_scene_arg
 from camo_base.errors import CamoError, SettingError
-from camo_base.ranges import Range
+from optimizer.optimise.options import RANGES
+
+#: The ranges of ``camo scenes render`` and ``camo plan``: the run options' (one place a limit is written).
+RENDER_RANGES = {"resolution": RANGES["pack.render.resolution"], "views": RANGES["pack.cameras.views"],
+                 "spp": RANGES["spp.train"], "target_spp": RANGES["spp.target"], "seed": RANGES["seed"],
+                 "threads": RANGES["threads"]}
+
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--resolution", type=Range(int, 8, 8192).arg_type(),
+    p.add_argument("--resolution", type=RENDER_RANGES["resolution"].arg_type(),
                    help="image width = height in pixels (default: the pack's)")
-    p.add_argument("--spp", type=Range(int, 1, 1 << 16).arg_type(),
+    p.add_argument("--spp", type=RENDER_RANGES["spp"].arg_type(),
                    help="samples per pixel of this render (default: the pack's [render] spp; `camo optimize --spp` is "
                         "a run's training spp)")
-    p.add_argument("--views", type=Range(int, 1, 1024).arg_type(), help="number of orbit views (default: the pack's)")
-    p.add_argument("--threads", type=Range(int, 1, 4096).arg_type(),
+    p.add_argument("--views", type=RENDER_RANGES["views"].arg_type(), help="number of orbit views (default: the pack's)")
+    p.add_argument("--threads", type=RENDER_RANGES["threads"].arg_type(),
                    help="CPU threads for the LLVM backend (default: all cores; env CAMO_THREADS)")
 
 
@@ -49,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = ssub.add_parser("render", help="render a scene's views (background, object, mask, depth) to a folder")
     p.add_argument("scene", help="built-in scene name (ENV or ENV:OBJECT) or a scene pack .toml")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0)
+    p.add_argument("--seed", type=RENDER_RANGES["seed"].arg_type(), default=0)
     _add_render_args(p)
     p.set_defaults(func=_scenes_render)
 
@@ -59,19 +65,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--purpose", choices=("optimize", "render", "evaluate"), default="optimize")
     p.add_argument("--ablate", default="", help="comma list of parts switched off (the ablations of camo optimize)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
-    p.add_argument("--spp", type=Range(int, 1, 1 << 16).arg_type(),
+    p.add_argument("--spp", type=RENDER_RANGES["spp"].arg_type(),
                    help="optimize: training spp (default 4); evaluate/render: the renders' spp (default 64)")
-    p.add_argument("--target-spp", type=Range(int, 1, 1 << 16).arg_type(), default=64,
+    p.add_argument("--target-spp", type=RENDER_RANGES["target_spp"].arg_type(), default=64,
                    help="optimize: the targets' spp (default 64)")
-    p.add_argument("--resolution", type=Range(int, 8, 8192).arg_type(),
+    p.add_argument("--resolution", type=RENDER_RANGES["resolution"].arg_type(),
                    help="image width = height in pixels (default: the pack's)")
-    p.add_argument("--views", type=Range(int, 1, 1024).arg_type(), help="number of orbit views (default: the pack's)")
-    p.add_argument("--seed", type=Range(int, 0, 2**63 - 1).arg_type(), default=0,
+    p.add_argument("--views", type=RENDER_RANGES["views"].arg_type(), help="number of orbit views (default: the pack's)")
+    p.add_argument("--seed", type=RENDER_RANGES["seed"].arg_type(), default=0,
                    help="the run's (or evaluation's) seed: the pilot's random numbers")
     p.add_argument("--png", metavar="FILE", help="also draw the accuracy-vs-seconds curve to FILE (PNG)")
     p.add_argument("--no-pilot", action="store_true", help="print the rule-based plan only (what correctness "
                    "requires, every bounce kept)")
-    p.add_argument("--threads", type=Range(int, 1, 4096).arg_type(),
+    p.add_argument("--threads", type=RENDER_RANGES["threads"].arg_type(),
                    help="CPU threads for the LLVM backend (default: all cores)")
     p.set_defaults(func=_plan, setting_names=lambda name, args: f"--{name}")
 
@@ -89,15 +95,19 @@ def build_parser() -> argparse.ArgumentParser:
 def _name_settings_by_flags(parser: argparse.ArgumentParser) -> None:
     """Give every command without its own ``setting_names`` one that shows a library's setting name (a
     :class:`SettingError` names ``time_budget``, ``out``, ...) as that command's flag (``--time-budget``,
-    ``--out``): the flag whose argparse ``dest`` it is; a name no flag carries stays as it is."""
+    ``--out``): the flag whose argparse ``dest`` it is; a positional argument's as its metavar (``run_dirs``:
+    ``RUN_DIR``); a key of the command's ``setting_keys`` default (``{library name: dest}``, e.g. a config key a
+    flag sets) as the name and its flag (``MIN_AGE (--min-age)``); a name nothing carries stays as it is."""
     for action in parser._actions:  # argparse keeps its sub-parsers only here
         if isinstance(action, argparse._SubParsersAction):
             for child in dict.fromkeys(action.choices.values()):  # aliases share a parser
                 _name_settings_by_flags(child)
     if parser.get_default("func") is None or parser.get_default("setting_names") is not None:
         return
-    flags = {a.dest: max(a.option_strings, key=len) for a in parser._actions
-             if a.option_strings and a.dest not in (argparse.SUPPRESS, "help")}
+    flags = {a.dest: max(a.option_strings, key=len) if a.option_strings else (a.metavar or a.dest.upper())
+             for a in parser._actions
+             if a.dest not in (argparse.SUPPRESS, "help") and not isinstance(a, argparse._SubParsersAction)}
+    flags.update({key: f"{key} ({flags[dest]})" for key, dest in (parser.get_default("setting_keys") or {}).items()})
     parser.set_defaults(setting_names=lambda name, args, flags=flags: flags.get(name, name))
 
 

@@ -5,8 +5,8 @@ A generated table sits between ``<!-- camo.docs: NAME -->`` and ``<!-- /camo.doc
 what lies between the markers is rewritten. The tables (:data:`TABLES`): the methods
 (:data:`optimizer.optimise.methods.METHODS`), the presets (:data:`optimizer.optimise.presets.PRESETS`), the
 ablations (:data:`optimizer.assets.conditions.ABLATIONS`), the BSDF maps (:data:`optimizer.scenes.bsdf_maps.MAPS`),
-the run options of ``camo optimize`` (:data:`optimizer.optimise.options.OPTIONS`) and the metrics
-(:data:`evaluation.metrics.METRICS`).
+the run options of ``camo optimize`` (:data:`optimizer.optimise.options.OPTIONS`), the metrics
+(:data:`evaluation.metrics.METRICS`) and the evaluation settings (:data:`evaluation.settings.OPTIONS`).
 """
 
 from __future__ import annotations
@@ -64,6 +64,20 @@ def options_table() -> str:
     return "\n".join(rows)
 
 
+def eval_settings_table() -> str:
+    from camo.grid.spec import RESERVED
+    from evaluation.settings import OPTIONS
+
+    rows = ["| flag | grid `[evaluate]` key | values | default | what |", "|---|---|---|---|---|"]
+    for o in OPTIONS.values():
+        values = o.range.describe() if o.range else "a switch" if o.kind is bool else \
+            f"`{o.metric}=PATH` of `--weights`" if o.metric else "text"
+        default = "-" if o.default is None or o.kind is bool else f"`{o.default}`"
+        key = "set by the grid" if o.name in RESERVED["evaluate"] else f"`{o.name.replace('_', '-')}`"
+        rows.append(f"| `{o.flag}` | {key} | {values} | {default} | {o.help} |")
+    return "\n".join(rows)
+
+
 def metrics_table() -> str:
     from evaluation.metrics.registry import metrics_table as table
 
@@ -78,6 +92,7 @@ TABLES: dict[str, tuple[str, Callable[[], str]]] = {
     "maps": ("docs/optimizer.md", maps_table),
     "options": ("docs/cli.md", options_table),
     "metrics": ("docs/evaluation.md", metrics_table),
+    "eval_settings": ("docs/evaluation.md", eval_settings_table),
 }
 
 _BLOCK = re.compile(r"(<!-- camo\.docs: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /camo\.docs -->)", re.S)

@@ -112,9 +112,11 @@ def run_video(args) -> int:
 
 
 def run_view(args) -> int:
+    from pathlib import Path
+
     from evaluation.viewer import make_server, serve, write_run_viewer
 
-    out = args.out or str(__import__("pathlib").Path(args.run_dir) / "viewer")
+    out = args.out or str(Path(args.run_dir) / "viewer")
     srv = None if args.no_serve else make_server(out, args.port)  # a busy port fails before anything is written
     try:
         page = write_run_viewer(args.run_dir, out, video=args.video, env_width=args.env_width,

@@ -1,7 +1,10 @@
 """Ranges of numeric settings: one :class:`Range` per setting, checked wherever a value arrives.
 
 The same record checks a command-line flag (as its argparse ``type``: :meth:`Range.parse`), a grid file's value and
-a run spec field (:meth:`Range.check`), so a limit is written once. ``tests/test_cli_ranges.py`` walks every numeric
+a run spec field (:meth:`Range.check`), so a limit is written once. :func:`convert` turns a plain value (a TOML
+value, a parsed flag) into a setting's type the way argparse turns the flag's text, so a grid file and a command
+line with the same settings give the same values (the run options of ``camo optimize``, the evaluation settings of
+``camo evaluate``). ``tests/test_cli_ranges.py`` walks every numeric
 flag of every command, reads its Range from the parser and tries values outside it.
 
     >>> Range(int, 1).check(0, "spp")
@@ -10,6 +13,8 @@ flag of every command, reads its Range from the parser and tries values outside 
     camo_base.errors.SettingError: spp must be an integer >= 1, got 0
     >>> Range(float, 0.0, 1.0, lo_open=True).describe()
     'a number in (0, 1]'
+    >>> convert(["psnr", "ssim"], str, "metrics"), convert(2, float, "jitter", rng=Range(float, 0.0, 100.0))
+    ('psnr,ssim', 2.0)
 """
 
 from __future__ import annotations
@@ -93,3 +98,42 @@ class Range:
         if self.kind is float:
             out += [math.nan, math.inf]
         return out
+
+
+def _kind_text(kind: type) -> str:
+    return {int: "an integer", float: "a number", str: "a string or a list"}.get(kind, "a value")
+
+
+def convert(value: Any, kind: type, name: str, *, choices: tuple[str, ...] | None = None,
+            rng: Range | None = None) -> Any:
+    """``value`` as a setting of type ``kind`` (int, float, str, or bool: a switch), as argparse converts the text
+    of its flag: a str setting takes a list as its comma-joined items and one of ``choices`` when given; a number
+    must be finite and inside ``rng``. SettingError naming ``name`` (``{0}``) otherwise."""
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise SettingError(f"{{0}} is a flag: write true or false, not {literal(repr(value))}", name)
+        return value
+    if isinstance(value, bool) or isinstance(value, dict) or value is None:
+        raise SettingError(f"{{0}} must be {_kind_text(kind)}, not {literal(repr(value))}", name)
+    if kind is str:
+        if isinstance(value, (list, tuple)):
+            if not value or any(isinstance(v, (list, tuple, dict, bool)) for v in value):
+                raise SettingError(f"{{0}}: a list must hold plain numbers or strings, got {literal(repr(value))}", name)
+            value = ",".join(str(v) for v in value)
+        text = str(value)
+        if choices is not None and text not in choices:
+            raise SettingError(f"{{0}} must be one of {', '.join(choices)}, got {literal(repr(text))}", name)
+        return text
+    if isinstance(value, (list, tuple)):
+        raise SettingError(f"{{0}} must be {_kind_text(kind)}, not {literal(repr(value))}", name)
+    if isinstance(value, float) and not math.isfinite(value):
+        raise SettingError(f"{{0}} must be finite, got {literal(repr(value))}", name)
+    try:
+        v = kind(value) if isinstance(value, str) or kind is float else value
+    except (TypeError, ValueError):
+        raise SettingError(f"{{0}} must be {_kind_text(kind)}, got {literal(repr(value))}", name) from None
+    if kind is int and not isinstance(v, int):
+        raise SettingError(f"{{0}} must be an integer, got {literal(repr(value))}", name)
+    if rng is not None:
+        rng.check(v, name)
+    return v

@@ -1,16 +1,17 @@
 """``camo evaluate`` and ``camo report``: argument parsing (the work is in :mod:`evaluation.evaluate` and
-:mod:`evaluation.report`). Nothing heavy is imported here, so ``camo --help`` stays fast."""
+:mod:`evaluation.report`). ``camo evaluate``'s setting flags are the options of :mod:`evaluation.settings` (one
+flag per option, its type, range and help from there); the flags given become a plain ``{option: value}`` mapping
+and :meth:`evaluation.settings.EvalSettings.from_options` makes the settings of it, as a grid's ``[evaluate]`` table
+does. Library errors name settings; ``camo`` shows them as these flags. Nothing heavy is imported here, so ``camo
+--help`` stays fast."""
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any
 
 from camo_base.helptext import Deferred
 from evaluation.ranges import RANGES
-
-#: = evaluation.views.DEFAULT_JITTER (the paper's +-0.25 at radius 4); repeated here so that building the
-#: parser imports neither numpy nor the evaluation modules.
-DEFAULT_JITTER = 0.25
+from evaluation.settings import OPTIONS
 
 def _metrics_help() -> str:
     from evaluation.metrics.registry import metrics_help
@@ -37,30 +38,19 @@ def register(sub) -> None:
                    "normalised and posed by the scene's [object] (size, rotation, translation); auto (default): "
                    "scene for files camo wrote, else pack")
     p.add_argument("--out", required=True, help="evaluation directory (metrics, renders, report)")
-    p.add_argument("--views", type=RANGES["views"].arg_type(), help="evaluation views per run (default: the number of training views; "
-                   "more repeats the jitter)")
-    p.add_argument("--jitter", type=RANGES["jitter"].arg_type(), default=DEFAULT_JITTER,
-                   help=f"camera offset bound per axis at radius 4, scaled with the radius (default {DEFAULT_JITTER}; "
-                   "must be > 0)")
-    p.add_argument("--spp", type=RANGES["spp"].arg_type(), default=64, help="samples per pixel of the evaluation renders (default 64)")
-    p.add_argument("--resolution", type=RANGES["resolution"].arg_type(), help="image width = height in pixels (default: the run's)")
-    p.add_argument("--metrics", help=Deferred(_metrics_help))  # (the registry imports torch: only for --help)
-    p.add_argument("--seed", type=RANGES["seed"].arg_type(), default=0, help="camera jitter and sampler seed (same for every run)")
-    p.add_argument("--weights", metavar="NAME=PATH[,NAME=PATH]",
-                   help="weights of learned metrics other than the installed ones, per metric (what a path may be: "
-                   "docs/evaluation.md), e.g. lpips=DIR_OR_TRUNK,sifid=INCEPTION.pth,dreamsim=DIR")
-    for flag, (metric, what) in WEIGHTS_FLAGS.items():
-        p.add_argument(f"--{flag}", metavar="PATH", help=f"= --weights {metric}=PATH: {what}")
-    p.add_argument("--threads", type=RANGES["threads"].arg_type(), help="CPU threads for the LLVM backend")
-    p.add_argument("--no-planner", action="store_true",
-                   help="full path tracing of every full frame (max_depth 12) instead of the measured plan (a pilot "
-                   "per scene picks the depth; only the region each object can change is rendered)")
-    p.add_argument("--no-noise-match", action="store_true",
-                   help="the same spp everywhere (default: pixels where the render with the object is noisier than "
-                   "the background get more samples, up to 8x, so noise does not give the object away)")
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=run_evaluate, setting_names=lambda name, args: "--" + name.replace("_", "-")
-                   if name in SETTINGS or name in ("metrics", "weights") else name)
+    for opt in OPTIONS.values():
+        if opt.kind is bool:
+            p.add_argument(opt.flag, action="store_true", help=opt.help)
+            continue
+        kw: dict[str, Any] = {"help": opt.help, "metavar": opt.metavar, "default": opt.default}
+        if opt.name == "metrics":
+            kw["help"] = Deferred(_metrics_help)  # (the registry imports torch: only for --help)
+        if opt.metric is not None:
+            kw["help"] = f"= {OPTIONS['weights'].flag} {opt.metric}=PATH: {opt.help}"
+        if opt.range is not None:
+            kw["type"] = opt.range.arg_type()
+        p.add_argument(opt.flag, **kw)
+    p.set_defaults(func=run_evaluate)  # (camo.cli shows each setting an error names as its flag)
 
     p = sub.add_parser("report", help="merge evaluation directories into one Table II report")
     p.add_argument("eval_dirs", nargs="+", metavar="EVAL_DIR", help="output of `camo evaluate`")
@@ -104,61 +94,18 @@ def input_specs(args) -> list:
     return specs
 
 
-#: ``camo evaluate`` options that are :class:`evaluation.evaluate.EvalSettings` fields of the same name.
-SETTINGS = ("views", "jitter", "spp", "resolution", "seed", "threads")
+def settings_of(args):
+    """The :class:`evaluation.settings.EvalSettings` of ``camo evaluate`` arguments: the setting flags' values as a
+    mapping (:meth:`~evaluation.settings.EvalSettings.from_options`, as a grid's ``[evaluate]`` table)."""
+    from evaluation.settings import EvalSettings
 
-#: Short flags for ``--weights NAME=PATH`` of the built-in learned metrics (kept for existing command lines and
-#: grids): flag -> (metric, what the path is). A new metric needs none: ``--weights`` takes any metric whose
-#: record has ``from_path`` (:class:`evaluation.metrics._common.Metric`).
-WEIGHTS_FLAGS = {
-    "lpips-weights": ("lpips", "an AlexNet trunk (torchvision layout, .pth or .safetensors), or a folder with the "
-                      "trunk and the v0.1 heads (alex.pth, or the files `camo data fetch "
-                      "data_manifests/lpips_weights.toml` lands)"),
-    "inception-weights": ("sifid", "Inception v3 state dict for SIFID"),
-    "dreamsim-weights": ("dreamsim", "DreamSim weights folder (its cache_dir)"),
-}
-
-
-def parse_weights(values: Mapping[str, Any]) -> dict[str, str]:
-    """``{metric: path}`` of ``--weights NAME=PATH[,NAME=PATH]`` and the short flags (:data:`WEIGHTS_FLAGS`);
-    CamoError (one line) for an item without ``=`` or a metric given twice. The paths are checked by the metrics
-    (:func:`evaluation.evaluate.weights_of`)."""
-    from camo_base.errors import CamoError
-
-    out: dict[str, str] = {}
-
-    def put(name: str, path: str, where: str) -> None:
-        if not name or not path:
-            raise CamoError(f"{where}: expected NAME=PATH, e.g. lpips=/path/to/weights")
-        if name in out:
-            raise CamoError(f"{where}: weights for {name} given twice")
-        out[name] = path
-
-    for item in (values.get("weights") or "").split(","):
-        if item.strip():
-            name, _, path = item.strip().partition("=")
-            put(name.strip(), path.strip(), f"--weights {item.strip()}")
-    for flag, (metric, _) in WEIGHTS_FLAGS.items():
-        if values.get(flag.replace("-", "_")):
-            put(metric, str(values[flag.replace("-", "_")]), f"--{flag}")
-    return out
-
-
-def evaluation_settings(values: Mapping[str, Any]):
-    """The :class:`evaluation.evaluate.EvalSettings` of ``camo evaluate`` option values (``{dest: value}``, as the
-    parser or a grid's ``[evaluate]`` table gives them; absent ones take the flags' defaults)."""
-    from evaluation.evaluate import EvalSettings, parse_metrics
-
-    kw = {k: values[k] for k in SETTINGS if values.get(k) is not None}
-    return EvalSettings(**kw, metrics=parse_metrics(values.get("metrics")), weights=parse_weights(values),
-                        progress=not values.get("quiet", False), planner=not values.get("no_planner", False),
-                        noise_match=not values.get("no_noise_match", False))
+    return EvalSettings.from_options({name: getattr(args, name) for name in OPTIONS})
 
 
 def run_evaluate(args) -> int:
     from evaluation.evaluate import evaluate
 
-    evaluate(input_specs(args), args.out, evaluation_settings(vars(args)))
+    evaluate(input_specs(args), args.out, settings_of(args))
     print(f"wrote {args.out}")
     return 0
 

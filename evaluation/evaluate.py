@@ -37,41 +37,16 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from camo_base.errors import CamoError, SettingError
+from camo_base.errors import CamoError, SettingError, literal
 
 from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SECONDS_COLUMNS,  # noqa: F401 (re-exported)
                                 METRIC_COLUMNS, METRIC_SECONDS_COLUMNS, REGIONS, SECONDS_COLUMNS, SHA_COLUMNS,
                                 SPLIT_COLUMNS, VARIANT_COLUMNS, hardware, hardware_text, read_eval_config,
                                 renders_json, write_renders)
 from evaluation.inputs import Entry, InputSpec, resolve
-from evaluation.views import DEFAULT_JITTER, EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
+from evaluation.settings import EvalSettings, parse_metrics  # noqa: F401 (re-exported)
+from evaluation.views import EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
 
-
-
-@dataclasses.dataclass
-class EvalSettings:
-    views: int | None = None  # default: the number of training views
-    jitter: float = DEFAULT_JITTER
-    spp: int = 64
-    resolution: int | None = None  # default: the run's
-    metrics: Sequence[str] | None = None  # default: the weight-free metrics + the learned ones that can run
-    seed: int = 0
-    weights: dict[str, str] = dataclasses.field(default_factory=dict)  # {metric: path} (--weights NAME=PATH)
-    threads: int | None = None
-    progress: bool = True
-    write_report: bool = True
-    planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
-    noise_match: bool = True  # more samples where the object's render is noisier than the background's
-
-    def validate(self) -> None:
-        """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
-        jitter must be > 0: evaluation never uses the training cameras)."""
-        from evaluation.ranges import RANGES
-
-        for name in ("views", "jitter", "spp", "resolution", "seed", "threads"):
-            v = getattr(self, name)
-            if v is not None:
-                RANGES[name].check(v, name)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -94,21 +69,6 @@ def weights_of(settings: EvalSettings) -> dict[str, str]:
             raise SettingError.of("weights", f" {name}=...: {name} takes no weights (metrics that do: {takes})")
         weights.update(METRICS[name].from_path(str(path)))
     return weights
-
-
-def parse_metrics(text: str | None) -> list[str] | None:
-    """``--metrics psnr,ssim`` -> names (None when not given); CamoError for unknown names."""
-    from evaluation.metrics import METRICS
-
-    if text is None:
-        return None
-    names = [t.strip() for t in text.split(",") if t.strip()]
-    if not names:
-        raise SettingError.of("metrics", " is empty; give a comma list, e.g. psnr,ssim,lpips_proxy")
-    bad = [n for n in names if n not in METRICS]
-    if bad:
-        raise CamoError(f"unknown metric(s) {', '.join(bad)}; known: {', '.join(METRICS)}")
-    return list(dict.fromkeys(names))
 
 
 def given_learned(weights: dict[str, str]) -> list[str]:
@@ -151,7 +111,7 @@ def select_metrics(requested: Sequence[str] | None, weights: dict[str, str]) -> 
                 raise SettingError.of("metrics", f" {name}: {why}")
         for name in METRICS:
             if name not in names:
-                skipped[name] = "not requested (--metrics)"
+                skipped[name] = "not requested (metrics)"
     return names, skipped
 
 
@@ -326,12 +286,13 @@ def _check_sizes(jobs: list[_Job], names: Sequence[str]) -> None:
     for j in jobs:
         if j.cams is not None:
             w, h = j.cams.cams[0].width, j.cams.cams[0].height
-            fix = "raise --resolution or drop it from --metrics"
+            fix, names = "raise {0} or drop it from {1}", ("resolution", "metrics")
         else:
             h, w = j.entry.triplets.mask.shape[1:]
-            fix = "drop it from --metrics"
+            fix, names = "drop it from {0}", ("metrics",)
         if min(w, h) < need:
-            raise CamoError(f"{j.entry.name}: {w}x{h} px is too small for metric {worst} (needs >= {need} px); {fix}")
+            raise SettingError(f"{literal(j.entry.name)}: {w}x{h} px is too small for metric {worst} (needs >= {need} "
+                               f"px); {fix}", *names)
 
 
 def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings: EvalSettings | None = None,

@@ -93,7 +93,7 @@ NOTE = ("Where the object gives itself away (object crop): its pixels split into
 def heatmap_figure(df, eval_dirs: Sequence[str | Path], out: Path, scene: str) -> Path | None:
     """PNG: per label (rows) and for the first :data:`FIGURE_VIEWS` views, the crop with the object | its LPIPS
     spatial map (shared colour scale; white contour: the object, cyan: the cast shadow). None without weights or
-    renders."""
+    renders; a crop smaller than LPIPS takes (``MIN_SIZE["lpips"]``, a tiny evaluation) is left out."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,7 +103,7 @@ def heatmap_figure(df, eval_dirs: Sequence[str | Path], out: Path, scene: str) -
     from camo_base.errors import CamoError
     from evaluation.evaldir import renders_json
     from evaluation.giveaway import object_region, shadow_mask
-    from evaluation.metrics import apply_crop, load_lpips, lpips_map
+    from evaluation.metrics import MIN_SIZE, apply_crop, load_lpips, lpips_map
 
     try:
         model = load_lpips("alex")
@@ -139,6 +139,8 @@ def heatmap_figure(df, eval_dirs: Sequence[str | Path], out: Path, scene: str) -
             rr = d.loc[(d["run"] == r["run"]) & (d["_eval_dir"] == r["_eval_dir"]) & (d["view"] == v)].iloc[0]
             box = (int(rr["region_y0"]), int(rr["region_x0"]), int(rr["region_height"]))
             a, b, mk, sh = (apply_crop(x, box) for x in (img, bg, mask, shadow))
+            if min(a.shape[:2]) < MIN_SIZE["lpips"]:  # (the report must not fail on what it only illustrates)
+                continue
             lmap = lpips_map(a, b, model)[0].numpy()
             row.append((v, a, lmap, object_region(mk), sh, float(rr.get("lpips", math.nan))))
         if row:

@@ -47,7 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from camo_base.documents import read_toml
-from camo_base.errors import CamoError, SettingError
+from camo_base.errors import CamoError, SettingError, literal
 
 KINDS = ("run", "asset", "triplets")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
@@ -125,7 +125,10 @@ def finite_seconds(v: Any, where: str) -> float | None:
 def read_input_list(path: str | Path) -> list[InputSpec]:
     """The inputs of a TOML list (see the module docstring)."""
     p = Path(path)
-    doc = read_toml(p, "--inputs list")
+    try:
+        doc = read_toml(p, "list")
+    except CamoError as exc:  # "list ... not found": the CLI shows the setting as --inputs
+        raise SettingError.of("inputs", f" {exc}") from None
     unknown = sorted(set(doc) - set(KINDS))
     if unknown:
         raise SettingError.of("inputs", f" {p}: unknown table(s) {', '.join(unknown)}; use [[run]], [[asset]], [[triplets]]")
@@ -165,7 +168,7 @@ def scene_pack(scene: str, where: str):
     from optimizer.scenes.builtin_scenes import resolve_scene
 
     if not scene:
-        raise CamoError(f"{where}: needs a scene (--scene NAME, pack .toml or run directory)")
+        raise SettingError(f"{literal(where)}: needs a scene ({{0}} NAME, pack .toml or run directory)", "scene")
     if is_run_dir(scene):
         return open_run(scene).pack
     return resolve_scene(scene)
@@ -179,7 +182,7 @@ def _scene_source(scene: str) -> str:
 
 def _label(text: str | None, where: str, what: str) -> str:
     if text is None or not str(text).strip():
-        raise CamoError(f"{where}: needs a method label (--method, or method = \"...\" in the list)")
+        raise SettingError(f"{literal(where)}: needs a method label ({{0}}, or method = \"...\" in the list)", "method")
     text = str(text).strip()
     if len(text) > 120 or "\n" in text:
         raise CamoError(f"{where}: {what} must be one line of at most 120 characters")
@@ -196,7 +199,8 @@ def resolve(specs: Sequence[InputSpec]) -> list[Entry]:
     from optimizer.assets.rundir import open_run
 
     if not specs:
-        raise CamoError("evaluate needs at least one input: RUN_DIR, --asset, --triplets or --inputs")
+        raise SettingError("evaluate needs at least one input: {0}, {1}, {2} or {3}", "run_dirs", "asset", "triplets",
+                           "inputs")
     nan = {"setup": math.nan, "stage1": math.nan, "stage2": math.nan, "total": math.nan}
     entries: list[Entry] = []
     for s in specs:
@@ -246,8 +250,9 @@ def resolve(specs: Sequence[InputSpec]) -> list[Entry]:
             if e.kind != "run" and e.name == safe_name(e.path.stem if e.kind == "asset" else e.path.name):
                 e.name = safe_name(f"{e.path.parent.name}-{e.name}")
             if e.name in seen:
-                raise CamoError(f"two inputs are both named {e.name!r} ({other.path}, {e.path}); renders/<name>/ needs "
-                                "distinct names (give name = \"...\" in the --inputs list)")
+                raise SettingError(f"two inputs are both named {literal(repr(e.name))} ({literal(other.path)}, "
+                                   f"{literal(e.path)}); renders/<name>/ needs distinct names (give name = \"...\" in the "
+                                   "{0} list)", "inputs")
         seen[e.name] = e
     return out
 

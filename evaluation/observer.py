@@ -421,8 +421,6 @@ SHADOW_FACTOR = (0.8, 0.5)
 #: A place is shadow-like when what a shadow cannot explain (:func:`_shadow_residual`) is within about this many
 #: standard deviations of its surround (Gaussian fall-off).
 SHADOW_RESIDUAL = 2.0
-#: L* + 16 of a mid-grey (L* = 50): relative texture energies are scaled to it.
-REF_L16 = 66.0
 #: Units of the log features: 50 ln(.), so the internal noise (2.3) is a ratio change of ~4.6 % -- a Weber
 #: fraction for luminance contrast and about the threshold for a chromaticity ratio in natural scenes.
 LOG_UNITS = 50.0
@@ -868,10 +866,6 @@ class StimulusPrediction:
     result: SearchResult
     object_evidence: float  # the largest verification evidence V of a fixation that would click on the object, d'
     time_limit_s: float = 40.0
-
-    @property
-    def max_d_object(self) -> float:  # former name
-        return self.object_evidence
 
     def summary(self) -> dict[str, float]:
         f = self.rt_found_s

@@ -64,9 +64,6 @@ def table_header(metrics) -> str:
     return "| Model | " + " | ".join(names[m] for m in metrics) + " | Scenes |"
 
 
-TABLE_II_HEADER = table_header([m for m, _ in TABLE_METRICS])
-
-
 def metric_name(metric: str) -> str:
     """A metric's short display name (its label: the table header without the arrow and the cross-check note)."""
     return METRICS[metric].label if metric in METRICS else metric

@@ -185,7 +185,7 @@ def panels_of(entries: Sequence[Any], background: bool = True) -> list[Panel]:
     from evaluation.report import method_label
 
     if not entries:
-        raise CamoError("video needs at least one input: RUN_DIR, --asset or --inputs")
+        raise SettingError("video needs at least one input: {0}, {1} or {2}", "run_dirs", "asset", "inputs")
     bad = [e for e in entries if e.kind == "triplets"]
     if bad:
         raise CamoError(f"{bad[0].path}: triplets are given images of fixed views; a turntable needs a 3D result "
@@ -432,8 +432,9 @@ def choose_spp(job: Job, budget: float, missing: int, say: Callable[[str], None]
     spp = spp_for_budget(left, missing, a, b)
     if spp < 1:
         need = missing * (a + b)
-        raise SettingError.of("time_budget", f" {budget:g} s is too short: after the {spent:.1f} s pilot, {missing} panel "
-                        f"frames at 1 spp need about {need:.0f} s; raise it, or lower --frames / --resolution")
+        raise SettingError(f"{{0}} {budget:g} s is too short: after the {spent:.1f} s pilot, {missing} panel frames at 1 "
+                           f"spp need about {need:.0f} s; raise it, or lower {{1}} / {{2}}", "time_budget", "frames",
+                           "resolution")
     est = missing * (a + b * spp)
     say(f"pilot ({spent:.1f} s): {a:.3f} s + {b:.4f} s/spp per panel frame -> {spp} spp for {missing} panel frames "
         f"(about {est:.0f} s)")
@@ -588,7 +589,7 @@ def check_settings(s: VideoSettings, out: str | Path) -> None:
         _number("spp", s.spp, *LIMITS["spp"], integer=True)
     if s.time_budget is not None:
         if s.spp is not None:
-            raise CamoError("give --spp or --time-budget, not both (the budget chooses the spp)")
+            raise SettingError("give {0} or {1}, not both (the budget chooses the spp)", "spp", "time_budget")
         _number("time_budget", s.time_budget, 0.0, 1e7, open_lo=True)
     _number("seed", s.seed, 0, 2**31 - 1, integer=True)
     _number("fps", s.fps, *LIMITS["fps"])

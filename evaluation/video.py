@@ -28,7 +28,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from camo_base.errors import CamoError, SettingError
+from camo_base.errors import CamoError, SettingError, literal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +70,8 @@ def check_codec(codec: str, path: str | Path, quality: int | None = None) -> Cod
     errors); also checks that this FFmpeg build has the encoder."""
     c = CODECS.get(str(codec).lower())
     if c is None:
-        raise CamoError(f"unknown --codec {codec!r}; known: {', '.join(CODECS)} (browsers play all three)")
+        raise SettingError(f"unknown {{0}} {literal(repr(codec))}; known: {', '.join(CODECS)} (browsers play all three)",
+                           "codec")
     cont = container_of(path)
     if cont not in c.containers:
         raise SettingError.of("codec", f" {c.name} cannot be written to a .{cont} file; use "
@@ -85,8 +86,8 @@ def check_codec(codec: str, path: str | Path, quality: int | None = None) -> Cod
     try:
         av.codec.Codec(c.encoder, "w")
     except Exception:  # av.codec.codec.UnknownCodecError and friends
-        raise CamoError(f"this FFmpeg build (PyAV {av.__version__}) has no {c.encoder} encoder for --codec "
-                        f"{c.name}; try another --codec") from None
+        raise SettingError(f"this FFmpeg build (PyAV {av.__version__}) has no {c.encoder} encoder for {{0}} {c.name}; "
+                           "try another {0}", "codec") from None
     return c
 
 

@@ -42,7 +42,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from camo_base.errors import CamoError, SettingError
+from camo_base.errors import CamoError, SettingError, literal
 
 REPO = Path(__file__).resolve().parents[1]
 MANIFEST = REPO / "data_manifests" / "viewer.toml"
@@ -532,7 +532,8 @@ def make_server(root: str | Path, port: int = 8030):
     try:
         return http.server.ThreadingHTTPServer(("127.0.0.1", port), handler)
     except OSError as exc:
-        raise CamoError(f"cannot listen on 127.0.0.1:{port} ({exc.strerror or exc}); try --port 0") from None
+        raise SettingError(f"cannot listen on 127.0.0.1:{port} ({literal(exc.strerror or exc)}); try {{0}} 0",
+                           "port") from None
 
 
 def serve(srv, page_name: str = "index.html") -> None:

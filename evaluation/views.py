@@ -49,9 +49,8 @@ from camo_base import seeds
 from camo_base.errors import SettingError
 from optimizer.assets.rundir import RunDir, open_run
 from optimizer.rendering.noise import GROUPS
+from evaluation.settings import DEFAULT_JITTER
 
-#: The paper's evaluation jitter: up to +-0.25 units per axis at radius 4.
-DEFAULT_JITTER = 0.25
 #: Vertices of the object the evaluation's pilot renders (at the pilot's ~48 pixels).
 PILOT_VERTICES = 4000
 

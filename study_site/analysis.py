@@ -59,7 +59,7 @@ import numpy as np
 import pandas as pd
 
 from camo_base.atomic import atomic_path, write_text
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 
 Z95 = 1.959963984540054
 
@@ -556,11 +556,11 @@ def write_report(
     all_formal = formal_trials(trials, include_incomplete, keep_too_fast=True)
     formal = formal_trials(trials, include_incomplete)
     if formal.empty:
-        raise CamoError(
+        raise SettingError(
             f"no formal trials to analyse ({len(participants)} participants, "
             f"{int(participants['completed'].sum())} completed"
-            + ("" if include_incomplete else "; --include-incomplete adds unfinished sessions")
-            + ")"
+            + ("" if include_incomplete else "; {0} adds unfinished sessions")
+            + ")", "include_incomplete"
         )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

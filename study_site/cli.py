@@ -120,7 +120,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     s.add_argument("--completion-code", metavar="CODE", help="study-wide completion code (Prolific)")
     s.add_argument("--completion-url", metavar="URL", help="e.g. https://app.prolific.com/submissions/complete?cc={code}")
     s.add_argument("--consent-file", metavar="FILE", help="plain-text consent statement")
-    s.set_defaults(func=cmd_serve)
+    # (a config error names the key; camo shows it with the flag that sets it: "MIN_AGE (--min-age)")
+    s.set_defaults(func=cmd_serve, setting_keys={key: dest for dest, key in SERVE_CONFIG.items()})
 
     r = sub.add_parser("report", help="Table I, Kaplan-Meier curves, pairwise tests, CSV/Parquet tables")
     r.add_argument("--db", required=True, metavar="URL", help="SQLAlchemy URL or a SQLite file path")
@@ -328,6 +329,21 @@ def cmd_make_key(args) -> int:
     return 0
 
 
+#: The ``camo study serve`` flags (argparse dest) that set a study config key (:mod:`study_site.config`; the
+#: environment's ``CAMO_STUDY_<KEY>`` otherwise).
+SERVE_CONFIG = {
+    "id_key_file": "ID_HMAC_KEY_FILE",
+    "secret_key_file": "SECRET_KEY_FILE",
+    "admin_token_file": "ADMIN_TOKEN_FILE",
+    "time_limit": "TRIAL_TIME_LIMIT_S",
+    "practice_trials": "PRACTICE_TRIALS",
+    "min_age": "MIN_AGE",
+    "completion_code": "COMPLETION_CODE",
+    "completion_url": "COMPLETION_URL",
+    "consent_file": "CONSENT_FILE",
+}
+
+
 def cmd_serve(args) -> int:
     from study_site import create_app
     from study_site.analysis import resolve_db_url
@@ -347,17 +363,7 @@ def cmd_serve(args) -> int:
         raise CamoError("--workers needs the production server (gunicorn), not --dev")
     cfg = from_env()
     cfg.update({"STIMULI_DIR": args.stimuli, "DATABASE_URL": resolve_db_url(args.db)})
-    for flag, key in (
-        ("id_key_file", "ID_HMAC_KEY_FILE"),
-        ("secret_key_file", "SECRET_KEY_FILE"),
-        ("admin_token_file", "ADMIN_TOKEN_FILE"),
-        ("time_limit", "TRIAL_TIME_LIMIT_S"),
-        ("practice_trials", "PRACTICE_TRIALS"),
-        ("min_age", "MIN_AGE"),
-        ("completion_code", "COMPLETION_CODE"),
-        ("completion_url", "COMPLETION_URL"),
-        ("consent_file", "CONSENT_FILE"),
-    ):
+    for flag, key in SERVE_CONFIG.items():
         v = getattr(args, flag)
         if v is not None:
             cfg[key] = v

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError
 from study_site.ranges import ADULT_AGE, CONFIG_RANGES
 
 DEFAULTS: dict[str, Any] = {
@@ -139,7 +139,7 @@ def resolve(config: Mapping[str, Any] | None) -> dict[str, Any]:
         raise CamoError("config STIMULI_DIR is required (a directory made by `camo study build-stimuli`)")
     for key, rng in CONFIG_RANGES.items():
         if key == "MIN_AGE" and isinstance(cfg[key], int) and not rng.contains(cfg[key]):
-            raise CamoError(f"MIN_AGE (--min-age) must be {ADULT_AGE}-99, not {cfg[key]}: the study takes adults only")
+            raise SettingError(f"{{0}} must be {ADULT_AGE}-99, not {cfg[key]}: the study takes adults only", key)
         if not rng.contains(cfg[key]):
             raise CamoError(f"config {key} must be {rng.describe()}, got {cfg[key]!r}")
     url = cfg.get("COMPLETION_URL")

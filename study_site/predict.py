@@ -45,7 +45,6 @@ from camo_base.errors import CamoError
 #: image in it (576 px at the default 72 %).
 VIEWPORT_CSS = (1280, 800)
 REFERENCE_DEG = 16.0
-PREDICTED_FILES = ("predicted.parquet", "predicted.csv", "predicted_trials.parquet", "predicted_config.json")
 
 
 def display_deg(width: int, height: int, site_config: dict[str, Any] | None = None) -> float:

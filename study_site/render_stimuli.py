@@ -44,7 +44,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from camo_base.errors import CamoError, SettingError
+from camo_base.errors import CamoError, SettingError, literal
 from study_site.ranges import STIMULI_RANGES
 
 from study_site.stimuli import (
@@ -166,21 +166,22 @@ def inputs_of_eval_dir(eval_dir: str | Path) -> tuple[list[Any], dict[str, Any]]
     for r in records:
         kind, path = str(r.get("kind", "run")), Path(str(r.get("path", "")))
         name = str(r.get("name") or path.name)
-        gone = "is gone (stimuli are re-rendered from it; --copy uses the evaluation's renders instead)"
+        gone = "is gone (stimuli are re-rendered from it; {0} uses the evaluation's renders instead)"
         if kind == "triplets":
-            raise CamoError(f"{d}: input {name!r} is given 2D images (triplets), with no scene to render again at the "
-                            "study's size and a drawn framing; build with --copy (every input as evaluated, object "
-                            "where the images have it) or leave this evaluation directory out")
+            raise SettingError(f"{literal(d)}: input {literal(repr(name))} is given 2D images (triplets), with no scene to "
+                               "render again at the study's size and a drawn framing; build with {0} (every input as "
+                               "evaluated, object where the images have it) or leave this evaluation directory out",
+                               "copy")
         if kind == "run":
             if not path.is_dir():
-                raise CamoError(f"{d}: run directory {path} {gone}")
+                raise SettingError(f"{literal(d)}: run directory {literal(path)} {gone}", "copy")
             specs.append(InputSpec("run", str(path), method=r.get("method"), name=name))
         elif kind == "asset":
             scene = str(r.get("scene_source") or r.get("scene") or "")
             if not path.is_file():
-                raise CamoError(f"{d}: asset {path} {gone}")
+                raise SettingError(f"{literal(d)}: asset {literal(path)} {gone}", "copy")
             if Path(scene).is_absolute() and not Path(scene).exists():
-                raise CamoError(f"{d}: scene {scene} of asset {name!r} {gone}")
+                raise SettingError(f"{literal(d)}: scene {literal(scene)} of asset {literal(repr(name))} {gone}", "copy")
             specs.append(InputSpec("asset", str(path), method=r.get("method"), scene=scene, name=name,
                                    placement=str(r.get("placement") or "auto"), object=r.get("object")))
         else:

@@ -200,8 +200,8 @@ class Participant(SiteClient):
         st, page, _ = self.request("GET", "/consent")
         m = CSRF_RE.search(page.decode("utf-8", "replace"))
         if st != 200 or m is None:
-            raise RuntimeError(f"consent page -> {st} (this id already took part: use another --seed; or not a camo "
-                               "study site)")
+            raise RuntimeError(f"consent page -> {st} (this id already took part: the simulation's seed names its "
+                               "ids, choose another; or not a camo study site)")
         self.csrf = m.group(1)
         self.form("/consent", {"consent": "yes"})
         ages = ["18-24", "25-34", "35-44", "45-54", "55-64", "65+"]  # required; adults only

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from camo_base.atomic import atomic_path, write_json
-from camo_base.errors import CamoError, SettingError
+from camo_base.errors import CamoError, SettingError, literal
 from evaluation.evaldir import read_renders
 from optimizer.assets.conditions import condition
 
@@ -402,9 +402,9 @@ class StimulusWriter:
     def __init__(self, out_dir: str | Path, force: bool = False):
         self.out = Path(out_dir)
         if (self.out / "manifest.json").exists() and not force:
-            raise CamoError(
-                f"{self.out}: already holds a stimulus set; a rebuild gives new ids, which breaks a running study "
-                "(use another --out, or --force)"
+            raise SettingError(
+                f"{literal(self.out)}: already holds a stimulus set; a rebuild gives new ids, which breaks a running "
+                "study (use another {0}, or {1})", "out", "force"
             )
         self.stimuli: list[dict[str, Any]] = []
 

@@ -607,7 +607,7 @@ def test_real_cross_grid_crosses_every_hdri_with_every_object():
         pack = tomllib.loads(path.read_text())
         pano = (path.parent / pack["environment"]["panorama"]).resolve()
         mesh = (path.parent / pack["object"]["mesh"]).resolve()
-        real = (REPO / "data" / "real").resolve()  # data/ may be a symlink (a worktree sharing one fetch)
+        real = (REPO / "data" / "real").resolve()  # (data/ may be a symlink, as in a worktree)
         assert pano == real / f"pmndrs_{hdri}.exr", s
         assert mesh.parent == real and mesh.stem.endswith(obj), s
         assert pack["material"]["roughness"] == 0.5 and pack["environment"]["ground"] is True

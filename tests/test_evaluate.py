@@ -354,13 +354,13 @@ def test_bad_input_is_one_line_exit_2_and_keeps_outputs(runs, eval_dir, tmp_path
 def test_weights_option_is_the_metrics_from_path(tiny_metric_weights):
     """``--weights NAME=PATH`` hands each path to its metric's ``from_path`` (the one place a learned metric's
     weights option is written); the short flags are the same thing."""
-    from evaluation.cli import evaluation_settings
     from evaluation.evaluate import weights_of
     from evaluation.metrics import METRICS
+    from evaluation.settings import EvalSettings
 
     lp, inc = tiny_metric_weights["lpips_dir"], tiny_metric_weights["sifid"]
-    long = weights_of(evaluation_settings({"weights": f"lpips={lp}, sifid={inc}"}))
-    short = weights_of(evaluation_settings({"lpips_weights": lp, "inception_weights": inc}))
+    long = weights_of(EvalSettings.from_options({"weights": f"lpips={lp}, sifid={inc}"}))
+    short = weights_of(EvalSettings.from_options({"lpips_weights": lp, "inception_weights": inc}))
     assert long == short == {**METRICS["lpips"].from_path(lp), "sifid": inc}
     assert long["lpips_trunk"].endswith("alexnet-test.pth") and long["lpips_lin"].endswith("alex.pth")
     assert {n for n, m in METRICS.items() if m.from_path} == {n for n, m in METRICS.items() if m.needs_weights}
@@ -389,6 +389,15 @@ def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights)
     # the LPIPS split (Shapley parts) adds up to each row's LPIPS
     total = df["lpips_object"] + df["lpips_shadow"] + df["lpips_rest"]
     np.testing.assert_allclose(total, df["lpips"], rtol=1e-4, atol=1e-6)
+
+
+def test_a_tiny_evaluation_reports_with_lpips_installed(runs, tmp_path, installed_lpips):
+    """Crops smaller than LPIPS takes (24 px frames): the report's LPIPS heat map leaves them out instead of failing
+    the evaluation after its metrics were written (it did: "lpips: x is 24x24 px")."""
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(runs[0]), "--out", str(out), "--spp", "2", "--views", "2", "--resolution", "24",
+                 "--metrics", "psnr", "--quiet"]) == 0
+    assert (out / "report.md").is_file() and not list((out / "giveaway").glob("*.png"))
 
 
 def test_installed_lpips_leads_the_report(runs, tmp_path, installed_lpips):
@@ -426,10 +435,41 @@ def test_installed_lpips_leads_the_report(runs, tmp_path, installed_lpips):
 # --- small units --------------------------------------------------------------------------------------------
 
 
-def test_cli_default_jitter_is_the_papers():
-    from evaluation import cli, views
+def test_default_jitter_is_the_papers():
+    """The paper's +-0.25 at radius 4: the settings' default, the flag's and the views'."""
+    from evaluation import settings, views
+    from evaluation.settings import EvalSettings
 
-    assert cli.DEFAULT_JITTER == views.DEFAULT_JITTER == 0.25
+    assert settings.DEFAULT_JITTER == views.DEFAULT_JITTER == EvalSettings().jitter == 0.25
+    assert settings.OPTIONS["jitter"].default == 0.25
+
+
+def test_settings_from_options_defaults_ranges_and_names():
+    """EvalSettings.from_options: absent (None, a false switch) is the default, each option's default gives the
+    default settings, every numeric option refuses the values just outside its range, and errors name the option."""
+    from camo_base.errors import SettingError
+    from evaluation.settings import OPTIONS, EvalSettings
+
+    assert EvalSettings.from_options({}) == EvalSettings()
+    assert EvalSettings.from_options({o: None for o in OPTIONS}) == EvalSettings()
+    assert EvalSettings.from_options({o.name: o.default for o in OPTIONS.values() if o.default is not None}) \
+        == EvalSettings()
+    s = EvalSettings.from_options({"no-planner": True, "quiet": True, "views": "7", "jitter": 1})
+    assert (s.planner, s.progress, s.views, s.jitter, s.noise_match) == (False, False, 7, 1.0, True)
+    numeric = [o for o in OPTIONS.values() if o.range is not None]
+    assert {o.name for o in numeric} == {"views", "jitter", "spp", "resolution", "seed", "threads"}
+    for o in numeric:
+        for bad in o.range.outside():
+            with pytest.raises(SettingError) as e:
+                EvalSettings.from_options({o.name: bad})
+            assert e.value.names == (o.name,) and str(e.value).startswith(f"{o.name} must be "), str(e.value)
+    with pytest.raises(SettingError, match=r"^spp\b") as e:
+        EvalSettings.from_options({"spp": "many"})
+    for bad, name in (({"viewz": 3}, "viewz"), ({"metrics": "psnr,nope"}, "metrics"), ({"weights": "lpips"}, "weights"),
+                      ({"no_planner": "yes"}, "no_planner")):
+        with pytest.raises(SettingError) as e:
+            EvalSettings.from_options(bad)
+        assert e.value.names == (name,), str(e.value)
 
 
 def test_hidden_object_gives_no_crop_scores():

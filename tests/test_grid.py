@@ -94,9 +94,21 @@ BAD_GRIDS = [
      "[optimize.mean] spp does not apply to method mean"),
     ('scenes = ["gravel"]\n[optimize]\nstages = "3"', "cell gravel__ours__s0: stages must include 1"),
     ('scenes = ["gravel"]\n[optimize.magic]\niterations = 3', "[optimize.magic]"),
-    ('scenes = ["gravel"]\n[evaluate]\njitter = 0', "[evaluate] jitter: must be a number in (0, 100]"),
+    ('scenes = ["gravel"]\n[evaluate]\njitter = 0', "[evaluate] jitter must be a number in (0, 100], got 0"),
     ('scenes = ["gravel"]\n[evaluate]\nmetrics = ["nope"]', "unknown metric(s) nope"),
     ('scenes = ["gravel"]\n[evaluate]\nrun_dirs = ["x"]', "set by the grid"),
+    # [evaluate] is made by EvalSettings.from_options: each problem names the grid's key as written
+    ('scenes = ["gravel"]\n[evaluate]\nviewz = 3', "[evaluate] unknown option 'viewz'; `camo evaluate` options: "),
+    ('scenes = ["gravel"]\n[evaluate]\nviews = "many"', "[evaluate] views must be an integer, got 'many'"),
+    ('scenes = ["gravel"]\n[evaluate]\nspp = 0', "[evaluate] spp must be an integer in [1, 1048576], got 0"),
+    ('scenes = ["gravel"]\n[evaluate]\nseed = 1.5', "[evaluate] seed must be an integer, got 1.5"),
+    ('scenes = ["gravel"]\n[evaluate]\nno-noise-match = 1', "[evaluate] no-noise-match is a flag: write true or false"),
+    ('scenes = ["gravel"]\n[evaluate]\nmetrics = ","', "[evaluate] metrics is empty"),
+    ('scenes = ["gravel"]\n[evaluate]\nmetrics = []', "[evaluate] metrics: a list must hold plain numbers or strings"),
+    ('scenes = ["gravel"]\n[evaluate]\nweights = ["lpips"]', "[evaluate] weights lpips: expected NAME=PATH"),
+    ('scenes = ["gravel"]\n[evaluate]\nlpips-weights = "a"\nweights = "lpips=b"',
+     "[evaluate] lpips-weights a: weights for lpips given twice"),
+    ('scenes = ["gravel"]\n[evaluate]\nasset = "x.glb"', "[evaluate] asset is set by the grid: an input of `camo evaluate`"),
     ('scenes = ["gravel"\n', "not valid TOML"),
 ]
 
@@ -161,6 +173,48 @@ def test_a_running_cell_is_left_alone(tmp_path, capsys):
         lock.release()
     assert camo("grid", "status", out) == 0
     assert "1 pending" in capsys.readouterr().out
+
+
+def test_cell_evaluation_settings_are_camo_evaluates_of_the_same_flags(tmp_path):
+    """A cell's evaluation settings are made from its [evaluate] options as data (no command line), and equal what
+    `camo evaluate` makes of the equivalent flags, and of the command line the cell's log shows."""
+    from evaluation.cli import settings_of
+
+    grid = load_grid(write(tmp_path / "grid.toml", """
+        scenes = ["gravel"]
+        methods = ["mean"]
+        [evaluate]
+        views = 5
+        jitter = 0.5
+        spp = 8
+        resolution = 48
+        seed = 3
+        metrics = ["psnr", "ssim", "psnr"]
+        weights = ["sifid=/w/inception.pth"]
+        lpips-weights = "/w/lpips"
+        no-noise-match = true
+        no_planner = false
+        """))
+    cell = grid.cells[0]
+    assert dict(cell.evaluate) == {"views": 5, "jitter": 0.5, "spp": 8, "resolution": 48, "seed": 3,
+                                   "metrics": "psnr,ssim,psnr", "weights": "sifid=/w/inception.pth",
+                                   "lpips_weights": "/w/lpips", "no_noise_match": True}  # (defaults left out)
+    settings = cell.evaluation_settings(threads=2)
+    flags = ["--views", "5", "--jitter", "0.5", "--spp", "8", "--resolution", "48", "--seed", "3",
+             "--metrics", "psnr,ssim,psnr", "--weights", "sifid=/w/inception.pth", "--lpips-weights", "/w/lpips",
+             "--no-noise-match", "--quiet", "--threads", "2"]
+    parser = cli.build_parser()
+    by_cli = settings_of(parser.parse_args(["evaluate", "RUN", "--out", "E", *flags]))
+    assert settings == by_cli
+    assert (settings.views, settings.jitter, settings.metrics, settings.weights, settings.noise_match,
+            settings.planner, settings.progress, settings.threads) == \
+        (5, 0.5, ["psnr", "ssim"], {"sifid": "/w/inception.pth", "lpips": "/w/lpips"}, False, True, False, 2)
+    logged = cell.evaluate_command(tmp_path / "c", 2)
+    assert settings_of(parser.parse_args(logged)) == settings
+    # no [evaluate] table: camo evaluate's defaults
+    plain = load_grid(write(tmp_path / "plain.toml", 'scenes = ["gravel"]\nmethods = ["mean"]\n')).cells[0]
+    assert plain.evaluate == () and plain.evaluation_settings() == \
+        settings_of(parser.parse_args(["evaluate", "RUN", "--out", "E", "--quiet"]))
 
 
 def test_cells_expand_and_keys_are_stable(tmp_path):

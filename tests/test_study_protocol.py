@@ -505,7 +505,7 @@ def test_adults_only_age_required(stim_dir, tmp_path, capsys):
     c.post("/consent", data={"csrf_token": tok, "consent": "yes"})
     assert re.findall(r'name="age" value="([^"]+)"', c.get("/about-you").text)[:2] == ["21-24", "25-34"]
     for low in (17, 10):
-        with pytest.raises(CamoError, match=rf"^MIN_AGE \(--min-age\) must be 18-99, not {low}: the study takes "
+        with pytest.raises(CamoError, match=rf"^MIN_AGE must be 18-99, not {low}: the study takes "
                                             "adults only$"):
             _app(stim_dir, tmp_path, MIN_AGE=low)
     key = tmp_path / "k.key"

@@ -36,8 +36,11 @@ The ``[optimize]`` options are run options (:mod:`optimizer.optimise.options`: t
 ``camo optimize``'s flags): each cell's ``{option: value}`` mapping becomes its **run spec**
 (:meth:`optimizer.optimise.spec.RunSpec.from_options`) once, when the grid is loaded; the cell stores the spec
 (``Cell.spec``, its ``to_dict``) and its worker runs it as it is (:func:`optimizer.optimise.run.run`). The
-``[evaluate]`` options are converted by the types of ``camo evaluate``'s flags into the evaluation settings the
-worker passes to :func:`evaluation.evaluate.evaluate`. No command line is made or parsed in between.
+``[evaluate]`` options are evaluation settings (:mod:`evaluation.settings`: the same names, types and ranges as
+``camo evaluate``'s setting flags): the cell stores their ``{option: value}`` mapping (``Cell.evaluate``), and
+:meth:`evaluation.settings.EvalSettings.from_options` makes the settings of it, once when the grid is loaded (a
+bad key or value is one line naming the grid's key) and again in the worker, which passes them to
+:func:`evaluation.evaluate.evaluate`. No command line is made or parsed in between.
 
 Each cell has a **key**: the first 16 hex digits of the SHA-256 of its resolved options (scene as written plus
 the pack file's SHA-256, method, ablation, seed, and the optimise and evaluate options the grid file sets, each
@@ -48,11 +51,9 @@ so the keys of grid folders written then still match.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
 import json
-import math
 import re
 import tomllib
 from pathlib import Path
@@ -78,6 +79,8 @@ RESERVED = {
     },
     "evaluate": {
         "run_dirs": "the grid evaluates each cell's run",
+        **{k: "an input of `camo evaluate`, not a setting: the grid evaluates each cell's run"
+           for k in ("asset", "triplets", "inputs", "scene", "method", "seconds", "placement")},
         "out": "the grid places every evaluation under DIR/cells/<key>/eval/",
         "threads": "set by camo grid (cores // workers)",
         "quiet": "camo grid runs cells quietly",
@@ -97,13 +100,11 @@ class Cell:
     ablation: str  # "none" or a sorted comma list
     seed: int
     spec: dict[str, Any]  # the run spec (RunSpec.to_dict()): what the cell's optimisation runs
-    evaluate: tuple[tuple[str, Any], ...]  # resolved `camo evaluate` options: (dest, value), sorted
-    evaluate_argv: tuple[str, ...]  # option arguments only (no RUN_DIR/--out/--threads)
+    evaluate: tuple[tuple[str, Any], ...]  # the evaluation settings' options (evaluation.settings): (name, value), sorted
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["evaluate"] = dict(self.evaluate)
-        d["evaluate_argv"] = list(self.evaluate_argv)
         return d
 
     @classmethod
@@ -114,7 +115,7 @@ class Cell:
                             "(finished cells keep their keys and are not run again)")
         return cls(key=d["key"], name=d["name"], scene=d["scene"], scene_label=d["scene_label"], method=d["method"],
                    ablation=d["ablation"], seed=int(d["seed"]), spec=dict(d["spec"]),
-                   evaluate=tuple(sorted(d["evaluate"].items())), evaluate_argv=tuple(d["evaluate_argv"]))
+                   evaluate=tuple(sorted(d["evaluate"].items())))  # (an older cell.json's evaluate_argv: unused)
 
     def run_spec(self):
         """The cell's :class:`optimizer.optimise.spec.RunSpec` (CamoError when the stored spec is not valid)."""
@@ -133,19 +134,21 @@ class Cell:
         return Path(cell_dir) / "eval" / self.name  # named after the cell: the report's settings list it
 
     def evaluate_command(self, cell_dir: Path, threads: int | None) -> list[str]:
-        """The ``camo evaluate`` command line equivalent to the cell's evaluation (for its log; the worker calls
-        :func:`evaluation.evaluate.evaluate` with :meth:`evaluation_settings`)."""
-        argv = ["evaluate", str(self.run_dir(cell_dir)), "--out", str(self.eval_dir(cell_dir)),
-                *self.evaluate_argv, "--quiet"]
-        if threads:
-            argv += ["--threads", str(threads)]
-        return argv
+        """The ``camo evaluate`` command line equivalent to the cell's evaluation, for its log (the worker calls
+        :func:`evaluation.evaluate.evaluate` with :meth:`evaluation_settings`, made from the options as data)."""
+        from evaluation.settings import OPTIONS
+
+        argv = ["evaluate", str(self.run_dir(cell_dir)), "--out", str(self.eval_dir(cell_dir))]
+        argv += [OPTIONS[n].flag if v is True else f"{OPTIONS[n].flag}={v}" for n, v in self.evaluate]
+        return argv + ["--quiet"] + (["--threads", str(threads)] if threads else [])
 
     def evaluation_settings(self, threads: int | None = None):
-        """The cell's :class:`evaluation.evaluate.EvalSettings` (quiet, the worker's threads)."""
-        from evaluation.cli import evaluation_settings
+        """The cell's :class:`evaluation.settings.EvalSettings` (quiet, the worker's threads), made from its
+        options (:meth:`~evaluation.settings.EvalSettings.from_options`, as ``camo evaluate`` makes them of its
+        flags)."""
+        from evaluation.settings import EvalSettings
 
-        return evaluation_settings({**dict(self.evaluate), "threads": threads, "quiet": True})
+        return EvalSettings.from_options({**dict(self.evaluate), "threads": threads, "quiet": True})
 
 
 @dataclasses.dataclass
@@ -161,21 +164,8 @@ class Grid:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# options of `camo optimize` (the run options) and `camo evaluate` (its flags' types), as data
+# options of `camo optimize` (the run options) and `camo evaluate` (the evaluation settings), as data
 # --------------------------------------------------------------------------------------------------------------
-
-
-def command_parser(command: str) -> argparse.ArgumentParser:
-    """The argparse parser of ``camo evaluate`` as its plugin registers it: its actions say each option's type,
-    choices and default (read as a schema, never given a command line)."""
-    from evaluation import cli as eval_cli
-
-    if command != "evaluate":
-        raise ValueError(f"no parser schema for camo {command}")
-    root = argparse.ArgumentParser(prog="camo")
-    sub = root.add_subparsers(dest="command")
-    eval_cli.register(sub)
-    return sub.choices[command]
 
 
 def _one_line(text: str) -> str:
@@ -213,50 +203,31 @@ def _optimize_values(table: dict[str, Any], where: str) -> dict[str, Any]:
     return values
 
 
-def _evaluate_values(table: dict[str, Any], parser: argparse.ArgumentParser, where: str
-                     ) -> tuple[dict[str, Any], list[str]]:
-    """One ``[evaluate]`` table converted by the types of ``camo evaluate``'s flags: the resolved ``{dest: value}``
-    (options equal to their default left out) and the equivalent command-line arguments (for the cell's log)."""
-    actions = {a.dest: a for a in parser._actions if a.option_strings}
+def _evaluate_values(table: dict[str, Any], where: str) -> dict[str, Any]:
+    """One ``[evaluate]`` table as evaluation setting values (:meth:`evaluation.settings.EvalOption.convert`: the
+    types and ranges of ``camo evaluate``'s flags), options equal to their default left out (the same work, the
+    same cell key), checked by making the settings of them (:meth:`evaluation.settings.EvalSettings.from_options`);
+    a problem is one line naming the grid's key."""
+    from camo_base.errors import renamed
+    from evaluation.settings import OPTIONS, EvalSettings
+
     values: dict[str, Any] = {}
+    keys: dict[str, str] = {}
     for raw_key, value in table.items():
-        dest = _check_key("evaluate", raw_key, set(actions) - {"help"}, where)
-        act = actions[dest]
-        is_flag = act.nargs == 0
-        if is_flag != isinstance(value, bool):
-            raise CamoError(f"{where}: [evaluate] {raw_key} " + (f"is a flag: write true or false, not {value!r}"
-                            if is_flag else f"must be a number, a string or a list, not {value!r}"))
-        if is_flag:
-            v: Any = value
-        else:
-            if isinstance(value, dict) or value is None:
-                raise CamoError(f"{where}: [evaluate] {raw_key} must be a number, a string or a list, not {value!r}")
-            if isinstance(value, list):
-                if not value or any(isinstance(x, (list, dict, bool)) for x in value):
-                    raise CamoError(f"{where}: [evaluate] {raw_key}: a list must hold plain numbers or strings, "
-                                    f"got {value!r}")
-                value = ",".join(str(x) for x in value)
-            if isinstance(value, float) and not math.isfinite(value):
-                raise CamoError(f"{where}: [evaluate] {raw_key} must be finite, got {value!r}")
-            try:
-                v = act.type(str(value)) if act.type is not None else str(value)
-            except argparse.ArgumentTypeError as exc:  # a Range: its message says the range and the value
-                raise CamoError(f"{where}: [evaluate] {raw_key}: {_one_line(exc)}") from None
-            except (TypeError, ValueError):
-                raise CamoError(f"{where}: [evaluate] {raw_key}: invalid value {value!r}") from None
-            if act.choices is not None and v not in act.choices:
-                raise CamoError(f"{where}: [evaluate] {raw_key} must be one of {', '.join(map(str, act.choices))}, "
-                                f"got {v!r}")
-        if v == act.default:  # the same work as leaving it out: the same cell key
+        dest = _check_key("evaluate", raw_key, set(OPTIONS) | set(RESERVED["evaluate"]), where)
+        try:
+            v = OPTIONS[dest].convert(value, str(raw_key))
+        except CamoError as exc:
+            raise CamoError(f"{where}: [evaluate] {exc}") from None
+        keys[dest] = str(raw_key)
+        if v == OPTIONS[dest].default:
             continue
         values[dest] = v
-    argv = [("--" + d.replace("_", "-")) if values[d] is True else f"--{d.replace('_', '-')}={_text(values[d])}"
-            for d in sorted(values)]
-    return values, argv
-
-
-def _text(value: Any) -> str:
-    return ",".join(str(v) for v in value) if isinstance(value, list) else str(value)
+    try:
+        EvalSettings.from_options(values)
+    except CamoError as exc:
+        raise CamoError(f"{where}: [evaluate] {renamed(exc, keys)}") from None
+    return values
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -433,7 +404,7 @@ def load_grid(path: str | Path) -> Grid:
             raise CamoError(f"{where}: [optimize.{m}]: a sub-table must be named after a method "
                             f"({', '.join(METHOD_NAMES)})")
     base_opt = {k.replace("-", "_"): v for k, v in sections["optimize"].items() if not isinstance(v, dict)}
-    eval_values, eval_argv = _evaluate_values(sections["evaluate"], command_parser("evaluate"), where)
+    eval_values = _evaluate_values(sections["evaluate"], where)
     base_values = _optimize_values(base_opt, where)
     unused = [d.replace("_", "-") for d in base_opt
               if d in base_values and not any(option_applies(m, d) for m in methods)]
@@ -468,15 +439,12 @@ def load_grid(path: str | Path) -> Grid:
                                **({"ablate": abl} if abl != "none" else {})}
                     spec = cell_spec(options, f"{where}: cell {nm}")
                     cells.append(Cell(key=key, name=nm, scene=scene_arg, scene_label=label, method=m, ablation=abl,
-                                      seed=seed, spec=spec, evaluate=tuple(sorted(eval_values.items())),
-                                      evaluate_argv=tuple(eval_argv)))
+                                      seed=seed, spec=spec, evaluate=tuple(sorted(eval_values.items()))))
     names = [c.name for c in cells]
     if len(set(names)) != len(names):  # two packs with one file name: make the run names unique
         cells = [dataclasses.replace(c, name=f"{c.name}__{c.key[:8]}") if names.count(c.name) > 1 else c
                  for c in cells]
-    grid = Grid(path=path.resolve(), name=name, cells=cells, source=source, notes=notes)
-    validate_cells(grid)
-    return grid
+    return Grid(path=path.resolve(), name=name, cells=cells, source=source, notes=notes)
 
 
 def cell_spec(options: dict[str, Any], where: str) -> dict[str, Any]:
@@ -508,16 +476,3 @@ def check_metrics_available(grid: Grid) -> None:
         except CamoError as exc:
             raise CamoError(f"{grid.path}: [evaluate]: {exc}") from None
 
-
-def validate_cells(grid: Grid) -> None:
-    """Check every cell's evaluation settings the way `camo evaluate` does (cheap: no rendering, no Mitsuba) so
-    that bad settings fail before the first cell starts (the optimisation's are checked when its run spec is
-    made)."""
-    seen_eval: set[tuple] = set()
-    for c in grid.cells:
-        if c.evaluate not in seen_eval:
-            seen_eval.add(c.evaluate)
-            try:
-                c.evaluation_settings().validate()
-            except CamoError as exc:
-                raise CamoError(f"{grid.path}: [evaluate]: {exc}") from None

@@ -17,11 +17,9 @@ This module imports nothing heavy: ``camo --help`` reads it.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
-from camo_base.errors import SettingError, literal
-from camo_base.ranges import Range
+from camo_base.ranges import Range, convert
 from optimizer.optimise.presets import DEFAULT_PRESET, PRESETS, preset_values
 
 #: Iteration cap of a stage under --time-budget when no iteration count is given (the budget ends it first).
@@ -80,41 +78,9 @@ class Option:
 
     def convert(self, value: Any, name: str | None = None) -> Any:
         """``value`` as this option's type, as argparse converts the text of the flag (a str option takes a list
-        as its comma-joined items); SettingError naming ``name`` (default: the option's name) otherwise."""
-        name = name or self.name
-        if self.kind is bool:
-            if not isinstance(value, bool):
-                raise SettingError(f"{{0}} is a flag: write true or false, not {literal(repr(value))}", name)
-            return value
-        if isinstance(value, bool) or isinstance(value, dict) or value is None:
-            raise SettingError(f"{{0}} must be {_kind_text(self)}, not {literal(repr(value))}", name)
-        if self.kind is str:
-            if isinstance(value, (list, tuple)):
-                if not value or any(isinstance(v, (list, tuple, dict, bool)) for v in value):
-                    raise SettingError(f"{{0}}: a list must hold plain numbers or strings, got {literal(repr(value))}", name)
-                value = ",".join(str(v) for v in value)
-            text = str(value)
-            if self.choices is not None and text not in self.choices:
-                raise SettingError(f"{{0}} must be one of {', '.join(self.choices)}, got {literal(repr(text))}", name)
-            return text
-        if isinstance(value, (list, tuple)):
-            raise SettingError(f"{{0}} must be {_kind_text(self)}, not {literal(repr(value))}", name)
-        if isinstance(value, float) and not math.isfinite(value):
-            raise SettingError(f"{{0}} must be finite, got {literal(repr(value))}", name)
-        try:
-            v = self.kind(value) if isinstance(value, str) or self.kind is float else value
-        except (TypeError, ValueError):
-            raise SettingError(f"{{0}} must be {_kind_text(self)}, got {literal(repr(value))}", name) from None
-        if self.kind is int and not isinstance(v, int):
-            raise SettingError(f"{{0}} must be an integer, got {literal(repr(value))}", name)
-        r = self.range
-        if r is not None:
-            r.check(v, name)
-        return v
-
-
-def _kind_text(opt: Option) -> str:
-    return {int: "an integer", float: "a number", str: "a string or a list"}.get(opt.kind, "a value")
+        as its comma-joined items; :func:`camo_base.ranges.convert`); SettingError naming ``name`` (default: the
+        option's name) otherwise."""
+        return convert(value, self.kind, name or self.name, choices=self.choices, rng=self.range)
 
 
 def _p(field: str) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 
 from camo_base import seeds
 from optimizer.rendering.appearance import AppearanceConfig, Geometry, initial_values, object_mesh
-from optimizer.rendering.planner import Plan, Planner, full_plan
+from optimizer.rendering.planner import Plan, Planner, full_plan, moves_geometry
 
 CHECKPOINT_KEY = "plan/json"
 
@@ -38,7 +38,7 @@ def run_plan(spec, pack, env, prepared, cams, app: AppearanceConfig, log=lambda 
     ``state`` (a checkpoint) when it holds one."""
     params = app.planner_params()
     if not spec.planner:
-        return full_plan("optimize", geometry=bool({"pose", "displacement"} & set(params)))
+        return full_plan("optimize", geometry=moves_geometry(params))
     if state is not None and CHECKPOINT_KEY in state:
         try:
             return Plan.from_dict(json.loads(str(state[CHECKPOINT_KEY])))
@@ -62,7 +62,7 @@ def measure_plan(pack, env, prepared, cams, app: AppearanceConfig, seed: int, sp
 
     planner = Planner()
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("pilot", seed),
-                          geometry=bool({"pose", "displacement"} & params), size=pack.object.size)
+                          geometry=moves_geometry(params), size=pack.object.size)
     pl = planner.plan(pack, env, params, "optimize", pilot, spp, shadow_gradients)
     log(f"plan: pilot {pilot.seconds:.1f} s; max_depth {pl.max_depth}, Russian roulette from {pl.rr_depth}, "
         f"region {pilot.to_dict()['region_share']:.0%} of the pilot's frames")

@@ -180,7 +180,7 @@ def _setup(spec: RunSpec, pack: ScenePack, env, rough_note: str | None, say, sta
     from optimizer.scenes.cameras import cameras
     from optimizer.rendering.placement import prepare_object
     from optimizer.optimise.planning import narrowed, run_plan
-    from optimizer.rendering.planner import full_plan
+    from optimizer.rendering.planner import full_plan, moves_geometry
 
     prepared = prepare_object(pack)
     cams = cameras(pack)
@@ -190,7 +190,7 @@ def _setup(spec: RunSpec, pack: ScenePack, env, rough_note: str | None, say, sta
     def plan_for(a: AppearanceConfig):
         params = a.planner_params()
         return narrowed(pl, pack, env, params, spec.shadow_gradients) if spec.planner else \
-            full_plan("optimize", geometry=bool({"pose", "displacement"} & params))
+            full_plan("optimize", geometry=moves_geometry(params))
 
     advice = dict(pl.reasons).get("initial roughness")
     if rough_note:

@@ -171,17 +171,6 @@ class Pilot:
         return [float(self.channel(self.obj, f"e{i}")[sel].sum()) / total
                 for i in range(min(len(self.emitters), sum(1 for n in self.names if n.startswith("e"))))]
 
-    def noise_ratio(self, pixels: np.ndarray | None = None) -> tuple[float, float]:
-        """``(with, without)``: the per-sample sRGB standard deviation (RMS over ``pixels``, default the region) of
-        the render with the object and of the background in the same pixels."""
-        sel = self.region() if pixels is None else np.asarray(pixels, bool)
-        out = []
-        for rec in (self.obj, self.bg):
-            y = self.luminance(rec)[sel]
-            var = np.maximum(self.channel(rec, f"q{self.K}")[sel] - y ** 2, 0.0)
-            out.append(float(np.sqrt(np.mean(srgb_slope(y) ** 2 * var))) if y.size else 0.0)
-        return out[0], out[1]
-
     def cost_share(self, pixels: np.ndarray) -> float:
         """The share of a full render's cost (path vertices per sample, with the object) that ``pixels`` hold."""
         n = sum(self.channel(self.obj, f"n{k}") for k in range(self.K))

@@ -47,6 +47,8 @@ from optimizer.scenes.environments import Environment
 from optimizer.scenes.scenepack import ScenePack
 
 PARAMETERS = ("pose", "displacement", "bsdf", "transmittance", "albedo")
+#: The parameters that move the object's geometry (its silhouette and shadows: projective integrators).
+GEOMETRY = ("pose", "displacement")
 PURPOSES = ("optimize", "render", "evaluate")
 
 FULL_MAX_DEPTH = FULL_DEPTH
@@ -178,9 +180,14 @@ def plan(pack: ScenePack, env: Environment, params: set[str] | frozenset[str] = 
     return _structure(pack, env, params, purpose, shadow_gradients, depth, RR_DEPTH, reasons)
 
 
+def moves_geometry(params) -> bool:
+    """Whether optimised ``params`` (:data:`PARAMETERS`) move the geometry (:data:`GEOMETRY`)."""
+    return bool(set(GEOMETRY) & set(params))
+
+
 def _structure(pack, env, params, purpose, shadow_gradients, depth, rr_depth, reasons) -> Plan:
     optimise = purpose == "optimize"
-    geometry = optimise and bool({"pose", "displacement"} & set(params))
+    geometry = optimise and moves_geometry(params)
     if geometry:
         if depth <= 2:
             integ: dict[str, Any] = {"type": "direct_projective"}
@@ -312,7 +319,7 @@ class Planner:
                          "rr_depth = max_depth would turn it off)" + (f"; paths stop at depth {depth} before it"
                                                                        if depth <= rr else "")),
         ]
-        geometry = optimise and bool({"pose", "displacement"} & set(params))
+        geometry = optimise and moves_geometry(params)
         out = _structure(pack, env, params, purpose, shadow_gradients, depth, rr, reasons)
         if geometry and pilot.sensitivity:
             sens = pilot.sensitivity

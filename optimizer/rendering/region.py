@@ -69,9 +69,6 @@ class Regions:
     def share(self) -> list[float]:
         return [float(m.mean()) for m in self.masks]
 
-    def boxes(self) -> list[tuple[int, int, int, int] | None]:
-        return [bbox(m) for m in self.masks]
-
     def to_dict(self) -> dict:
         return {"share": [round(x, 4) for x in self.share], "coverage_share": [round(x, 4) for x in self.coverage_share],
                 "bound_share": [round(x, 4) for x in self.bound_share], "steps": self.steps,
@@ -84,14 +81,6 @@ def bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
     if ys.size == 0:
         return None
     return int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
-
-
-def box_mask(box: tuple[int, int, int, int] | None, shape: tuple[int, int]) -> np.ndarray:
-    out = np.zeros(shape, bool)
-    if box is not None:
-        x0, y0, x1, y1 = box
-        out[y0:y1, x0:x1] = True
-    return out
 
 
 def dilate_px(mask: np.ndarray, radius: int) -> np.ndarray:

