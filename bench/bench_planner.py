@@ -131,10 +131,10 @@ def bench_evaluation(name: str, args) -> dict:
         bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
         t = clock()
         if not plan.region_search:  # the plan renders whole frames here
-            return render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0
+            return render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0, 0
         img, reg = render_with_region(env.build, mesh, cams, integ, spp, seed, bg, cov, plan.region_threshold,
                                       cache=cache)
-        return img, clock() - t, float(reg.masks.mean())
+        return img, clock() - t, float(reg.masks.mean()), reg.steps
 
     def full_render(spp, seed):
         t = clock()
@@ -144,7 +144,7 @@ def bench_evaluation(name: str, args) -> dict:
     base = render_seed(args.seed)
     ref, _ = full_render(args.ref_spp, base + 999)
     full_ref, _ = full_render(args.ref_spp, base + 998)  # its distance to ref: twice the reference noise
-    plan_ref, _, _ = plan_render(args.ref_spp, base + 997)
+    plan_ref, _, _, _ = plan_render(args.ref_spp, base + 997)
     ref_var = srgb_rms(full_ref, ref) ** 2 / 2.0
     bias = math.sqrt(max(srgb_rms(plan_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0))
     rows = []
@@ -154,9 +154,10 @@ def bench_evaluation(name: str, args) -> dict:
             full_render(spp, base + k)
         for rep in range(args.reps):
             seed = base + 17 * spp + rep
-            p_img, p_s, share = plan_render(spp, seed)
+            p_img, p_s, share, steps = plan_render(spp, seed)
             f_img, f_s = full_render(spp, seed)
             rows.append({"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
+                         "region_launches": steps,
                          "plan_error": math.sqrt(max(srgb_rms(p_img, ref) ** 2 - ref_var, 0.0)),
                          "full_error": math.sqrt(max(srgb_rms(f_img, ref) ** 2 - ref_var, 0.0))})
     plan_curve = _mean_curve(rows, "plan")
@@ -166,19 +167,26 @@ def bench_evaluation(name: str, args) -> dict:
     e_full = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "full").items()], s))
     t_plan = seconds_at(plan_curve, e_full)
     e_plan_at_s = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "plan").items()], s))
+    top = max(args.eval_levels)
+    equal_spp = _by_spp(rows, "full")[top][0] / _by_spp(rows, "plan")[top][0]
     return {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
             "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
             "plan_seconds_at_equal_error": t_plan, "speedup": t_full / t_plan, "rows": rows,
+            "top_spp": top, "speedup_equal_spp": equal_spp,
+            "region_launches": float(np.mean([r["region_launches"] for r in rows])),
             "plan_curve": plan_curve, "full_curve": full_curve,
             "effects": [e.to_dict() for e in plan.effects]}
 
 
 def _by_spp(rows, who):
+    """``{spp: (seconds, error)}``: the least seconds of the repetitions (what the render costs undisturbed: on a
+    shared machine a repetition can be slowed several-fold by other jobs, CPU seconds included, as threads spin
+    waiting for a core) and the mean error."""
     out = {}
     for spp in sorted({r["spp"] for r in rows}):
         rs = [r for r in rows if r["spp"] == spp]
-        out[spp] = (float(np.mean([r[f"{who}_seconds"] for r in rs])), float(np.mean([r[f"{who}_error"] for r in rs])))
+        out[spp] = (float(np.min([r[f"{who}_seconds"] for r in rs])), float(np.mean([r[f"{who}_error"] for r in rs])))
     return out
 
 
@@ -273,30 +281,66 @@ def bench_gradient(name: str, args) -> dict:
            "window_share": float(np.mean([(b[2] - b[0]) * (b[3] - b[1]) / (args.resolution ** 2)
                                           for b in first.windows])) if first.windows else 1.0,
            "rows": rows}
-    s = args.train_spp
+    return summarise_gradient(out, args.train_spp, list(kinds))
+
+
+def summarise_gradient(out: dict, train_spp: int, kinds=("plan", "full-lt", "full")) -> dict:
+    """The gradient figures of one scene from its measured ``out["rows"]`` (also run by ``--tables`` on a saved
+    JSON).
+
+    A Stage 1 step's seconds are ``a + b spp`` (a fixed part -- the loss, the AD graph, the silhouette pass, the
+    launches -- that dominates at small sizes: at 32 px a step takes about the same seconds at 1 and 8 spp), so
+    each setting's seconds are fitted by that line over its spp levels (least seconds of the repetitions per level),
+    and its cosine is interpolated in log spp (mean of the repetitions). Equal seconds: the plan's cosine at the spp
+    its line affords in full tracing's seconds at ``train_spp`` (clamped to the measured levels: ``clamped``);
+    equal cosine: the plan's seconds (its line) at the smallest spp whose cosine reaches full tracing's."""
+    rows = out["rows"]
     curves = {}
     for who in kinds:
         pts = {}
         for r in rows:
             if r["who"] == who:
                 pts.setdefault(r["spp"], []).append(r)
-        curves[who] = {spp: (float(np.mean([r["seconds"] for r in rs])), float(np.mean([r["cosine"] for r in rs])),
-                             float(np.sqrt(np.mean([r["loss_error"] ** 2 for r in rs])))) for spp, rs in pts.items()}
+        curves[who] = {spp: (float(np.min([r["seconds"] for r in rs])), float(np.mean([r["cosine"] for r in rs])),
+                             float(np.sqrt(np.mean([r["loss_error"] ** 2 for r in rs]))))
+                       for spp, rs in sorted(pts.items())}
     out["curves"] = {w: {str(k): v for k, v in c.items()} for w, c in curves.items()}
-    plan_err = [(v[0], 1.0 - v[1]) for v in curves["plan"].values()]
+    plan = curves.get("plan", {})
+    if len(plan) < 2:
+        return out
+    spps = np.array(sorted(plan), float)
+    secs = np.array([plan[k][0] for k in sorted(plan)])
+    cos = np.array([plan[k][1] for k in sorted(plan)])
+    slope, icept = np.polyfit(spps, secs, 1)
+    slope = max(float(slope), 1e-9)
+    out["plan_seconds_fit"] = {"fixed": float(icept), "per_spp": slope}
     for who in ("full", "full-lt"):
-        c = curves[who]
-        if s not in c:
+        c = curves.get(who, {})
+        if train_spp not in c:
             continue
-        t_f, cos_f, loss_f = c[s]
-        t_p = seconds_at(plan_err, 1.0 - cos_f)
-        cos_p = value_at([(v[0], v[1]) for v in curves["plan"].values()], t_f)
+        t_f, cos_f, loss_f = c[train_spp]
+        s_aff = (t_f - icept) / slope
+        clamped = not (spps[0] <= s_aff <= spps[-1])
+        s_aff = float(np.clip(s_aff, spps[0], spps[-1]))
+        cos_p = float(np.interp(math.log2(s_aff), np.log2(spps), cos))
+        reach = [k for k in range(len(spps)) if cos[k] >= cos_f]
+        if reach and reach[0] > 0:
+            k = reach[0]  # first level at or above full's cosine: interpolate the spp between it and the one before
+            t = (cos_f - cos[k - 1]) / max(cos[k] - cos[k - 1], 1e-12)
+            s_eq = float(2 ** (math.log2(spps[k - 1]) + t * (math.log2(spps[k]) - math.log2(spps[k - 1]))))
+        elif reach:
+            s_eq = float(spps[0])
+        else:
+            s_eq = float("nan")  # never reached within the measured levels
+        t_p = icept + slope * s_eq
         out[who] = {"seconds_at_spp": t_f, "cosine_at_spp": cos_f, "loss_error_at_spp": loss_f,
-                    "plan_seconds_at_equal_cosine": t_p, "speedup": t_f / t_p, "plan_cosine_at_same_seconds": cos_p,
+                    "plan_spp_at_same_seconds": s_aff, "clamped": clamped,
+                    "plan_seconds_at_equal_cosine": t_p, "speedup": t_f / t_p if t_p == t_p else float("nan"),
+                    "plan_cosine_at_same_seconds": cos_p,
                     "cosine_ratio": cos_p / cos_f if cos_f > 0 else float("nan")}
-    if s in curves["plan"]:
-        out["plan_at_spp"] = {"seconds": curves["plan"][s][0], "cosine": curves["plan"][s][1],
-                              "loss_error": curves["plan"][s][2]}
+    if train_spp in plan:
+        out["plan_at_spp"] = {"seconds": plan[train_spp][0], "cosine": plan[train_spp][1],
+                              "loss_error": plan[train_spp][2]}
     return out
 
 
@@ -332,7 +376,22 @@ def main() -> None:
     ap.add_argument("--clock", choices=tuple(CLOCK), default="cpu", help="seconds of the timed renders: the "
                     "process's CPU seconds (default: fair on a shared machine) or wall seconds")
     ap.add_argument("--out", default="bench_out")
+    ap.add_argument("--tables", nargs="+", metavar="JSON", help="print the tables of saved bench_planner.json files "
+                    "(merged in order; the gradient figures recomputed from their rows) and measure nothing")
     args = ap.parse_args()
+    if args.tables:
+        merged: dict = {}
+        for path in args.tables:
+            r = json.loads(Path(path).read_text())
+            if not merged:
+                merged = {**r, "eval": [], "grad": [], "seconds": 0.0}
+            merged["eval"] += r.get("eval", [])
+            merged["grad"] += [summarise_gradient(g, r["args"]["train_spp"]) for g in r.get("grad", [])]
+            merged["seconds"] += r.get("seconds", 0.0)
+            if r.get("grad"):
+                merged["grad_args"] = r["args"]
+        print_tables(merged)
+        return
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     args.train_levels = [int(x) for x in args.train_levels.split(",")]
     args.full_levels = [int(x) for x in args.full_levels.split(",")]
@@ -374,36 +433,58 @@ def print_tables(results: dict) -> None:
     if results["eval"]:
         print(f"(a) evaluation render, error = sRGB RMS over the frame vs full path tracing at {a['ref_spp']} spp "
               f"(its noise subtracted); equal error at full tracing's error at {a['eval_spp']} spp\n")
-        print("| scene | plan depth | region | pilot s | full s @spp | plan s @ equal error | speed-up | "
-              "bias (/255) | noise @spp (/255) |")
-        print("|---|---|---|---|---|---|---|---|---|")
+        top = results["eval"][0].get("top_spp", "top")
+        print(f"| scene | plan depth | region rendered (launches) | pilot s | full CPU s @{a['eval_spp']} spp | "
+              f"plan CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | bias (/255) | "
+              f"noise @{a['eval_spp']} spp (/255) |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for r in results["eval"]:
-            print(f"| {r['scene']} | {r['max_depth']} | {r['region_share']:.0%} | {r['pilot_seconds']:.1f} | "
-                  f"{r['full_seconds_at_spp']:.3f} | {r['plan_seconds_at_equal_error']:.3f} | {r['speedup']:.2f}x | "
-                  f"{r['bias'] * 255:.3f} | {r['noise_at_spp'] * 255:.3f} |")
+            print(f"| {r['scene']} | {r['max_depth']} | {r['region_share']:.0%} ({r.get('region_launches', 0):.1f}) | "
+                  f"{r['pilot_seconds']:.1f} | {r['full_seconds_at_spp']:.2f} | {r['plan_seconds_at_equal_error']:.2f} | "
+                  f"{r['speedup']:.2f}x | {r.get('speedup_equal_spp', float('nan')):.2f}x | {r['bias'] * 255:.3f} | "
+                  f"{r['noise_at_spp'] * 255:.3f} |")
         sp = [r["speedup"] for r in results["eval"]]
         print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x\n")
     if results["grad"]:
-        print(f"(b) Stage 1 gradient (map gradients' cosine with full tracing at {a['ref_grad_spp']} x "
-              f"{a['ref_grad_seeds']} spp); equal error at full tracing's cosine at {a['train_spp']} spp\n")
-        print("| scene | plan depth | window | vs | full s @spp | full cos | plan s @ equal cos | speed-up | "
-              "plan cos @ full's s | ratio | loss err plan / full |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        g = results.get("grad_args", a)
+        print(f"(b) Stage 1 gradient, {g['grad_views']} views at {g['grad_resolution']}^2, maps {g['map_resolution']}^2 "
+              f"(cosine of the map gradients with full tracing's at {g['ref_grad_spp']} x {g['ref_grad_seeds']} spp, "
+              f"mean of {g['reps']} probes per level); equal seconds / equal cosine at full tracing's "
+              f"{g['train_spp']} spp\n")
+        levels = sorted({int(k) for r in results["grad"] for k in r["curves"].get("plan", {})})
+        print("| scene | plan depth | window | vs | cosine plan / full at " + " | ".join(f"{k} spp" for k in levels) +
+              " | step s plan / full @" + f"{g['train_spp']} spp | plan cos in full's s (spp afforded) | ratio | "
+              "speed-up at equal cos | loss err plan / full |")
+        print("|---|---|---|---|" + "---|" * len(levels) + "---|---|---|---|---|")
         for r in results["grad"]:
             for who in ("full", "full-lt"):
                 if who not in r:
                     continue
-                w = r[who]
-                pl = r.get("plan_at_spp", {})
-                print(f"| {r['scene']} | {r['max_depth']} | {r['window_share']:.0%} | {who} | {w['seconds_at_spp']:.3f} | "
-                      f"{w['cosine_at_spp']:.3f} | {w['plan_seconds_at_equal_cosine']:.3f} | {w['speedup']:.2f}x | "
-                      f"{w['plan_cosine_at_same_seconds']:.3f} | {w['cosine_ratio']:.3f} | "
+                w, c, pl = r[who], r["curves"], r.get("plan_at_spp", {})
+                cells = " | ".join(f"{c['plan'][str(k)][1]:.3f} / {c[who][str(k)][1]:.3f}" if str(k) in c[who] else
+                                   f"{c['plan'][str(k)][1]:.3f} / -" for k in levels)
+                print(f"| {r['scene']} | {r['max_depth']} | {r['window_share']:.0%} | {who} | {cells} | "
+                      f"{pl.get('seconds', float('nan')):.2f} / {w['seconds_at_spp']:.2f} | "
+                      f"{w['plan_cosine_at_same_seconds']:.3f} ({w.get('plan_spp_at_same_seconds', float('nan')):.1f}"
+                      f"{', clamped' if w.get('clamped') else ''}) | {w['cosine_ratio']:.2f} | {w['speedup']:.2f}x | "
                       f"{pl.get('loss_error', float('nan')):.2e} / {w['loss_error_at_spp']:.2e} |")
+        print("\nAt equal spp, pooled over the levels both measured (sum of the plan's mean cosines over sum of full's; "
+              "median over the levels of the ratio of least step seconds):")
+        for r in results["grad"]:
+            c = r["curves"]
+            for who in ("full", "full-lt"):
+                common = [k for k in c.get(who, {}) if k in c.get("plan", {})]
+                if common:
+                    cp, cf = sum(c["plan"][k][1] for k in common), sum(c[who][k][1] for k in common)
+                    ts = float(np.median([c["plan"][k][0] / c[who][k][0] for k in common]))
+                    print(f"- {r['scene']} vs {who}: cosine {cp / cf:.2f} of full's, step seconds {ts:.2f} of full's "
+                          f"({', '.join(common)} spp)")
         for who in ("full", "full-lt"):
             sp = [r[who]["speedup"] for r in results["grad"] if who in r]
+            cr = [r[who]["cosine_ratio"] for r in results["grad"] if who in r]
             if sp:
-                print(f"\nvs {who}: mean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x")
-
+                print(f"\nvs {who}: speed-up at equal cosine mean {np.nanmean(sp):.2f}x, minimum {np.nanmin(sp):.2f}x; "
+                      f"cosine ratio at equal seconds mean {np.nanmean(cr):.2f}, minimum {np.nanmin(cr):.2f}")
 
 if __name__ == "__main__":
     main()

@@ -126,3 +126,34 @@ def test_masks_resize_conservatively():
     assert bbox(up) == (4, 2, 6, 4) and bbox(np.zeros((3, 3), bool)) is None
     tri = fill_hull(np.array([[1.0, 1.0], [9.0, 1.0], [1.0, 9.0], [np.nan, 0.0]]), (10, 10))
     assert tri[2, 2] and not tri[8, 8] and tri.sum() > 25
+
+
+@pytest.mark.parametrize("radius", [1, 2, 5, 17])
+def test_dilation_by_a_disc_matches_scipys_structure(radius):
+    """The distance-transform dilation is the binary dilation by the disc ``x^2 + y^2 <= r^2``, pixel for pixel."""
+    from scipy.ndimage import binary_dilation
+
+    from optimizer.rendering.region import dilate_px
+
+    m = np.random.default_rng(radius).random((40, 57)) < 0.01
+    m[0, 0] = m[-1, 30] = True  # next to the frame's edges
+    yy, xx = np.mgrid[-radius: radius + 1, -radius: radius + 1]
+    np.testing.assert_array_equal(dilate_px(m, radius), binary_dilation(m, structure=(xx**2 + yy**2) <= radius**2))
+    assert not dilate_px(np.zeros((5, 5), bool), 3).any() and dilate_px(m, 0).sum() == m.sum()
+
+
+def test_change_sees_a_mean_effect_not_noise():
+    """Zero-mean noise of +-8/255 (sRGB) does not read as a change; a 2/255 darkening does, at its full size."""
+    from camo_base.imaging import linear_to_srgb, srgb_to_linear
+
+    from optimizer.rendering.region import change
+
+    bg_srgb = np.full((12, 12, 3), 0.5)
+    checker = np.where((np.add.outer(np.arange(12), np.arange(12)) % 2)[..., None] == 0, 8.0, -8.0) / 255
+    rendered = np.ones((12, 12), bool)
+    bg = srgb_to_linear(bg_srgb)
+    noisy = change(srgb_to_linear(bg_srgb + checker), bg, rendered)
+    assert noisy[1:-1, 1:-1].max() < 1.0 / 255  # a 3 x 3 box holds 5 of one sign and 4 of the other: 8/9/255
+    shadow = change(srgb_to_linear(bg_srgb - 2.0 / 255), bg, rendered)
+    np.testing.assert_allclose(shadow, 2.0 / 255, atol=1e-4)
+    assert np.allclose(linear_to_srgb(bg), bg_srgb, atol=1e-6)

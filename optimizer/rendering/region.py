@@ -10,8 +10,8 @@ render of the same seed (the same random numbers draw the same paths there, :mod
    object's bounding box cast away from the light hit the receivers where the box's shadow falls, and the convex
    hull of their projections and of the box's projection is filled. It holds however long the shadow (a low sun)
    and wherever it falls (ground, walls) -- dilated by ``margin`` (a fraction of the image's larger side);
-2. then **grows** it: wherever the rendered set's outer border shows a change ``|srgb(with) - srgb(without)|``
-   (box-filtered over the rendered pixels, 3 x 3) above ``threshold`` (default half an 8-bit step), a ring around
+2. then **grows** it: wherever the rendered set's outer border shows a change ``srgb(with) - srgb(without)``
+   (signed, box-filtered over the rendered pixels, 3 x 3, then its magnitude: :func:`change`) above ``threshold`` (default half an 8-bit step), a ring around
    those border pixels is rendered too (``ring`` of the image's larger side, doubling at every step; once the region
    holds 3/4 of the frames, the rest), until the border is quiet: soft shadows under a sky, light the object
    reflects onto its surroundings, its colour on the ground.
@@ -84,13 +84,19 @@ def bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
 
 
 def dilate_px(mask: np.ndarray, radius: int) -> np.ndarray:
-    """Binary dilation of ``(H, W)`` by a disc of ``radius`` pixels."""
-    if radius <= 0:
-        return mask.copy()
-    from scipy.ndimage import binary_dilation
+    """Binary dilation of ``(H, W)`` by a disc of ``radius`` pixels (a pixel is set when a set pixel lies within
+    ``radius`` of it, centre to centre).
 
-    yy, xx = np.mgrid[-radius: radius + 1, -radius: radius + 1]
-    return binary_dilation(mask, structure=(xx**2 + yy**2) <= radius**2)
+    Through the exact Euclidean distance transform (scipy), O(pixels) whatever the radius: a binary dilation by a
+    disc structure costs pixels x disc area, which at the region's doubling rings (radius up to ~50 px at 96 px)
+    cost seconds per render -- more than the pixels it saved (measured on the panorama: 4 of 5.5 CPU s)."""
+    mask = np.asarray(mask, bool)
+    if radius <= 0 or not mask.any():
+        return mask.copy()
+    from scipy.ndimage import distance_transform_edt
+
+    d2 = distance_transform_edt(~mask, return_distances=True) ** 2
+    return d2 <= radius * radius + 1e-6
 
 
 def project(cam: Camera, points: np.ndarray) -> np.ndarray:
@@ -262,17 +268,20 @@ def border(rendered: np.ndarray, width: int = 2) -> np.ndarray:
 
 
 def change(image: np.ndarray, background: np.ndarray, rendered: np.ndarray) -> np.ndarray:
-    """``(H, W)``: the sRGB change ``max_c |srgb(image) - srgb(background)|`` box-filtered (3 x 3) over the rendered
-    pixels only (pixels not rendered neither count nor dilute)."""
+    """``(H, W)``: the sRGB change ``max_c |box(srgb(image) - srgb(background))|``: each channel's signed change
+    box-filtered (3 x 3) over the rendered pixels only (pixels not rendered neither count nor dilute), then its
+    magnitude. Signed before the magnitude: where a few paths of a pixel meet the object, their noise averages out
+    instead of adding up (the mean of ``|noise|`` is positive), so the region grows where the object's *mean* effect
+    is above the threshold (a shadow, a reflection: one sign over neighbouring pixels), not where its noise is."""
     from scipy.ndimage import uniform_filter
 
     from camo_base.imaging import linear_to_srgb
 
-    d = np.abs(linear_to_srgb(np.clip(image, 0, None)) - linear_to_srgb(np.clip(background, 0, None))).max(-1)
+    d = linear_to_srgb(np.clip(image, 0, None)).astype(np.float64) - linear_to_srgb(np.clip(background, 0, None))
     w = rendered.astype(np.float64)
-    num = uniform_filter(d * w, 3)
     den = uniform_filter(w, 3)
-    return np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
+    num = np.stack([uniform_filter(d[..., c] * w, 3) for c in range(d.shape[-1])], -1)
+    return np.where(den > 0, np.abs(num).max(-1) / np.maximum(den, 1e-12), 0.0)
 
 
 def render_region(render, background: np.ndarray, scene_bg, mesh, cams: Sequence[Camera], coverage: np.ndarray,
