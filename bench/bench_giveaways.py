@@ -1,16 +1,19 @@
-"""Give-away measures at equal seconds: today's map update (per-texel Adam + ``--grad-blur 2``) against the
-"large steps" update (``--map-update large_steps``) and a lower transmittance start, on the six built-in scenes.
+"""Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
+built-in scenes: the perceptual term (``lpips``: ``--perceptual 1e-3``), a lower shared IOR (``eta1.2``), a lower
+transmittance start (``today_t0.3``) and the "large steps" map update; docs/results/giveaways.md.
 
-    python bench/bench_giveaways.py --out /tmp/giveaways            # optimise (resumable), evaluate, print tables
-    python bench/bench_giveaways.py --out /tmp/giveaways --seconds 60 --eval-spp 1024 --docs docs/results
+    python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split --arms today,lpips,eta1.2 \
+        --arm-iterations lpips=20 --eval-spp 512 --docs docs/results   # optimise (resumable), evaluate, table, sheets
 
-Every arm of a scene gets the same ``--time-budget`` in the same process sequence (the machine's load moves
-absolute seconds; compare arms within one run of this script). The Mean baseline is run once per scene for the
-contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same jittered views, common
-random numbers) at ``--eval-spp`` (converged: the render noise must not count against the material); the
-give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views; the shadow share is the
-shadow's part of the crop's squared error (:mod:`evaluation.giveaway`'s object / shadow / rest split). Prints one Markdown table
-of crop PSNR, LPIPS-proxy, detail ratio and tint per scene and arm, and their means.
+Every optimised arm gets the same Stage 1 iterations (``--iterations``), or the same ``--seconds`` budget; an arm
+whose step costs more gets fewer (``--arm-iterations ARM=N``: equal seconds). The machine's load moves absolute
+seconds: compare arms within one run of this script; each run's seconds are in the table. The Mean baseline is run
+once per scene for the contact sheets. Evaluation: ``camo evaluate`` of all arms of a scene together (the same
+jittered views, common random numbers) at ``--eval-spp`` (converged: the render noise must not count against the
+material); the give-away measures (``detail_ratio``, ``tint``) are the crop rows' means over views; the shadow share
+is the shadow's part of the crop's squared error (:mod:`evaluation.giveaway`'s object / shadow / rest split); the
+real LPIPS (AlexNet) of the saved frames when its weights are installed. Prints one Markdown table per scene and arm,
+and their means; ``--docs`` also writes the contact sheets (background | arms | Mean).
 """
 
 from __future__ import annotations
@@ -27,6 +30,12 @@ ARMS = {
     "large_steps": ["--map-update", "large_steps", "--grad-blur", "0"],
     "large_steps_t0.3": ["--map-update", "large_steps", "--grad-blur", "0", "--init", "transmittance=0.3"],
     "today_t0.3": ["--init", "transmittance=0.3"],
+    # the perceptual term (optimizer/optimise/perceptual.py): weight 1e-3 makes its gradient about twice the
+    # squared error's at a converged meadow run (rms over the body's pixels: 6.1e-3 x W against 2.7e-6)
+    "lpips": ["--perceptual", "1e-3"],
+    # a lower shared index of refraction: less Fresnel reflection of the sky on the transmissive parts, and what is
+    # seen through them is displaced less (the glassy tint, point 3 of the issue)
+    "eta1.2": ["--eta", "1.2"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -37,23 +46,25 @@ def camo(*args: str) -> None:
     subprocess.run(cmd, check=True)
 
 
-def optimise(out: Path, scene: str, arms, budget: list[str]) -> None:
-    for arm in [*arms, "mean"]:
+def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
+             iterations: dict[str, int] | None = None) -> None:
+    for arm in [*arms, "mean"] if mean else arms:
         run = out / "runs" / f"{scene}-{arm}"
         if (run / "config.toml").is_file():
             continue
         if arm == "mean":
             camo("optimize", scene, "--method", "mean", "--out", str(run), *SIZE, "--quiet")
         else:
-            camo("optimize", scene, "--out", str(run), *SIZE, "--displacement-resolution", "64", *budget,
+            own = ["--iterations", str(iterations[arm])] if iterations and arm in iterations else budget
+            camo("optimize", scene, "--out", str(run), *SIZE, "--displacement-resolution", "64", *own,
                  *ARMS[arm], "--quiet")
 
 
-def evaluate(out: Path, scene: str, arms, spp: int, views: int) -> None:
-    ev = out / "eval" / scene
+def evaluate(out: Path, scene: str, arms, spp: int, views: int, into: str = "eval", mean: bool = True) -> None:
+    ev = out / into / scene
     if (ev / "metrics.parquet").is_file():
         return
-    runs = [str(out / "runs" / f"{scene}-{a}") for a in [*arms, "mean"]]
+    runs = [str(out / "runs" / f"{scene}-{a}") for a in ([*arms, "mean"] if mean else arms)]
     camo("evaluate", *runs, "--out", str(ev), "--spp", str(spp), "--views", str(views),
          "--metrics", "psnr,lpips_proxy,detail_ratio,tint", "--quiet")
 
@@ -65,6 +76,25 @@ def _seconds_per_iteration(run: Path) -> float:
     secs = [r["seconds"] for r in map(json.loads, (run / "log.jsonl").read_text().splitlines())
             if r.get("stage") == 1 and "seconds" in r] if (run / "log.jsonl").is_file() else []
     return float(sorted(secs)[len(secs) // 2]) if secs else float("nan")  # median: the first one compiles
+
+
+def real_lpips(renders: Path) -> float:
+    """Mean real LPIPS (v0.1, AlexNet, installed weights) of a run's evaluation renders, with against without the
+    object, over the whole 64 px frames (the saved PNGs; NaN when the weights are not installed)."""
+    import numpy as np
+    from PIL import Image
+
+    try:
+        from evaluation.metrics.lpips import load_lpips, lpips
+        model = load_lpips("alex")
+    except Exception:  # noqa: BLE001 - weights missing: the column says NaN
+        return float("nan")
+    vals = []
+    for o in sorted(renders.glob("view_*_obj.png")):
+        x = np.asarray(Image.open(o).convert("RGB"), np.float32) / 255
+        y = np.asarray(Image.open(o.with_name(o.name.replace("_obj", "_bg"))).convert("RGB"), np.float32) / 255
+        vals.append(float(lpips(x, y, model)[0]))
+    return float(np.mean(vals)) if vals else float("nan")
 
 
 def table(out: Path, scenes, arms) -> str:
@@ -93,38 +123,47 @@ def table(out: Path, scenes, arms) -> str:
             rows.append({"scene": scene, "arm": arm, "psnr": r.psnr.mean(), "lpips_proxy": r.lpips_proxy.mean(),
                          "shadow": float((sp.sqerr_shadow / parts).mean()),
                          "detail_ratio": r.detail_ratio.mean(), "tint": r.tint.mean(),
+                         "lpips": next((real_lpips(d / "renders" / f"{scene}-{arm}") for d in evals
+                                        if (d / "renders" / f"{scene}-{arm}").is_dir()), float("nan")),
                          "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
                          "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}")})
     df = pd.DataFrame(rows)
-    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | method s | s / Stage 1 it |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | LPIPS (frame)↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | "
+             "method s | s / Stage 1 it |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in df.itertuples():
-        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.detail_ratio:.2f} | "
+        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.lpips:.3f} | {r.detail_ratio:.2f} | "
                      f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
     for arm, g in df.groupby("arm", sort=False):
-        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | "
+        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
                      f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
                      f"{g.s_per_it.mean():.2f} |")
     return "\n".join(lines)
 
 
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
-          "today_t0.3": "ours, T0=0.3",
+          "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "mean": "Mean"}
 
 
 def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path:
     """One PNG per scene: a row per evaluation view, columns background | each arm | Mean (the converged
-    evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible)."""
+    evaluation renders, nearest-neighbour zoomed so single-pixel speckle stays visible). An arm's renders are
+    looked up in ``ev`` and then in the other ``eval*/SCENE`` directories beside it (arms evaluated later, same
+    seed: the same views)."""
     import numpy as np
     from PIL import Image, ImageDraw
 
-    arms = [a for a in arms if (ev / "renders" / f"{scene}-{a}").is_dir()]  # the arms this evaluation has
-    cols = [("background", f"{scene}-{arms[0]}", "bg")] + [(LABELS.get(a, a), f"{scene}-{a}", "obj")
-                                                           for a in [*arms, "mean"]]
-    views = sorted({p.name[:7] for p in (ev / "renders" / f"{scene}-{arms[0]}").glob("view_*_obj.png")})
-    tiles = [[np.asarray(Image.open(ev / "renders" / run / f"{v}_{kind}.png").convert("RGB")) for _, run, kind in cols]
-             for v in views]
+    dirs = [ev, *(d for d in sorted(ev.parent.parent.glob(f"eval*/{scene}")) if d != ev)]
+    where = {}
+    for a in [*arms, "mean"]:
+        found = next((d / "renders" / f"{scene}-{a}" for d in dirs if (d / "renders" / f"{scene}-{a}").is_dir()), None)
+        if found is not None:
+            where[a] = found
+    arms = [a for a in arms if a in where]
+    cols = [("background", where[arms[0]], "bg")] + [(LABELS.get(a, a), where[a], "obj")
+                                                      for a in [*arms, "mean"] if a in where]
+    views = sorted({p.name[:7] for p in where[arms[0]].glob("view_*_obj.png")})
+    tiles = [[np.asarray(Image.open(d / f"{v}_{kind}.png").convert("RGB")) for _, d, kind in cols] for v in views]
     h, w = tiles[0][0].shape[:2]
     th, tw, pad, top = h * zoom, w * zoom, 4, 22
     sheet = Image.new("RGB", (len(cols) * (tw + pad) + pad, top + len(views) * (th + pad) + pad), (255, 255, 255))
@@ -147,8 +186,14 @@ def main(argv=None) -> int:
     ap.add_argument("--arms", default=",".join(ARMS))
     ap.add_argument("--iterations", type=int, default=24, help="Stage 1 iterations of every optimised arm")
     ap.add_argument("--seconds", type=float, help="instead: this time budget for every optimised arm")
+    ap.add_argument("--arm-iterations", default="", help="ARM=N,...: Stage 1 iterations of these arms (equal "
+                    "seconds for an arm whose iteration costs more, e.g. lpips=20)")
+    ap.add_argument("--no-mean", action="store_true", help="do not run the Mean baseline (another run of this "
+                    "script does)")
     ap.add_argument("--eval-spp", type=int, default=512)
     ap.add_argument("--eval-views", type=int, default=4)
+    ap.add_argument("--eval-dir", default="eval", help="evaluate into OUT/EVAL_DIR/SCENE (arms added later: "
+                    "eval_NAME; the table and the contact sheets read every eval*/SCENE)")
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
@@ -157,9 +202,10 @@ def main(argv=None) -> int:
     budget = ["--time-budget", str(a.seconds)] if a.seconds else ["--iterations", str(a.iterations)]
     for scene in scenes:  # scene by scene, so that a partial run already gives whole rows
         if a.phase in ("all", "optimize"):
-            optimise(out, scene, arms, budget)
+            own = dict((k, int(v)) for k, v in (p.split("=") for p in a.arm_iterations.split(",") if p))
+            optimise(out, scene, arms, budget, mean=not a.no_mean, iterations=own)
         if a.phase in ("all", "evaluate"):
-            evaluate(out, scene, arms, a.eval_spp, a.eval_views)
+            evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
         text = table(out, scenes, arms)
         print(text)

@@ -497,7 +497,8 @@ def test_every_flag_lands_in_its_spec_field():
             "pose", "--init", "albedo=0.3", "--iterations", "5", "--stage2-iterations", "6", "--method", "ours",
             "--holdout-views", "3", "--holdout-every", "7", "--holdout-spp", "5", "--patience", "2",
             "--pose-search", "5", "--average", "0.8", "--roughness-search", "0.4,0.6", "--loss-clamp", "4",
-            "--grad-clip", "2", "--init-search", "on"]
+            "--grad-clip", "2", "--init-search", "on", "--perceptual", "0.002", "--perceptual-net", "vgg",
+            "--eta", "1.3"]
     assert {a[2:].replace("-", "_") for a in argv if a.startswith("--")} - {"out"} == set(OPTIONS) - {"scene"}
     d = spec_of(*argv).to_dict()
     assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
@@ -508,13 +509,14 @@ def test_every_flag_lands_in_its_spec_field():
     assert d["stage1"] == {"iterations": 5, "loss": "mse", "alpha": 1.0, "eps": 0.01, "domain": "frame",
                            "domain_dilate": 0.04, "shadow_threshold": 0.05, "silhouette_every": 2, "warm_start": False,
                            "pose_search": 5, "lr_schedule": "cosine", "lr_floor": 0.1, "average": 0.8,
-                           "roughness_search": [0.4, 0.6], "loss_clamp": 4.0, "grad_clip": 2.0, "init_search": True}
+                           "roughness_search": [0.4, 0.6], "loss_clamp": 4.0, "grad_clip": 2.0, "init_search": True,
+                           "perceptual": 0.002, "perceptual_net": "vgg"}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]
     assert (app["lr_maps"], app["lr_displacement"], app["displacement_bound"], app["map_resolution"],
             app["displacement_resolution"], app["pose"], app["grad_blur"]) == (0.02, 0.03, 0.01, 40, 20, False, 1.5)
-    assert (app["map_update"], app["map_smoothness"]) == ("large_steps", 4.0)
+    assert (app["map_update"], app["map_smoothness"], app["eta"]) == ("large_steps", 4.0, 1.3)
     assert d["holdout"] == {"views": 3, "every": 7, "spp": 5, "patience": 2, "noise_spp": 64}
     pack = d["pack"]
     assert pack["cameras"]["views"] == 3 and pack["render"] == {"resolution": [16, 16]}

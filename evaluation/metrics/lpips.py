@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Union
 
+import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -244,6 +245,39 @@ def lpips_map(x: ImageLike, y: ImageLike, model: Optional[LPIPSNet] = None, **fi
     model = _model(model, files.get("net", "alex"), files.get("trunk"), files.get("lin"))
     with torch.no_grad():
         return torch.cat([model.spatial(x[s], y[s])[:, 0] for s in chunks(x, LPIPS_CHUNK_PIXELS)])
+
+
+def srgb_encode(x: torch.Tensor) -> torch.Tensor:
+    """Linear radiance -> sRGB ``[0, 1]`` (clipped first), differentiable: :func:`camo_base.imaging.linear_to_srgb`
+    on tensors (the power's base is kept above 1e-8 so its derivative stays finite)."""
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-8) ** (1.0 / 2.4) - 0.055)
+
+
+def lpips_linear_grad(net: str = "alex", model: Optional[LPIPSNet] = None) -> Callable:
+    """``fn(x, y) -> (values, grad)`` on float32 ``(N, H, W, 3)`` **linear** renders ``x`` and targets ``y``: the
+    LPIPS of their sRGB encodings (:func:`srgb_encode`, as the evaluation's PNGs) and its derivative with respect to
+    ``x`` (``(N, H, W, 3)``; zero where ``x`` is clipped). The optimiser's perceptual term
+    (:mod:`optimizer.optimise.perceptual`, registered by ``import camo``) calls it; H, W >= 32.
+
+    >>> import numpy as np
+    >>> fn = lpips_linear_grad("alex")  # doctest: +SKIP
+    >>> v, g = fn(np.full((1, 32, 32, 3), .2, np.float32), np.full((1, 32, 32, 3), .2, np.float32))  # doctest: +SKIP
+    >>> float(v[0]), float(abs(g).max())  # doctest: +SKIP
+    (0.0, 0.0)
+    """
+    model = load_lpips(net) if model is None else model
+
+    @metric_thread_policy
+    def fn(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xt = torch.from_numpy(np.ascontiguousarray(x, np.float32)).permute(0, 3, 1, 2).requires_grad_(True)
+        yt = torch.from_numpy(np.ascontiguousarray(y, np.float32)).permute(0, 3, 1, 2)
+        with torch.enable_grad():
+            v = model(srgb_encode(xt), srgb_encode(yt))
+            (g,) = torch.autograd.grad(v.sum(), xt)
+        return v.detach().numpy().astype(np.float64), g.permute(0, 2, 3, 1).contiguous().numpy()
+
+    return fn
 
 
 # --------------------------------------------------------------------------------------------------------------

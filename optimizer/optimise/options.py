@@ -34,11 +34,13 @@ RANGES: dict[str, Range] = {
     "stage1.pose_search": Range(int, 0, 3600),
     "stage1.average": Range(float, 0.0, 0.999),
     "stage1.loss_clamp": Range(float, 0.0, 1e6), "stage1.grad_clip": Range(float, 0.0, 1e6),
+    "stage1.perceptual": Range(float, 0.0, 1e3),
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
     "time_budget": Range(float, 0.0, None, lo_open=True),
     "appearance.map_resolution": Range(int, 8, 16384), "appearance.displacement_resolution": Range(int, 8, 16384),
     "appearance.displacement_bound": Range(float, 0.0, 0.5),
+    "appearance.eta": Range(float, 1.0, 4.0, lo_open=True),
     "appearance.lr_maps": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.lr_displacement": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.grad_blur": Range(float, 0.0, 64.0),
@@ -133,6 +135,12 @@ def _options() -> tuple[Option, ...]:
         o("grad_clip", "stage1.grad_clip", float,
           "clip each parameter's gradient to this many times its running norm, so one glint's step cannot move a "
           "whole map (0: off)" + _p("stage1.grad_clip"), metavar="FACTOR"),
+        o("perceptual", "stage1.perceptual", float,
+          "add this weight times the mean LPIPS of each Stage 1 render against its background target to the loss "
+          "(sees texture the per-pixel loss misses: a too smooth or speckled body; needs the LPIPS weights)"
+          + _p("stage1.perceptual") + "; 0: off", metavar="WEIGHT"),
+        o("perceptual_net", "stage1.perceptual_net", str, "the LPIPS trunk of --perceptual"
+          + _p("stage1.perceptual_net"), choices=("alex", "vgg")),
         o("init_search", "stage1.init_search", str,
           "when --init sets maps, also warm-start the start the run takes without it (at each starting roughness of "
           "the preset's search) and start from whichever scores best on the held-out views"
@@ -177,6 +185,9 @@ def _options() -> tuple[Option, ...]:
         o("map_resolution", "appearance.map_resolution", int, "BSDF map resolution (default 800, the paper's)"),
         o("displacement_resolution", "appearance.displacement_resolution", int,
           "displacement map resolution (default 256)"),
+        o("eta", "appearance.eta", float,
+          "index of refraction shared by the whole surface (default 1.5, the paper's; it sets the Fresnel reflection "
+          "of the transmissive parts and how far they displace what is seen through them)", metavar="IOR"),
         o("displacement_bound", "appearance.displacement_bound", float,
           "displacement amplitude bound, fraction of object size (default 0.02)"),
         o("target_vertices", "pack.object.target_vertices", int, "remeshing target (paper: ~30,000)"),

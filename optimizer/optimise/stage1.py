@@ -86,6 +86,10 @@ class Stage1Settings:
     grad_clip: float = 0.0
     # when `init` set maps: also try the start without it (warm-started) on the held-out views (startsearch.py)
     init_search: bool = False
+    # > 0: add this weight x the mean LPIPS of the views' renders against their targets (optimizer/optimise/
+    # perceptual.py: texture the per-pixel losses miss, issue 29); 0: off
+    perceptual: float = 0.0
+    perceptual_net: str = "alex"  # or "vgg": the LPIPS v0.1 trunk of the perceptual term
 
 
 @dataclasses.dataclass
@@ -231,6 +235,8 @@ class Stage1:
         self.opt = None  # built by build()
         self.windows: list[tuple[int, int, int, int]] | None = None  # per view, the training render's window (build)
         self._batched = uses_batch(plan.integrator)
+        self._perceptual = None  # the perceptual term's network (build)
+        self._last_perceptual = 0.0
 
     # --- preparation: the named steps ------------------------------------------------
     def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
@@ -314,6 +320,12 @@ class Stage1:
         self._bg = [mi.TensorXf(self._tonemap_np(b)) for b in bg]
         self._bg_linear = [mi.TensorXf(b) for b in bg] if self.white is not None else self._bg
         self._batch_key = None
+        self._perceptual = None  # the perceptual term's network (Stage 1 only; optimizer/optimise/perceptual.py)
+        if getattr(self.cfg, "perceptual", 0.0) > 0 and self.STAGE == 1:
+            from optimizer.optimise.perceptual import network
+
+            self._perceptual = network(self.cfg.perceptual_net)
+            self._bg_np = [np.ascontiguousarray(b, np.float32) for b in bg]
         dr.eval()
         return self
 
@@ -574,6 +586,10 @@ class Stage1:
                 has_terms = True
                 lum, chroma = dr.detach(terms.luminance), dr.detach(terms.chroma)
             photo = dr.detach(total)
+            if self._perceptual is not None:
+                W = self.cams[0].width
+                _, perc = self._perceptual_surrogate([img], [(v, slice(v * W, (v + 1) * W)) for v in views])
+                total = total + perc
             dr.backward(total)
         else:
             # One backward per iteration: the parameter mapping (displacement sampling, pose, roughness
@@ -587,9 +603,11 @@ class Stage1:
             self._apply()
             self._choose_silhouette_views(views)
             total = mi.Float(0.0)
+            imgs = []
             for v in views:
                 s, sg = self._seeds(v)
                 img = mi.render(self.scene, self.params, sensor=v, spp=self.render_spp, seed=s, seed_grad=sg)
+                imgs.append(img)
                 lv, terms = self._view_loss(img, v)
                 total += lv / V
                 if self.white is not None:
@@ -600,9 +618,46 @@ class Stage1:
                     chroma += dr.detach(terms.chroma) / V
             photo = dr.detach(total)
             dr.schedule(photo, lum, chroma, linear)
+            if self._perceptual is not None:
+                _, perc = self._perceptual_surrogate(imgs, [(v, None) for v in views])
+                total = total + perc
             if dr.grad_enabled(total):
                 dr.backward(total)
         return float(photo[0]), float(lum[0]), float(chroma[0]), float(linear[0]), has_terms
+
+    def _perceptual_surrogate(self, imgs, parts) -> tuple[float, Any]:
+        """The perceptual term (:mod:`optimizer.optimise.perceptual`) of this step's renders: ``imgs`` are the
+        renders (one per view, or the batch film once), ``parts`` ``(view, columns of the film or None)``. Reads
+        the renders back once, gets the mean LPIPS over the views and its gradient from the network, and returns
+        ``(weight x mean LPIPS, surrogate)``: a Dr.Jit scalar ``weight / V x sum(I * G)`` whose gradient with
+        respect to the scene parameters is the term's; its value is not the term's (logged separately as
+        ``self._last_perceptual``)."""
+        import drjit as dr
+        import mitsuba as mi
+
+        from optimizer.optimise.perceptual import perceptual_grad
+
+        dr.eval(*imgs)
+        arrays = [dr_numpy(dr.detach(i)) for i in imgs]
+        film = len(imgs) == 1 and parts[0][1] is not None
+        xs = [arrays[0][:, cols] if film else arrays[k] for k, (_, cols) in enumerate(parts)]
+        ys = [self._bg_np[v] for v, _ in parts]
+        if len({x.shape for x in xs}) == 1:  # one batch for the network
+            values, grads = perceptual_grad(self._perceptual, np.stack(xs), np.stack(ys))
+        else:  # training windows of different sizes: one call per view
+            pairs = [perceptual_grad(self._perceptual, x[None], y[None]) for x, y in zip(xs, ys)]
+            values, grads = np.concatenate([p[0] for p in pairs]), [p[1][0] for p in pairs]
+        w = float(self.cfg.perceptual) / len(parts)
+        self._last_perceptual = w * float(np.sum(values))
+        if film:
+            g = np.zeros_like(arrays[0])
+            for k, (_, cols) in enumerate(parts):
+                g[:, cols] = grads[k]
+            return self._last_perceptual, dr.sum(imgs[0].array * mi.Float(g.ravel() * w))
+        surrogate = mi.Float(0.0)
+        for img, g in zip(imgs, grads):
+            surrogate += dr.sum(img.array * mi.Float(np.ascontiguousarray(g).ravel() * w))
+        return self._last_perceptual, surrogate
 
     def step(self) -> dict[str, Any]:
         import drjit as dr
@@ -642,6 +697,8 @@ class Stage1:
             rec["grad_clipped"] = sorted(self.opt.clipped)
         if has_terms:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
+        if self._perceptual is not None:
+            rec["loss_perceptual"] = self._last_perceptual  # weight x mean LPIPS of the step's views
         self.history.append(rec)
         return rec
 
