@@ -2,13 +2,14 @@
 and the method pairs where a proxy and LPIPS disagree about which method hides better; plus where the object gives
 itself away (object / shadow / rest) per scene and method. Writes ``docs/results/metric_agreement.md``.
 
-    camo grid run grids/real_cross.toml --out grid_real_cross --workers 2
+    camo grid run grids/real_cross_quick.toml --out grid_real_cross_quick --workers 1   # all 64 real pairs, cheaply
     camo grid run grids/all_scenes.toml --out grid_all --workers 2
-    python bench/metric_agreement.py --grid real_cross=grid_real_cross --grid built-in=grid_all \\
-        --out docs/results/metric_agreement.md --figure built-in:meadow --figure real_cross:real-sky-duck
+    python bench/metric_agreement.py --grid real_cross_quick=grid_real_cross_quick --grid built-in=grid_all \\
+        --out docs/results/metric_agreement.md --figure 'built-in:meadow=what the pictures show'
 
+(``grids/real_cross.toml``, the same 64 pairs at the shipped settings, is read the same way when it has been run.)
 Reads the evaluation directories of the grids' finished cells (``cells/*/eval/*``; an unfinished grid gives what
-has finished, and the page says how many cells that is); the object / shadow / rest columns are recomputed from
+has finished, and the page says how many cells and how many scenes with every method that is); the object / shadow / rest columns are recomputed from
 their saved renders with this checkout's ``evaluation/giveaway.py``. Rows: the object crop (GANmouflage protocol). Every
 metric is oriented as a distance (lower = hides better): PSNR and SSIM enter negated, so a positive correlation
 means agreement with LPIPS. Per scene, the correlations run over that scene's crop rows (every method's views);
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
+import shlex
 import sys
 from itertools import combinations
 from pathlib import Path
@@ -60,6 +62,20 @@ def resplit(df, dirs: list[Path]):
     new = pd.concat(parts, ignore_index=True)
     df = df.drop(columns=[c for c in SPLIT_COLUMNS if c in df.columns])
     return df.merge(new, on=["_eval_dir", "run", "view", "region"], how="left")
+
+
+def coverage(grid: Path) -> tuple[int, int, int]:
+    """Of a grid folder's scenes (``cells/*/cell.json``, grouped by the scene as the grid wrote it): how many have
+    every one of their cells evaluated, how many at least one, and how many there are. A scene ranks methods only
+    when all its methods finished, so this is the coverage the page states (a stopped grid: the finished prefix)."""
+    import json
+
+    done: dict[str, list[bool]] = {}
+    for cj in grid.glob("cells/*/cell.json"):
+        cell = json.loads(cj.read_text(encoding="utf-8"))
+        finished = any(cj.parent.glob("eval/*/metrics.parquet"))
+        done.setdefault(cell["scene_label"], []).append(finished)
+    return (sum(all(v) for v in done.values()), sum(any(v) for v in done.values()), len(done))
 
 
 def load(grid: Path):
@@ -182,19 +198,24 @@ def giveaway_rows(df) -> list[str]:
     return lines
 
 
+def _scenes(grid: Path) -> str:
+    full, some, total = coverage(grid)
+    return f"{full} of {total} scenes with every method" + (f", {some - full} partly" if some > full else "")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", action="append", required=True, metavar="NAME=DIR", help="a camo grid output folder")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results" / "metric_agreement.md")
-    ap.add_argument("--figure", action="append", default=[], metavar="NAME:SCENE",
-                    help="write the LPIPS heat-map figure of this grid's scene next to --out")
+    ap.add_argument("--figure", action="append", default=[], metavar="NAME:SCENE[=TEXT]",
+                    help="write the LPIPS heat-map figure of this grid's scene next to --out; TEXT (what the "
+                         "pictures show: which metric agrees with the eye) is printed under it")
     ap.add_argument("--giveaway-scenes", type=int, default=12, help="scenes per grid in the give-away table")
     ap.add_argument("--about", action="append", default=[], metavar="NAME=TEXT",
                     help="a sentence under grid NAME's heading (which grid file, which subset of what it stands for)")
     args = ap.parse_args(argv)
     about = dict(a.partition("=")[::2] for a in args.about)
-    command = " ".join(["python bench/metric_agreement.py", *(f"'{a}'" if " " in a else a
-                                                               for a in (sys.argv[1:] if argv is None else argv))])
+    command = "python bench/metric_agreement.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     from evaluation.giveaway_report import heatmap_figure
 
     grids = {}
@@ -203,7 +224,8 @@ def main(argv=None) -> int:
         grids[name] = (Path(d), *load(Path(d)))
     md = ["# Do the weight-free metrics agree with LPIPS? (issue 31)", "",
           f"Generated on {datetime.date.today().isoformat()} by", "", "```bash", command, "```", "", "from "
-          + ", ".join(f"`{n}` ({done} of {total} cells finished)" for n, (_, _, done, total) in grids.items())
+          + ", ".join(f"`{n}` ({done} of {total} cells finished; {_scenes(d)})" for n, (d, _, done, total)
+                      in grids.items())
           + ". Object crop; LPIPS = LPIPS v0.1 AlexNet on the installed weights (docs/evaluation.md). "
           "Each metric is oriented as a distance (PSNR and SSIM negated): +1 = the same order as LPIPS. "
           "τ = Kendall's tau-b, ρ = Spearman's rho; per scene over that scene's crop rows (every method's "
@@ -241,16 +263,20 @@ def main(argv=None) -> int:
         keep = sorted(df["scene"].unique())[: args.giveaway_scenes]
         md += [*giveaway_rows(df.loc[df["scene"].isin(keep)]), ""]
     for spec in args.figure:
+        spec, _, caption = spec.partition("=")
         name, _, scene = spec.partition(":")
+        if name not in grids:
+            raise SystemExit(f"--figure {spec}: no --grid named {name!r}")
         d, df_all, _, _ = grids[name]
         from evaluation.report import load_metrics
 
         full = load_metrics(eval_dirs(d))
         path = heatmap_figure(full, [], args.out.parent / "_fig", scene)
         if path is not None:
-            target = args.out.parent / f"giveaway_{Path(scene).name}.png"
+            target = args.out.parent / f"giveaway_{name}_{Path(scene).name}.png"
             path.replace(target)
-            md += [f"![{scene}: object crop and LPIPS spatial map per method](giveaway_{Path(scene).name}.png)", ""]
+            md += [f"![{scene}: object crop and LPIPS spatial map per method]({target.name})", "",
+                   *([f"**{name}, {scene}.** {caption}", ""] if caption else [])]
     fig_dir = args.out.parent / "_fig"
     if fig_dir.exists():
         import shutil

@@ -577,6 +577,23 @@ def test_unpinned_registry_entry_is_refused_then_pinned(server, fixtures, cli, t
     assert sun["sha256"] == sha(exp) and sun["size"] == len(exp) and (dest / "sun.exr").read_bytes() == exp
 
 
+def test_real_cross_quick_grid_is_the_cross_in_diagonal_blocks():
+    """grids/real_cross_quick.toml (the agreement page's cheap cross): the same 64 packs as grids/real_cross.toml,
+    four methods so that each pair ranks methods, and ordered in blocks of 8 (HDRI i with object i + k) that each
+    hold every HDRI and every object once, so a grid stopped after whole blocks is balanced."""
+    full = tomllib.loads((REPO / "grids" / "real_cross.toml").read_text())
+    quick = tomllib.loads((REPO / "grids" / "real_cross_quick.toml").read_text())
+    assert sorted(quick["scenes"]) == sorted(full["scenes"]) and len(set(quick["scenes"])) == 64
+    assert quick["methods"] == ["ours", "mean", "random", "transparent"]
+    pairs = [Path(s).stem.split("-") for s in quick["scenes"]]
+    hdris = [h for h, _ in pairs[:8]]
+    objects = [o for _, o in pairs[:8]]
+    assert len(set(hdris)) == len(set(objects)) == 8
+    for k in range(8):
+        assert pairs[8 * k: 8 * k + 8] == [[hdris[i], objects[(i + k) % 8]] for i in range(8)]
+    assert (quick["optimize"]["views"], quick["optimize"]["resolution"], quick["evaluate"]["views"]) == (4, 64, 4)
+
+
 def test_real_cross_grid_crosses_every_hdri_with_every_object():
     """grids/real_cross.toml: the 8 HDRIs x 8 objects of the pairs, each pack holding the HDRI and mesh its name
     says (packs/real/cross/<hdri>-<object>.toml, from make_packs.py; read as TOML: CI has no data/real)."""
