@@ -46,6 +46,7 @@ rule.
     python bench/bench_equal_seconds.py --jobs 2 --write            # six scenes, 3 seeds, 60 CPU s: the doc's table
     python bench/bench_equal_seconds.py --scenes occluded --seeds 0,1,2,3,4 --budget 90
     python bench/bench_equal_seconds.py --rows runs.json --write    # re-table an earlier --json, no runs
+    python bench/bench_equal_seconds.py --rows a.json b.json --write # merge runs made at different times
     python bench/bench_equal_seconds.py --variants before,after,no-clamp --scenes occluded
 
 Without ``--write`` nothing but the printed table and (``--json``) the per-run rows is written.
@@ -62,7 +63,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -272,18 +273,52 @@ def table(rows: list[dict[str, Any]], variants: list[str]) -> str:
     return head + "\n".join(lines) + "\n\n" + diff_head + "\n".join(diff_lines) + "\n"
 
 
-def report(rows: list[dict[str, Any]], variants: list[str], meta: dict[str, Any], write: str | None) -> int:
+def _made(meta: dict[str, Any]) -> str:
+    """How one invocation ran: its seconds, processes at a time and load average."""
+    return (f"{meta['seconds']:.0f} s in all ({meta.get('jobs', 1)} at a time), load average "
+            f"{meta['load_start']:.1f} at the start and {meta['load_end']:.1f} at the end")
+
+
+def report(rows: list[dict[str, Any]], variants: list[str], metas: list[dict[str, Any]], write: str | None) -> int:
+    """Print (and with ``write``, regenerate the block of) the table; ``metas``: one per invocation whose rows
+    these are (several when ``--rows`` merges runs made at different times, each named by its scenes)."""
     budget = ", ".join(sorted({f"{r['budget']:g} s" for r in rows}))
     text = table(rows, variants)
+    made = (_made(metas[0]) if len(metas) == 1 else
+            "; ".join(f"{', '.join(m['scenes'])}: {_made(m)}" for m in metas))
     text += (f"\n{len(rows)} runs of `--time-budget {budget}` (CPU seconds of one LLVM thread), {SIZES['views']} "
              f"views at {SIZES['resolution']} px; "
              f"scored on {EVAL_VIEWS} jittered views at {EVAL_SPP} spp (evaluation seed {EVAL_SEED}); "
-             f"{meta['seconds']:.0f} s in all ({meta.get('jobs', 1)} at a time), load average "
-             f"{meta['load_start']:.1f} at the start and {meta['load_end']:.1f} at the end.\n")
+             f"{made}.\n")
     print(text)
     if write:
         HC.write_block(Path(write), text, BLOCK)
     return 0
+
+
+def merged_rows(paths: list[str], variants: list[str]) -> tuple[list[dict[str, Any]], list[str], list[dict]]:
+    """The rows, variants and per-file metas (each with the ``scenes`` it holds) of the ``--json`` files at
+    ``paths``; raises SystemExit when two files hold the same scene, variant and seed or differ in variants."""
+    rows: list[dict[str, Any]] = []
+    metas: list[dict[str, Any]] = []
+    seen: dict[tuple, str] = {}
+    got_variants = None
+    for p in paths:
+        saved = json.loads(Path(p).read_text())
+        vs = saved.get("variants", variants)
+        if got_variants is not None and vs != got_variants:
+            raise SystemExit(f"error: {p} compares {', '.join(vs)}, the others {', '.join(got_variants)}")
+        got_variants = vs
+        for r in saved["rows"]:
+            key = (r["scene"], r["variant"], r["seed"])
+            if key in seen:
+                raise SystemExit(f"error: {p} and {seen[key]} both hold {key[0]} {key[1]} seed {key[2]}")
+            seen[key] = p
+        rows += saved["rows"]
+        metas.append({**saved["meta"], "scenes": list(dict.fromkeys(r["scene"] for r in saved["rows"]))})
+    order = {s: i for i, s in enumerate(SCENES)}
+    rows.sort(key=lambda r: (order.get(r["scene"], len(order)), r["seed"], got_variants.index(r["variant"])))
+    return rows, got_variants, metas
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -299,7 +334,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="processes at a time (default 1; the budget is CPU time, so their number does not matter)")
     ap.add_argument("--work", default=None, help="keep the run and evaluation folders here (default: temporary)")
     ap.add_argument("--json", default=None, help="also write every run's row to this JSON file")
-    ap.add_argument("--rows", default=None, help="no runs: the table of the rows an earlier --json wrote")
+    ap.add_argument("--rows", nargs="+", default=None, metavar="JSON",
+                    help="no runs: the table of the rows earlier --json files wrote (several are merged; a scene "
+                         "and seed in two of them is an error)")
     ap.add_argument("--write", nargs="?", const=str(DOC), default=None,
                     help=f"write the table into this Markdown file's generated block (default {DOC.relative_to(ROOT)})")
     args = ap.parse_args(argv)
@@ -319,8 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     if not seeds or args.budget <= 0 or args.jobs < 1:
         ap.error("--seeds must name at least one seed, --budget must be > 0 and --jobs >= 1")
     if args.rows:
-        saved = json.loads(Path(args.rows).read_text())
-        return report(saved["rows"], saved.get("variants", variants), saved["meta"], args.write)
+        return report(*merged_rows(args.rows, variants), args.write)
     say = lambda s: print(s, flush=True)  # noqa: E731
     meta = {"load_start": os.getloadavg()[0], "jobs": args.jobs}
     t0 = time.perf_counter()
@@ -359,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
             **meta, "seconds": time.perf_counter() - t0, "load_end": os.getloadavg()[0]}}, indent=1, default=float))
     rows.sort(key=lambda r: (scenes.index(r["scene"]), r["seed"], variants.index(r["variant"])))
     meta.update(seconds=time.perf_counter() - t0, load_end=os.getloadavg()[0])
-    return report(rows, variants, meta, args.write)
+    return report(rows, variants, [meta], args.write)
 
 
 if __name__ == "__main__":

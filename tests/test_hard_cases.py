@@ -242,6 +242,28 @@ def test_equal_seconds_table_regenerates_its_block_only(tmp_path, capsys):
     assert "6 runs of `--time-budget 30 s` (CPU seconds" in capsys.readouterr().out
 
 
+def test_equal_seconds_rows_of_several_runs_merge_and_refuse_a_repeated_cell(tmp_path, capsys):
+    import json
+
+    b = _equal_seconds()
+    meta = {"seconds": 400.0, "load_start": 2.1, "load_end": 2.4, "jobs": 1}
+    a, c = tmp_path / "a.json", tmp_path / "c.json"
+    a.write_text(json.dumps({"rows": _rows([30.0, 31.0, 29.0], [30.2, 31.1, 29.3], [0.10, 0.12, 0.11],
+                                           [0.09, 0.12, 0.10]), "variants": ["before", "after"],
+                             "meta": {**meta, "jobs": 3, "load_start": 17.2}}))
+    c.write_text(json.dumps({"rows": _rows([25.0, 26.0, 27.0], [24.0, 25.0, 26.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3],
+                                           scene="meadow"), "variants": ["before", "after"], "meta": meta}))
+    assert b.main(["--rows", str(a), str(c)]) == 0
+    out = capsys.readouterr().out
+    # meadow is listed before occluded (the built-in order), each file's provenance is kept
+    assert out.index("| meadow | before") < out.index("| occluded | before")
+    assert "| meadow | after - before | 3 | -0.97 ± 0.06 | 0.1000 ± 0.0000 | 0 of 3 | **worse** |" in out
+    assert "occluded: 400 s in all (3 at a time), load average 17.2" in out
+    assert "meadow: 400 s in all (1 at a time), load average 2.1" in out
+    with pytest.raises(SystemExit, match="both hold occluded before seed 0"):
+        b.main(["--rows", str(a), str(a)])
+
+
 @pytest.mark.parametrize("argv, match", [
     (["--variants", "before"], "two or more"),
     (["--variants", "before,later"], "unknown: later"),
