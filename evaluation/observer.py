@@ -161,7 +161,7 @@ class ObserverConfig:
     #: discounted fully, an upright one (taller than wide, as a standing object or its face turned from the sun is)
     #: not at all, a round or unbounded one (a blob, the inside of a large shade) by ``shadow_discount`` as
     #: before; "none": the shape is not looked at.
-    shadow_shape: str = "none"
+    shadow_shape: str = "lying"
     #: Candidate cell size (degrees): about the foveal radius; the grid the fixations land on.
     cell_deg: float = 0.5
     #: Eccentricity (degrees) at which the visibility of the priority halves. E2 is ~1-3 deg for fine pattern
