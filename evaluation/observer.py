@@ -47,7 +47,16 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    ``shadow_reference="background"`` the darkening is measured against the object-free view at the same place
    (the ratio image with the background render, on a cast shadow's physical range :data:`SHADOW_FACTOR_RATIO`)
    and a shadow-like place is discounted fully: a dark object in the scene's own shade is then not shadow-like,
-   but neither setting wins on the built-in scenes (docs/results/observer.md).
+   but a plain object's face turned from the sun is (docs/results/observer.md).
+   **Shape** (``shadow_shape="lying"``, the default; :func:`lying_shape`): where photometry cannot decide, the
+   outline can. A cast shadow lies on the ground plane -- flattened by perspective, stretched along the light, away
+   from its caster -- whereas the objects searched for stand up from the ground (Mamassian, Knill & Kersten 1998;
+   Stevens 1981; Biederman et al. 1982). The second moments of the shadow-like region around each place (a 1 deg
+   Gaussian window) say whether it lies (wider than tall, or elongated off the vertical: its discount rises to
+   1), stands (taller than wide: its discount falls to 0, so an upright dark face or a dark object is evidence in
+   full) or neither (a blob, or the inside of a shade larger than the window: ``shadow_discount`` as without the
+   cue). It reads the image only (the shadow-likeness of each place, with the background's pooled statistics as in
+   step 1), never the object-free view at the same place.
 3. **Priority map** ``G`` (GS6's priority map: top-down guidance by the target template): the object prior of a
    participant who knows the target's *size class* and that it *rests on the ground*. No object rests on the sky
    (:func:`sky_map`: the smooth region at the top and what it encloses -- the sun's glow and disc; Neider &
@@ -640,6 +649,14 @@ SHAPE_WINDOW_DEG = 1.0
 #: daylight shadow of an upright object is 2-5 times longer than thick (sun elevations of 20-60 deg), and ground
 #: foreshortening at the built-in scenes' camera elevations (10-40 deg) flattens a round patch 1.5-6-fold.
 SHAPE_FULL = 0.3
+#: An *upright* reading needs a region bounded on both sides across its short axis within the window (an object
+#: is; the straight edge of a shade larger than the window is not): the upright score counts fully while the
+#: region's minor-axis variance ``l2`` is below the first share of the window's ``sigma^2`` and fades linearly to
+#: 0 at the second, the ``l2`` of a half-plane, ``(1 - 2 / pi) sigma^2 = 0.36 sigma^2`` -- so the edge of a large
+#: shade keeps ``shadow_discount`` (without this, split's boundary between its dark and light ground read as an
+#: upright thing and its vase beside it went unverified). An object up to ~1.5 deg across (``l2 <= 0.2
+#: sigma^2``) counts fully. A lying reading needs no bound: a broad shade lying on the ground is shadow as well.
+SHAPE_THIN = (0.2, 0.36)
 
 
 def lying_shape(mass: np.ndarray, sigma: float) -> np.ndarray:
@@ -650,7 +667,9 @@ def lying_shape(mass: np.ndarray, sigma: float) -> np.ndarray:
     separable moment kernels ``x^k g(x)``) give the region's elongation ``e = (l1 - l2) / (l1 + l2)`` and the
     angle of its long axis. ``upright = max(0, (C_yy - C_xx) / (C_xx + C_yy))`` -- taller than wide, i.e.
     ``e cos(2 phi)`` for a long axis within 45 deg of the vertical; ``lying = e - upright``: elongated off the
-    vertical, or wider than tall. The score is ``(lying - upright) /`` :data:`SHAPE_FULL`, clipped.
+    vertical, or wider than tall. The score is ``(lying - upright) /`` :data:`SHAPE_FULL`, clipped; a negative
+    (upright) score is scaled by how bounded the region is across its short axis (:data:`SHAPE_THIN`: the
+    straight edge of a large shade is no upright thing).
 
     Why shape tells a cast shadow from an object where photometry cannot (a shadow keeps 23-47 % of the light, an
     object's face turned from the sun 36 %, with the same chromaticity shift: docs/results/observer.md): a cast
@@ -679,9 +698,13 @@ def lying_shape(mass: np.ndarray, sigma: float) -> np.ndarray:
     cyy = conv(k2, k0) / m0 - my * my
     cxy = conv(k1, k1) / m0 - mx * my
     tr = np.maximum(cxx + cyy, 1e-9)
-    e = np.sqrt((cxx - cyy) ** 2 + 4.0 * cxy * cxy) / tr
+    sq = np.sqrt((cxx - cyy) ** 2 + 4.0 * cxy * cxy)
+    e = sq / tr
     upright = np.maximum((cyy - cxx) / tr, 0.0)
-    return np.clip((e - 2.0 * upright) / SHAPE_FULL, -1.0, 1.0)
+    l2 = 0.5 * (tr - sq) / (sigma * sigma)  # minor-axis variance, in units of the window's sigma^2
+    thin = np.clip((SHAPE_THIN[1] - l2) / (SHAPE_THIN[1] - SHAPE_THIN[0]), 0.0, 1.0)
+    score = np.clip((e - 2.0 * upright) / SHAPE_FULL, -1.0, 1.0)
+    return np.where(score < 0.0, score * thin, score)  # upright: only a region bounded on both sides
 
 
 #: Largest change of log luminance or log chromaticity (``LOG_UNITS`` units) between neighbouring feature pixels

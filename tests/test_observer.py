@@ -394,14 +394,15 @@ def _feature_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     """``shadow_discount`` (the "surround" reference): the object evidence O inside a pasted cast shadow falls as the
     discount rises (0: the full difference D; 1: nothing of its shadow-like part), while D and the shadow evidence
-    do not change, and an object of the same shape (red-tinted) keeps its evidence whatever the discount."""
+    do not change, and an object of the same shape (red-tinted) keeps its evidence whatever the discount. Without
+    the shape cue, which would discount this flat region fully whatever ``shadow_discount`` says (tested below)."""
     bg = grass(12)
     region = ellipse(100, 160, 40, 16)
     img = shadowed(bg, region)
     core = None
     o, d, sh = [], [], []
     for k in (0.0, 0.6, 1.0):
-        m = evidence_maps(img, ObserverConfig(shadow_discount=k), background=bg)
+        m = evidence_maps(img, ObserverConfig(shadow_discount=k, shadow_shape="none"), background=bg)
         core = _feature_mask(ellipse(100, 160, 24, 8), m.obj.shape) if core is None else core
         o.append(float(m.obj[core].mean()))
         d.append(float(m.d[core].mean()))
@@ -409,7 +410,8 @@ def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     assert d[0] == d[1] == d[2] and sh[0] == sh[1] == sh[2] and sh[0] > 1.0
     assert o[0] > o[1] + 1.0 > o[2] + 2.0, o
     tinted = with_object(bg, region, 0.7)
-    v = [float(evidence_maps(tinted, ObserverConfig(shadow_discount=k), background=bg).verify.max())
+    v = [float(evidence_maps(tinted, ObserverConfig(shadow_discount=k, shadow_shape="none"),
+                            background=bg).verify.max())
          for k in (0.0, 1.0)]
     assert v[1] > 0.9 * v[0] and v[1] > 2 * ObserverConfig().criterion, v
 
@@ -419,7 +421,8 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     object standing in the scene's own shade (the left half, in the background too) is darker than its pooled
     surround, so "surround" takes it for shadow and discounts it; it is no darker than the shaded ground at its
     place, so "background" keeps its evidence. A cast shadow pasted on the lit half (not in the background) is
-    discounted fully and not clicked as the object."""
+    discounted fully and not clicked as the object. The references are compared without the shape cue; with it
+    (the default) "surround" discounts that flat cast shadow fully as well."""
     bg = grass(21)
     shade = np.zeros((N, N), bool)
     shade[:, :110] = True
@@ -427,8 +430,8 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     obj = ellipse(85, 150, 14, 22)
     img = bg_shade.copy()
     img[obj] = np.clip(bg_shade[shade].mean(0) * np.array([0.8, 0.9, 1.4], np.float32), 0, 1)
-    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround"), bg_shade)
-    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background"), bg_shade)
+    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_shape="none"), bg_shade)
+    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background", shadow_shape="none"), bg_shade)
     core = _feature_mask(ellipse(85, 150, 8, 14), m_sur.shadow.shape)
     assert float(m_sur.shadow[core].mean()) > 0.8  # "surround": taken for shadow (measured 1.08)
     assert float(m_ref.shadow[core].mean()) < 0.2  # "background": not a shadow of the ground there (0.10)
@@ -436,12 +439,15 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     cast = ellipse(190, 170, 36, 14)
     img2 = shadowed(bg_shade, cast)
     c = _feature_mask(ellipse(190, 170, 20, 7), m_sur.shadow.shape)
-    o_sur = float(evidence_maps(img2, ObserverConfig(shadow_reference="surround"), bg_shade).obj[c].mean())
-    ratio = ObserverConfig(shadow_reference="background")
+    surround = ObserverConfig(shadow_reference="surround", shadow_shape="none")
+    o_sur = float(evidence_maps(img2, surround, bg_shade).obj[c].mean())
+    ratio = ObserverConfig(shadow_reference="background", shadow_shape="none")
     m2 = evidence_maps(img2, ratio, bg_shade)
     assert float(m2.obj[c].mean()) < o_sur and float(m2.verify[c].max()) < 1.0  # 0.12 vs 0.27; V 0.12
     res = simulate_search(img2, n=300, seed=3, config=ratio, mask=cast, background=bg_shade)
     assert res.found.mean() <= max(0.05, 3 * cast.mean())
+    o_lying = float(evidence_maps(img2, ObserverConfig(), bg_shade).obj[c].mean())
+    assert o_lying < 0.1 < o_sur  # measured 0.06 vs 0.27
 
 
 def test_shadow_settings_are_checked():
