@@ -394,14 +394,15 @@ def _feature_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     """``shadow_discount`` (the "surround" reference): the object evidence O inside a pasted cast shadow falls as the
     discount rises (0: the full difference D; 1: nothing of its shadow-like part), while D and the shadow evidence
-    do not change, and an object of the same shape (red-tinted) keeps its evidence whatever the discount."""
+    do not change, and an object of the same shape (red-tinted) keeps its evidence whatever the discount. Without
+    the shape cue, which would discount this flat region fully whatever ``shadow_discount`` says (tested below)."""
     bg = grass(12)
     region = ellipse(100, 160, 40, 16)
     img = shadowed(bg, region)
     core = None
     o, d, sh = [], [], []
     for k in (0.0, 0.6, 1.0):
-        m = evidence_maps(img, ObserverConfig(shadow_discount=k), background=bg)
+        m = evidence_maps(img, ObserverConfig(shadow_discount=k, shadow_shape="none"), background=bg)
         core = _feature_mask(ellipse(100, 160, 24, 8), m.obj.shape) if core is None else core
         o.append(float(m.obj[core].mean()))
         d.append(float(m.d[core].mean()))
@@ -409,7 +410,8 @@ def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     assert d[0] == d[1] == d[2] and sh[0] == sh[1] == sh[2] and sh[0] > 1.0
     assert o[0] > o[1] + 1.0 > o[2] + 2.0, o
     tinted = with_object(bg, region, 0.7)
-    v = [float(evidence_maps(tinted, ObserverConfig(shadow_discount=k), background=bg).verify.max())
+    v = [float(evidence_maps(tinted, ObserverConfig(shadow_discount=k, shadow_shape="none"),
+                            background=bg).verify.max())
          for k in (0.0, 1.0)]
     assert v[1] > 0.9 * v[0] and v[1] > 2 * ObserverConfig().criterion, v
 
@@ -419,7 +421,8 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     object standing in the scene's own shade (the left half, in the background too) is darker than its pooled
     surround, so "surround" takes it for shadow and discounts it; it is no darker than the shaded ground at its
     place, so "background" keeps its evidence. A cast shadow pasted on the lit half (not in the background) is
-    discounted fully and not clicked as the object."""
+    discounted fully and not clicked as the object. The references are compared without the shape cue; with it
+    (the default) "surround" discounts that flat cast shadow fully as well."""
     bg = grass(21)
     shade = np.zeros((N, N), bool)
     shade[:, :110] = True
@@ -427,8 +430,8 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     obj = ellipse(85, 150, 14, 22)
     img = bg_shade.copy()
     img[obj] = np.clip(bg_shade[shade].mean(0) * np.array([0.8, 0.9, 1.4], np.float32), 0, 1)
-    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround"), bg_shade)
-    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background"), bg_shade)
+    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_shape="none"), bg_shade)
+    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background", shadow_shape="none"), bg_shade)
     core = _feature_mask(ellipse(85, 150, 8, 14), m_sur.shadow.shape)
     assert float(m_sur.shadow[core].mean()) > 0.8  # "surround": taken for shadow (measured 1.08)
     assert float(m_ref.shadow[core].mean()) < 0.2  # "background": not a shadow of the ground there (0.10)
@@ -436,12 +439,15 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     cast = ellipse(190, 170, 36, 14)
     img2 = shadowed(bg_shade, cast)
     c = _feature_mask(ellipse(190, 170, 20, 7), m_sur.shadow.shape)
-    o_sur = float(evidence_maps(img2, ObserverConfig(shadow_reference="surround"), bg_shade).obj[c].mean())
-    ratio = ObserverConfig(shadow_reference="background")
+    surround = ObserverConfig(shadow_reference="surround", shadow_shape="none")
+    o_sur = float(evidence_maps(img2, surround, bg_shade).obj[c].mean())
+    ratio = ObserverConfig(shadow_reference="background", shadow_shape="none")
     m2 = evidence_maps(img2, ratio, bg_shade)
     assert float(m2.obj[c].mean()) < o_sur and float(m2.verify[c].max()) < 1.0  # 0.12 vs 0.27; V 0.12
     res = simulate_search(img2, n=300, seed=3, config=ratio, mask=cast, background=bg_shade)
     assert res.found.mean() <= max(0.05, 3 * cast.mean())
+    o_lying = float(evidence_maps(img2, ObserverConfig(), bg_shade).obj[c].mean())
+    assert o_lying < 0.1 < o_sur  # measured 0.06 vs 0.27
 
 
 def test_shadow_settings_are_checked():
@@ -453,3 +459,57 @@ def test_shadow_settings_are_checked():
 
     cfg = parse_observer("shadow_reference=background,shadow_discount=1")
     assert (cfg.shadow_reference, cfg.shadow_discount) == ("background", 1.0)
+    with pytest.raises(CamoError, match=r"^observer shadow_shape must be 'lying' or 'none', not 'round'$"):
+        ObserverConfig(shadow_shape="round").validate()
+    assert parse_observer("shadow_shape=none").shadow_shape == "none"
+    with pytest.raises(CamoError, match="shadow_shape") as e:
+        parse_observer("shadow_shape=1")
+    assert "\n" not in str(e.value)
+
+
+def test_lying_shape_reads_the_region_s_outline():
+    """The shape score of :func:`lying_shape` on synthetic regions: a flat (wide) or diagonal region lies (+1), a
+    tall one stands (-1), a disc or a region filling the window is neither (0), and the straight edge of a region
+    larger than the window (a half-plane: a large shade's border) is no upright thing (|score| <= 0.15, measured
+    0.14; 1 without the boundedness condition of ``SHAPE_THIN``)."""
+    from evaluation.observer import lying_shape
+
+    n = 160
+    yy, xx = np.mgrid[0:n, 0:n]
+    diag = (np.abs((xx - 80) * 0.6 - (yy - 80) * 0.8) < 5) & (np.abs((xx - 80) * 0.8 + (yy - 80) * 0.6) < 25)
+    for region, want in ((ellipse(80, 80, 30, 8, n), 1.0), (diag, 1.0), (ellipse(80, 80, 8, 20, n), -1.0),
+                         (ellipse(80, 80, 15, 15, n), 0.0), (np.ones((n, n), bool), 0.0)):
+        k = lying_shape(region.astype(np.float64), 10.0)
+        assert k[80, 80] == pytest.approx(want, abs=0.02), (want, k[80, 80])
+        assert np.all((k >= -1) & (k <= 1))
+    for edge in (xx < 80, xx < 80 + 0.3 * (yy - 80)):
+        k = lying_shape(edge.astype(np.float64), 10.0)
+        assert abs(k[80, 80]) <= 0.15 and abs(k[80, 76]) <= 0.05, (k[80, 80], k[80, 76])
+
+
+def test_shadow_shape_tells_a_cast_shadow_from_an_object_of_the_same_colour():
+    """A pasted cast shadow (the grass texture darkened to 35 % of its light: its grain goes on) lying flat on the
+    ground, and an upright object patch painted the shadow's mean colour (same mean luminance and chromaticity, so
+    the photometric shadow test takes both for shadow). With ``shadow_shape="lying"`` the shadow's object
+    evidence O and verification evidence V fall and the object's V doubles, so the object's V passes the
+    shadow's (it did not without the cue), and the shadow is never clicked as the object."""
+    bg = grass(31)
+    cast = ellipse(80, 190, 40, 10)
+    obj = ellipse(180, 150, 12, 26)
+    img = shadowed(bg, cast)
+    img[obj] = img[cast].mean(0)
+    np.testing.assert_allclose(img[obj].mean(0), img[cast].mean(0), atol=1e-6)
+    out = {}
+    for shape in ("none", "lying"):
+        m = evidence_maps(img, ObserverConfig(shadow_shape=shape), bg)
+        cs = _feature_mask(ellipse(80, 190, 28, 6), m.obj.shape)
+        co = _feature_mask(ellipse(180, 150, 7, 18), m.obj.shape)
+        out[shape] = (float(m.obj[cs].mean()), float(m.obj[co].mean()), float(m.verify[cs].max()),
+                      float(m.verify[co].max()))
+    (os0, oo0, vs0, vo0), (os1, oo1, vs1, vo1) = out["none"], out["lying"]
+    # measured: none O 0.54 / 0.67, V 2.17 / 1.68; lying O 0.20 / 0.74, V 0.84 / 3.50
+    assert vo0 < vs0  # without the shape cue the shadow is the stronger candidate
+    assert os1 < os0 - 0.25 and os1 < 0.3 and oo1 > os1 + 0.4 and oo0 < os0 + 0.2  # O alone barely separated them
+    assert vs1 < 1.2 and vo1 > 3.0 and vo1 > vs1 + 2.0 and vo1 > vo0 + 1.5
+    res = simulate_search(img, n=200, seed=1, config=ObserverConfig(shadow_shape="lying"), mask=obj, background=bg)
+    assert not (res.clicked & cast[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)]).any()
