@@ -36,6 +36,11 @@ ARMS = {
     # a lower shared index of refraction: less Fresnel reflection of the sky on the transmissive parts, and what is
     # seen through them is displaced less (the glassy tint, point 3 of the issue)
     "eta1.2": ["--eta", "1.2"],
+    # the detail term (optimizer/optimise/detail.py): the body's pixel-scale texture energy matched to the ground's
+    "detail8": ["--detail-match", "8"],
+    "detail32": ["--detail-match", "32"],
+    # per-texel map steps (no gradient blur): can fine texels move where the blur held them?
+    "blur0": ["--grad-blur", "0"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -142,6 +147,7 @@ def table(out: Path, scenes, arms) -> str:
 
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
+          "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "mean": "Mean"}
 
 
