@@ -41,6 +41,9 @@ ARMS = {
     "detail32": ["--detail-match", "32"],
     # per-texel map steps (no gradient blur): can fine texels move where the blur held them?
     "blur0": ["--grad-blur", "0"],
+    # twice the map resolution (a texel is about a pixel at 128 texels and 64 px: see docs/results/giveaways.md)
+    "map256": ["--map-resolution", "256"],
+    "map256_detail8": ["--map-resolution", "256", "--detail-match", "8"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -148,6 +151,7 @@ def table(out: Path, scenes, arms) -> str:
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
+          "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
           "mean": "Mean"}
 
 
