@@ -44,6 +44,9 @@ ARMS = {
     # twice the map resolution (a texel is about a pixel at 128 texels and 64 px: see docs/results/giveaways.md)
     "map256": ["--map-resolution", "256"],
     "map256_detail8": ["--map-resolution", "256", "--detail-match", "8"],
+    # clear glass: an IOR near 1 and a smooth start, so the ground behind shows through sharp and barely displaced
+    # (texture and colour that are the ground's own; the roughness start search and the glint-safe start are off)
+    "clear": ["--eta", "1.05", "--init", "roughness=0.2", "--init-search", "off"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -152,6 +155,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
+          "clear": "ours, IOR 1.05, R0 0.2",
           "mean": "Mean"}
 
 
