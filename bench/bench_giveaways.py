@@ -1,9 +1,12 @@
 """Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
-built-in scenes: the perceptual term (``lpips``: ``--perceptual 1e-3``), a lower shared IOR (``eta1.2``), a lower
-transmittance start (``today_t0.3``) and the "large steps" map update; docs/results/giveaways.md.
+built-in scenes: the detail term (``detail8``: ``--detail-match 8``), the map resolution (``map256``), no gradient
+blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start), the perceptual term (``lpips``), a lower shared IOR
+(``eta1.2``), a lower transmittance start (``today_t0.3``) and the "large steps" map update;
+docs/results/giveaways.md.
 
-    python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split --arms today,lpips,eta1.2 \
-        --arm-iterations lpips=20 --eval-spp 512 --docs docs/results   # optimise (resumable), evaluate, table, sheets
+    python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split \
+        --arms today,detail8,map256,map256_detail8,blur0,clear --eval-spp 512 --docs docs/results
+        # optimise (resumable), evaluate, table, sheets
 
 Every optimised arm gets the same Stage 1 iterations (``--iterations``), or the same ``--seconds`` budget; an arm
 whose step costs more gets fewer (``--arm-iterations ARM=N``: equal seconds). The machine's load moves absolute
