@@ -1,9 +1,12 @@
 """Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
-built-in scenes: the perceptual term (``lpips``: ``--perceptual 1e-3``), a lower shared IOR (``eta1.2``), a lower
-transmittance start (``today_t0.3``) and the "large steps" map update; docs/results/giveaways.md.
+built-in scenes: the detail term (``detail8``: ``--detail-match 8``), the map resolution (``map256``), no gradient
+blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start), the perceptual term (``lpips``), a lower shared IOR
+(``eta1.2``), a lower transmittance start (``today_t0.3``) and the "large steps" map update;
+docs/results/giveaways.md.
 
-    python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split --arms today,lpips,eta1.2 \
-        --arm-iterations lpips=20 --eval-spp 512 --docs docs/results   # optimise (resumable), evaluate, table, sheets
+    python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split \
+        --arms today,detail8,map256,map256_detail8,blur0,clear --eval-spp 512 --docs docs/results
+        # optimise (resumable), evaluate, table, sheets
 
 Every optimised arm gets the same Stage 1 iterations (``--iterations``), or the same ``--seconds`` budget; an arm
 whose step costs more gets fewer (``--arm-iterations ARM=N``: equal seconds). The machine's load moves absolute
@@ -36,6 +39,17 @@ ARMS = {
     # a lower shared index of refraction: less Fresnel reflection of the sky on the transmissive parts, and what is
     # seen through them is displaced less (the glassy tint, point 3 of the issue)
     "eta1.2": ["--eta", "1.2"],
+    # the detail term (optimizer/optimise/detail.py): the body's pixel-scale texture energy matched to the ground's
+    "detail8": ["--detail-match", "8"],
+    "detail32": ["--detail-match", "32"],
+    # per-texel map steps (no gradient blur): can fine texels move where the blur held them?
+    "blur0": ["--grad-blur", "0"],
+    # twice the map resolution (a texel is about a pixel at 128 texels and 64 px: see docs/results/giveaways.md)
+    "map256": ["--map-resolution", "256"],
+    "map256_detail8": ["--map-resolution", "256", "--detail-match", "8"],
+    # clear glass: an IOR near 1 and a smooth start, so the ground behind shows through sharp and barely displaced
+    # (texture and colour that are the ground's own; the roughness start search and the glint-safe start are off)
+    "clear": ["--eta", "1.05", "--init", "roughness=0.2", "--init-search", "off"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -142,6 +156,9 @@ def table(out: Path, scenes, arms) -> str:
 
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
+          "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
+          "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
+          "clear": "ours, IOR 1.05, R0 0.2",
           "mean": "Mean"}
 
 

@@ -34,7 +34,7 @@ RANGES: dict[str, Range] = {
     "stage1.pose_search": Range(int, 0, 3600),
     "stage1.average": Range(float, 0.0, 0.999),
     "stage1.loss_clamp": Range(float, 0.0, 1e6), "stage1.grad_clip": Range(float, 0.0, 1e6),
-    "stage1.perceptual": Range(float, 0.0, 1e3),
+    "stage1.perceptual": Range(float, 0.0, 1e3), "stage1.detail_match": Range(float, 0.0, 1e3),
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
     "time_budget": Range(float, 0.0, None, lo_open=True),
@@ -141,6 +141,11 @@ def _options() -> tuple[Option, ...]:
           + _p("stage1.perceptual") + "; 0: off", metavar="WEIGHT"),
         o("perceptual_net", "stage1.perceptual_net", str, "the LPIPS trunk of --perceptual"
           + _p("stage1.perceptual_net"), choices=("alex", "vgg")),
+        o("detail_match", "stage1.detail_match", float,
+          "add this weight times the mismatch of the body's pixel-scale texture energy (mean squared Laplacian of the "
+          "luma on the object's pixels) with the background target's in the same pixels: the squared error alone "
+          "leaves the body smoother than the ground (optimizer/optimise/detail.py)" + _p("stage1.detail_match")
+          + "; 0: off", metavar="WEIGHT"),
         o("init_search", "stage1.init_search", str,
           "when --init sets maps, also warm-start the start the run takes without it (at each starting roughness of "
           "the preset's search) and start from whichever scores best on the held-out views"

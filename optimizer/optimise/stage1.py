@@ -90,6 +90,9 @@ class Stage1Settings:
     # perceptual.py: texture the per-pixel losses miss, issue 29); 0: off
     perceptual: float = 0.0
     perceptual_net: str = "alex"  # or "vgg": the LPIPS v0.1 trunk of the perceptual term
+    # > 0: add this weight x the mismatch of the body's pixel-scale texture energy with the background's in the same
+    # pixels (optimizer/optimise/detail.py: the squared error's multi-view optimum is too smooth, issue 29); 0: off
+    detail_match: float = 0.0
 
 
 @dataclasses.dataclass
@@ -237,6 +240,7 @@ class Stage1:
         self._batched = uses_batch(plan.integrator)
         self._perceptual = None  # the perceptual term's network (build)
         self._last_perceptual = 0.0
+        self._detail = None  # the detail term (build; optimizer/optimise/detail.py)
 
     # --- preparation: the named steps ------------------------------------------------
     def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
@@ -326,8 +330,24 @@ class Stage1:
 
             self._perceptual = network(self.cfg.perceptual_net)
             self._bg_np = [np.ascontiguousarray(b, np.float32) for b in bg]
+        self._detail = self._detail_term() if getattr(self.cfg, "detail_match", 0.0) > 0 and self.STAGE == 1 else None
         dr.eval()
         return self
+
+    def _detail_term(self):
+        """The detail term (:mod:`optimizer.optimise.detail`) on this stage's training windows (or the batch film):
+        the tonemapped background targets, the object's fully covered pixels and their share of the loss domain."""
+        from optimizer.optimise.detail import FULL, DetailTerm, interior_taps
+
+        V = len(self.cams)
+        targets = [self._tonemap_np(self.window(v, self.targets.background[v])) for v in range(V)]
+        covered = [self.window(v, self.targets.coverage[v]) >= FULL for v in range(V)]
+        share = []
+        for v in range(V):
+            dom = float(self._w[v].sum()) if self._w[v] is not None else float(covered[v].size)
+            share.append(interior_taps(covered[v]).shape[1] / max(dom, 1.0))
+        H, W = self.cams[0].height, self.cams[0].width
+        return DetailTerm(targets, covered, share, self.cfg.detail_match, film=(H, W, V) if self._batched else None)
 
     # --- set-up -------------------------------------------------------------
     def _prepare(self, values: dict[str, np.ndarray], warm: bool | None = None):
@@ -590,6 +610,10 @@ class Stage1:
                 W = self.cams[0].width
                 _, perc = self._perceptual_surrogate([img], [(v, slice(v * W, (v + 1) * W)) for v in views])
                 total = total + perc
+            if self._detail is not None:
+                det = self._detail.surrogate([self._tonemap(img)], [(v, 0) for v in views])
+                if det is not None:
+                    total = total + det
             dr.backward(total)
         else:
             # One backward per iteration: the parameter mapping (displacement sampling, pose, roughness
@@ -621,6 +645,10 @@ class Stage1:
             if self._perceptual is not None:
                 _, perc = self._perceptual_surrogate(imgs, [(v, None) for v in views])
                 total = total + perc
+            if self._detail is not None:
+                det = self._detail.surrogate([self._tonemap(i) for i in imgs], [(v, k) for k, v in enumerate(views)])
+                if det is not None:
+                    total = total + det
             if dr.grad_enabled(total):
                 dr.backward(total)
         return float(photo[0]), float(lum[0]), float(chroma[0]), float(linear[0]), has_terms
@@ -699,6 +727,9 @@ class Stage1:
             rec.update(loss_luminance=lum, loss_chroma=chroma)
         if self._perceptual is not None:
             rec["loss_perceptual"] = self._last_perceptual  # weight x mean LPIPS of the step's views
+        if self._detail is not None:
+            # the detail term's value and sqrt(E / E*) over the step's views (NaN on the first step: no previous render)
+            rec.update(loss_detail=self._detail.last["value"], detail_energy_ratio=self._detail.last["ratio"])
         self.history.append(rec)
         return rec
 
@@ -765,6 +796,8 @@ class Stage1:
     def checkpoint_state(self) -> dict[str, np.ndarray]:
         st = self.opt.state()
         st["iteration"] = np.array(self.iteration)
+        if self._detail is not None:
+            st.update(self._detail.state())
         return st
 
     def load_checkpoint_state(self, st: dict[str, np.ndarray]) -> None:
@@ -775,3 +808,5 @@ class Stage1:
             raise CamoError("checkpoint is corrupt: no valid iteration count")
         self.opt.load_state(st)
         self.iteration = int(it)
+        if self._detail is not None:
+            self._detail.load_state(st)
