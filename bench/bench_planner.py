@@ -125,9 +125,23 @@ def bench_evaluation(name: str, args) -> dict:
     mesh = mesh_fn()
     sc = scn.build_scene(env.build(), mesh)
     cov = np.stack([coverage_and_depth(sc, c, mesh)[0] for c in cams])
-    cache: dict = {}  # what render_with_region keeps across objects of one scene (the compact lights)
+    cache: dict = {}  # what the region renders keep across objects of one scene (the compact lights, the costs)
+    stats: list[dict] = []  # the allocation of every plan render
 
     def plan_render(spp, seed):
+        if args.allocation:
+            from optimizer.rendering.allocation import background_groups
+            from optimizer.rendering.render import PathRenderer, render_allocated
+
+            # shared by every input of a scene: not timed
+            bg, bg_groups = PathRenderer(env.build(), None, cams, integ, spp, seed)(groups=background_groups(spp))
+            t = clock()
+            img, reg, alloc = render_allocated(env.build, mesh, cams, integ, spp, seed, bg, bg_groups, cov,
+                                               plan.region_threshold, region=plan.region_search,
+                                               noise_floor=args.noise_floor, cache=cache)
+            secs = clock() - t
+            stats.append(alloc.to_dict())
+            return img, secs, float((alloc.samples > 0).mean()), reg.steps if reg is not None else 0
         bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
         t = clock()
         if not plan.region_search:  # the plan renders whole frames here
@@ -157,7 +171,7 @@ def bench_evaluation(name: str, args) -> dict:
             p_img, p_s, share, steps = plan_render(spp, seed)
             f_img, f_s = full_render(spp, seed)
             rows.append({"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
-                         "region_launches": steps,
+                         "region_launches": steps, "allocation": stats[-1] if args.allocation else None,
                          "plan_error": math.sqrt(max(srgb_rms(p_img, ref) ** 2 - ref_var, 0.0)),
                          "full_error": math.sqrt(max(srgb_rms(f_img, ref) ** 2 - ref_var, 0.0))})
     plan_curve = _mean_curve(rows, "plan")
@@ -169,7 +183,12 @@ def bench_evaluation(name: str, args) -> dict:
     e_plan_at_s = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "plan").items()], s))
     top = max(args.eval_levels)
     equal_spp = _by_spp(rows, "full")[top][0] / _by_spp(rows, "plan")[top][0]
-    return {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
+    timed = [r["allocation"] for r in rows if r["allocation"] and r["spp"] == args.eval_spp]
+    alloc = {"samples_share": float(np.mean([a["samples_share"] for a in timed])),
+             "floor_share": float(np.mean([a["floor_share"] for a in timed])),
+             "costs": cache.get("costs"), "costs_seconds": cache.get("costs_seconds", 0.0)} if timed else None
+    return {"scene": name, "pilot_seconds": pilot_seconds + (alloc["costs_seconds"] if alloc else 0.0),
+            "allocation": alloc, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
             "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
             "plan_seconds_at_equal_error": t_plan, "speedup": t_full / t_plan, "rows": rows,
@@ -358,6 +377,10 @@ def main() -> None:
     ap.add_argument("--eval-spp", type=int, default=64, help="the evaluation's spp (equal error is taken there)")
     ap.add_argument("--eval-levels", default="16,32,64,128,256")
     ap.add_argument("--ref-spp", type=int, default=2048)
+    ap.add_argument("--no-allocation", dest="allocation", action="store_false", help="the plan's evaluation render "
+                    "at a uniform spp (default: per-pixel sample allocation, optimizer/rendering/allocation.py)")
+    ap.add_argument("--no-noise-floor", dest="noise_floor", action="store_false", help="allocation without the "
+                    "floor that keeps every pixel no noisier than the background's")
     ap.add_argument("--train-spp", type=int, default=4, help="the training spp (equal error is taken there)")
     ap.add_argument("--target-spp", type=int, default=32)
     ap.add_argument("--train-levels", default="1,2,4,8")
