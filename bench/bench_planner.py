@@ -137,7 +137,7 @@ def bench_evaluation(name: str, args) -> dict:
             bg, bg_groups = PathRenderer(env.build(), None, cams, integ, spp, seed)(groups=background_groups(spp))
             t = clock()
             img, reg, alloc = render_allocated(env.build, mesh, cams, integ, spp, seed, bg, bg_groups, cov,
-                                               plan.region_threshold, region=plan.region_search,
+                                               plan.region_threshold, region=plan.region_search and args.region,
                                                noise_floor=args.noise_floor, cache=cache)
             secs = clock() - t
             stats.append(alloc.to_dict())
@@ -379,6 +379,8 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=2048)
     ap.add_argument("--no-allocation", dest="allocation", action="store_false", help="the plan's evaluation render "
                     "at a uniform spp (default: per-pixel sample allocation, optimizer/rendering/allocation.py)")
+    ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
+                    "over every pixel, not only the region the object can change (exact everywhere)")
     ap.add_argument("--no-noise-floor", dest="noise_floor", action="store_false", help="allocation without the "
                     "floor that keeps every pixel no noisier than the background's")
     ap.add_argument("--train-spp", type=int, default=4, help="the training spp (equal error is taken there)")

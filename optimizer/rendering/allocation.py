@@ -83,11 +83,18 @@ class Allocation:
     floor_share: float  # share of the rendered pixels whose count the noise floor raised
     seconds: float  # allocation and extra passes
 
+    @property
+    def factor(self) -> np.ndarray:
+        """``(V, H, W)`` float: samples with the object per pixel over ``spp`` (0: the background's pixel)."""
+        return self.samples / float(self.spp)
+
     def to_dict(self) -> dict:
         r = self.samples > 0
         s = self.samples[r]
         return {"method": "allocation", "spp": self.spp,
                 "samples_share": round(float(s.sum() / (self.samples.size * self.spp)), 4) if s.size else 0.0,
+                "extra_samples_share": round(float((s.sum() - s.size * self.spp) / (self.samples.size * self.spp)), 4)
+                if s.size else 0.0,
                 "samples_p5_p50_p95": [int(x) for x in np.percentile(s, [5, 50, 95])] if s.size else [],
                 "control_variate_share": round(float(self.control[r].mean()), 4) if s.size else 0.0,
                 "floor_share": round(self.floor_share, 4),
@@ -194,7 +201,7 @@ def allocate(obj_groups: np.ndarray, bg_groups: np.ndarray, group_size: int, ref
     """``(samples (V, H, W) int, control (V, H, W) bool, floor_share)`` for the pixels ``rendered`` (0 samples
     elsewhere): the module doc's allocation. ``obj_groups`` / ``bg_groups``: ``(G, V, H, W, 3)`` group means of the
     base pass and of the background over the same samples; ``reference (V, H, W, 3)``: an image whose pooled value
-    sets the sRGB slope (the background at ``spp``); ``cost (V, H, W)``: seconds per sample."""
+    sets the sRGB slope (the base pass with the object); ``cost (V, H, W)``: seconds per sample."""
     check_spp(spp)
     rendered = np.asarray(rendered, bool)
     slope = np.stack([pooled_over(np.asarray(reference)[..., c], np.ones(rendered.shape, bool), window)

@@ -234,7 +234,8 @@ def render_allocated(elements_fn, mesh, cams: Sequence[Camera], integrator: dict
         cache["costs_seconds"] = time.process_time() - t
     c_obj, c_rest = cache["costs"]
     cost = np.where(np.asarray(coverage) > 0, c_obj, c_rest)
-    samples, control, floor_share = A.allocate(groups, bg_groups[:A.OBJECT_GROUPS], size, background, cost,
+    # the sRGB slope at the base pass's pooled image (with the object: a body over a bright background is darker)
+    samples, control, floor_share = A.allocate(groups, bg_groups[:A.OBJECT_GROUPS], size, img, cost,
                                                rendered, spp, noise_floor)
     x_mean = A.extra_passes(more, img, samples, spp)
     out = A.combine(x_mean, samples, control, bg_groups, background, spp)
