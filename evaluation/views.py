@@ -23,11 +23,9 @@ Variance: the background and the with-object render of a view use the same sampl
 numbers). Paths that never meet the object then give identical radiance in both images, so the metrics see
 the object's effect (and its shadow) rather than two independent noise patterns. Only the region the object can
 change is rendered with it (the rest is the background's: the same paths). With noise matching
-(``ViewRenderer(noise_match=True)``, the default of ``camo evaluate`` and ``camo study build-stimuli``) and an spp
-that is a multiple of 16, each pixel's samples are allocated (:mod:`optimizer.rendering.allocation`: the background
-as a control variate, samples where they lower the error most per second, and never noisier than the background
-anywhere); with other spp, pixels where the object's render is noisier than the background's get more samples
-(:mod:`optimizer.rendering.noise`). Either way an object cannot be found by its fireflies.
+(``ViewRenderer(noise_match=True)``, the default of ``camo evaluate`` and ``camo study build-stimuli``) pixels
+where the object's render is noisier than the background's get more samples (:mod:`optimizer.rendering.noise`), so
+an object cannot be found by its fireflies.
 
 Images are linear float32 ``(V, H, W, 3)``; masks ``(V, H, W)`` bool; depth ``(V, H, W)`` float32 in scene
 units (0 = miss).
@@ -50,11 +48,7 @@ from optimizer.scenes.cameras import Camera
 from camo_base import seeds
 from camo_base.errors import SettingError
 from optimizer.assets.rundir import RunDir, open_run
-from optimizer.rendering.allocation import BASE_SHARE, OBJECT_GROUPS, background_groups
 from optimizer.rendering.noise import GROUPS
-
-#: spp multiple that allows the per-pixel sample allocation (else noise matching at a uniform base spp)
-ALLOCATION_SPP = BASE_SHARE * OBJECT_GROUPS
 from evaluation.settings import DEFAULT_JITTER
 
 #: Vertices of the object the evaluation's pilot renders (at the pilot's ~48 pixels).
@@ -188,7 +182,7 @@ class ObjectRenders:
     seconds: float
     region: np.ndarray | None = None  # (V, H, W) bool: the pixels rendered (the rest is the background's), or None
     region_seconds: float = 0.0  # of ``seconds``: finding the region
-    noise: Any = None  # optimizer.rendering.allocation.Allocation (spp a multiple of 16) or noise.NoiseMatch, or None
+    noise: Any = None  # optimizer.rendering.noise.NoiseMatch when the noise was matched
 
 
 class ViewRenderer:
@@ -218,11 +212,8 @@ class ViewRenderer:
             if self.noise_match and integrator.get("type") == "path" and self.spp % GROUPS == 0:
                 from optimizer.rendering.render import PathRenderer
 
-                # with spp a multiple of 16: the group means the per-pixel allocation needs (its control variate);
-                # else the four that noise matching needs
-                g = background_groups(self.spp) if self.spp % ALLOCATION_SPP == 0 else GROUPS
                 img, groups = PathRenderer(env.build(), None, cams, integrator, self.spp,
-                                           render_seed(self.seed))(groups=g)
+                                           render_seed(self.seed))(groups=GROUPS)
             else:
                 img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
             sc = scn.build_scene(env.build())
@@ -248,17 +239,6 @@ class ViewRenderer:
         seed = render_seed(self.seed)
         path = integrator.get("type") == "path"
         match_noise = self.noise_match and path and background is not None and background.groups is not None
-        if match_noise and self.spp % ALLOCATION_SPP == 0:
-            # per-pixel sample allocation with the background as a control variate; its noise floor keeps the
-            # render no noisier than the background anywhere (optimizer.rendering.allocation)
-            from optimizer.rendering.render import render_allocated
-
-            img, reg, alloc = render_allocated(env.build, mesh, cams, integrator, self.spp, seed, background.image,
-                                               background.groups, cov, region_threshold,
-                                               region=region_threshold is not None,
-                                               cache=self.region_cache.setdefault(background.key, {}))
-            return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t,
-                                 None if reg is None else reg.masks, 0.0 if reg is None else reg.seconds, alloc)
         g = GROUPS if match_noise else 1
         region, t_region, groups = None, 0.0, None
         if background is not None and path and region_threshold is not None:
