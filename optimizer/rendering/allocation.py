@@ -34,7 +34,8 @@ background's; it does not keep the object no noisier than the background. ``nois
 ``v_Y / spp``), but its estimates (4 groups of ``spp / 16`` samples, pooled) miss the rare bright paths of rough
 transmission under a sun: on ``tests/test_noise.py``'s glass sphere it left the object and its rim 1.74x noisier
 than the background (1.93x at a uniform spp; :mod:`optimizer.rendering.noise` reaches 1.15x). So ``camo evaluate``
-and the study stimuli keep noise matching (:mod:`optimizer.rendering.noise`) and do not use this module yet; ``bench/bench_planner.py --allocation`` measures it against full path tracing.
+and the study stimuli keep noise matching (:mod:`optimizer.rendering.noise`) and do not use this module yet;
+``bench/bench_planner.py --allocation`` measures it against full path tracing.
 """
 
 from __future__ import annotations
