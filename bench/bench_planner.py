@@ -125,7 +125,20 @@ def bench_evaluation(name: str, args) -> dict:
     mesh = mesh_fn()
     sc = scn.build_scene(env.build(), mesh)
     cov = np.stack([coverage_and_depth(sc, c, mesh)[0] for c in cams])
-    cache: dict = {}  # what render_with_region keeps across objects of one scene (the compact lights)
+    cache: dict = {}  # what the region renders keep across objects of one scene (the compact lights, the costs)
+
+    def alloc_render(spp, seed):
+        """The plan's depth and region, samples allocated per pixel (optimizer/rendering/allocation.py)."""
+        from optimizer.rendering.allocation import background_groups
+        from optimizer.rendering.render import PathRenderer, render_allocated
+
+        # the background and its group means: shared by every input of a scene, not timed
+        bg, bg_groups = PathRenderer(env.build(), None, cams, integ, spp, seed)(groups=background_groups(spp))
+        t = clock()
+        img, reg, alloc = render_allocated(env.build, mesh, cams, integ, spp, seed, bg, bg_groups, cov,
+                                           plan.region_threshold, region=plan.region_search and args.region,
+                                           noise_floor=args.noise_floor, cache=cache)
+        return img, clock() - t, alloc.to_dict()
 
     def plan_render(spp, seed):
         bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
@@ -145,6 +158,7 @@ def bench_evaluation(name: str, args) -> dict:
     ref, _ = full_render(args.ref_spp, base + 999)
     full_ref, _ = full_render(args.ref_spp, base + 998)  # its distance to ref: twice the reference noise
     plan_ref, _, _, _ = plan_render(args.ref_spp, base + 997)
+    alloc_ref = alloc_render(args.ref_spp, base + 996)[0] if args.allocation else None
     ref_var = srgb_rms(full_ref, ref) ** 2 / 2.0
     bias = math.sqrt(max(srgb_rms(plan_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0))
     rows = []
@@ -152,12 +166,17 @@ def bench_evaluation(name: str, args) -> dict:
         for k in range(args.warmup):  # untimed: the JIT compiles of this spp's kernels (a render at a new spp, a
             plan_render(spp, base + k)  # region's growth steps: each a kernel of its own), paid once per scene
             full_render(spp, base + k)
+            if args.allocation:
+                alloc_render(spp, base + k)
         for rep in range(args.reps):
             seed = base + 17 * spp + rep
             p_img, p_s, share, steps = plan_render(spp, seed)
             f_img, f_s = full_render(spp, seed)
+            a_img, a_s, a_stats = alloc_render(spp, seed) if args.allocation else (None, None, None)
             rows.append({"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
-                         "region_launches": steps,
+                         "region_launches": steps, "allocation": a_stats, "alloc_seconds": a_s,
+                         "alloc_error": math.sqrt(max(srgb_rms(a_img, ref) ** 2 - ref_var, 0.0)) if a_img is not None
+                         else None,
                          "plan_error": math.sqrt(max(srgb_rms(p_img, ref) ** 2 - ref_var, 0.0)),
                          "full_error": math.sqrt(max(srgb_rms(f_img, ref) ** 2 - ref_var, 0.0))})
     plan_curve = _mean_curve(rows, "plan")
@@ -169,7 +188,21 @@ def bench_evaluation(name: str, args) -> dict:
     e_plan_at_s = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "plan").items()], s))
     top = max(args.eval_levels)
     equal_spp = _by_spp(rows, "full")[top][0] / _by_spp(rows, "plan")[top][0]
-    return {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
+    alloc = None
+    if args.allocation:
+        timed = [r["allocation"] for r in rows if r["spp"] == s]
+        a_curve = _mean_curve(rows, "alloc")
+        a_t = seconds_at(a_curve, e_full)
+        alloc = {"samples_share": float(np.mean([a["samples_share"] for a in timed])),
+                 "control_variate_share": float(np.mean([a["control_variate_share"] for a in timed])),
+                 "floor_share": float(np.mean([a["floor_share"] for a in timed])),
+                 "costs": cache.get("costs"), "costs_seconds": cache.get("costs_seconds", 0.0),
+                 "seconds_at_equal_error": a_t, "speedup": t_full / a_t,
+                 "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, "alloc")[top][0],
+                 "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "alloc").items()], s)),
+                 "bias": math.sqrt(max(srgb_rms(alloc_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0)),
+                 "curve": a_curve, "noise_floor": args.noise_floor}
+    return {"scene": name, "pilot_seconds": pilot_seconds, "allocation": alloc, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
             "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
             "plan_seconds_at_equal_error": t_plan, "speedup": t_full / t_plan, "rows": rows,
@@ -358,6 +391,12 @@ def main() -> None:
     ap.add_argument("--eval-spp", type=int, default=64, help="the evaluation's spp (equal error is taken there)")
     ap.add_argument("--eval-levels", default="16,32,64,128,256")
     ap.add_argument("--ref-spp", type=int, default=2048)
+    ap.add_argument("--allocation", action="store_true", help="also the plan with per-pixel sample allocation "
+                    "(optimizer/rendering/allocation.py: the background as a control variate), interleaved")
+    ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
+                    "over every pixel, not only the region the object can change (exact everywhere)")
+    ap.add_argument("--no-noise-floor", dest="noise_floor", action="store_false", help="allocation without the "
+                    "floor that keeps every pixel no noisier than the background's")
     ap.add_argument("--train-spp", type=int, default=4, help="the training spp (equal error is taken there)")
     ap.add_argument("--target-spp", type=int, default=32)
     ap.add_argument("--train-levels", default="1,2,4,8")
@@ -445,6 +484,24 @@ def print_tables(results: dict) -> None:
                   f"{r['noise_at_spp'] * 255:.3f} |")
         sp = [r["speedup"] for r in results["eval"]]
         print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x\n")
+        al = [r for r in results["eval"] if r.get("allocation")]
+        if al:
+            floor = "with" if al[0]["allocation"].get("noise_floor") else "without"
+            print(f"The plan with per-pixel sample allocation ({floor} the noise floor), measured in the same run: "
+                  "its seconds and error against the same full tracing\n")
+            print(f"| scene | plan + allocation CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | "
+                  f"error @{a['eval_spp']} spp, plan + allocation / full (/255) | bias (/255) | samples (share of a "
+                  "full frame's) | pixels on the control variate | cost per sample, object / other | (plan alone) |")
+            print("|---|---|---|---|---|---|---|---|---|---|")
+            for r in al:
+                x = r["allocation"]
+                c = x.get("costs") or [float("nan"), float("nan")]
+                print(f"| {r['scene']} | {x['seconds_at_equal_error']:.2f} | {x['speedup']:.2f}x | "
+                      f"{x['speedup_equal_spp']:.2f}x | {x['error_at_spp'] * 255:.3f} / {r['full_error_at_spp'] * 255:.3f} | "
+                      f"{x['bias'] * 255:.3f} | {x['samples_share']:.0%} | {x['control_variate_share']:.0%} | "
+                      f"{c[0] / c[1]:.1f}x | {r['speedup']:.2f}x |")
+            sa = [r["allocation"]["speedup"] for r in al]
+            print(f"\nwith the allocation: mean speed-up {np.mean(sa):.2f}x, minimum {np.min(sa):.2f}x\n")
     if results["grad"]:
         g = results.get("grad_args", a)
         print(f"(b) Stage 1 gradient, {g['grad_views']} views at {g['grad_resolution']}^2, maps {g['map_resolution']}^2 "

@@ -8,6 +8,11 @@ tests), the same region rendered in one launch (the search's own cost is the dif
 pixels alone (its coverage, dilated by one pixel). The evaluation pilot's seconds are printed once per scene.
 
     python bench/bench_region_profile.py --scenes split,panorama [--resolution 96] [--views 4] [--spp 64]
+
+``--converged SPP`` prints instead how much of the frame the object changes at convergence: the with- and
+without-object renders at ``SPP`` (common random numbers, depth 6), the share of pixels whose 3 x 3 signed change
+(:func:`optimizer.rendering.region.change`) exceeds 0.5, 1 and 2 / 255, and the share bitwise equal to the
+background (no path of theirs met the object) -- what a region, however found, must cover to be exact.
 """
 
 from __future__ import annotations
@@ -26,7 +31,12 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--converged", type=int, default=0, metavar="SPP", help="print the converged change shares "
+                    "instead of timing (module doc)")
     a = ap.parse_args()
+    if a.converged:
+        converged(a)
+        return
 
     from bench.bench_planner import load_pack
     from evaluation.views import evaluation_cameras, evaluation_plan, render_seed
@@ -81,6 +91,33 @@ def main() -> None:
         print(f"| {name} | {pilot:.1f} | {best['background']:.2f} | {best['full12']:.2f} | {best['full_plan']:.2f} | "
               f"{best['search']:.2f} ({reg.steps}) | {best['region']:.2f} | {best['object']:.2f} | "
               f"{reg.masks.mean():.0%} | {obj.mean():.0%} |", flush=True)
+
+
+def converged(a) -> None:
+    from bench.bench_planner import load_pack
+    from evaluation.views import evaluation_cameras
+    from optimizer import backend
+    from optimizer.rendering import region as R
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.rendering.render import PathRenderer, coverage_and_depth
+    from optimizer.scenes.environments import get_environment
+
+    backend.init()
+    print(f"| scene | object's pixels | change > 0.5/255 | > 1/255 | > 2/255 | bitwise the background's |")
+    print("|---|---|---|---|---|---|")
+    integ = {"type": "path", "max_depth": 6, "rr_depth": 5}
+    for name in a.scenes.split(","):
+        pack = load_pack(name, a.views, a.resolution, 8000)
+        env = get_environment(pack.environment)
+        cams = evaluation_cameras(pack, a.views, seed=a.seed).cams
+        mesh = static_object_fn(pack, prepare_object(pack, target_vertices=8000))()
+        cov = np.stack([coverage_and_depth(scn.build_scene(env.build(), mesh), c, mesh)[0] for c in cams])
+        bg = PathRenderer(env.build(), None, cams, integ, a.converged, a.seed)()
+        wo = PathRenderer(env.build(), mesh, cams, integ, a.converged, a.seed)()
+        ch = np.stack([R.change(wo[v], bg[v], np.ones(bg.shape[1:3], bool)) for v in range(len(cams))])
+        print(f"| {name} | {np.mean(cov > 0):.0%} | " + " | ".join(f"{np.mean(ch > t / 255):.0%}" for t in (0.5, 1, 2))
+              + f" | {np.all(wo == bg, -1).mean():.0%} |", flush=True)
 
 
 if __name__ == "__main__":

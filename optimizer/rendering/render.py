@@ -190,3 +190,53 @@ def render_views(elements_fn, obj_fn, cams: Sequence[Camera], integrator: dict, 
         depth.append(d)
     coverage = np.stack(cov)
     return ViewRenders(bg, fg, coverage >= 0.5, coverage, np.stack(depth))
+
+
+def render_allocated(elements_fn, mesh, cams: Sequence[Camera], integrator: dict, spp: int, seed: int,
+                     background: np.ndarray, background_groups: np.ndarray, coverage: np.ndarray,
+                     threshold: float | None = None, region: bool = True, noise_floor: bool = True,
+                     cache: dict | None = None):
+    """The render with the object ``mesh`` at the error of a uniform ``spp``, its samples allocated per pixel with
+    the background as a control variate (:mod:`optimizer.rendering.allocation`): a base pass of ``spp / 4``
+    samples (over the region the object can change when ``region``, :func:`optimizer.rendering.region.
+    render_region`, the background's pixels elsewhere; else every pixel), then extra samples where they lower the
+    error most per CPU second (with ``noise_floor``, also wherever the render would be noisier than the
+    background's). ``background (V, H, W, 3)``: the background at ``spp``, same seed; ``background_groups``: its
+    ``allocation.background_groups(spp)`` consecutive group means ``(G, V, H, W, 3)``. ``cache``: a dict kept across
+    objects of one scene (the compact lights, the costs per sample). Returns ``(image, regions or None,
+    allocation)``."""
+    import time
+
+    from optimizer.rendering import allocation as A
+
+    A.check_spp(spp)
+    bg_groups = np.asarray(background_groups)
+    G = A.background_groups(spp)
+    if bg_groups.shape != (G, *np.shape(background)):
+        raise ValueError(f"background_groups must be {(G, *np.shape(background))} for spp {spp}, got {bg_groups.shape}")
+    base = spp // A.BASE_SHARE
+    size = spp // G  # samples per group, the base pass's and the background's
+    bg_base = bg_groups[:A.OBJECT_GROUPS].mean(0)  # the background over the base pass's samples
+    cache = {} if cache is None else cache
+    reg = None
+    if region:
+        img, reg, groups = render_with_region(elements_fn, mesh, cams, integrator, base, seed, bg_base, coverage,
+                                              threshold, groups=A.OBJECT_GROUPS, cache=cache)
+        rendered = reg.masks
+    else:
+        img, groups = PathRenderer(elements_fn(), mesh, cams, integrator, base, seed)(groups=A.OBJECT_GROUPS)
+        rendered = np.ones(img.shape[:3], bool)
+    t0 = time.perf_counter()
+    more = PathRenderer(elements_fn(), mesh, cams, integrator, spp, seed)
+    if "costs" not in cache:  # once per scene: a transmissive body's samples against the ground's
+        t = time.process_time()
+        cache["costs"] = A.measure_costs(more, coverage, rendered, base)
+        cache["costs_seconds"] = time.process_time() - t
+    c_obj, c_rest = cache["costs"]
+    cost = np.where(np.asarray(coverage) > 0, c_obj, c_rest)
+    # the sRGB slope at the base pass's pooled image (with the object: a body over a bright background is darker)
+    samples, control, floor_share = A.allocate(groups, bg_groups[:A.OBJECT_GROUPS], size, img, cost,
+                                               rendered, spp, noise_floor)
+    x_mean = A.extra_passes(more, img, samples, spp)
+    out = A.combine(x_mean, samples, control, bg_groups, background, spp)
+    return out, reg, A.Allocation(samples, control, spp, (c_obj, c_rest), floor_share, time.perf_counter() - t0)
