@@ -6,12 +6,11 @@ render in the checkpoint)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
 from camo_base.errors import CamoError
+from fixture_stage1 import tiny_gravel_stage1
 from optimizer.optimise import detail
 
 
@@ -136,25 +135,7 @@ def test_stage1_adds_the_term_from_its_second_render(mi_backend, batched):
     the photometric loss's; the second (same seeds, one thread: the same renders) adds the term, whose value is
     ``term_np`` of the renders' own energy; the previous render travels in the checkpoint."""
     _, dr = mi_backend
-    from optimizer.optimise.stage1 import Stage1, Stage1Config
-    from optimizer.rendering.appearance import AppearanceConfig
-    from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import plan
-    from optimizer.scenes import builtin_scenes
-    from optimizer.scenes.cameras import cameras
-    from optimizer.scenes.environments import get_environment
-
-    pack = builtin_scenes.get("gravel")
-    pack.cameras = dataclasses.replace(pack.cameras, views=2)
-    pack.render = dataclasses.replace(pack.render, resolution=(24, 24))
-    app = dataclasses.replace(AppearanceConfig(), map_resolution=32, displacement_resolution=16)
-    if batched:
-        app = dataclasses.replace(app, pose=False, freeze_displacement=True)
-    env = get_environment(pack.environment)
-    cfg = Stage1Config(spp=2, target_spp=4, seed=0, loss="mse", domain="frame", silhouette_every=1,
-                       detail_match=50.0)
-    s1 = Stage1(pack, env, prepare_object(pack, target_vertices=800), cameras(pack),
-                plan(pack, env, app.planner_params()), cfg, app).prepare()
+    s1 = tiny_gravel_stage1(batched, detail_match=50.0)
     assert s1._detail is not None and s1._batched == batched
     assert sum(t.shape[1] for t in s1._detail.taps) > 0
     threads = dr.thread_count()

@@ -5,12 +5,11 @@ error's, with a provider whose gradient is the squared error's)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
 from camo_base.errors import CamoError
+from fixture_stage1 import tiny_gravel_stage1
 
 
 def test_lpips_gradient_matches_central_differences(installed_lpips):
@@ -78,29 +77,12 @@ def test_surrogate_gradient_is_the_terms_gradient(mi_backend, monkeypatch, batch
     import drjit as dr
 
     from optimizer.optimise import perceptual
-    from optimizer.optimise.stage1 import Stage1, Stage1Config
-    from optimizer.rendering.appearance import AppearanceConfig
-    from optimizer.rendering.placement import prepare_object
-    from optimizer.rendering.planner import plan
-    from optimizer.scenes import builtin_scenes
-    from optimizer.scenes.cameras import cameras
-    from optimizer.scenes.environments import get_environment
 
     def squared(x, y):
         return ((x - y) ** 2).sum(axis=(1, 2, 3)), 2.0 * (x - y)
 
     monkeypatch.setattr(perceptual, "_factory", lambda net: squared)
-    pack = builtin_scenes.get("gravel")
-    pack.cameras = dataclasses.replace(pack.cameras, views=2)
-    pack.render = dataclasses.replace(pack.render, resolution=(24, 24))
-    app = dataclasses.replace(AppearanceConfig(), map_resolution=32, displacement_resolution=16)
-    if batched:
-        app = dataclasses.replace(app, pose=False, freeze_displacement=True)
-    env = get_environment(pack.environment)
-    cfg = Stage1Config(spp=2, target_spp=4, seed=0, loss="mse", domain="frame", silhouette_every=1,
-                       perceptual=1.0 / (24 * 24 * 3))
-    s1 = Stage1(pack, env, prepare_object(pack, target_vertices=800), cameras(pack),
-                plan(pack, env, app.planner_params()), cfg, app).prepare()
+    s1 = tiny_gravel_stage1(batched, perceptual=1.0 / (24 * 24 * 3))
     assert s1._perceptual is squared and s1._batched == batched
     threads = dr.thread_count()
     dr.set_thread_count(1)  # same seeds, one thread: the same renders in both calls
