@@ -260,8 +260,15 @@ def main(argv=None) -> int:
                "Shares of the crop's squared error and LPIPS (Shapley parts) in the object (mask + 1-px ring), its "
                "cast shadow and the rest; `shadow px` = the shadow's share of the crop's pixels "
                "(evaluation/giveaway.py).", ""]
-        keep = sorted(df["scene"].unique())[: args.giveaway_scenes]
+        scenes = sorted(df["scene"].unique())
+        shown = {spec.partition("=")[0].partition(":")[2] for spec in args.figure
+                 if spec.partition(":")[0] == name}  # the scenes with a figure are always in the table
+        keep = [s for i, s in enumerate(scenes) if i < args.giveaway_scenes or s in shown]
         md += [*giveaway_rows(df.loc[df["scene"].isin(keep)]), ""]
+        if len(keep) < len(scenes):
+            md += [f"{len(keep)} of the {len(scenes)} scenes: the first {args.giveaway_scenes} by name and those with "
+                   "a figure below (`--giveaway-scenes N` for more; the grid's own report, `report/report.html` in its "
+                   "output folder, has every scene's).", ""]
     for spec in args.figure:
         spec, _, caption = spec.partition("=")
         name, _, scene = spec.partition(":")
