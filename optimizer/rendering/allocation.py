@@ -24,7 +24,9 @@ region the object can change, :mod:`optimizer.rendering.region`, or every pixel)
 means; the per-pixel variances ``v_X``, ``v_D`` from those groups and the background's groups of the same samples
 (the background keeps :func:`background_groups` group means), weighted by the sRGB curve's slope (the error is
 measured in sRGB) and **pooled over each pixel's neighbours, the pixel itself left out**
-(:func:`optimizer.rendering.noise.pooled`): a pixel's count and estimator never depend on its own samples, so its
+(:func:`optimizer.rendering.noise.pooled`; the default ``sturdy`` estimate, :func:`sturdy_pooled`, takes the larger of
+the 5 x 5 mean and the 15 x 15 mean over the pixels of the same kind, the object's or the others', so that a rare
+bright path seen by few neighbours is not read as no variance): a pixel's count and estimator never depend on its own samples, so its
 estimate stays unbiased (the global multiplier depends on every pixel: an O(1/N) coupling); then **extra passes**,
 one launch per ladder step, each pixel's random stream continued.
 
