@@ -127,9 +127,12 @@ def bench_evaluation(name: str, args) -> dict:
     cov = np.stack([coverage_and_depth(sc, c, mesh)[0] for c in cams])
     cache: dict = {}  # what the region renders keep across objects of one scene (the compact lights, the costs)
 
-    def alloc_render(spp, seed, estimator):
+    def alloc_render(spp, seed, variant):
         """The plan's depth and region, samples allocated per pixel (optimizer/rendering/allocation.py) on the
-        per-pixel variances of ``estimator``."""
+        per-pixel variances and object floor of ``variant`` (allocation.VARIANTS)."""
+        from optimizer.rendering.allocation import VARIANTS
+
+        estimator, object_floor = VARIANTS[variant]
         from optimizer.rendering.allocation import background_groups
         from optimizer.rendering.render import PathRenderer, render_allocated
 
@@ -138,7 +141,8 @@ def bench_evaluation(name: str, args) -> dict:
         t = clock()
         img, reg, alloc = render_allocated(env.build, mesh, cams, integ, spp, seed, bg, bg_groups, cov,
                                            plan.region_threshold, region=plan.region_search and args.region,
-                                           noise_floor=args.noise_floor, cache=cache, estimator=estimator)
+                                           noise_floor=args.noise_floor, cache=cache, estimator=estimator,
+                                           object_floor=object_floor)
         return img, clock() - t, alloc.to_dict()
 
     def plan_render(spp, seed):
@@ -399,9 +403,9 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=2048)
     ap.add_argument("--allocation", action="store_true", help="also the plan with per-pixel sample allocation "
                     "(optimizer/rendering/allocation.py: the background as a control variate), interleaved")
-    ap.add_argument("--estimators", default="sturdy", help="with the allocation: comma list of its per-pixel "
-                    "variance estimates, each measured interleaved (optimizer/rendering/allocation.py ESTIMATORS: "
-                    "local, sturdy)")
+    ap.add_argument("--estimators", default="sturdy-floor", help="with the allocation: comma list of its variants "
+                    "(per-pixel variance estimate, object floor), each measured interleaved (optimizer/rendering/"
+                    "allocation.py VARIANTS: local, sturdy, sturdy-floor)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
                     "over every pixel, not only the region the object can change (exact everywhere)")
     ap.add_argument("--no-noise-floor", dest="noise_floor", action="store_false", help="allocation without the "
@@ -440,7 +444,7 @@ def main() -> None:
                 merged["grad_args"] = r["args"]
         print_tables(merged)
         return
-    from optimizer.rendering.allocation import ESTIMATORS
+    from optimizer.rendering.allocation import VARIANTS as ESTIMATORS
 
     args.estimators = [e for e in args.estimators.split(",") if e]
     bad = [e for e in args.estimators if e not in ESTIMATORS]
@@ -506,7 +510,7 @@ def print_tables(results: dict) -> None:
         for est in ests:
             al = [r for r in results["eval"] if est in (r.get("allocations") or {})]
             floor = "with" if al[0]["allocations"][est].get("noise_floor") else "without"
-            print(f"The plan with per-pixel sample allocation, {est} variance estimate ({floor} the noise floor), "
+            print(f"The plan with per-pixel sample allocation, variant {est} ({floor} the noise floor), "
                   "measured in the same run: its seconds and error against the same full tracing\n")
             print(f"| scene | plan + allocation CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | "
                   f"error @{a['eval_spp']} spp, plan + allocation / full (/255) | bias (/255) | samples (share of a "
