@@ -376,7 +376,11 @@ def summarise_gradient(out: dict, train_spp: int, kinds=("plan", "full-lt", "ful
         else:
             s_eq = float("nan")  # never reached within the measured levels
         t_p = icept + slope * s_eq
-        out[who] = {"seconds_at_spp": t_f, "cosine_at_spp": cos_f, "loss_error_at_spp": loss_f,
+        eq = {}
+        if train_spp in plan:  # at equal spp: what "equal seconds" is where a step's seconds do not grow with spp
+            eq = {"cosine_ratio_equal_spp": plan[train_spp][1] / cos_f if cos_f > 0 else float("nan"),
+                  "seconds_ratio_equal_spp": plan[train_spp][0] / t_f}
+        out[who] = {**eq, "seconds_at_spp": t_f, "cosine_at_spp": cos_f, "loss_error_at_spp": loss_f,
                     "plan_spp_at_same_seconds": s_aff, "clamped": clamped,
                     "plan_seconds_at_equal_cosine": t_p, "speedup": t_f / t_p if t_p == t_p else float("nan"),
                     "plan_cosine_at_same_seconds": cos_p,
@@ -539,9 +543,9 @@ def print_tables(results: dict) -> None:
               f"{g['train_spp']} spp\n")
         levels = sorted({int(k) for r in results["grad"] for k in r["curves"].get("plan", {})})
         print("| scene | plan depth | window | vs | cosine plan / full at " + " | ".join(f"{k} spp" for k in levels) +
-              " | step s plan / full @" + f"{g['train_spp']} spp | plan cos in full's s (spp afforded) | ratio | "
-              "speed-up at equal cos | loss err plan / full |")
-        print("|---|---|---|---|" + "---|" * len(levels) + "---|---|---|---|---|")
+              " | step s plan / full @" + f"{g['train_spp']} spp | cosine ratio at {g['train_spp']} spp | plan cos in "
+              "full's s (spp afforded) | ratio | speed-up at equal cos | loss err plan / full |")
+        print("|---|---|---|---|" + "---|" * len(levels) + "---|---|---|---|---|---|")
         for r in results["grad"]:
             for who in ("full", "full-lt"):
                 if who not in r:
@@ -551,6 +555,7 @@ def print_tables(results: dict) -> None:
                                    f"{c['plan'][str(k)][1]:.3f} / -" for k in levels)
                 print(f"| {r['scene']} | {r['max_depth']} | {r['window_share']:.0%} | {who} | {cells} | "
                       f"{pl.get('seconds', float('nan')):.2f} / {w['seconds_at_spp']:.2f} | "
+                      f"{w.get('cosine_ratio_equal_spp', float('nan')):.2f} | "
                       f"{w['plan_cosine_at_same_seconds']:.3f} ({w.get('plan_spp_at_same_seconds', float('nan')):.1f}"
                       f"{', clamped' if w.get('clamped') else ''}) | {w['cosine_ratio']:.2f} | {w['speedup']:.2f}x | "
                       f"{pl.get('loss_error', float('nan')):.2e} / {w['loss_error_at_spp']:.2e} |")
@@ -568,9 +573,11 @@ def print_tables(results: dict) -> None:
         for who in ("full", "full-lt"):
             sp = [r[who]["speedup"] for r in results["grad"] if who in r]
             cr = [r[who]["cosine_ratio"] for r in results["grad"] if who in r]
+            ce = [r[who].get("cosine_ratio_equal_spp", float("nan")) for r in results["grad"] if who in r]
             if sp:
                 print(f"\nvs {who}: speed-up at equal cosine mean {np.nanmean(sp):.2f}x, minimum {np.nanmin(sp):.2f}x; "
-                      f"cosine ratio at equal seconds mean {np.nanmean(cr):.2f}, minimum {np.nanmin(cr):.2f}")
+                      f"cosine ratio at equal seconds mean {np.nanmean(cr):.2f}, minimum {np.nanmin(cr):.2f}; "
+                      f"at equal spp mean {np.nanmean(ce):.2f}, minimum {np.nanmin(ce):.2f}")
 
 if __name__ == "__main__":
     main()
