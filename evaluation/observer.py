@@ -32,7 +32,10 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    derivatives of a Gaussian, Freeman & Adelson 1991) -- pooled over a centre (sigma 0.15, 0.3, 0.6 deg), and its
    Mahalanobis distance from the robust (trimmed) distribution of the same features in a Gaussian surround (sigma
    4 deg) of the *background* (the object-free view when given), with one JND (Delta E 2.3) of internal noise per
-   feature. Each scale is z-scored against the median and MAD over the ground (Itti, Koch & Niebur 1998's
+   feature. The surround is taken on the place's *own ground* (``surround="ground"``, :func:`ground_segments`:
+   the object-free view's grounds and sky, k-means on colour; one ground -> the whole surround): on split's
+   marble-and-asphalt floor a place on the asphalt is compared with asphalt, not with the mixture of both that a
+   pooled surround gives at their border (the same rule for steps 2 and 5). Each scale is z-scored against the median and MAD over the ground (Itti, Koch & Niebur 1998's
    normalisation in spirit): ``D`` in d' units, "how unusual for this scene's ground".
 2. **Object, not shadow.** Out of direct light the ground is lit by the sky alone: darker, bluer (less red, more
    blue relative to green), with the same pattern or less of it (the shading texture of direct light goes). A place
@@ -76,30 +79,41 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    Klein & Aitsebaomo 1985), plus Gaussian noise per look; the next fixation goes to the highest perceived
    priority minus **inhibition of return** (Klein 2000, TICS 4): each past fixation subtracts
    ``ior_strength * exp(-d^2 / 2 ior_radius_deg^2)``.
-5. **Verification** at each fixation (GS6's identification stage as a signal-detection decision, Green & Swets
-   1966): the evidence ``V`` at the fixated place -- the largest compactness of ``O`` (step 3's measure, over a
-   foveal 1 deg disc and the object sizes) within ``verify_radius_deg`` of the fixation, *as a z against what the
-   background gives around that place* (the mean and spread of the background's own compactness over the 4 deg
-   surround, at least the ground's overall spread: a sunlit patch, a shadow's border or a horizon that the
-   background has there raises the bar; the same thing on uniform ground stands out) -- plus Gaussian decision
-   noise (``verify_noise``) is compared with ``criterion``. Above it: "object here", the observer clicks the local
-   peak of ``V`` it climbs to from there. A background place that passes is a **false verification**: a click off
-   the object, a miss, as in the study. Below it: "background here", search goes on. So misses come from false
-   verifications, and their rate falls as the object's evidence rises (the object is verified before many
-   background places have been checked); a hidden object leaves only background candidates and long searches.
-6. **Time**: ``fixation_s`` per fixation (about 4 per second in scene search, Rayner 1998, Psych. Bull. 124;
-   Henderson 2003), ``verify_s`` more on the verified candidate (target fixations are longer than distractor
-   fixations: the verification epoch of Castelhano, Pollatsek & Cave 2008, Psychon. Bull. Rev. 15, and Malcolm &
-   Henderson 2009, JoV 9(11)), then the mouse movement by Fitts' law ``a + b log2(d / w + 1)`` from the image
-   centre (Soukoreff & MacKenzie 2004: throughput about 4-5 bit/s). No click within ``time_limit_s`` (the site's
-   40 s) is a timeout.
+5. **Verification** at each fixation (GS6's identification stage, a decision that can err): the evidence ``V`` at
+   the fixated place -- the largest compactness of ``O`` (step 3's measure, over a foveal 1 deg disc and the
+   object sizes) within ``verify_radius_deg`` of the fixation, *as a z against what the background gives around
+   that place* (the mean and spread of the background's own compactness over the 4 deg surround on the same
+   ground, at least the ground's overall spread: a sunlit patch, a shadow's border or a horizon that the
+   background has there raises the bar; the same thing on uniform ground stands out) -- is **accumulated over
+   time** (``decision="diffusion"``, :func:`diffusion_decision`): a drift-diffusion decision, Wald's sequential
+   probability ratio test in continuous time (Wald 1947; Ratcliff 1978, Psychol. Rev. 85; Palmer, Huk & Shadlen
+   2005, JoV 5(5): drift proportional to the stimulus strength), with drift ``k (V - criterion)`` and bounds
+   ``+-a`` (:func:`diffusion_parameters`: ``a^2 = decision_time_s``, the mean decision time at the criterion;
+   ``k`` such that the probability of the "object" bound is the one-shot rule's ``Phi((V - criterion) /
+   verify_noise)``). "Object here": the observer clicks the local peak of ``V`` it climbs to from there; a
+   background place that passes is a **false verification**, a click off the object, a miss as in the study.
+   "Background here": search goes on. So weak evidence near the criterion gives slow decisions and errors both
+   ways (false verifications and rejected objects), strong evidence fast, sure ones; misses fall as the object's
+   evidence rises (it is verified before many background places have been checked); a hidden object leaves only
+   background candidates and long searches. ``decision="threshold"`` is the former one-shot comparison
+   ``V + N(0, verify_noise^2) > criterion`` with no decision time (Green & Swets 1966).
+6. **Time**: each fixation lasts ``fixation_s`` (encoding and the saccade; about 4 fixations per second in scene
+   search, Rayner 1998, Psych. Bull. 124; Henderson 2003) plus its decision time -- longer on places that
+   resemble the target, as fixations on target-like distractors are (Hooge & Erkelens 1998; Becker 2011) --;
+   ``verify_s`` more on the verified candidate (target fixations are longer than distractor fixations: the
+   verification epoch of Castelhano, Pollatsek & Cave 2008, Psychon. Bull. Rev. 15, and Malcolm & Henderson
+   2009, JoV 9(11)), then the mouse movement by Fitts' law ``a + b log2(d / w + 1)`` from the image centre
+   (Soukoreff & MacKenzie 2004: throughput about 4-5 bit/s). No click within ``time_limit_s`` (the site's 40 s)
+   is a timeout.
 
 Every default is justified next to it in :class:`ObserverConfig`. **Calibration**: only the human figures of the
 paper's Table I (:data:`PAPER_TABLE_I`) were used: the verification criterion (one of two values tried) against
 the human range for plainly visible objects (:data:`HUMAN_VISIBLE`: confusion <= 20 %, mean time 1.5-6 s); every
-other constant comes from the sources cited (the shape cue's window and thresholds from the study's object sizes
-and the geometry of a half-plane; the cue was made the default after one on/off comparison on the nine visible
-cells); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows
+other constant comes from the sources cited (the decision's time scale from Palmer, Huk & Shadlen 2005; the
+grounds' separation from the overlap of two normal distributions; the shape cue's window and thresholds from the
+study's object sizes and the geometry of a half-plane -- the cue was made the default after one on/off comparison
+on the nine visible cells; the diffusion decision and the own-ground surround after one comparison each, with
+the former settings kept as options: ``decision="threshold"``, ``surround="all"``); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows
 predicted and human figures side by side on the built-in scenes' stimuli, and where and why they part.
 
 Outputs: :func:`simulate_search` (per simulated trial: click, time, found), :func:`predict_stimulus` (probability
@@ -215,7 +229,7 @@ class ObserverConfig:
     #: from the criterion is decided within ~0.1 s, one near it takes up to ``decision_time_s`` on average -- weak
     #: evidence gives slow decisions and more errors either way, strong evidence fast, sure ones. The fixation lasts
     #: ``fixation_s`` plus that decision time. "threshold": the former one-shot comparison, no decision time (with
-    #: ``fixation_s=0.25`` it reproduces the former default's figures).
+    #: ``surround="all"`` it reproduces the former default's figures exactly).
     decision: str = "diffusion"
     #: Mean decision time (seconds) of a place whose evidence sits at the criterion (zero drift): ``a^2`` for a
     #: diffusion with unit noise between bounds at +-``a``. 0.5 s: of the order of the mean decision times near
