@@ -134,6 +134,11 @@ import numpy as np
 from camo_base.errors import CamoError
 
 
+#: The observer's settings that take one of a few words (the default first).
+_CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
+            "shadow_shape": ("lying", "none"), "shadow_reference": ("surround", "background")}
+
+
 @dataclass(frozen=True)
 class ObserverConfig:
     """The observer's parameters (units in the names: ``_deg`` visual degrees, ``_s`` seconds, d' = z units)."""
@@ -270,25 +275,10 @@ class ObserverConfig:
     def validate(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name == "start":
-                if v not in ("centre", "random"):
-                    raise CamoError(f"observer start must be 'centre' or 'random', not {v!r}")
-                continue
-            if f.name == "surround":
-                if v not in ("ground", "all"):
-                    raise CamoError(f"observer surround must be 'ground' or 'all', not {v!r}")
-                continue
-            if f.name == "decision":
-                if v not in ("diffusion", "threshold"):
-                    raise CamoError(f"observer decision must be 'diffusion' or 'threshold', not {v!r}")
-                continue
-            if f.name == "shadow_shape":
-                if v not in ("lying", "none"):
-                    raise CamoError(f"observer shadow_shape must be 'lying' or 'none', not {v!r}")
-                continue
-            if f.name == "shadow_reference":
-                if v not in ("background", "surround"):
-                    raise CamoError(f"observer shadow_reference must be 'background' or 'surround', not {v!r}")
+            if f.name in _CHOICES:
+                if v not in _CHOICES[f.name]:
+                    allowed = " or ".join(repr(c) for c in _CHOICES[f.name])
+                    raise CamoError(f"observer {f.name} must be {allowed}, not {v!r}")
                 continue
             if f.name == "saliency_model":
                 if v and not Path(v).expanduser().is_file():

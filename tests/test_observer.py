@@ -633,3 +633,16 @@ def test_an_object_at_the_border_of_two_grounds_is_found():
     assert ground.p_found >= 0.95, (ground.p_found, pooled.p_found)
     assert pooled.p_found <= 0.05  # (measured: 100 % vs 0 %, the pooled surround's searches time out)
     assert ground.object_evidence > 3 * ObserverConfig().criterion > pooled.object_evidence
+
+
+def test_decision_and_surround_settings_are_checked():
+    from study_site.simulate import parse_observer
+
+    with pytest.raises(CamoError, match=r"^observer decision must be 'diffusion' or 'threshold', not 'vote'$"):
+        ObserverConfig(decision="vote").validate()
+    with pytest.raises(CamoError, match=r"^observer surround must be 'ground' or 'all', not 'sky'$"):
+        ObserverConfig(surround="sky").validate()
+    with pytest.raises(CamoError, match="decision_time_s must be > 0"):
+        ObserverConfig(decision_time_s=0).validate()
+    cfg = parse_observer("decision=threshold, surround=all, decision_time_s=0.8")
+    assert (cfg.decision, cfg.surround, cfg.decision_time_s) == ("threshold", "all", 0.8)
