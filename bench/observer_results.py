@@ -76,7 +76,8 @@ def compare(variants: list[tuple[str, list[Path]]]) -> str:
             if lab not in visible + ("Ours",):
                 continue
             lo, hi = HUMAN_VISIBLE["mean_time_s"]
-            ok = lab in visible and r.confusion_rate <= HUMAN_VISIBLE["max_confusion"] and lo <= r.mean_time_found_s <= hi
+            ok = (lab in visible and r.confusion_rate <= HUMAN_VISIBLE["max_confusion"]
+                  and lo <= r.mean_time_found_s <= hi)
             inrange[name] = inrange.get(name, 0) + ok
             cells.setdefault((lab != "Ours", scene, lab), {})[name] = (
                 f"{100 * r.confusion_rate:.1f} % / {r.mean_time_found_s:.2f} s" + (" *" if ok else ""))

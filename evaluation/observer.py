@@ -35,8 +35,9 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    feature. The surround is taken on the place's *own ground* (``surround="ground"``, :func:`ground_segments`:
    the object-free view's grounds and sky, k-means on colour; one ground -> the whole surround): on split's
    marble-and-asphalt floor a place on the asphalt is compared with asphalt, not with the mixture of both that a
-   pooled surround gives at their border (the same rule for steps 2 and 5). Each scale is z-scored against the median and MAD over the ground (Itti, Koch & Niebur 1998's
-   normalisation in spirit): ``D`` in d' units, "how unusual for this scene's ground".
+   pooled surround gives at their border (the same rule for steps 2 and 5). Each scale is z-scored against the
+   median and MAD over the ground (Itti, Koch & Niebur 1998's normalisation in spirit): ``D`` in d' units, "how
+   unusual for this scene's ground".
 2. **Object, not shadow.** Out of direct light the ground is lit by the sky alone: darker, bluer (less red, more
    blue relative to green), with the same pattern or less of it (the shading texture of direct light goes). A place
    as much darker than its surround as a cast shadow is (:data:`SHADOW_FACTOR`: it keeps 15-35 % of the light, a
@@ -68,10 +69,10 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    object size the study shows (``object_deg``: 10-30 % of the frame width) the mean of ``O`` over a disc of that
    size minus the *second* largest such mean of the 8 discs around it (:func:`_compactness`): a compact thing
    differs from its surround on every side but the one where it touches its own shadow, whereas an edge, a horizon
-   or a shadow's border runs through two opposite sides; z-scored per size over the ground, maximum over sizes. A cast shadow is evidence that
-   an object is *near* (it touches the ground where its shadow begins): the shadow evidence ``S * D``, spread over
-   one object size, adds ``shadow_gain`` of itself to the priority *around* the shadow -- not on it, and never to
-   the verification of the shadow itself.
+   or a shadow's border runs through two opposite sides; z-scored per size over the ground, maximum over sizes. A
+   cast shadow is evidence that an object is *near* (it touches the ground where its shadow begins): the shadow
+   evidence ``S * D``, spread over one object size, adds ``shadow_gain`` of itself to the priority *around* the
+   shadow -- not on it, and never to the verification of the shadow itself.
 4. **Fixations** (Najemnik & Geisler 2005/2009; Itti & Koch 2001): at onset the eyes are at the image centre
    (central fixation bias at onset, Tatler 2007, JoV 7(14)) and the first saccade is planned there without a
    check (so an object at the centre has no head start). At each fixation the observer sees every cell's priority
@@ -113,8 +114,9 @@ other constant comes from the sources cited (the decision's time scale from Palm
 grounds' separation from the overlap of two normal distributions; the shape cue's window and thresholds from the
 study's object sizes and the geometry of a half-plane -- the cue was made the default after one on/off comparison
 on the nine visible cells; the diffusion decision and the own-ground surround after one comparison each, with
-the former settings kept as options: ``decision="threshold"``, ``surround="all"``); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows
-predicted and human figures side by side on the built-in scenes' stimuli, and where and why they part.
+the former settings kept as options: ``decision="threshold"``, ``surround="all"``); nothing is fitted to any image
+metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
+the built-in scenes' stimuli, and where and why they part.
 
 Outputs: :func:`simulate_search` (per simulated trial: click, time, found), :func:`predict_stimulus` (probability
 found, search-time distribution) and :func:`predicted_table` (per method, in the shape of the study's Table I).
@@ -669,7 +671,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         sky = sky_map(logimg if log_bg is None else log_bg)
         ground = ~sky
         if segments is None and log_bg is not None and cfg.surround == "ground":
-            segments = ground_segments(lab_bg, log_bg, sky, cfg)  # from the object-free view only
+            segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
         d = d_inv = shadow = obj = None
         for sc in cfg.centre_sigmas_deg:
             m_full, m_inv, illum, darker, own = _scale_maps(lab, logimg, sc, cfg, lab_bg, log_bg, segments)
@@ -734,8 +736,7 @@ SEGMENT_MIN_SHARE = 0.05
 SEGMENT_MAX = 3
 
 
-def ground_segments(lab: np.ndarray, logimg: np.ndarray, sky: np.ndarray,
-                    config: ObserverConfig | None = None) -> np.ndarray:
+def ground_segments(lab: np.ndarray, sky: np.ndarray, config: ObserverConfig | None = None) -> np.ndarray:
     """``(h, w)`` int labels of the grounds of an *object-free* view (``lab``: its CIE L*a*b* ``(h, w, 3)`` at the
     feature resolution, ``sky``: :func:`sky_map`): 0 .. K-1 for up to :data:`SEGMENT_MAX` grounds, K for the sky
     when there is one; all 0 when the view has one ground and no sky.
@@ -747,11 +748,10 @@ def ground_segments(lab: np.ndarray, logimg: np.ndarray, sky: np.ndarray,
     scene perception: Wolfe, Vo, Evans & Greene 2011, TICS 15, "Visual search in scenes involves selective and
     nonselective pathways"). The grounds are k-means clusters (SciPy, seeded: deterministic) of the colour of
     step 1 (L*a*b*; not the texture energies, which change with distance on one ground) pooled at
-    :data:`SEGMENT_SIGMA_DEG`, on the places that are
-    not sky; k is the largest (of 3, 2, 1) whose clusters are pairwise separated by :data:`SEGMENT_SEPARATION`
-    (Fisher's d') and each cover :data:`SEGMENT_MIN_SHARE` of the frame. Labels are cleaned by a majority vote
-    over the same pooling. Read from the object-free render only, so they never say where the object is (the
-    object's place gets the label of the ground behind it)."""
+    :data:`SEGMENT_SIGMA_DEG`, on the places that are not sky; k is the largest (of 3, 2, 1) whose clusters are
+    pairwise separated by :data:`SEGMENT_SEPARATION` (Fisher's d') and each cover :data:`SEGMENT_MIN_SHARE` of the
+    frame. Labels are cleaned by a majority vote over the same pooling. Read from the object-free render only, so
+    they never say where the object is (the object's place gets the label of the ground behind it)."""
     from scipy import ndimage
     from scipy.cluster.vq import kmeans2
 

@@ -598,8 +598,8 @@ def two_grounds(seed: int = 0, n: int = N) -> tuple[np.ndarray, np.ndarray]:
 
 def test_ground_segments_tell_the_grounds_and_the_sky_apart():
     """Two grounds and a sky are told apart along their true borders (the grounds' labels at the feature
-    resolution agree with the truth on >= 97 % of the ground); one ground whose brightness drifts across the frame (distance,
-    light fall-off) stays one ground."""
+    resolution agree with the truth on >= 97 % of the ground); one ground whose brightness drifts across the frame
+    (distance, light fall-off) stays one ground."""
     from evaluation.observer import _log_image, _resample
 
     cfg = ObserverConfig()
@@ -607,7 +607,7 @@ def test_ground_segments_tell_the_grounds_and_the_sky_apart():
     small = _resample(img, 160 / N)
     lab, lg = srgb_to_lab(small), _log_image(small)
     sky = sky_map(lg)
-    seg = ground_segments(lab, lg, sky, cfg)
+    seg = ground_segments(lab, sky, cfg)
     yy, xx = np.mgrid[0:160, 0:160]
     t = truth[(yy * N / 160).astype(int), (xx * N / 160).astype(int)]
     assert seg.max() == 2 and (seg[t == 2] == 2).mean() > 0.95  # the sky (sky_map) has its own, last label
@@ -616,7 +616,7 @@ def test_ground_segments_tell_the_grounds_and_the_sky_apart():
     assert agree >= 0.97, agree
     one = grass(30) * np.linspace(0.6, 1.3, N)[:, None, None].astype(np.float32)  # darker far, brighter near
     small = _resample(np.clip(one, 0, 1), 160 / N)
-    seg1 = ground_segments(srgb_to_lab(small), _log_image(small), np.zeros((160, 160), bool), cfg)
+    seg1 = ground_segments(srgb_to_lab(small), np.zeros((160, 160), bool), cfg)
     assert seg1.max() == 0
 
 
