@@ -50,6 +50,9 @@ ARMS = {
     # clear glass: an IOR near 1 and a smooth start, so the ground behind shows through sharp and barely displaced
     # (texture and colour that are the ground's own; the roughness start search and the glint-safe start are off)
     "clear": ["--eta", "1.05", "--init", "roughness=0.2", "--init-search", "off"],
+    # clear glass as a candidate start the held-out views choose per scene (optimizer/optimise/startsearch.py):
+    # today's start (IOR 1.5, the searched roughness) against IOR 1.05 with roughness 0.2
+    "auto": ["--clear-candidate", "1.05"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -158,7 +161,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
-          "clear": "ours, IOR 1.05, R0 0.2",
+          "clear": "ours, IOR 1.05, R0 0.2", "auto": "ours, clear chosen per scene",
           "mean": "Mean"}
 
 
