@@ -95,6 +95,20 @@ def _seconds_per_iteration(run: Path) -> float:
     return float(sorted(secs)[len(secs) // 2]) if secs else float("nan")  # median: the first one compiles
 
 
+def _ior(run: Path) -> float:
+    """The shared index of refraction a run's result renders with: the clear-glass search's choice
+    (``summary.json``'s ``clear_search``), else its spec's ``appearance.eta``; NaN for a method without one."""
+    import json
+    import tomllib
+
+    summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
+    if summary.get("clear_search"):
+        return float(summary["clear_search"]["chosen_eta"])
+    config = tomllib.loads((run / "config.toml").read_text()) if (run / "config.toml").is_file() else {}
+    return float(config["appearance"]["eta"]) if config.get("method") == "ours" and "appearance" in config \
+        else float("nan")
+
+
 def real_lpips(renders: Path) -> float:
     """Mean real LPIPS (v0.1, AlexNet, installed weights) of a run's evaluation renders, with against without the
     object, over the whole 64 px frames (the saved PNGs; NaN when the weights are not installed)."""
@@ -143,17 +157,19 @@ def table(out: Path, scenes, arms) -> str:
                          "lpips": next((real_lpips(d / "renders" / f"{scene}-{arm}") for d in evals
                                         if (d / "renders" / f"{scene}-{arm}").is_dir()), float("nan")),
                          "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
-                         "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}")})
+                         "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}"),
+                         "ior": _ior(out / "runs" / f"{scene}-{arm}")})
     df = pd.DataFrame(rows)
     lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | LPIPS (frame)↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | "
-             "method s | s / Stage 1 it |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "method s | s / Stage 1 it | IOR |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in df.itertuples():
+        ior = "" if r.ior != r.ior else f"{r.ior:g}"  # NaN: a method without an IOR (Mean)
         lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.lpips:.3f} | {r.detail_ratio:.2f} | "
-                     f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
+                     f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} | {ior} |")
     for arm, g in df.groupby("arm", sort=False):
         lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
                      f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
-                     f"{g.s_per_it.mean():.2f} |")
+                     f"{g.s_per_it.mean():.2f} | |")
     return "\n".join(lines)
 
 
@@ -217,6 +233,10 @@ def main(argv=None) -> int:
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
+    ap.add_argument("--section", default="table", help="the table goes between the markers "
+                    "'<!-- bench_giveaways: SECTION -->' and '<!-- /bench_giveaways -->' of giveaways.md; only the "
+                    "default section ('table') also writes the contact sheets (another section: e.g. a second "
+                    "evaluation of the same runs at a higher --eval-spp in another --out)")
     a = ap.parse_args(argv)
     out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
     budget = ["--time-budget", str(a.seconds)] if a.seconds else ["--iterations", str(a.iterations)]
@@ -231,12 +251,15 @@ def main(argv=None) -> int:
         print(text)
         if a.docs:
             docs = Path(a.docs)
-            for scene in scenes:
+            for scene in scenes if a.section == "table" else ():
                 print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.png"))
             doc = docs / "giveaways.md"
-            start, end = "<!-- bench_giveaways: table -->", "<!-- /bench_giveaways -->"
+            start, end = f"<!-- bench_giveaways: {a.section} -->", "<!-- /bench_giveaways -->"
             body = doc.read_text(encoding="utf-8") if doc.is_file() else f"{start}\n{end}\n"
-            i, j = body.index(start) + len(start), body.index(end)
+            if start not in body:
+                raise SystemExit(f"{doc}: no '{start}' marker")
+            i = body.index(start) + len(start)
+            j = body.index(end, i)
             doc.write_text(body[:i] + "\n" + text + "\n" + body[j:], encoding="utf-8")  # the table between the markers
     return 0
 
