@@ -63,10 +63,16 @@ def camo(*args: str) -> None:
     subprocess.run(cmd, check=True)
 
 
+def name_of(scene: str) -> str:
+    """The name a scene's runs and evaluations are filed under: a built-in scene's name, a scene pack's file stem
+    (``packs/real/cross/sky-cone.toml`` -> ``sky-cone``: the real cross, ``grids/real_cross.toml``)."""
+    return Path(scene).stem if scene.endswith(".toml") else scene
+
+
 def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
              iterations: dict[str, int] | None = None) -> None:
     for arm in [*arms, "mean"] if mean else arms:
-        run = out / "runs" / f"{scene}-{arm}"
+        run = out / "runs" / f"{name_of(scene)}-{arm}"
         if (run / "config.toml").is_file():
             continue
         if arm == "mean":
@@ -78,10 +84,10 @@ def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
 
 
 def evaluate(out: Path, scene: str, arms, spp: int, views: int, into: str = "eval", mean: bool = True) -> None:
-    ev = out / into / scene
+    ev = out / into / name_of(scene)
     if (ev / "metrics.parquet").is_file():
         return
-    runs = [str(out / "runs" / f"{scene}-{a}") for a in ([*arms, "mean"] if mean else arms)]
+    runs = [str(out / "runs" / f"{name_of(scene)}-{a}") for a in ([*arms, "mean"] if mean else arms)]
     camo("evaluate", *runs, "--out", str(ev), "--spp", str(spp), "--views", str(views),
          "--metrics", "psnr,lpips_proxy,detail_ratio,tint", "--quiet")
 
@@ -218,7 +224,8 @@ def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--scenes", default=",".join(SCENES), help="built-in scene names or scene pack files (e.g. "
+                    "packs/real/cross/sky-cone.toml: a pair of the real cross), comma-separated")
     ap.add_argument("--arms", default=",".join(ARMS))
     ap.add_argument("--iterations", type=int, default=24, help="Stage 1 iterations of every optimised arm")
     ap.add_argument("--seconds", type=float, help="instead: this time budget for every optimised arm")
@@ -247,11 +254,12 @@ def main(argv=None) -> int:
         if a.phase in ("all", "evaluate"):
             evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
-        text = table(out, scenes, arms)
+        names = [name_of(s) for s in scenes]
+        text = table(out, names, arms)
         print(text)
         if a.docs:
             docs = Path(a.docs)
-            for scene in scenes if a.section == "table" else ():
+            for scene in names if a.section == "table" else ():
                 print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.png"))
             doc = docs / "giveaways.md"
             start, end = f"<!-- bench_giveaways: {a.section} -->", "<!-- /bench_giveaways -->"
