@@ -172,10 +172,20 @@ def table(out: Path, scenes, arms) -> str:
         ior = "" if r.ior != r.ior else f"{r.ior:g}"  # NaN: a method without an IOR (Mean)
         lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.lpips:.3f} | {r.detail_ratio:.2f} | "
                      f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} | {ior} |")
+    def mean_row(label: str, arm: str, g) -> str:
+        return (f"| **{label}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
+                f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
+                f"{g.s_per_it.mean():.2f} | |")
+
+    base = df[df.arm == "today"]
     for arm, g in df.groupby("arm", sort=False):
-        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
-                     f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
-                     f"{g.s_per_it.mean():.2f} | |")
+        lines.append(mean_row(f"mean of {len(g)}", arm, g))
+        # an arm measured on fewer scenes than today's: today's mean on the same scenes beside it (means over
+        # different scenes do not compare)
+        if arm != "today" and not base.empty and set(g.scene) != set(base.scene):
+            same = base[base.scene.isin(set(g.scene))]
+            if len(same) == len(g):
+                lines.append(mean_row(f"mean of {len(g)}", "today, same scenes", same))
     return "\n".join(lines)
 
 
