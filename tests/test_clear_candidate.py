@@ -129,6 +129,10 @@ def test_end_to_end_the_choice_is_the_runs_and_a_resumed_run_keeps_it(tmp_path, 
     ni = [float(line.split()[1]) for line in mtl[0].read_text().splitlines() if line.split()[:1] == ["Ni"]]
     assert ni == [pytest.approx(cs["chosen_eta"])]
     assert s["seconds_clear_search"] == pytest.approx(cs["seconds"])
+    # the evaluation renders the result at the IOR the run kept, not the spec's (config.toml holds 1.5)
+    from optimizer.assets.rundir import open_run
+
+    assert open_run(full).asset().eta == pytest.approx(cs["chosen_eta"])
 
     capfd.readouterr()
     assert optimize(out, *args, "--iterations", "2") == 0
@@ -148,3 +152,24 @@ def test_end_to_end_the_choice_is_the_runs_and_a_resumed_run_keeps_it(tmp_path, 
     assert optimize(out, *args, "--iterations", "4", "--resume") == 2
     err = capfd.readouterr().err.strip()
     assert "bad clear_search/info" in err and len(err.splitlines()) == 1
+
+
+def test_a_result_renders_with_the_kept_ior_and_a_bad_record_is_a_one_line_error(tmp_path):
+    """``optimizer.assets.rundir.result_appearance``: the spec's appearance, with the IOR a clear-glass search kept
+    (``summary.json``'s ``clear_search.chosen_eta``); no record: unchanged; a record without a usable IOR: CamoError."""
+    from camo_base.errors import CamoError
+    from optimizer.assets.rundir import result_appearance
+    from optimizer.rendering.appearance import AppearanceConfig
+
+    app = AppearanceConfig(eta=1.5, map_resolution=64)
+    assert result_appearance(app, tmp_path) is app  # no summary.json
+    (tmp_path / "summary.json").write_text(json.dumps({"clear_search": None}))
+    assert result_appearance(app, tmp_path) is app
+    (tmp_path / "summary.json").write_text(json.dumps({"clear_search": {"chosen": "clear glass", "chosen_eta": 1.05}}))
+    kept = result_appearance(app, tmp_path)
+    assert kept.eta == 1.05 and kept.map_resolution == 64
+    for bad in ({"chosen_eta": "x"}, {"chosen_eta": 0.9}, {"chosen_eta": float("nan")}, {"chosen": "start"}):
+        (tmp_path / "summary.json").write_text(json.dumps({"clear_search": bad}))
+        with pytest.raises(CamoError, match="clear_search.chosen_eta must be an index of refraction > 1") as e:
+            result_appearance(app, tmp_path)
+        assert len(str(e.value).splitlines()) == 1
