@@ -1,6 +1,7 @@
 """Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
 built-in scenes: the detail term (``detail8``: ``--detail-match 8``), the map resolution (``map256``), no gradient
-blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start), the perceptual term (``lpips``), a lower shared IOR
+blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start; ``auto``: clear glass as a start the held-out
+views keep or reject per scene, ``--clear-candidate 1.05``), the perceptual term (``lpips``), a lower shared IOR
 (``eta1.2``), a lower transmittance start (``today_t0.3``) and the "large steps" map update;
 docs/results/giveaways.md.
 
