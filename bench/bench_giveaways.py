@@ -1,6 +1,7 @@
 """Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
 built-in scenes: the detail term (``detail8``: ``--detail-match 8``), the map resolution (``map256``), no gradient
-blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start), the perceptual term (``lpips``), a lower shared IOR
+blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start; ``auto``: clear glass as a start the held-out
+views keep or reject per scene, ``--clear-candidate 1.05``), the perceptual term (``lpips``), a lower shared IOR
 (``eta1.2``), a lower transmittance start (``today_t0.3``) and the "large steps" map update;
 docs/results/giveaways.md.
 
@@ -50,6 +51,9 @@ ARMS = {
     # clear glass: an IOR near 1 and a smooth start, so the ground behind shows through sharp and barely displaced
     # (texture and colour that are the ground's own; the roughness start search and the glint-safe start are off)
     "clear": ["--eta", "1.05", "--init", "roughness=0.2", "--init-search", "off"],
+    # clear glass as a candidate start the held-out views choose per scene (optimizer/optimise/startsearch.py):
+    # today's start (IOR 1.5, the searched roughness) against IOR 1.05 with roughness 0.2
+    "auto": ["--clear-candidate", "1.05"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -60,10 +64,16 @@ def camo(*args: str) -> None:
     subprocess.run(cmd, check=True)
 
 
+def name_of(scene: str) -> str:
+    """The name a scene's runs and evaluations are filed under: a built-in scene's name, a scene pack's file stem
+    (``packs/real/cross/sky-cone.toml`` -> ``sky-cone``: the real cross, ``grids/real_cross.toml``)."""
+    return Path(scene).stem if scene.endswith(".toml") else scene
+
+
 def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
              iterations: dict[str, int] | None = None) -> None:
     for arm in [*arms, "mean"] if mean else arms:
-        run = out / "runs" / f"{scene}-{arm}"
+        run = out / "runs" / f"{name_of(scene)}-{arm}"
         if (run / "config.toml").is_file():
             continue
         if arm == "mean":
@@ -75,10 +85,10 @@ def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
 
 
 def evaluate(out: Path, scene: str, arms, spp: int, views: int, into: str = "eval", mean: bool = True) -> None:
-    ev = out / into / scene
+    ev = out / into / name_of(scene)
     if (ev / "metrics.parquet").is_file():
         return
-    runs = [str(out / "runs" / f"{scene}-{a}") for a in ([*arms, "mean"] if mean else arms)]
+    runs = [str(out / "runs" / f"{name_of(scene)}-{a}") for a in ([*arms, "mean"] if mean else arms)]
     camo("evaluate", *runs, "--out", str(ev), "--spp", str(spp), "--views", str(views),
          "--metrics", "psnr,lpips_proxy,detail_ratio,tint", "--quiet")
 
@@ -90,6 +100,20 @@ def _seconds_per_iteration(run: Path) -> float:
     secs = [r["seconds"] for r in map(json.loads, (run / "log.jsonl").read_text().splitlines())
             if r.get("stage") == 1 and "seconds" in r] if (run / "log.jsonl").is_file() else []
     return float(sorted(secs)[len(secs) // 2]) if secs else float("nan")  # median: the first one compiles
+
+
+def _ior(run: Path) -> float:
+    """The shared index of refraction a run's result renders with: the clear-glass search's choice
+    (``summary.json``'s ``clear_search``), else its spec's ``appearance.eta``; NaN for a method without one."""
+    import json
+    import tomllib
+
+    summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").is_file() else {}
+    if summary.get("clear_search"):
+        return float(summary["clear_search"]["chosen_eta"])
+    config = tomllib.loads((run / "config.toml").read_text()) if (run / "config.toml").is_file() else {}
+    return float(config["appearance"]["eta"]) if config.get("method") == "ours" and "appearance" in config \
+        else float("nan")
 
 
 def real_lpips(renders: Path) -> float:
@@ -140,17 +164,29 @@ def table(out: Path, scenes, arms) -> str:
                          "lpips": next((real_lpips(d / "renders" / f"{scene}-{arm}") for d in evals
                                         if (d / "renders" / f"{scene}-{arm}").is_dir()), float("nan")),
                          "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
-                         "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}")})
+                         "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}"),
+                         "ior": _ior(out / "runs" / f"{scene}-{arm}")})
     df = pd.DataFrame(rows)
     lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | LPIPS (frame)↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | "
-             "method s | s / Stage 1 it |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "method s | s / Stage 1 it | IOR |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in df.itertuples():
+        ior = "" if r.ior != r.ior else f"{r.ior:g}"  # NaN: a method without an IOR (Mean)
         lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.lpips_proxy:.3f} | {r.lpips:.3f} | {r.detail_ratio:.2f} | "
-                     f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} |")
+                     f"{r.tint:.2f} | {r.shadow:.2f} | {r.seconds:.0f} | {r.s_per_it:.2f} | {ior} |")
+    def mean_row(label: str, arm: str, g) -> str:
+        return (f"| **{label}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
+                f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
+                f"{g.s_per_it.mean():.2f} | |")
+
+    base = df[df.arm == "today"]
     for arm, g in df.groupby("arm", sort=False):
-        lines.append(f"| **mean of {len(g)}** | {arm} | {g.psnr.mean():.2f} | {g.lpips_proxy.mean():.3f} | {g.lpips.mean():.3f} | "
-                     f"{g.detail_ratio.mean():.2f} | {g.tint.mean():.2f} | {g.shadow.mean():.2f} | {g.seconds.mean():.0f} | "
-                     f"{g.s_per_it.mean():.2f} |")
+        lines.append(mean_row(f"mean of {len(g)}", arm, g))
+        # an arm measured on fewer scenes than today's: today's mean on the same scenes beside it (means over
+        # different scenes do not compare)
+        if arm != "today" and not base.empty and set(g.scene) != set(base.scene):
+            same = base[base.scene.isin(set(g.scene))]
+            if len(same) == len(g):
+                lines.append(mean_row(f"mean of {len(g)}", "today, same scenes", same))
     return "\n".join(lines)
 
 
@@ -158,7 +194,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
-          "clear": "ours, IOR 1.05, R0 0.2",
+          "clear": "ours, IOR 1.05, R0 0.2", "auto": "ours, clear chosen per scene",
           "mean": "Mean"}
 
 
@@ -199,7 +235,8 @@ def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--scenes", default=",".join(SCENES), help="built-in scene names or scene pack files (e.g. "
+                    "packs/real/cross/sky-cone.toml: a pair of the real cross), comma-separated")
     ap.add_argument("--arms", default=",".join(ARMS))
     ap.add_argument("--iterations", type=int, default=24, help="Stage 1 iterations of every optimised arm")
     ap.add_argument("--seconds", type=float, help="instead: this time budget for every optimised arm")
@@ -214,6 +251,10 @@ def main(argv=None) -> int:
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
+    ap.add_argument("--section", default="table", help="the table goes between the markers "
+                    "'<!-- bench_giveaways: SECTION -->' and '<!-- /bench_giveaways -->' of giveaways.md; only the "
+                    "default section ('table') also writes the contact sheets (another section: e.g. a second "
+                    "evaluation of the same runs at a higher --eval-spp in another --out)")
     a = ap.parse_args(argv)
     out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
     budget = ["--time-budget", str(a.seconds)] if a.seconds else ["--iterations", str(a.iterations)]
@@ -224,16 +265,20 @@ def main(argv=None) -> int:
         if a.phase in ("all", "evaluate"):
             evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
-        text = table(out, scenes, arms)
+        names = [name_of(s) for s in scenes]
+        text = table(out, names, arms)
         print(text)
         if a.docs:
             docs = Path(a.docs)
-            for scene in scenes:
+            for scene in names if a.section == "table" else ():
                 print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.png"))
             doc = docs / "giveaways.md"
-            start, end = "<!-- bench_giveaways: table -->", "<!-- /bench_giveaways -->"
+            start, end = f"<!-- bench_giveaways: {a.section} -->", "<!-- /bench_giveaways -->"
             body = doc.read_text(encoding="utf-8") if doc.is_file() else f"{start}\n{end}\n"
-            i, j = body.index(start) + len(start), body.index(end)
+            if start not in body:
+                raise SystemExit(f"{doc}: no '{start}' marker")
+            i = body.index(start) + len(start)
+            j = body.index(end, i)
             doc.write_text(body[:i] + "\n" + text + "\n" + body[j:], encoding="utf-8")  # the table between the markers
     return 0
 

@@ -7,6 +7,7 @@ metric per scene, and a picture of the stimuli with the simulated clicks (green 
 object's outline in magenta) next to the observer's priority and verification maps.
 
 Usage: python bench/observer_results.py --pairs EVAL_DIR:STIMULI_DIR ... [--pictures OUT.jpg] [--views 0,1]
+       [--compare LABEL=STIM_DIR,STIM_DIR ...]   (observer variants side by side: confusion / mean time of finds)
 """
 
 from __future__ import annotations
@@ -49,6 +50,49 @@ def tables(pairs: list[tuple[Path, Path]]) -> str:
             out += ["", "Kendall's tau, observer order (predicted confusion) vs metric order (crop): "
                     + ", ".join(f"{x['metric']} {x['tau']:+.2f}" for x in taus) + "."]
         out.append("")
+    return "\n".join(out)
+
+
+def compare(variants: list[tuple[str, list[Path]]]) -> str:
+    """One row per scene x method (the visible baselines, then Ours), one column per observer variant: predicted
+    confusion / mean time of finds, ``*`` where a visible baseline is in the human range. ``variants``: (label,
+    stimulus sets predicted with that variant's settings: ``camo study predict DIR --observer ...``)."""
+    from evaluation.observer import HUMAN_VISIBLE, PAPER_TABLE_I, predicted_table
+    from evaluation.report import load_simulated
+
+    from scipy.stats import spearmanr
+
+    visible = ("Mean [6]", "Random [6]", "Transparent")
+    cells, inrange, ev = {}, {}, {}
+    for name, dirs in variants:
+        views, trials, _ = load_simulated(dirs)
+        f = views[views["p_found"] > 0]
+        near = f["object_evidence"] < 10.0
+        ev[name] = (f"rho {spearmanr(f['object_evidence'], f['mean_time_found_s']).statistic:+.2f}; "
+                    f"{f.loc[near, 'mean_time_found_s'].mean():.2f} s ({int(near.sum())}) vs "
+                    f"{f.loc[~near, 'mean_time_found_s'].mean():.2f} s ({int((~near).sum())})")
+        t = predicted_table(views, by=("scene", "label"), trials=trials).set_index(["scene", "label"])
+        for (scene, lab), r in t.iterrows():
+            if lab not in visible + ("Ours",):
+                continue
+            lo, hi = HUMAN_VISIBLE["mean_time_s"]
+            ok = (lab in visible and r.confusion_rate <= HUMAN_VISIBLE["max_confusion"]
+                  and lo <= r.mean_time_found_s <= hi)
+            inrange[name] = inrange.get(name, 0) + ok
+            cells.setdefault((lab != "Ours", scene, lab), {})[name] = (
+                f"{100 * r.confusion_rate:.1f} % / {r.mean_time_found_s:.2f} s" + (" *" if ok else ""))
+    names = [n for n, _ in variants]
+    out = ["| cell | " + " | ".join(names) + " | humans (paper) |", "|---" * (len(names) + 2) + "|"]
+    for key in sorted(cells, key=lambda k: (not k[0], k[1], k[2])):
+        _, scene, lab = key
+        hum = PAPER_TABLE_I.get(lab)
+        out.append(f"| {scene} {lab} | " + " | ".join(cells[key].get(n, "—") for n in names) + " | "
+                   + (f"{100 * hum[0]:.1f} % / {hum[1]:.2f} s" if hum else "—") + " |")
+    out.append("| **visible cells in the human range** | " + " | ".join(f"**{inrange.get(n, 0)} of 9**" for n in names)
+               + " | |")
+    out.append("| evidence vs time: Spearman's rho of the object's evidence and the mean time of finds over the "
+               "stimuli found at all; mean time of finds with evidence < 10 (n) vs >= 10 (n) | "
+               + " | ".join(ev[n] for n in names) + " | |")
     return "\n".join(out)
 
 
@@ -102,9 +146,13 @@ def main() -> None:
     ap.add_argument("--pairs", nargs="+", required=True, metavar="EVAL_DIR:STIMULI_DIR")
     ap.add_argument("--pictures", metavar="OUT.jpg")
     ap.add_argument("--views", default="0", help="stimulus views in the picture (comma list)")
+    ap.add_argument("--compare", nargs="+", metavar="LABEL=STIM_DIR,STIM_DIR,...",
+                    help="observer variants side by side (each set predicted with that variant's --observer settings)")
     args = ap.parse_args()
     pairs = [tuple(Path(x) for x in p.split(":", 1)) for p in args.pairs]
     print(tables(pairs))
+    if args.compare:
+        print(compare([(c.split("=", 1)[0], [Path(x) for x in c.split("=", 1)[1].split(",")]) for c in args.compare]))
     if args.pictures:
         pictures([st for _, st in pairs], Path(args.pictures), set(args.views.split(",")))
 

@@ -32,8 +32,12 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    derivatives of a Gaussian, Freeman & Adelson 1991) -- pooled over a centre (sigma 0.15, 0.3, 0.6 deg), and its
    Mahalanobis distance from the robust (trimmed) distribution of the same features in a Gaussian surround (sigma
    4 deg) of the *background* (the object-free view when given), with one JND (Delta E 2.3) of internal noise per
-   feature. Each scale is z-scored against the median and MAD over the ground (Itti, Koch & Niebur 1998's
-   normalisation in spirit): ``D`` in d' units, "how unusual for this scene's ground".
+   feature. The surround is taken on the place's *own ground* (``surround="ground"``, :func:`ground_segments`:
+   the object-free view's grounds and sky, k-means on colour; one ground -> the whole surround): on split's
+   marble-and-asphalt floor a place on the asphalt is compared with asphalt, not with the mixture of both that a
+   pooled surround gives at their border (the same rule for steps 2 and 5). Each scale is z-scored against the
+   median and MAD over the ground (Itti, Koch & Niebur 1998's normalisation in spirit): ``D`` in d' units, "how
+   unusual for this scene's ground".
 2. **Object, not shadow.** Out of direct light the ground is lit by the sky alone: darker, bluer (less red, more
    blue relative to green), with the same pattern or less of it (the shading texture of direct light goes). A place
    as much darker than its surround as a cast shadow is (:data:`SHADOW_FACTOR`: it keeps 15-35 % of the light, a
@@ -65,10 +69,10 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    object size the study shows (``object_deg``: 10-30 % of the frame width) the mean of ``O`` over a disc of that
    size minus the *second* largest such mean of the 8 discs around it (:func:`_compactness`): a compact thing
    differs from its surround on every side but the one where it touches its own shadow, whereas an edge, a horizon
-   or a shadow's border runs through two opposite sides; z-scored per size over the ground, maximum over sizes. A cast shadow is evidence that
-   an object is *near* (it touches the ground where its shadow begins): the shadow evidence ``S * D``, spread over
-   one object size, adds ``shadow_gain`` of itself to the priority *around* the shadow -- not on it, and never to
-   the verification of the shadow itself.
+   or a shadow's border runs through two opposite sides; z-scored per size over the ground, maximum over sizes. A
+   cast shadow is evidence that an object is *near* (it touches the ground where its shadow begins): the shadow
+   evidence ``S * D``, spread over one object size, adds ``shadow_gain`` of itself to the priority *around* the
+   shadow -- not on it, and never to the verification of the shadow itself.
 4. **Fixations** (Najemnik & Geisler 2005/2009; Itti & Koch 2001): at onset the eyes are at the image centre
    (central fixation bias at onset, Tatler 2007, JoV 7(14)) and the first saccade is planned there without a
    check (so an object at the centre has no head start). At each fixation the observer sees every cell's priority
@@ -76,31 +80,43 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    Klein & Aitsebaomo 1985), plus Gaussian noise per look; the next fixation goes to the highest perceived
    priority minus **inhibition of return** (Klein 2000, TICS 4): each past fixation subtracts
    ``ior_strength * exp(-d^2 / 2 ior_radius_deg^2)``.
-5. **Verification** at each fixation (GS6's identification stage as a signal-detection decision, Green & Swets
-   1966): the evidence ``V`` at the fixated place -- the largest compactness of ``O`` (step 3's measure, over a
-   foveal 1 deg disc and the object sizes) within ``verify_radius_deg`` of the fixation, *as a z against what the
-   background gives around that place* (the mean and spread of the background's own compactness over the 4 deg
-   surround, at least the ground's overall spread: a sunlit patch, a shadow's border or a horizon that the
-   background has there raises the bar; the same thing on uniform ground stands out) -- plus Gaussian decision
-   noise (``verify_noise``) is compared with ``criterion``. Above it: "object here", the observer clicks the local
-   peak of ``V`` it climbs to from there. A background place that passes is a **false verification**: a click off
-   the object, a miss, as in the study. Below it: "background here", search goes on. So misses come from false
-   verifications, and their rate falls as the object's evidence rises (the object is verified before many
-   background places have been checked); a hidden object leaves only background candidates and long searches.
-6. **Time**: ``fixation_s`` per fixation (about 4 per second in scene search, Rayner 1998, Psych. Bull. 124;
-   Henderson 2003), ``verify_s`` more on the verified candidate (target fixations are longer than distractor
-   fixations: the verification epoch of Castelhano, Pollatsek & Cave 2008, Psychon. Bull. Rev. 15, and Malcolm &
-   Henderson 2009, JoV 9(11)), then the mouse movement by Fitts' law ``a + b log2(d / w + 1)`` from the image
-   centre (Soukoreff & MacKenzie 2004: throughput about 4-5 bit/s). No click within ``time_limit_s`` (the site's
-   40 s) is a timeout.
+5. **Verification** at each fixation (GS6's identification stage, a decision that can err): the evidence ``V`` at
+   the fixated place -- the largest compactness of ``O`` (step 3's measure, over a foveal 1 deg disc and the
+   object sizes) within ``verify_radius_deg`` of the fixation, *as a z against what the background gives around
+   that place* (the mean and spread of the background's own compactness over the 4 deg surround on the same
+   ground, at least the ground's overall spread: a sunlit patch, a shadow's border or a horizon that the
+   background has there raises the bar; the same thing on uniform ground stands out) -- is **accumulated over
+   time** (``decision="diffusion"``, :func:`diffusion_decision`): a drift-diffusion decision, Wald's sequential
+   probability ratio test in continuous time (Wald 1947; Ratcliff 1978, Psychol. Rev. 85; Palmer, Huk & Shadlen
+   2005, JoV 5(5): drift proportional to the stimulus strength), with drift ``k (V - criterion)`` and bounds
+   ``+-a`` (:func:`diffusion_parameters`: ``a^2 = decision_time_s``, the mean decision time at the criterion;
+   ``k`` such that the probability of the "object" bound is the one-shot rule's ``Phi((V - criterion) /
+   verify_noise)``). "Object here": the observer clicks the local peak of ``V`` it climbs to from there; a
+   background place that passes is a **false verification**, a click off the object, a miss as in the study.
+   "Background here": search goes on. So weak evidence near the criterion gives slow decisions and errors both
+   ways (false verifications and rejected objects), strong evidence fast, sure ones; misses fall as the object's
+   evidence rises (it is verified before many background places have been checked); a hidden object leaves only
+   background candidates and long searches. ``decision="threshold"`` is the former one-shot comparison
+   ``V + N(0, verify_noise^2) > criterion`` with no decision time (Green & Swets 1966).
+6. **Time**: each fixation lasts ``fixation_s`` (encoding and the saccade; about 4 fixations per second in scene
+   search, Rayner 1998, Psych. Bull. 124; Henderson 2003) plus its decision time -- longer on places that
+   resemble the target, as fixations on target-like distractors are (Hooge & Erkelens 1998; Becker 2011) --;
+   ``verify_s`` more on the verified candidate (target fixations are longer than distractor fixations: the
+   verification epoch of Castelhano, Pollatsek & Cave 2008, Psychon. Bull. Rev. 15, and Malcolm & Henderson
+   2009, JoV 9(11)), then the mouse movement by Fitts' law ``a + b log2(d / w + 1)`` from the image centre
+   (Soukoreff & MacKenzie 2004: throughput about 4-5 bit/s). No click within ``time_limit_s`` (the site's 40 s)
+   is a timeout.
 
 Every default is justified next to it in :class:`ObserverConfig`. **Calibration**: only the human figures of the
 paper's Table I (:data:`PAPER_TABLE_I`) were used: the verification criterion (one of two values tried) against
 the human range for plainly visible objects (:data:`HUMAN_VISIBLE`: confusion <= 20 %, mean time 1.5-6 s); every
-other constant comes from the sources cited (the shape cue's window and thresholds from the study's object sizes
-and the geometry of a half-plane; the cue was made the default after one on/off comparison on the nine visible
-cells); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows
-predicted and human figures side by side on the built-in scenes' stimuli, and where and why they part.
+other constant comes from the sources cited (the decision's time scale from Palmer, Huk & Shadlen 2005; the
+grounds' separation from the overlap of two normal distributions; the shape cue's window and thresholds from the
+study's object sizes and the geometry of a half-plane -- the cue was made the default after one on/off comparison
+on the nine visible cells; the diffusion decision and the own-ground surround after one comparison each, with
+the former settings kept as options: ``decision="threshold"``, ``surround="all"``); nothing is fitted to any image
+metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
+the built-in scenes' stimuli, and where and why they part.
 
 Outputs: :func:`simulate_search` (per simulated trial: click, time, found), :func:`predict_stimulus` (probability
 found, search-time distribution) and :func:`predicted_table` (per method, in the shape of the study's Table I).
@@ -120,6 +136,11 @@ import numpy as np
 from camo_base.errors import CamoError
 
 
+#: The observer's settings that take one of a few words (the default first).
+_CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
+            "shadow_shape": ("lying", "none"), "shadow_reference": ("surround", "background")}
+
+
 @dataclass(frozen=True)
 class ObserverConfig:
     """The observer's parameters (units in the names: ``_deg`` visual degrees, ``_s`` seconds, d' = z units)."""
@@ -136,6 +157,12 @@ class ObserverConfig:
     #: Surround (Gaussian sigma, degrees): wide enough that an object (1.6-4.8 deg in the study) is a minority of
     #: it, local enough that two kinds of ground (the split scene) have their own statistics.
     surround_sigma_deg: float = 4.0
+    #: Which places make a place's surround (steps 1, 2 and 5). "ground" (default): only those on the same ground
+    #: as the place, in a segmentation of the object-free view into its grounds and its sky
+    #: (:func:`ground_segments`; without an object-free view, all places); "all": every place within the
+    #: surround (the former default; it mixes two grounds where they meet, e.g. split's marble and asphalt, so
+    #: that every place near their border was unusual in image and background alike).
+    surround: str = "ground"
     #: Internal noise, standard deviation per feature in CIE L*a*b* units: one just-noticeable difference,
     #: Delta E*ab ~ 2.3 (Mahy, Van Eycken & Oosterlinck 1994; Sharma 2003).
     internal_noise: float = 2.3
@@ -200,8 +227,29 @@ class ObserverConfig:
     #: place one spread below the criterion still passes now and then (p ~2 %) -- the false verifications that
     #: make misses; their rate falls as the object's evidence rises above the background's.
     verify_noise: float = 0.5
-    #: Seconds per fixation, saccade included: 180-275 ms mean fixation in scene search (Rayner 1998) plus
-    #: ~30 ms per saccade, i.e. about 4 fixations per second.
+    #: How a fixated candidate is verified (step 5). "diffusion" (default): a drift-diffusion decision, Wald's
+    #: sequential probability ratio test in continuous time (Wald 1947; Ratcliff 1978, Psychol. Rev. 85; the
+    #: proportional-rate diffusion of Palmer, Huk & Shadlen 2005, JoV 5(5)): the evidence ``V`` is sampled while the
+    #: place is fixated and accumulated, with a drift proportional to its distance from the criterion, until it
+    #: reaches the "object" or the "background" bound (:func:`diffusion_decision`). Its accept probability is the
+    #: one-shot rule's ``Phi((V - criterion) / verify_noise)`` (to within 1 %), but it *takes time*: a place far
+    #: from the criterion is decided within ~0.1 s, one near it takes up to ``decision_time_s`` on average -- weak
+    #: evidence gives slow decisions and more errors either way, strong evidence fast, sure ones. The fixation lasts
+    #: ``fixation_s`` plus that decision time. "threshold": the former one-shot comparison, no decision time (with
+    #: ``surround="all"`` it reproduces the former default's figures exactly).
+    decision: str = "diffusion"
+    #: Mean decision time (seconds) of a place whose evidence sits at the criterion (zero drift): ``a^2`` for a
+    #: diffusion with unit noise between bounds at +-``a``. 0.5 s: of the order of the mean decision times near
+    #: zero stimulus strength in Palmer, Huk & Shadlen 2005's reaction-time task (reaction times of roughly
+    #: 0.8-1 s at 0 % motion coherence, of which ~0.3-0.45 s is non-decision time). Not fitted to anything here.
+    decision_time_s: float = 0.5
+    #: Seconds per fixation outside the decision (encoding, saccade programming and the saccade itself): 0.25,
+    #: the former default's whole fixation (180-275 ms mean fixation in scene search, Rayner 1998, plus ~30 ms per
+    #: saccade), kept. With ``decision="diffusion"`` a fixation lasts this plus its decision time (~0.05-0.1 s on
+    #: plain ground, up to ``decision_time_s`` and beyond on an ambiguous place), 0.3-0.35 s on plain ground: Rayner
+    #: 1998's mean fixation of 330 ms in scene perception, and fixations are longer on places that resemble the
+    #: target (Hooge & Erkelens 1998, Vision Res. 38; Becker 2011, JEP:HPP 37). With ``decision="threshold"`` the
+    #: whole fixation.
     fixation_s: float = 0.25
     #: Extra dwell on the verified candidate before the hand moves (the verification epoch; target fixations
     #: are a few hundred ms longer than distractor fixations, Castelhano et al. 2008; Malcolm & Henderson 2009).
@@ -229,17 +277,10 @@ class ObserverConfig:
     def validate(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name == "start":
-                if v not in ("centre", "random"):
-                    raise CamoError(f"observer start must be 'centre' or 'random', not {v!r}")
-                continue
-            if f.name == "shadow_shape":
-                if v not in ("lying", "none"):
-                    raise CamoError(f"observer shadow_shape must be 'lying' or 'none', not {v!r}")
-                continue
-            if f.name == "shadow_reference":
-                if v not in ("background", "surround"):
-                    raise CamoError(f"observer shadow_reference must be 'background' or 'surround', not {v!r}")
+            if f.name in _CHOICES:
+                if v not in _CHOICES[f.name]:
+                    allowed = " or ".join(repr(c) for c in _CHOICES[f.name])
+                    raise CamoError(f"observer {f.name} must be {allowed}, not {v!r}")
                 continue
             if f.name == "saliency_model":
                 if v and not Path(v).expanduser().is_file():
@@ -379,7 +420,34 @@ def _norm_blur(x: np.ndarray, sigma: float, wide: bool = True) -> np.ndarray:
         ndimage.gaussian_filter(one, sigma, mode="constant"), 1e-9)
 
 
-def _mahalanobis(f: np.ndarray, sigma_s: float, noise: float, fb: np.ndarray | None = None) -> np.ndarray:
+def _seg_blur(x: np.ndarray, sigma: float, seg: np.ndarray | None) -> np.ndarray:
+    """Normalised Gaussian mean of ``x`` over the pixels inside the image *on the same ground* as each place
+    (``seg``: :func:`ground_segments` labels ``(h, w)``; None = one ground, :func:`_norm_blur`)."""
+    if seg is None or seg.max() == 0:
+        return _norm_blur(x, sigma)
+    out = np.empty_like(x, dtype=np.float64)
+    for k in range(int(seg.max()) + 1):
+        m = (seg == k).astype(np.float64)
+        mean = _wide_blur(x * m, sigma) / np.maximum(_wide_blur(m, sigma), 1e-9)
+        out[seg == k] = mean[seg == k]
+    return out
+
+
+def _mahalanobis(f: np.ndarray, sigma_s: float, noise: float, fb: np.ndarray | None = None,
+                 seg: np.ndarray | None = None) -> np.ndarray:
+    """Per ground of ``seg`` (:func:`ground_segments`; None = one ground): :func:`_mahalanobis_one` with the
+    surround taken on that ground only, for the places standing on it."""
+    if seg is None or seg.max() == 0:
+        return _mahalanobis_one(f, sigma_s, noise, fb)
+    out = np.empty(f.shape[1:])
+    for k in range(int(seg.max()) + 1):
+        on = seg == k
+        out[on] = _mahalanobis_one(f, sigma_s, noise, fb, on)[on]
+    return out
+
+
+def _mahalanobis_one(f: np.ndarray, sigma_s: float, noise: float, fb: np.ndarray | None = None,
+                     on: np.ndarray | None = None) -> np.ndarray:
     """Distance of each place's features from the background distribution of its Gaussian-weighted surround.
 
     The background statistics are robust: the places whose features are global outliers (the top :data:`TRIM`
@@ -388,10 +456,11 @@ def _mahalanobis(f: np.ndarray, sigma_s: float, noise: float, fb: np.ndarray | N
     trimmed statistics fill in."""
     f_img, f = f, (f if fb is None else fb)  # the statistics come from the background when there is one
     k = f.shape[0]
-    flat = f.reshape(k, -1)
+    sel = np.ones(f.shape[1:], bool) if on is None else on  # the ground whose statistics are taken
+    flat = f[:, sel]
     m0 = _distance(f, flat.mean(1), np.cov(flat), noise)
-    w = (m0 <= np.quantile(m0, 1.0 - TRIM)).astype(np.float64)
-    fw = flat[:, w.reshape(-1) > 0]
+    w = ((m0 <= np.quantile(m0[sel], 1.0 - TRIM)) & sel).astype(np.float64)
+    fw = f.reshape(k, -1)[:, w.reshape(-1) > 0]
     mu_g, cov_g = fw.mean(1), np.cov(fw)
     eps = 0.05  # weight of the whole image's trimmed statistics in every surround
     g = lambda x: _wide_blur(x, sigma_s)  # noqa: E731
@@ -516,7 +585,8 @@ def _log_image(srgb: np.ndarray) -> np.ndarray:
 
 
 def _shadow_residual(lf: np.ndarray, f: np.ndarray, sigma_s: float, noise: float,
-                     lfb: np.ndarray | None = None, fb: np.ndarray | None = None) -> np.ndarray:
+                     lfb: np.ndarray | None = None, fb: np.ndarray | None = None,
+                     seg: np.ndarray | None = None) -> np.ndarray:
     """The part of a place's difference from its surround that a cast shadow cannot explain, in units of the
     surround's spread (internal noise added). ``lf``: log features ``(7, h, w)`` (ln luminance, ln R/G, ln B/G,
     ...; :func:`_log_image`); ``f``: the L*a*b* features (:func:`_features`).
@@ -533,15 +603,16 @@ def _shadow_residual(lf: np.ndarray, f: np.ndarray, sigma_s: float, noise: float
     ref = own if lfb is None else parts(lfb, fb)
     out = np.zeros(f.shape[1:])
     for (x, sign), (xb, _) in zip(own, ref):
-        mu = _norm_blur(xb, sigma_s)
-        sd = np.sqrt(np.maximum(_norm_blur(xb * xb, sigma_s) - mu * mu, 0.0) + noise * noise)
+        mu = _seg_blur(xb, sigma_s, seg)
+        sd = np.sqrt(np.maximum(_seg_blur(xb * xb, sigma_s, seg) - mu * mu, 0.0) + noise * noise)
         z = (x - mu) / sd
         out += (np.maximum(sign * z, 0.0) if sign else z) ** 2
     return np.sqrt(out)
 
 
 def _scale_maps(lab: np.ndarray, logimg: np.ndarray, sigma_c: float, cfg: ObserverConfig,
-                lab_bg: np.ndarray | None = None, log_bg: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                lab_bg: np.ndarray | None = None, log_bg: np.ndarray | None = None,
+                seg: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """One centre scale: raw Mahalanobis distances on the full features and on the intensity-invariant ones (log
     chromaticity and the orientation energies of log luminance), the illumination-likeness ``1 - D_inv / D`` in
     [0, 1], the darker-than-surround ramp (widened by the centre's reach) and the shadow-likeness of each place on
@@ -555,9 +626,9 @@ def _scale_maps(lab: np.ndarray, logimg: np.ndarray, sigma_c: float, cfg: Observ
     sigma_s = cfg.surround_sigma_deg * ppd
     fb = None if lab_bg is None else _features(lab_bg, sc)
     lfb = None if log_bg is None else _features(log_bg, sc)
-    m_full = _mahalanobis(f, sigma_s, cfg.internal_noise, fb)
+    m_full = _mahalanobis(f, sigma_s, cfg.internal_noise, fb, seg)
     lf = _features(logimg, sc)
-    m_inv = _shadow_residual(lf, f, sigma_s, cfg.internal_noise, lfb, fb)
+    m_inv = _shadow_residual(lf, f, sigma_s, cfg.internal_noise, lfb, fb, seg)
     illum = np.exp(-0.5 * (m_inv / SHADOW_RESIDUAL) ** 2)  # nothing left but what a shadow does
     # as much darker than the surround as a cast shadow is (:data:`SHADOW_FACTOR`), or beside such a place within
     # the centre's reach (the lit side of a shadow's edge, whose pooled features straddle the edge)
@@ -567,7 +638,7 @@ def _scale_maps(lab: np.ndarray, logimg: np.ndarray, sigma_c: float, cfg: Observ
         drop = -(lf[0] - lfb[0]) / LOG_UNITS
         lo, hi = -math.log(SHADOW_FACTOR_RATIO[0]), -math.log(SHADOW_FACTOR_RATIO[1])
     else:
-        drop = -(lf[0] - _norm_blur(lf[0] if lfb is None else lfb[0], sigma_s)) / LOG_UNITS  # ln(surround / here)
+        drop = -(lf[0] - _seg_blur(lf[0] if lfb is None else lfb[0], sigma_s, seg)) / LOG_UNITS  # ln(surround/here)
         lo, hi = -math.log(SHADOW_FACTOR[0]), -math.log(SHADOW_FACTOR[1])
     ramp = np.clip((drop - lo) / (hi - lo), 0.0, 1.0)
     darker = ndimage.maximum_filter(ramp, size=2 * int(math.ceil(2 * sc)) + 1, mode="nearest")
@@ -575,7 +646,8 @@ def _scale_maps(lab: np.ndarray, logimg: np.ndarray, sigma_c: float, cfg: Observ
 
 
 def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
-                  background: np.ndarray | None = None, regional: bool = True) -> Maps:
+                  background: np.ndarray | None = None, regional: bool = True,
+                  segments: np.ndarray | None = None) -> Maps:
     """Steps 1-3 and the verification evidence of step 5 for ``image`` (sRGB ``(H, W, 3)``); see the module
     docstring. With ``saliency_model`` the learned network's z-scored map replaces ``D`` (no shadow analysis)."""
     cfg = config or ObserverConfig()
@@ -598,9 +670,11 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
             lab_bg, log_bg = srgb_to_lab(small_bg), _log_image(small_bg)
         sky = sky_map(logimg if log_bg is None else log_bg)
         ground = ~sky
+        if segments is None and log_bg is not None and cfg.surround == "ground":
+            segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
         d = d_inv = shadow = obj = None
         for sc in cfg.centre_sigmas_deg:
-            m_full, m_inv, illum, darker, own = _scale_maps(lab, logimg, sc, cfg, lab_bg, log_bg)
+            m_full, m_inv, illum, darker, own = _scale_maps(lab, logimg, sc, cfg, lab_bg, log_bg, segments)
             zf = _zscore(m_full, cfg.spread_floor, ground)
             zi = _zscore(m_inv, cfg.spread_floor, ground)
             shadow_like = darker * illum
@@ -627,11 +701,12 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         # (with shadow_reference "background" the object-free view is its own reference -- nothing in it is darker
         # than itself -- as at the image's places the object leaves unchanged)
         same = background if cfg.shadow_reference == "background" else None
-        ref = verify if background is None else evidence_maps(background, cfg, same, regional=False).verify
+        ref = verify if background is None else evidence_maps(background, cfg, same, regional=False,
+                                                              segments=segments).verify
         ground = ~sky
         sig = cfg.surround_sigma_deg * ppd
-        mu = _norm_blur(ref, sig)
-        sd = np.sqrt(np.maximum(_norm_blur(ref * ref, sig) - mu * mu, 0.0))
+        mu = _seg_blur(ref, sig, segments)
+        sd = np.sqrt(np.maximum(_seg_blur(ref * ref, sig, segments) - mu * mu, 0.0))
         v = ref[ground] if ground.any() else ref.ravel()
         floor = max(1.4826 * float(np.median(np.abs(v - np.median(v)))), 1e-3)
         verify = (verify - mu) / np.maximum(sd, floor)
@@ -644,6 +719,73 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         g = g + cfg.shadow_gain * np.maximum(near - own, 0.0)  # around the shadow, not on it
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky)
+
+
+#: Pooling of the features that tell one ground from another (Gaussian sigma, degrees): half a degree, a third of
+#: the smallest object the study shows -- the scale of a ground's texture, not of its grain.
+SEGMENT_SIGMA_DEG = 0.5
+#: Two grounds are told apart when their colour distributions are separated by at least this d' (Fisher's
+#: discriminant: the distance of the k-means clusters' means in units of the pooled within-cluster spread): 5.
+#: One ground whose colour drifts across the frame (distance, light falloff) splits into two clusters too, at
+#: d' = sqrt(12) = 3.5 for an even drift (a uniform distribution) and 2.6 for a normal one; two normal
+#: distributions 5 apart overlap by 1 %. Each ground must cover at least :data:`SEGMENT_MIN_SHARE` of the frame
+#: (a patch smaller than the largest object the study shows is no ground).
+SEGMENT_SEPARATION = 5.0
+SEGMENT_MIN_SHARE = 0.05
+#: Most grounds told apart besides the sky (k-means with k = 3, 2, 1: the largest whose grounds all pass).
+SEGMENT_MAX = 3
+
+
+def ground_segments(lab: np.ndarray, sky: np.ndarray, config: ObserverConfig | None = None) -> np.ndarray:
+    """``(h, w)`` int labels of the grounds of an *object-free* view (``lab``: its CIE L*a*b* ``(h, w, 3)`` at the
+    feature resolution, ``sky``: :func:`sky_map`): 0 .. K-1 for up to :data:`SEGMENT_MAX` grounds, K for the sky
+    when there is one; all 0 when the view has one ground and no sky.
+
+    A place's surround statistics are taken on its own ground (``ObserverConfig.surround="ground"``): a person
+    searching split's marble-and-asphalt floor compares a place on the asphalt with asphalt, not with the mixture
+    of both that a pooled 4 deg surround gives at their border (Rosenholtz et al. 2007's target-vs-surround
+    statistics presuppose a homogeneous surround; figure-ground and region segmentation precede search in
+    scene perception: Wolfe, Vo, Evans & Greene 2011, TICS 15, "Visual search in scenes involves selective and
+    nonselective pathways"). The grounds are k-means clusters (SciPy, seeded: deterministic) of the colour of
+    step 1 (L*a*b*; not the texture energies, which change with distance on one ground) pooled at
+    :data:`SEGMENT_SIGMA_DEG`, on the places that are not sky; k is the largest (of 3, 2, 1) whose clusters are
+    pairwise separated by :data:`SEGMENT_SEPARATION` (Fisher's d') and each cover :data:`SEGMENT_MIN_SHARE` of the
+    frame. Labels are cleaned by a majority vote over the same pooling. Read from the object-free render only, so
+    they never say where the object is (the object's place gets the label of the ground behind it)."""
+    from scipy import ndimage
+    from scipy.cluster.vq import kmeans2
+
+    cfg = config or ObserverConfig()
+    ppd = cfg.feature_px_per_deg
+    sg = SEGMENT_SIGMA_DEG * ppd
+    f = _features(lab, sg)[:3]  # (3, h, w): colour only (a ground's texture coarsens with distance, its colour not)
+    h, w = sky.shape
+    ground = ~sky
+    labels = np.zeros((h, w), int)
+    x = f[:, ground].T
+    if x.shape[0] >= 16:
+        mu, sd = x.mean(0), x.std(0) + 1e-6
+        z = (x - mu) / sd
+        for k in range(SEGMENT_MAX, 1, -1):
+            cent, lab_k = kmeans2(z, k, minit="++", seed=0)
+            counts = np.bincount(lab_k, minlength=k)
+            if counts.min() < SEGMENT_MIN_SHARE * h * w:
+                continue
+            within = sum(np.cov(z[lab_k == j].T) * (counts[j] - 1) for j in range(k)) / max(len(z) - k, 1)
+            within = within + 1e-6 * np.eye(within.shape[0])
+            sep = min(float(np.sqrt((cent[i] - cent[j]) @ np.linalg.solve(within, cent[i] - cent[j])))
+                      for i in range(k) for j in range(i + 1, k))
+            if sep < SEGMENT_SEPARATION:
+                continue
+            full = np.full((h, w), -1)
+            full[ground] = lab_k
+            votes = np.stack([ndimage.gaussian_filter((full == j).astype(np.float64), sg, mode="nearest")
+                              for j in range(k)])
+            labels = np.where(ground, votes.argmax(0), 0)
+            break
+    if sky.any():
+        labels = np.where(sky, labels.max() + 1, labels)
+    return labels
 
 
 #: Window of the shape cue (Gaussian sigma, degrees): the region read around a place spans ~2.4 deg (its FWHM), the
@@ -959,7 +1101,17 @@ def simulate_search(image: np.ndarray | None, n: int = 200, seed: int = 0, confi
             pri = vis[f] * G[None, :] + cfg.look_noise * rng.standard_normal((act.size, C))
             fix[act] = pri.argmax(1)
             continue
-        yes = V[f] + cfg.verify_noise * rng.standard_normal(act.size) > cfg.criterion  # verify the fixated place
+        if cfg.decision == "diffusion":  # verify the fixated place: evidence accumulated to a bound, in time
+            a_, k_ = diffusion_parameters(cfg)
+            yes, dt = diffusion_decision(k_ * (V[f] - cfg.criterion), a_, rng)
+            t[act] += dt
+            over = t[act] > cfg.time_limit_s  # still deciding at the limit: timeout
+            done[act[over]] = True
+            act, f, yes = act[~over], f[~over], yes[~over]
+            if act.size == 0:
+                break
+        else:  # one noisy look against the criterion, no decision time
+            yes = V[f] + cfg.verify_noise * rng.standard_normal(act.size) > cfg.criterion
         if yes.any():
             a, c = act[yes], f[yes]
             d = np.sqrt(((cells_click_deg(cells, c) - centre) ** 2).sum(-1))
@@ -984,6 +1136,56 @@ def simulate_search(image: np.ndarray | None, n: int = 200, seed: int = 0, confi
                             f"{cells.image_shape[1]}x{cells.image_shape[0]}")
         res.found = clicked & m[np.maximum(cy, 0), np.maximum(cx, 0)]
     return res
+
+
+#: Correction of the bound of the discrete walk that samples a diffusion (Siegmund 1979's corrected diffusion
+#: approximation: a Gaussian walk overshoots a bound by ~0.5826 of its step's standard deviation on average, so the
+#: walk's bound is set that much lower to cross where the continuous process would).
+_OVERSHOOT = 0.5826
+
+
+def diffusion_parameters(config: ObserverConfig) -> tuple[float, float]:
+    """``(a, k)`` of the verification's diffusion (``config.decision == "diffusion"``): bounds at ``+-a`` with unit
+    noise per sqrt(second), ``a = sqrt(decision_time_s)`` (the mean decision time at zero drift is ``a^2``), and
+    drift ``k (V - criterion)`` per second, ``k = 1.702 / (2 a verify_noise)``: the probability of the "object"
+    bound, ``1 / (1 + exp(-2 a k (V - criterion)))``, is then the logistic that matches the normal ogive
+    ``Phi((V - criterion) / verify_noise)`` of the one-shot rule to within 0.01 (Haley's 1.702)."""
+    a = math.sqrt(config.decision_time_s)
+    return a, 1.702 / (2.0 * a * config.verify_noise)
+
+
+def diffusion_decision(drift: np.ndarray, bound: float, rng: np.random.Generator, step_s: float = 0.005,
+                       max_s: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+    """First passage of ``dX = drift dt + dW`` from 0 to ``+-bound`` (per element of ``drift``, 1/s): ``(upper,
+    time_s)``, ``upper`` bool (the "object" bound), ``time_s`` the decision time.
+
+    Wald's sequential probability ratio test in continuous time, the drift-diffusion model of two-choice
+    decisions (Ratcliff 1978; Bogacz et al. 2006, Psychol. Rev. 113): ``P(upper) = 1 / (1 + exp(-2 bound drift))``
+    and the mean decision time ``(bound / drift) tanh(bound drift)`` (``bound^2`` at zero drift) -- weak evidence
+    gives slow decisions and errors on both sides, strong evidence fast, sure ones. Sampled as a Gaussian walk of
+    ``step_s`` with the bound lowered by the walk's mean overshoot (:data:`_OVERSHOOT`); a walk still between the
+    bounds after ``max_s`` takes the side it is on (no case of the observer's settings comes near: at zero drift
+    and a 0.5 s mean decision time the chance is below 1e-20).
+
+    >>> up, t = diffusion_decision(np.full(20000, 2.0), 0.7, np.random.default_rng(0))
+    >>> round(float(up.mean()), 2), round(1 / (1 + math.exp(-2 * 0.7 * 2.0)), 2)
+    (0.94, 0.94)
+    >>> round(float(t.mean()), 2), round(0.7 / 2.0 * math.tanh(0.7 * 2.0), 2)
+    (0.31, 0.31)
+    """
+    drift = np.asarray(drift, np.float64)
+    x = np.zeros(drift.shape)
+    t = np.zeros(drift.shape)
+    b = max(bound - _OVERSHOOT * math.sqrt(step_s), 0.5 * bound)
+    live = np.flatnonzero(np.ones(drift.shape, bool))
+    sd = math.sqrt(step_s)
+    for _ in range(int(math.ceil(max_s / step_s))):
+        if live.size == 0:
+            break
+        x[live] += drift[live] * step_s + sd * rng.standard_normal(live.size)
+        t[live] += step_s
+        live = live[np.abs(x[live]) < b]
+    return x > 0, t
 
 
 def cells_click_deg(cells: Cells, idx: np.ndarray) -> np.ndarray:

@@ -349,7 +349,7 @@ def parse_observer(text: str | None):
         if k not in fields or k in tuples:
             known = ", ".join(n for n in fields if n not in tuples)
             raise SettingError.of("observer", f": unknown key {k!r}; known: {known}")
-        if k in ("start", "saliency_model", "shadow_reference", "shadow_shape"):
+        if isinstance(fields[k].default, str):  # start, saliency_model, shadow_*, surround, decision
             kw[k] = v
             continue
         try:

@@ -54,15 +54,20 @@ def _eval_dir(root, scenes=("sa", "sb")):
     (root / "renders.json").write_text(json.dumps(entries))
 
 
+#: The live site's time limit in these tests: short, so hidden objects time out quickly, but long enough for the red
+#: disc's decision (see the report test).
+LIMIT_S = 4.0
+
+
 @pytest.fixture()
 def live_site(tmp_path):
-    """The study app served by werkzeug in a thread on 127.0.0.1 (random port); 2 s trials, 1 practice trial."""
+    """The study app served by werkzeug in a thread on 127.0.0.1 (random port); 4 s trials, 1 practice trial."""
     from werkzeug.serving import make_server
 
     _eval_dir(tmp_path / "eval")
     build_stimuli([tmp_path / "eval"], tmp_path / "stim", log=lambda m: None)
     app = create_app({"STIMULI_DIR": str(tmp_path / "stim"), "DATABASE_URL": f"sqlite:///{tmp_path / 'study.sqlite'}",
-                      "PRACTICE_TRIALS": 1, "TRIAL_TIME_LIMIT_S": 2.5, "ID_HMAC_KEY": "k" * 64, "SECRET_KEY": "s" * 64})
+                      "PRACTICE_TRIALS": 1, "TRIAL_TIME_LIMIT_S": LIMIT_S, "ID_HMAC_KEY": "k" * 64, "SECRET_KEY": "s" * 64})
     srv = make_server("127.0.0.1", 0, app, threaded=True)
     th = threading.Thread(target=srv.serve_forever, daemon=True)
     th.start()
@@ -90,8 +95,8 @@ def test_simulated_participants_through_the_site_and_the_report(live_site):
     # a click the observer makes just before the limit can arrive after it on a loaded machine (stored as late,
     # a timeout): rare
     assert int(formal["late"].sum()) <= 2
-    assert (formal.loc[~formal["timed_out"], "rt_ms"] <= 2500).all()  # clicks within the limit
-    assert (formal.loc[formal["timed_out"], "rt_ms"] >= 2500).all()  # timeouts sent once it had passed
+    assert (formal.loc[~formal["timed_out"], "rt_ms"] <= 1000 * LIMIT_S).all()  # clicks within the limit
+    assert (formal.loc[formal["timed_out"], "rt_ms"] >= 1000 * LIMIT_S).all()  # timeouts sent once it had passed
     # what the client was told is what the database holds (one record per stored trial)
     rec = {(r["participant"], r["index"]): r for r in res["records"]}
     assert len(rec) == n * 3
@@ -100,22 +105,31 @@ def test_simulated_participants_through_the_site_and_the_report(live_site):
     # every cell filled evenly: 4 participants per scene x method
     assert set(formal.groupby(["scene", "method"]).size()) == {n // 2}
     t = rep["table"].set_index("condition")
-    assert t.loc["red", "confusion_rate"] <= 0.25  # a saturated red disc is found
-    # what the library predicts for these images (same observer, the site's 2.5 s limit, centre start): the site's
+    # a saturated red disc is found. (Its evidence sits at the verification criterion here -- V 5.9-6.2 against 6:
+    # the site serves no object-free view, so the observer uses the image's own statistics, where the disc inflates
+    # its own surround -- and the diffusion decision takes ~0.5 s there: the library predicts 4-20 % timeouts within
+    # 4 s, 24-51 % within 2.5 s, the former limit. docs/observer.md, "Not done": sets without a background.)
+    assert t.loc["red", "confusion_rate"] <= 0.3
+    # what the library predicts for these images (same observer, the site's limit, centre start): the site's
     # figures agree within sampling error (6 trials per stimulus; a hidden disc is "found" only where it happens
     # to lie on a salient spot of the texture)
     from evaluation.observer import ObserverConfig, predict_stimulus
 
-    expected = {}
+    expected, red_times = {}, []
     for e in json.loads((root / "eval" / "renders.json").read_text()):
         img = np.asarray(Image.open(root / "eval" / e["image"]).convert("RGB"))
         mask = np.asarray(Image.open(root / "eval" / e["mask"]).convert("L")) >= 128
-        p = predict_stimulus(img, mask, 400, 0, ObserverConfig(time_limit_s=2.5))
+        p = predict_stimulus(img, mask, 400, 0, ObserverConfig(time_limit_s=LIMIT_S))
         expected.setdefault(e["method"], []).append(1.0 - p.p_found)
+        if e["method"] == "red":
+            red_times.append(p.rt_found_s)
     for m, conf in expected.items():
         assert abs(t.loc[m, "confusion_rate"] - np.mean(conf)) <= 0.3, (m, t.loc[m, "confusion_rate"], conf)
     assert t.loc["hidden", "confusion_rate"] - t.loc["red", "confusion_rate"] >= 0.4
-    assert t.loc["red", "median_time_found_s"] < 2.0
+    # the site's median time of finds (about 10 finds) lies within the 10th-90th percentiles of the library's times
+    # of finds (1.6-3.2 s; median 2.1 s): what the server's clock measured is the observer's time
+    lo, hi = np.quantile(np.concatenate(red_times), [0.1, 0.9])
+    assert lo <= t.loc["red", "median_time_found_s"] <= hi, (lo, t.loc["red", "median_time_found_s"], hi)
     assert (root / "report" / "table_i.md").is_file() and (root / "report" / "km.png").is_file()
     # found trials carry a click on the object, timeouts none
     assert formal.loc[formal["timed_out"], "click_x"].isna().all()

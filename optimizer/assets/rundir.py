@@ -482,6 +482,28 @@ def appearance_from_config(cfg: dict[str, Any], run_dir: Path):
     return AppearanceConfig(**{k: v for k, v in raw.items() if k in known})
 
 
+def result_appearance(app, run_dir: Path):
+    """The appearance the run's *result* renders with: its spec's (``config.toml``), except the shared index of
+    refraction when the run's clear-glass search (``stage1.clear_candidate``, issue 29) kept clear glass: then
+    ``summary.json``'s ``clear_search.chosen_eta`` (the spec holds the search's settings, not its outcome; the exported
+    ``result.glb`` / ``result.obj`` carry the same value). CamoError (one line) for an unreadable record."""
+    p = run_dir / SUMMARY
+    try:
+        summary = json.loads(p.read_text(encoding="utf-8")) if p.is_file() else {}
+    except (OSError, ValueError):
+        raise CamoError(f"{p}: not readable JSON") from None
+    clear = summary.get("clear_search") if isinstance(summary, dict) else None
+    if not clear:
+        return app
+    try:
+        eta = float(clear["chosen_eta"])
+        if not (math.isfinite(eta) and eta > 1.0):
+            raise ValueError(eta)
+    except (TypeError, KeyError, ValueError):
+        raise CamoError(f"{p}: clear_search.chosen_eta must be an index of refraction > 1") from None
+    return dataclasses.replace(app, eta=eta)
+
+
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Vertices ``(N, 3)``, triangle faces ``(F, 3)`` and ``u, v`` ``(N, 2)`` (or None) of a binary
     little-endian PLY as :func:`optimizer.assets.export.write_ply` writes it (read unchanged, like Mitsuba's plugin)."""
@@ -743,6 +765,7 @@ def open_run(path: str | Path) -> RunDir:
     if missing:
         raise CamoError(f"{run_dir}: incomplete run directory, missing {', '.join(missing)} (the run did not finish)")
     _check_complete(run_dir, cfg)
+    app = result_appearance(app, run_dir)
     ablate = run.get("ablate", [])
     if isinstance(ablate, str):
         ablate = [a for a in ablate.split(",") if a]

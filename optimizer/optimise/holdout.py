@@ -138,6 +138,9 @@ class Holdout:
         # render(values, cams, spp, seed, masks, fill) restricted to ``masks``: once the domain is known, a check
         # renders only it (the score reads nothing else); set by :meth:`for_stage` for a measured plan
         self.masked_render: Callable | None = None
+        # what the renders depend on beside ``values`` (for_stage: the stage's IOR, which the clear-glass search
+        # changes): part of the memo's key
+        self.context: Callable[[], str] = lambda: ""
 
     @classmethod
     def for_stage(cls, settings: HoldoutSettings, stage) -> "Holdout":
@@ -170,6 +173,7 @@ class Holdout:
                   stage.cfg.domain_dilate)
         if getattr(stage.plan, "region", False) and integrator.get("type") == "path":
             out.masked_render = masked
+        out.context = lambda: f"eta={stage.app.eta!r}"
         return out
 
     # ------------------------------------------------------------------------------------------------------
@@ -184,7 +188,7 @@ class Holdout:
         score would be the same up to the backend's multi-thread float order; the last 8 scores are kept."""
         from optimizer.optimise.stage1 import influence_domain
 
-        key = values_digest(values)
+        key = values_digest(values) + self.context()  # the same maps at another IOR render differently
         if key in self._memo:  # e.g. Stage 1's first check of the start the start search just scored
             return self._memo[key]
         s = self.settings

@@ -35,6 +35,7 @@ RANGES: dict[str, Range] = {
     "stage1.average": Range(float, 0.0, 0.999),
     "stage1.loss_clamp": Range(float, 0.0, 1e6), "stage1.grad_clip": Range(float, 0.0, 1e6),
     "stage1.perceptual": Range(float, 0.0, 1e3), "stage1.detail_match": Range(float, 0.0, 1e3),
+    "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
     "time_budget": Range(float, 0.0, None, lo_open=True),
@@ -150,6 +151,11 @@ def _options() -> tuple[Option, ...]:
           "when --init sets maps, also warm-start the start the run takes without it (at each starting roughness of "
           "the preset's search) and start from whichever scores best on the held-out views"
           + _p("stage1.init_search") + "; off: the --init start as given", choices=("on", "off")),
+        o("clear_candidate", "stage1.clear_candidate", float,
+          "after the other start searches, also try clear glass on the held-out views: this shared index of "
+          "refraction (e.g. 1.05) with a smooth start (roughness 0.2), kept with its IOR (Stage 2, final renders, the "
+          "exported asset) when it scores better (optimizer/optimise/startsearch.py)" + _p("stage1.clear_candidate")
+          + "; 0: off", metavar="ETA"),
         o("roughness_search", "stage1.roughness_search", str,
           "before Stage 1, warm-start each of these uniform starting roughness values and start from the one that "
           "scores best on the held-out views" + _p("stage1.roughness_search") + "; off with 'off' or --init "

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -156,7 +157,7 @@ def optimize_in(spec: RunSpec, txn: RunTransaction, progress: bool = True, threa
                        chosen["iteration"], chosen["stage"])
     finish_run(out, final_stage, setup.pack, setup.env, history, setup_seconds, spec, s1.warm_start_info,
                values=values, holdout=hold.summary() if hold is not None else None, pose=s1.pose_search_info,
-               start=s1.start_search_info, init=s1.init_search_info, plan=setup.plan)
+               start=s1.start_search_info, init=s1.init_search_info, clear=s1.clear_search_info, plan=setup.plan)
 
 
 @dataclasses.dataclass
@@ -248,8 +249,16 @@ def _prepare_stage1(spec: RunSpec, setup: _Setup, state, say) -> tuple[Stage1, H
     elif state is not None and "init_search/info" in state:
         # a resumed run: the maps come from the checkpoint; the record is the search's (summary.json)
         s1.init_search_info = checkpointed_init(state)
+    if state is None and hold is not None and s1cfg.clear_candidate:
+        s1.search_clear(s1cfg.clear_candidate, hold.score)
+    elif state is not None and "clear_search/info" in state:
+        # a resumed run: the maps come from the checkpoint, the IOR from the search's record
+        s1.clear_search_info = checkpointed_clear(state)
+        if s1.clear_search_info.chosen_eta != s1.app.eta:
+            s1.use_eta(s1.clear_search_info.chosen_eta)
+    setup.app = s1.app  # Stage 2, the final renders and the exported asset keep Stage 1's IOR
     warm_seconds = sum(info.seconds for info in (s1.warm_start_info, s1.pose_search_info, s1.start_search_info,
-                                                 s1.init_search_info) if info is not None)
+                                                 s1.init_search_info, s1.clear_search_info) if info is not None)
     if budget1:
         s1.time_budget = max(budget1 - warm_seconds, 1e-3)
     return s1, hold, warm_seconds
@@ -332,6 +341,8 @@ class _Loop:
             turn["start_search/info"] = np.array(json.dumps(s1.start_search_info.to_dict()))
         if s1.init_search_info:
             turn["init_search/info"] = np.array(json.dumps(s1.init_search_info.to_dict()))
+        if s1.clear_search_info:
+            turn["clear_search/info"] = np.array(json.dumps(s1.clear_search_info.to_dict()))
         return {**(extra or {}), **(self.hold.state() if self.hold is not None else {}), **turn}
 
     def loop(self, stage: Stage1, label: str, extra=None) -> None:
@@ -412,6 +423,19 @@ def checkpointed_init(state: dict[str, np.ndarray]):
         return InitSearchInfo(**json.loads(str(state["init_search/info"])))  # its seconds count, as the turn's do
     except (TypeError, ValueError):
         raise CamoError("checkpoint is corrupt: bad init_search/info") from None
+
+
+def checkpointed_clear(state: dict[str, np.ndarray]):
+    """The clear-glass search's record in a checkpoint (CamoError when it is unreadable)."""
+    from optimizer.optimise.startsearch import ClearSearchInfo
+
+    try:
+        info = ClearSearchInfo(**json.loads(str(state["clear_search/info"])))
+        if not (math.isfinite(float(info.chosen_eta)) and float(info.chosen_eta) > 1.0):
+            raise ValueError(info.chosen_eta)
+        return info
+    except (TypeError, ValueError):
+        raise CamoError("checkpoint is corrupt: bad clear_search/info") from None
 
 
 def glint_safe_start(pack: ScenePack, env, spec: RunSpec) -> tuple[ScenePack, str | None]:
@@ -548,7 +572,8 @@ def save_checkpoint(path: Path, stage: Stage1, fingerprint: str, extra: dict[str
 
 def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[str, Any]], setup_seconds: float,
                spec: RunSpec, warm=None, values: dict[str, np.ndarray] | None = None,
-               holdout: dict[str, Any] | None = None, pose=None, start=None, init=None, plan=None) -> None:
+               holdout: dict[str, Any] | None = None, pose=None, start=None, init=None, clear=None,
+               plan=None) -> None:
     """Final render, previews, exported asset and summary of an ``ours`` run (its last stage ``s1``); ``values``:
     the result's parameters (default: the last stage's current ones); ``holdout``, ``pose`` and ``start``: the
     held-out views', the turn search's and the start search's records for ``summary.json``."""
@@ -560,13 +585,14 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
     pose_s = float(pose.seconds) if pose is not None else 0.0
     start_s = float(start.seconds) if start is not None else 0.0
     init_s = float(init.seconds) if init is not None else 0.0
+    clear_s = float(clear.seconds) if clear is not None else 0.0
     s1_s, s2_s = stage_seconds(history, 1), stage_seconds(history, 2)
-    pre = pose_s + start_s + init_s + warm_s
+    pre = pose_s + start_s + init_s + clear_s + warm_s
     # wall-clock seconds of the optimisation: Stage 1 = pose search + start search + warm start + its iterations,
     # Stage 2 = its iterations with their pseudo-ground-truth renders and inpainting (``seconds_iterations``: gradient
     # steps only)
     seconds = {"setup": setup_seconds, "warm_start": warm_s, "pose_search": pose_s, "start_search": start_s,
-               "init_search": init_s,
+               "init_search": init_s, "clear_search": clear_s,
                "stage1": pre + s1_s, "stage2": s2_s, "optimisation": pre + s1_s + s2_s}
     finish(out, res, history, s1.cfg, s1.initial_render, method=spec.method, seconds=seconds,
            extra={"fingerprint": spec.fingerprint(), "preset": spec.preset, "time_budget": spec.time_budget,
@@ -574,4 +600,5 @@ def finish_run(out: Path, s1: Stage1, pack: ScenePack, env, history: list[dict[s
                   "pose_search": pose.to_dict() if pose is not None else None,
                   "start_search": start.to_dict() if start is not None else None,
                   "init_search": init.to_dict() if init is not None else None,
+                  "clear_search": clear.to_dict() if clear is not None else None,
                   "plan": plan.to_dict() if plan is not None else None})

@@ -355,6 +355,15 @@ class RunSpec:
                 raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.roughness_search", "holdout.views")
         if m.reads_path("stage1.init_search") and self.stage1.init_search and not self.holdout.views:
             raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.init_search", "holdout.views")
+        if m.reads_path("stage1.clear_candidate") and self.stage1.clear_candidate:
+            if not 1.0 < self.stage1.clear_candidate <= 4.0:
+                raise SettingError(f"{{0}} must be 0 (off) or an index of refraction in (1, 4], got "
+                                   f"{literal(self.stage1.clear_candidate)}", "stage1.clear_candidate")
+            if not self.holdout.views:
+                raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.clear_candidate", "holdout.views")
+            if not self.appearance.bsdf:
+                raise SettingError("{0} needs the principled BSDF (an albedo-only object has no index of "
+                                   "refraction)", "stage1.clear_candidate")
         if self.preset is not None:
             one_of("preset", tuple(PRESETS))
         one_of("stage1.loss", ("gated", "mse"))

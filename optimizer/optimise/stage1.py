@@ -53,7 +53,7 @@ from optimizer.scenes.scenepack import ScenePack
 from optimizer.optimise.schedule import lr_scale, progress, soft_threshold
 
 if TYPE_CHECKING:
-    from optimizer.optimise.startsearch import InitSearchInfo, StartSearchInfo
+    from optimizer.optimise.startsearch import ClearSearchInfo, InitSearchInfo, StartSearchInfo
 
 
 @dataclasses.dataclass
@@ -93,6 +93,10 @@ class Stage1Settings:
     # > 0: add this weight x the mismatch of the body's pixel-scale texture energy with the background's in the same
     # pixels (optimizer/optimise/detail.py: the squared error's multi-view optimum is too smooth, issue 29); 0: off
     detail_match: float = 0.0
+    # > 1: after the other start searches, also try clear glass on the held-out views: this shared index of
+    # refraction with a smooth start (startsearch.CLEAR_ROUGHNESS), kept with its IOR when it scores better
+    # (optimizer/optimise/startsearch.py, issue 29); 0: off
+    clear_candidate: float = 0.0
 
 
 @dataclasses.dataclass
@@ -229,6 +233,7 @@ class Stage1:
         self.pose_search_info = None
         self.start_search_info = None
         self.init_search_info = None
+        self.clear_search_info = None
         self.warm_start_info = None
         self.targets: Targets | None = None
         self.initial_render: np.ndarray | None = None
@@ -423,6 +428,45 @@ class Stage1:
         self._make_optimiser()
         self.init_search_info = info
         return info
+
+    def search_clear(self, eta: float, score) -> "ClearSearchInfo":
+        """Start from the better of the prepared start (at the run's IOR) and clear glass: IOR ``eta``, a uniform
+        roughness :data:`~optimizer.optimise.startsearch.CLEAR_ROUGHNESS`, the other maps the start's, warm-started
+        at that IOR; ``score(values) -> (score, bias2, variance)`` on the run's held-out views, which render with
+        this stage's ``app`` (:func:`optimizer.optimise.startsearch.clear_search`). When clear glass wins the
+        stage's IOR becomes ``eta`` and the training scene is rebuilt."""
+        from optimizer.optimise.startsearch import CLEAR_ROUGHNESS, clear_search
+
+        if self.iteration or self.opt is None:
+            raise RuntimeError("the clear-glass search runs after Stage 1 is built and before its first step")
+        have = (self.values, self.warm_start_info, self.app)
+
+        def prepare(label: str, candidate_eta: float):
+            if label == "start":
+                self.app = have[2]
+                return have[0], have[1]
+            self.app = dataclasses.replace(have[2], eta=float(candidate_eta))
+            values = {**self.values, "roughness": np.full_like(self.values["roughness"], CLEAR_ROUGHNESS)}
+            return self._prepare(values)  # warm-started (when the stage warm-starts) at the candidate's IOR
+
+        before = have[1].seconds if have[1] is not None else 0.0
+        values, warm, info = clear_search(have[2].eta, eta, prepare, score, self._log)
+        self.values, self.warm_start_info = values, warm
+        # the search's seconds hold the candidate's warm start; the chosen start's is warm_start_info's (counted once)
+        info.seconds += before - (warm.seconds if warm is not None else 0.0)
+        if info.chosen == "start":
+            self.app = have[2]
+        else:
+            self.use_eta(info.chosen_eta)
+        self.clear_search_info = info
+        return info
+
+    def use_eta(self, eta: float) -> None:
+        """Render with shared index of refraction ``eta`` from now on (the clear-glass search's choice, or a resumed
+        run's record of it): the appearance config and the training scene (rebuilt, with the optimiser, from the
+        current values)."""
+        self.app = dataclasses.replace(self.app, eta=float(eta))
+        self.build()
 
     def _object(self):
         return object_mesh(self.geometry, self.values, self.app)

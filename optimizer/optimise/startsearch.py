@@ -44,6 +44,18 @@ the start the run would take without ``init`` (the scene pack's and the preset's
 at each ``--roughness-search`` value of the preset, warm-started) and starts from whichever scores best on the
 held-out views; the ``init`` start wins ties and is what a run with ``--init`` and the search off keeps. It applies
 whenever ``init`` set anything, also a single map. Cost: one warm start and one held-out score per alternative.
+
+The clear-glass candidate (:func:`clear_search`, issue 29; ``stage1.clear_candidate``, off by default).
+With a shared index of refraction near 1 and a smooth start (``CLEAR_ROUGHNESS``) the ground behind shows through
+the body sharp and barely displaced, texture and colour that are the ground's own: measured on split (4 views at
+64 px, 24 + 4 iterations, evaluation at 2048 spp) +2.9 dB crop PSNR and the tint halved, on meadow +0.5 dB, but on
+gravel -2.7 dB (docs/results/giveaways.md). So it is a start to choose per scene, not a default: after the other
+searches the chosen start (``"start"``, the run's IOR) and the clear-glass start (the IOR ``clear_candidate``, every
+map but roughness the chosen start's, warm-started at that IOR) are scored on the held-out views, and the run keeps
+the better one with its IOR (Stage 2, the final renders and the exported asset's ``eta``); the start wins ties. The
+held-out score counts the noise a ``holdout.noise_spp`` evaluation would see, so sunlight focused by the smooth body
+(caustics, which a path tracer reaches only by chance: bright single-pixel fireflies at a few hundred spp) counts
+against the candidate as the evaluation would see it. Cost: one warm start and one held-out score.
 """
 
 from __future__ import annotations
@@ -130,3 +142,51 @@ def init_search(labels: Sequence[str], candidates: dict, prepare: Callable[[str,
     best = min(finite, key=lambda t: t[0]) if finite else tried[0]
     return best[2], best[3], InitSearchInfo([t[1] for t in tried], [t[0] for t in tried], best[1],
                                             time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The clear-glass candidate (issue 29)
+
+#: The clear-glass candidate's uniform starting roughness (map value). 0.2: the smooth start of the measured clear
+#: arm (docs/results/giveaways.md); the roughness map stays within ~0.1 of its start, so this is also about where it
+#: ends: smooth enough that the ground is seen through sharp, above the ~0.032 below which roughness has no gradient.
+CLEAR_ROUGHNESS = 0.2
+
+
+@dataclasses.dataclass
+class ClearSearchInfo:
+    """What the clear-glass search did (``summary.json``'s ``clear_search``)."""
+
+    candidates: list[str]  # "start" (the start the other searches chose, the run's IOR), "clear glass"
+    eta: list[float]  # each candidate's shared index of refraction
+    scores: list[float]  # their held-out scores (lower is better; sRGB squared error, bias^2 + noise)
+    bias2: list[float]  # the scores' noise-free squared bias ...
+    variance: list[float]  # ... and the noise variance at the held-out spp (holdout.split_error)
+    chosen: str
+    chosen_eta: float  # the IOR the run keeps (Stage 2, final renders, the exported asset)
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def clear_search(start_eta: float, clear_eta: float, prepare: Callable[[str, float], tuple[dict, object]],
+                 score: Callable[[dict[str, np.ndarray]], tuple[float, float, float]], say=lambda s: None
+                 ) -> tuple[dict[str, np.ndarray], object, ClearSearchInfo]:
+    """Prepare (``prepare(label, eta) -> (values, info)``, which also sets the IOR the next ``score`` renders with)
+    and score (``score(values) -> (score, bias2, variance)``, lower is better) the start at ``start_eta`` and the
+    clear-glass start at ``clear_eta``; returns the better prepared values, its ``prepare`` info and the record.
+    A non-finite score loses; a tie keeps the start."""
+    t0 = time.perf_counter()
+    tried = []
+    for label, eta in (("start", float(start_eta)), ("clear glass", float(clear_eta))):
+        values, info = prepare(label, eta)
+        sc, b2, var = (float(x) for x in score(values))
+        say(f"clear search: {label} (IOR {eta:g}) scores {sc:.4g} (bias^2 {b2:.4g}, variance {var:.4g})")
+        tried.append((sc, label, eta, b2, var, values, info))
+    start, clear = tried
+    best = clear if np.isfinite(clear[0]) and (not np.isfinite(start[0]) or clear[0] < start[0]) else start
+    record = ClearSearchInfo([t[1] for t in tried], [t[2] for t in tried], [t[0] for t in tried],
+                             [t[3] for t in tried], [t[4] for t in tried], best[1], best[2],
+                             time.perf_counter() - t0)
+    return best[5], best[6], record
