@@ -127,8 +127,12 @@ def bench_evaluation(name: str, args) -> dict:
     cov = np.stack([coverage_and_depth(sc, c, mesh)[0] for c in cams])
     cache: dict = {}  # what the region renders keep across objects of one scene (the compact lights, the costs)
 
-    def alloc_render(spp, seed):
-        """The plan's depth and region, samples allocated per pixel (optimizer/rendering/allocation.py)."""
+    def alloc_render(spp, seed, variant):
+        """The plan's depth and region, samples allocated per pixel (optimizer/rendering/allocation.py) on the
+        per-pixel variances and object floor of ``variant`` (allocation.VARIANTS)."""
+        from optimizer.rendering.allocation import VARIANTS
+
+        estimator, object_floor = VARIANTS[variant]
         from optimizer.rendering.allocation import background_groups
         from optimizer.rendering.render import PathRenderer, render_allocated
 
@@ -137,7 +141,8 @@ def bench_evaluation(name: str, args) -> dict:
         t = clock()
         img, reg, alloc = render_allocated(env.build, mesh, cams, integ, spp, seed, bg, bg_groups, cov,
                                            plan.region_threshold, region=plan.region_search and args.region,
-                                           noise_floor=args.noise_floor, cache=cache)
+                                           noise_floor=args.noise_floor, cache=cache, estimator=estimator,
+                                           object_floor=object_floor)
         return img, clock() - t, alloc.to_dict()
 
     def plan_render(spp, seed):
@@ -158,7 +163,8 @@ def bench_evaluation(name: str, args) -> dict:
     ref, _ = full_render(args.ref_spp, base + 999)
     full_ref, _ = full_render(args.ref_spp, base + 998)  # its distance to ref: twice the reference noise
     plan_ref, _, _, _ = plan_render(args.ref_spp, base + 997)
-    alloc_ref = alloc_render(args.ref_spp, base + 996)[0] if args.allocation else None
+    ests = args.estimators if args.allocation else []
+    alloc_ref = {e: alloc_render(args.ref_spp, base + 996, e)[0] for e in ests}
     ref_var = srgb_rms(full_ref, ref) ** 2 / 2.0
     bias = math.sqrt(max(srgb_rms(plan_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0))
     rows = []
@@ -166,17 +172,19 @@ def bench_evaluation(name: str, args) -> dict:
         for k in range(args.warmup):  # untimed: the JIT compiles of this spp's kernels (a render at a new spp, a
             plan_render(spp, base + k)  # region's growth steps: each a kernel of its own), paid once per scene
             full_render(spp, base + k)
-            if args.allocation:
-                alloc_render(spp, base + k)
+            for e in ests:
+                alloc_render(spp, base + k, e)
         for rep in range(args.reps):
             seed = base + 17 * spp + rep
             p_img, p_s, share, steps = plan_render(spp, seed)
             f_img, f_s = full_render(spp, seed)
-            a_img, a_s, a_stats = alloc_render(spp, seed) if args.allocation else (None, None, None)
-            rows.append({"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
-                         "region_launches": steps, "allocation": a_stats, "alloc_seconds": a_s,
-                         "alloc_error": math.sqrt(max(srgb_rms(a_img, ref) ** 2 - ref_var, 0.0)) if a_img is not None
-                         else None,
+            row = {"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
+                   "region_launches": steps}
+            for e in ests:
+                a_img, a_s, a_stats = alloc_render(spp, seed, e)
+                row.update({f"alloc-{e}": a_stats, f"alloc-{e}_seconds": a_s,
+                            f"alloc-{e}_error": math.sqrt(max(srgb_rms(a_img, ref) ** 2 - ref_var, 0.0))})
+            rows.append({**row,
                          "plan_error": math.sqrt(max(srgb_rms(p_img, ref) ** 2 - ref_var, 0.0)),
                          "full_error": math.sqrt(max(srgb_rms(f_img, ref) ** 2 - ref_var, 0.0))})
     plan_curve = _mean_curve(rows, "plan")
@@ -188,21 +196,23 @@ def bench_evaluation(name: str, args) -> dict:
     e_plan_at_s = math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "plan").items()], s))
     top = max(args.eval_levels)
     equal_spp = _by_spp(rows, "full")[top][0] / _by_spp(rows, "plan")[top][0]
-    alloc = None
-    if args.allocation:
-        timed = [r["allocation"] for r in rows if r["spp"] == s]
-        a_curve = _mean_curve(rows, "alloc")
+    allocs = {}
+    for est in ests:
+        who = f"alloc-{est}"
+        timed = [r[who] for r in rows if r["spp"] == s]
+        a_curve = _mean_curve(rows, who)
         a_t = seconds_at(a_curve, e_full)
-        alloc = {"samples_share": float(np.mean([a["samples_share"] for a in timed])),
+        allocs[est] = {"estimator": est, "samples_share": float(np.mean([a["samples_share"] for a in timed])),
                  "control_variate_share": float(np.mean([a["control_variate_share"] for a in timed])),
                  "floor_share": float(np.mean([a["floor_share"] for a in timed])),
                  "costs": cache.get("costs"), "costs_seconds": cache.get("costs_seconds", 0.0),
                  "seconds_at_equal_error": a_t, "speedup": t_full / a_t,
-                 "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, "alloc")[top][0],
-                 "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, "alloc").items()], s)),
-                 "bias": math.sqrt(max(srgb_rms(alloc_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0)),
+                 "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
+                 "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, who).items()], s)),
+                 "bias": math.sqrt(max(srgb_rms(alloc_ref[est], ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0)),
                  "curve": a_curve, "noise_floor": args.noise_floor}
-    return {"scene": name, "pilot_seconds": pilot_seconds, "allocation": alloc, "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
+    return {"scene": name, "pilot_seconds": pilot_seconds, "allocations": allocs,
+            "region_search": bool(plan.region_search), "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
             "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
             "plan_seconds_at_equal_error": t_plan, "speedup": t_full / t_plan, "rows": rows,
@@ -366,7 +376,11 @@ def summarise_gradient(out: dict, train_spp: int, kinds=("plan", "full-lt", "ful
         else:
             s_eq = float("nan")  # never reached within the measured levels
         t_p = icept + slope * s_eq
-        out[who] = {"seconds_at_spp": t_f, "cosine_at_spp": cos_f, "loss_error_at_spp": loss_f,
+        eq = {}
+        if train_spp in plan:  # at equal spp: what "equal seconds" is where a step's seconds do not grow with spp
+            eq = {"cosine_ratio_equal_spp": plan[train_spp][1] / cos_f if cos_f > 0 else float("nan"),
+                  "seconds_ratio_equal_spp": plan[train_spp][0] / t_f}
+        out[who] = {**eq, "seconds_at_spp": t_f, "cosine_at_spp": cos_f, "loss_error_at_spp": loss_f,
                     "plan_spp_at_same_seconds": s_aff, "clamped": clamped,
                     "plan_seconds_at_equal_cosine": t_p, "speedup": t_f / t_p if t_p == t_p else float("nan"),
                     "plan_cosine_at_same_seconds": cos_p,
@@ -393,6 +407,9 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=2048)
     ap.add_argument("--allocation", action="store_true", help="also the plan with per-pixel sample allocation "
                     "(optimizer/rendering/allocation.py: the background as a control variate), interleaved")
+    ap.add_argument("--estimators", default="sturdy-floor", help="with the allocation: comma list of its variants "
+                    "(per-pixel variance estimate, object floor), each measured interleaved (optimizer/rendering/"
+                    "allocation.py VARIANTS: local, sturdy, sturdy-floor)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
                     "over every pixel, not only the region the object can change (exact everywhere)")
     ap.add_argument("--no-noise-floor", dest="noise_floor", action="store_false", help="allocation without the "
@@ -431,6 +448,12 @@ def main() -> None:
                 merged["grad_args"] = r["args"]
         print_tables(merged)
         return
+    from optimizer.rendering.allocation import VARIANTS as ESTIMATORS
+
+    args.estimators = [e for e in args.estimators.split(",") if e]
+    bad = [e for e in args.estimators if e not in ESTIMATORS]
+    if bad or not args.estimators:
+        ap.error(f"--estimators: unknown {', '.join(bad) or '(none given)'}; choose from {', '.join(ESTIMATORS)}")
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     args.train_levels = [int(x) for x in args.train_levels.split(",")]
     args.full_levels = [int(x) for x in args.full_levels.split(",")]
@@ -484,24 +507,34 @@ def print_tables(results: dict) -> None:
                   f"{r['noise_at_spp'] * 255:.3f} |")
         sp = [r["speedup"] for r in results["eval"]]
         print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x\n")
-        al = [r for r in results["eval"] if r.get("allocation")]
-        if al:
-            floor = "with" if al[0]["allocation"].get("noise_floor") else "without"
-            print(f"The plan with per-pixel sample allocation ({floor} the noise floor), measured in the same run: "
-                  "its seconds and error against the same full tracing\n")
+        for r in results["eval"]:  # a JSON of the earlier layout: one allocation, the local estimate
+            if r.get("allocation") and not r.get("allocations"):
+                r["allocations"] = {"local": dict(r["allocation"], estimator="local")}
+        ests = list(dict.fromkeys(e for r in results["eval"] for e in (r.get("allocations") or {})))
+        for est in ests:
+            al = [r for r in results["eval"] if est in (r.get("allocations") or {})]
+            floor = "with" if al[0]["allocations"][est].get("noise_floor") else "without"
+            print(f"The plan with per-pixel sample allocation, variant {est} ({floor} the noise floor), "
+                  "measured in the same run: its seconds and error against the same full tracing\n")
             print(f"| scene | plan + allocation CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | "
                   f"error @{a['eval_spp']} spp, plan + allocation / full (/255) | bias (/255) | samples (share of a "
                   "full frame's) | pixels on the control variate | cost per sample, object / other | (plan alone) |")
             print("|---|---|---|---|---|---|---|---|---|---|")
             for r in al:
-                x = r["allocation"]
+                x = r["allocations"][est]
                 c = x.get("costs") or [float("nan"), float("nan")]
                 print(f"| {r['scene']} | {x['seconds_at_equal_error']:.2f} | {x['speedup']:.2f}x | "
                       f"{x['speedup_equal_spp']:.2f}x | {x['error_at_spp'] * 255:.3f} / {r['full_error_at_spp'] * 255:.3f} | "
                       f"{x['bias'] * 255:.3f} | {x['samples_share']:.0%} | {x['control_variate_share']:.0%} | "
                       f"{c[0] / c[1]:.1f}x | {r['speedup']:.2f}x |")
-            sa = [r["allocation"]["speedup"] for r in al]
-            print(f"\nwith the allocation: mean speed-up {np.mean(sa):.2f}x, minimum {np.min(sa):.2f}x\n")
+            sa = [r["allocations"][est]["speedup"] for r in al]
+            print(f"\nwith the allocation ({est}): mean speed-up {np.mean(sa):.2f}x, minimum {np.min(sa):.2f}x\n")
+            if "region_search" in al[0]:
+                rule = [(r["scene"], r["allocations"][est]["speedup"] if not r["region_search"] else r["speedup"],
+                         "allocation" if not r["region_search"] else "region") for r in al]
+                print(f"The plan's rule (the allocation, {est}, where the plan renders whole frames; its region "
+                      "elsewhere): " + ", ".join(f"{n} {v:.2f}x ({k})" for n, v, k in rule) +
+                      f"; mean {np.mean([v for _, v, _ in rule]):.2f}x, minimum {np.min([v for _, v, _ in rule]):.2f}x\n")
     if results["grad"]:
         g = results.get("grad_args", a)
         print(f"(b) Stage 1 gradient, {g['grad_views']} views at {g['grad_resolution']}^2, maps {g['map_resolution']}^2 "
@@ -510,9 +543,9 @@ def print_tables(results: dict) -> None:
               f"{g['train_spp']} spp\n")
         levels = sorted({int(k) for r in results["grad"] for k in r["curves"].get("plan", {})})
         print("| scene | plan depth | window | vs | cosine plan / full at " + " | ".join(f"{k} spp" for k in levels) +
-              " | step s plan / full @" + f"{g['train_spp']} spp | plan cos in full's s (spp afforded) | ratio | "
-              "speed-up at equal cos | loss err plan / full |")
-        print("|---|---|---|---|" + "---|" * len(levels) + "---|---|---|---|---|")
+              " | step s plan / full @" + f"{g['train_spp']} spp | cosine ratio at {g['train_spp']} spp | plan cos in "
+              "full's s (spp afforded) | ratio | speed-up at equal cos | loss err plan / full |")
+        print("|---|---|---|---|" + "---|" * len(levels) + "---|---|---|---|---|---|")
         for r in results["grad"]:
             for who in ("full", "full-lt"):
                 if who not in r:
@@ -522,6 +555,7 @@ def print_tables(results: dict) -> None:
                                    f"{c['plan'][str(k)][1]:.3f} / -" for k in levels)
                 print(f"| {r['scene']} | {r['max_depth']} | {r['window_share']:.0%} | {who} | {cells} | "
                       f"{pl.get('seconds', float('nan')):.2f} / {w['seconds_at_spp']:.2f} | "
+                      f"{w.get('cosine_ratio_equal_spp', float('nan')):.2f} | "
                       f"{w['plan_cosine_at_same_seconds']:.3f} ({w.get('plan_spp_at_same_seconds', float('nan')):.1f}"
                       f"{', clamped' if w.get('clamped') else ''}) | {w['cosine_ratio']:.2f} | {w['speedup']:.2f}x | "
                       f"{pl.get('loss_error', float('nan')):.2e} / {w['loss_error_at_spp']:.2e} |")
@@ -539,9 +573,11 @@ def print_tables(results: dict) -> None:
         for who in ("full", "full-lt"):
             sp = [r[who]["speedup"] for r in results["grad"] if who in r]
             cr = [r[who]["cosine_ratio"] for r in results["grad"] if who in r]
+            ce = [r[who].get("cosine_ratio_equal_spp", float("nan")) for r in results["grad"] if who in r]
             if sp:
                 print(f"\nvs {who}: speed-up at equal cosine mean {np.nanmean(sp):.2f}x, minimum {np.nanmin(sp):.2f}x; "
-                      f"cosine ratio at equal seconds mean {np.nanmean(cr):.2f}, minimum {np.nanmin(cr):.2f}")
+                      f"cosine ratio at equal seconds mean {np.nanmean(cr):.2f}, minimum {np.nanmin(cr):.2f}; "
+                      f"at equal spp mean {np.nanmean(ce):.2f}, minimum {np.nanmin(ce):.2f}")
 
 if __name__ == "__main__":
     main()

@@ -195,7 +195,7 @@ def render_views(elements_fn, obj_fn, cams: Sequence[Camera], integrator: dict, 
 def render_allocated(elements_fn, mesh, cams: Sequence[Camera], integrator: dict, spp: int, seed: int,
                      background: np.ndarray, background_groups: np.ndarray, coverage: np.ndarray,
                      threshold: float | None = None, region: bool = True, noise_floor: bool = True,
-                     cache: dict | None = None):
+                     cache: dict | None = None, estimator: str = "sturdy", object_floor: bool = True):
     """The render with the object ``mesh`` at the error of a uniform ``spp``, its samples allocated per pixel with
     the background as a control variate (:mod:`optimizer.rendering.allocation`): a base pass of ``spp / 4``
     samples (over the region the object can change when ``region``, :func:`optimizer.rendering.region.
@@ -203,7 +203,9 @@ def render_allocated(elements_fn, mesh, cams: Sequence[Camera], integrator: dict
     error most per CPU second (with ``noise_floor``, also wherever the render would be noisier than the
     background's). ``background (V, H, W, 3)``: the background at ``spp``, same seed; ``background_groups``: its
     ``allocation.background_groups(spp)`` consecutive group means ``(G, V, H, W, 3)``. ``cache``: a dict kept across
-    objects of one scene (the compact lights, the costs per sample). Returns ``(image, regions or None,
+    objects of one scene (the compact lights, the costs per sample); ``estimator``: the per-pixel variance estimate
+    (:data:`optimizer.rendering.allocation.ESTIMATORS`); ``object_floor``: the object's own pixels never below
+    ``spp`` samples (:func:`optimizer.rendering.allocation.allocate`). Returns ``(image, regions or None,
     allocation)``."""
     import time
 
@@ -236,7 +238,8 @@ def render_allocated(elements_fn, mesh, cams: Sequence[Camera], integrator: dict
     cost = np.where(np.asarray(coverage) > 0, c_obj, c_rest)
     # the sRGB slope at the base pass's pooled image (with the object: a body over a bright background is darker)
     samples, control, floor_share = A.allocate(groups, bg_groups[:A.OBJECT_GROUPS], size, img, cost,
-                                               rendered, spp, noise_floor)
+                                               rendered, spp, noise_floor, kind=np.asarray(coverage) > 0,
+                                               estimator=estimator, object_floor=object_floor)
     x_mean = A.extra_passes(more, img, samples, spp)
     out = A.combine(x_mean, samples, control, bg_groups, background, spp)
     return out, reg, A.Allocation(samples, control, spp, (c_obj, c_rest), floor_share, time.perf_counter() - t0)
