@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from camo.cli import main
+from fixture_search_resume import assert_search_resumes
 from optimizer.optimise.startsearch import CLEAR_ROUGHNESS, ClearSearchInfo, clear_search
 
 TINY = ["--views", "3", "--resolution", "32", "--map-resolution", "48", "--displacement-resolution", "16",
@@ -134,24 +135,11 @@ def test_end_to_end_the_choice_is_the_runs_and_a_resumed_run_keeps_it(tmp_path, 
 
     assert open_run(full).asset().eta == pytest.approx(cs["chosen_eta"])
 
-    capfd.readouterr()
-    assert optimize(out, *args, "--iterations", "2") == 0
-    ck = dict(np.load(out / "checkpoint.npz"))
-    assert json.loads(str(ck["clear_search/info"]))["chosen"] == cs["chosen"]
-    capfd.readouterr()
-    assert main(["optimize", "gravel", "--out", str(out), *[a for a in TINY if a != "--quiet"], *args,
-                 "--iterations", "3", "--resume"]) == 0
-    assert "clear search:" not in capfd.readouterr().err  # nothing was searched again
-    again = json.loads((out / "summary.json").read_text())["clear_search"]
-    assert again["chosen"] == cs["chosen"] and again["scores"] == cs["scores"]
-    np.testing.assert_array_equal(np.load(out / "maps" / "roughness.npy"), np.load(full / "maps" / "roughness.npy"))
-    ck["clear_search/info"] = np.array("{not json")
-    with open(out / "checkpoint.npz", "wb") as f:
-        np.savez(f, **ck)
-    capfd.readouterr()
-    assert optimize(out, *args, "--iterations", "4", "--resume") == 2
-    err = capfd.readouterr().err.strip()
-    assert "bad clear_search/info" in err and len(err.splitlines()) == 1
+    def run(o, *flags, quiet=True):
+        tiny = TINY if quiet else [a for a in TINY if a != "--quiet"]
+        return main(["optimize", "gravel", "--out", str(o), *tiny, *args, *flags])
+
+    assert_search_resumes(run, full, out, "clear_search", "clear search", capfd)
 
 
 def test_a_result_renders_with_the_kept_ior_and_a_bad_record_is_a_one_line_error(tmp_path):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from camo.cli import main
+from fixture_search_resume import assert_search_resumes
 from optimizer.optimise.startsearch import StartSearchInfo, start_search
 
 TINY = ["--views", "3", "--resolution", "32", "--map-resolution", "48", "--displacement-resolution", "16",
@@ -117,24 +118,11 @@ def test_the_chosen_start_is_stage_1s_and_a_resumed_run_keeps_it(tmp_path, capfd
                                                 s["seconds_warm_start"] + sum(r["seconds"] + r.get("seconds_holdout", 0.0)
                                                                               for r in log), rel=1e-6)
 
-    capfd.readouterr()
-    assert main(["optimize", "gravel", "--out", str(out), *args, "--iterations", "2"]) == 0
-    ck = dict(np.load(out / "checkpoint.npz"))
-    assert json.loads(str(ck["start_search/info"]))["chosen"] == ss["chosen"]
-    capfd.readouterr()
-    assert main(["optimize", "gravel", "--out", str(out), *[a for a in args if a != "--quiet"], "--iterations", "3",
-                 "--resume"]) == 0
-    assert "start search:" not in capfd.readouterr().err  # nothing was searched again
-    again = json.loads((out / "summary.json").read_text())["start_search"]
-    assert again["chosen"] == ss["chosen"] and again["scores"] == ss["scores"]
-    np.testing.assert_array_equal(np.load(out / "maps" / "roughness.npy"), np.load(full / "maps" / "roughness.npy"))
-    ck["start_search/info"] = np.array("{not json")
-    with open(out / "checkpoint.npz", "wb") as f:
-        np.savez(f, **ck)
-    capfd.readouterr()
-    assert main(["optimize", "gravel", "--out", str(out), *args, "--iterations", "4", "--resume"]) == 2
-    err = capfd.readouterr().err.strip()
-    assert "bad start_search/info" in err and len(err.splitlines()) == 1
+    def run(o, *flags, quiet=True):
+        a = args if quiet else [x for x in args if x != "--quiet"]
+        return main(["optimize", "gravel", "--out", str(o), *a, *flags])
+
+    assert_search_resumes(run, full, out, "start_search", "start search", capfd)
 
 
 def test_candidates_at_the_ends_of_the_range_keep_the_run_finite(tmp_path):
