@@ -256,14 +256,14 @@ def allocate(obj_groups: np.ndarray, bg_groups: np.ndarray, group_size: int, ref
     if estimator not in ESTIMATORS:
         raise ValueError(f"unknown variance estimator {estimator!r}: choose one of {', '.join(ESTIMATORS)}")
     rendered = np.asarray(rendered, bool)
+    full_cost = np.asarray(cost, np.float64)
+    kind = full_cost >= full_cost.max() if kind is None else np.asarray(kind, bool)  # the object's pixels
     slope = np.stack([pooled_over(np.asarray(reference)[..., c], np.ones(rendered.shape, bool), window)
                       for c in range(3)], -1)
     v_x, v_d, v_y = variances(obj_groups, bg_groups, group_size, srgb_slope(slope) ** 2)
     if estimator == "local":
         v_x, v_d, v_y = (pooled_over(v, rendered, window)[rendered] for v in (v_x, v_d, v_y))
     else:
-        c = np.asarray(cost, np.float64)
-        kind = c >= c.max() if kind is None else np.asarray(kind, bool)
         v_x, v_d, v_y = (sturdy_pooled(v, rendered, kind, window)[rendered] for v in (v_x, v_d, v_y))
     levels = ladder(spp)
     control = v_d < v_x
@@ -277,8 +277,7 @@ def allocate(obj_groups: np.ndarray, bg_groups: np.ndarray, group_size: int, ref
         return out_n, out_c, 0.0
     allowed = table <= TOLERANCE * v_y[:, None] / spp + 1e-15 if noise_floor else None
     if object_floor:
-        full_cost = np.asarray(cost, np.float64)
-        own = (full_cost >= full_cost.max() if kind is None else np.asarray(kind, bool))[rendered]
+        own = kind[rendered]
         at_least = ~own[:, None] | (levels[None, :] >= spp)
         allowed = at_least if allowed is None else allowed & at_least
     idx = lagrange(table, c, levels, target, allowed)
