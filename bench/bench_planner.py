@@ -145,13 +145,16 @@ def bench_evaluation(name: str, args) -> dict:
                                            object_floor=object_floor)
         return img, clock() - t, alloc.to_dict()
 
-    def plan_render(spp, seed, with_background=False):
-        bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
+    def plan_render(spp, seed, with_background=False, rr_depth=None):
+        """The plan's render (``rr_depth``: Russian roulette from that vertex instead of the plan's, in the
+        background render too)."""
+        it = integ if rr_depth is None else dict(integ, rr_depth=int(rr_depth))
+        bg = render_shaded(env.build(), None, cams, it, spp, seed)  # shared by every input: not timed
         t = clock()
         if not plan.region_search:  # the plan renders whole frames here
-            out = render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0, 0
+            out = render_shaded(env.build(), mesh, cams, it, spp, seed), clock() - t, 1.0, 0
         else:
-            img, reg = render_with_region(env.build, mesh, cams, integ, spp, seed, bg, cov, plan.region_threshold,
+            img, reg = render_with_region(env.build, mesh, cams, it, spp, seed, bg, cov, plan.region_threshold,
                                           cache=cache)
             out = img, clock() - t, float(reg.masks.mean()), reg.steps
         return (*out, bg) if with_background else out
@@ -201,6 +204,8 @@ def bench_evaluation(name: str, args) -> dict:
             full_render(spp, base + k)
             for e in ests:
                 alloc_render(spp, base + k, e)
+            for rr in args.rr_depths:
+                plan_render(spp, base + k, rr_depth=rr)
             if dens:
                 w_img = plan_render(spp, base + k)[0]
                 fw = features(mesh, spp, base + k)
@@ -213,6 +218,10 @@ def bench_evaluation(name: str, args) -> dict:
             f_img, f_s = full_render(spp, seed)
             row = {"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
                    "region_launches": steps}
+            for rr in args.rr_depths:
+                r_img, r_s = plan_render(spp, seed, rr_depth=rr)[:2]
+                row[f"plan-rr{rr}_seconds"] = r_s
+                row[f"plan-rr{rr}_error"] = math.sqrt(max(srgb_rms(r_img, ref) ** 2 - ref_var, 0.0))
             if dens:
                 fe = features(mesh, spp, seed)
                 row["features_seconds"] = fe[2]
@@ -288,10 +297,19 @@ def bench_evaluation(name: str, args) -> dict:
             "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise,
             "features_seconds": float(np.min([r["features_seconds"] for r in rows if r["spp"] == s])),
             "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
+    rr_out = {}
+    for rr in args.rr_depths:
+        who = f"plan-rr{rr}"
+        r_t = seconds_at(_mean_curve(rows, who), e_full)
+        rr_out[str(rr)] = {"curve": _mean_curve(rows, who), "seconds_at_equal_error": r_t, "speedup": t_full / r_t,
+                           "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
+                           "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in
+                                                              _by_spp(rows, who).items()], s))}
     plain_noise = ({"object": noise_rms(at_spp["plan"][0], at_spp["plan"][1], near),
                     "background": noise_rms(at_spp["bg"][0], at_spp["bg"][1], near)}
                    if len(at_spp["plan"]) >= 2 else {})
     return {"scene": name, "pilot_seconds": pilot_seconds, "allocations": allocs, "denoisers": den_out,
+            "rr_depths": rr_out,
             "noise_near_object": plain_noise,
             "region_search": bool(plan.region_search), "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
@@ -494,6 +512,8 @@ def main() -> None:
     ap.add_argument("--denoisers", default="", help="also the plan and full tracing denoised by Open Image Denoise "
                     "(comma list of optimizer/rendering/denoise.py VARIANTS: oidn, oidn-balanced, oidn-raw, "
                     "oidn-color), interleaved; the features' render and the denoising are timed")
+    ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
+                    "(comma list; the plan's own is 5), interleaved")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
                     "(at most the colour's)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
@@ -546,6 +566,7 @@ def main() -> None:
     bad = [d for d in args.denoisers if d not in DENOISERS]
     if bad:
         ap.error(f"--denoisers: unknown {', '.join(bad)}; choose from {', '.join(DENOISERS)}")
+    args.rr_depths = [int(x) for x in args.rr_depths.split(",") if x]
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     args.train_levels = [int(x) for x in args.train_levels.split(",")]
     args.full_levels = [int(x) for x in args.full_levels.split(",")]
@@ -627,6 +648,24 @@ def print_tables(results: dict) -> None:
                 print(f"The plan's rule (the allocation, {est}, where the plan renders whole frames; its region "
                       "elsewhere): " + ", ".join(f"{n} {v:.2f}x ({k})" for n, v, k in rule) +
                       f"; mean {np.mean([v for _, v, _ in rule]):.2f}x, minimum {np.min([v for _, v, _ in rule]):.2f}x\n")
+    rrs = list(dict.fromkeys(k for r in results["eval"] for k in (r.get("rr_depths") or {})))
+    if rrs:
+        print("The plan with Russian roulette from an earlier vertex (the plan's depth and region; its own: from "
+              f"vertex {results['eval'][0].get('rr_depth', 5)}), measured in the same run against the same full tracing\n")
+        print("| scene | " + " | ".join(f"from vertex {k}: CPU s @ equal error, speed-up, @{top} spp (equal spp), "
+                                         f"error @{a['eval_spp']} spp (/255)" for k in rrs) + " | (plan) |")
+        print("|---|" + "---|" * len(rrs) + "---|")
+        for r in results["eval"]:
+            cells = []
+            for k in rrs:
+                x = (r.get("rr_depths") or {}).get(k)
+                cells.append("-" if x is None else f"{x['seconds_at_equal_error']:.2f}, {x['speedup']:.2f}x, "
+                             f"{x['speedup_equal_spp']:.2f}x, {x['error_at_spp'] * 255:.3f}")
+            print(f"| {r['scene']} | " + " | ".join(cells) + f" | {r['speedup']:.2f}x |")
+        for k in rrs:
+            sp = [r["rr_depths"][k]["speedup"] for r in results["eval"] if k in (r.get("rr_depths") or {})]
+            print(f"\nfrom vertex {k}: mean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x")
+        print()
     dens = list(dict.fromkeys(d for r in results["eval"] for d in (r.get("denoisers") or {})))
     for d in dens:
         al = [r for r in results["eval"] if d in (r.get("denoisers") or {})]
