@@ -53,6 +53,7 @@ class EvalSettings:
     write_report: bool = True
     planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
     noise_match: bool = True  # more samples where the object's render is noisier than the background's
+    denoise: bool = True  # the plan's denoiser where the noise at spp is above its bias (after noise matching)
 
     def validate(self) -> "EvalSettings":
         """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
@@ -143,6 +144,9 @@ def _options() -> tuple[EvalOption, ...]:
         o("no_noise_match", bool, "noise_match", "the same spp everywhere (default: pixels where the render with the "
           "object is noisier than the background get more samples, up to 8x, so noise does not give the object "
           "away)", default=False),
+        o("no_denoise", bool, "denoise", "no denoiser (default: where the plan's pilot measures the noise at --spp "
+          "above the denoiser's bias, both renders are denoised alike by Open Image Denoise with albedo and normal "
+          "features, after noise matching)", default=False),
         o("quiet", bool, "progress", "no progress messages", default=False),
     )
 
