@@ -57,32 +57,45 @@ def test_views_are_denoised_one_by_one_and_inputs_are_checked():
         denoise_variant(noisy, None, None, "oidn")
 
 
+def _sunlit(mi, dark, tiles: int):
+    """A checkered diffuse ground (``dark``: the second tile's colour; ``tiles`` per unit length / 20) under the sun
+    and sky (the built-in scenes' light), and a sphere mesh factory ``(albedo, transmittance) -> mesh``."""
+    import trimesh
+
+    from optimizer.rendering import scene as scn
+
+    def elements():
+        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
+                           "bsdf": {"type": "diffuse", "reflectance": {
+                               "type": "checkerboard", "color0": {"type": "rgb", "value": [0.6, 0.5, 0.3]},
+                               "color1": {"type": "rgb", "value": list(dark)},
+                               "to_uv": mi.ScalarTransform4f().scale([tiles, tiles, 1])}}},
+                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
+
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    v = (np.asarray(m.vertices) + [0, 0, 0.5]).astype(np.float32)
+
+    def sphere(albedo, transmittance):
+        return scn.object_mesh(v, np.asarray(m.faces), None, scn.principled(
+            {"albedo": list(albedo), "metallic": 0.0, "roughness": 0.5, "transmittance": transmittance}))
+
+    return elements, sphere
+
+
 def test_a_denoised_render_is_closer_to_the_high_spp_reference_than_the_render(mi_backend):
     """A textured diffuse ground and a sphere under the sun (the built-in scenes' light), 48 px: the 16-spp render
     denoised with its features (16 spp) against a 1024-spp reference: its error (8-bit sRGB RMS) at most 0.6 x the
     16-spp render's, and the mean radiance over the frame and over the sphere within 2 % of the reference's (the
     denoiser redistributes energy, it does not create or lose it)."""
     mi, _ = mi_backend
-    import trimesh
-
     from camo_base.imaging import linear_to_srgb
     from optimizer.rendering import scene as scn
     from optimizer.rendering.denoise import denoise, render_features
     from optimizer.rendering.render import coverage_and_depth, render_shaded
     from optimizer.scenes.cameras import Camera
 
-    def elements():
-        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
-                           "bsdf": {"type": "diffuse", "reflectance": {
-                               "type": "checkerboard", "color0": {"type": "rgb", "value": [0.6, 0.5, 0.3]},
-                               "color1": {"type": "rgb", "value": [0.2, 0.3, 0.2]},
-                               "to_uv": mi.ScalarTransform4f().scale([40, 40, 1])}}},
-                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
-
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
-    mesh = scn.object_mesh((np.asarray(m.vertices) + [0, 0, 0.5]).astype(np.float32), np.asarray(m.faces), None,
-                           scn.principled({"albedo": [0.7, 0.4, 0.3], "metallic": 0.0, "roughness": 0.5,
-                                           "transmittance": 0.0}))
+    elements, sphere = _sunlit(mi, (0.2, 0.3, 0.2), 40)
+    mesh = sphere((0.7, 0.4, 0.3), 0.0)
     cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 48, 48)]
     integ = {"type": "path", "max_depth": 6, "rr_depth": 5}
     ref = render_shaded(elements(), mesh, cams, integ, 1024, 7)
@@ -114,30 +127,17 @@ def test_evaluation_renders_are_denoised_alike_and_the_object_is_no_noisier_than
     here, and on an untextured ground, which it smooths to almost no noise, 3-5x even after matching:
     docs/results/planner.md.)"""
     mi, _ = mi_backend
-    import trimesh
-
     from evaluation.views import ViewRenderer
-    from optimizer.rendering import scene as scn
     from optimizer.rendering.noise import fireflies, noise_rms
     from optimizer.rendering.region import dilate_px
     from optimizer.scenes import builtin_scenes
     from optimizer.scenes.cameras import Camera
     from optimizer.scenes.environments import Environment
 
-    def build():
-        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
-                           "bsdf": {"type": "diffuse", "reflectance": {
-                               "type": "checkerboard", "color0": {"type": "rgb", "value": [0.6, 0.5, 0.3]},
-                               "color1": {"type": "rgb", "value": [0.3, 0.35, 0.25]},
-                               "to_uv": mi.ScalarTransform4f().scale([60, 60, 1])}}},
-                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
-
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
-    v = (np.asarray(m.vertices) + [0, 0, 0.5]).astype(np.float32)
+    build, sphere = _sunlit(mi, (0.3, 0.35, 0.25), 60)
 
     def mesh():
-        return scn.object_mesh(v, np.asarray(m.faces), None, scn.principled(
-            {"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": 0.9}))
+        return sphere((0.8, 0.8, 0.8), 0.9)
 
     env = Environment("glass", "glass", build, ("sun", "sky"))
     cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 48, 48),
