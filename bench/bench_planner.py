@@ -165,6 +165,7 @@ def bench_evaluation(name: str, args) -> dict:
 
     dens = args.denoisers
     near = np.stack([dilate_px(m, 2) for m in cov >= 0.5])  # the object and a 2-pixel rim (item 4's pixels)
+    obj_mask = cov >= 0.5  # the object's own pixels (what a participant searches; the metrics' mask)
 
     def features(obj, spp, seed):
         """The denoiser's features (first-hit albedo, normal) at min(spp, --aux-spp), the colour's seed; timed."""
@@ -287,6 +288,8 @@ def bench_evaluation(name: str, args) -> dict:
         if len(imgs) >= 2:
             noise = {"object": noise_rms(imgs[0], imgs[1], near), "background": noise_rms(
                 at_spp[f"bg-{d}"][0], at_spp[f"bg-{d}"][1], near)}
+        on_object = {"denoised": object_region(imgs, ref, full_ref, obj_mask),
+                     "plan": object_region(at_spp["plan"], ref, full_ref, obj_mask)}
         den_out[d].update({
             "curve": d_curve, "seconds_at_equal_error": d_t, "speedup": t_full / d_t,
             "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
@@ -295,7 +298,7 @@ def bench_evaluation(name: str, args) -> dict:
                 [(k, math.log(v[1])) for k, v in _by_spp(rows, f"full+{d}").items()], s)),
             "full_denoised_speedup": t_full / seconds_at(_mean_curve(rows, f"full+{d}"), e_full),
             "full_curve": _mean_curve(rows, f"full+{d}"),
-            "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise,
+            "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise, "object": on_object,
             "features_seconds": float(np.min([r["features_seconds"] for r in rows if r["spp"] == s])),
             "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
     rr_out = {}
@@ -320,6 +323,36 @@ def bench_evaluation(name: str, args) -> dict:
             "region_launches": float(np.mean([r["region_launches"] for r in rows])),
             "plan_curve": plan_curve, "full_curve": full_curve,
             "effects": [e.to_dict() for e in plan.effects]}
+
+
+def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mask: np.ndarray) -> dict:
+    """What the seeds ``imgs`` (V, H, W, 3 linear, >= 2) of a render do to the object's pixels ``mask`` (V, H, W)
+    against the converged reference ``ref`` (``ref2``: a second one, for its noise), all in sRGB /1:
+
+    ``bias``: RMS over the mask of the seeds' mean minus the reference, the seeds' spread (/K) and the reference's
+    noise subtracted; ``noise``: one seed's RMS deviation from the seeds' mean over the mask (ddof 1);
+    ``detail``: mean over seeds and views of :func:`evaluation.metrics.detail_ratio.detail_ratio` of the render
+    against the reference in the mask (1 = the reference's texture energy, < 1 smoothed, > 1 speckle: noise adds
+    to it). NaNs where fewer than two seeds or no mask."""
+    from camo_base.imaging import linear_to_srgb
+    from evaluation.metrics.detail_ratio import detail_ratio
+
+    nan = {"bias": float("nan"), "noise": float("nan"), "detail": float("nan"), "pixels": int(mask.sum())}
+    if len(imgs) < 2 or not mask.any():
+        return nan
+    e = np.stack([linear_to_srgb(np.clip(x, 0, None)).astype(np.float64) for x in imgs])  # (K, V, H, W, 3)
+    r_ = linear_to_srgb(np.clip(ref, 0, None)).astype(np.float64)
+    r2 = linear_to_srgb(np.clip(ref2, 0, None)).astype(np.float64)
+    m = e.mean(0)
+    var = float(np.mean(np.var(e, axis=0, ddof=1)[mask]))
+    ref_var = float(np.mean((r2 - r_)[mask] ** 2)) / 2.0
+    bias = math.sqrt(max(float(np.mean((m - r_)[mask] ** 2)) - var / len(e) - ref_var, 0.0))
+    det = [float(detail_ratio(np.clip(x[v], 0, 1).astype(np.float32), np.clip(r_[v], 0, 1).astype(np.float32),
+                              mask[v]))
+           for x in e for v in range(len(mask)) if mask[v].any()]
+    det = [x for x in det if math.isfinite(x)]
+    return {"bias": bias, "noise": math.sqrt(var), "detail": float(np.mean(det)) if det else float("nan"),
+            "pixels": int(mask.sum())}
 
 
 def clamped_seconds(curve: list[tuple[float, float]], error: float, seconds: float) -> tuple[float, bool]:
@@ -712,6 +745,25 @@ def print_tables(results: dict) -> None:
                   f"{x['features_seconds']:.2f} | {x['denoise_seconds']:.2f} |")
         print(f"\nplan + {d}: mean speed-up {np.mean(sd):.2f}x, minimum {np.min(sd):.2f}x (where its cheapest level, "
               f"{min(a['eval_levels'])} spp, is already below the target error, its seconds: a lower bound)\n")
+        ob = [r for r in al if r["denoisers"][d].get("object")]
+        if ob:
+            print(f"On the object's own pixels (coverage >= 0.5 in the with-object render; its starting material, "
+                  f"see-through) at {a['eval_spp']} spp, {k} seeds, against the reference (sRGB /255): the bias of the "
+                  "seeds' mean (spread and reference noise subtracted) beside one seed's noise, and the detail ratio "
+                  "(mean |Laplacian| of the luma against the reference's; 1 = its texture, < 1 smoothed). Whole-frame "
+                  "bias from the table above\n")
+            print(f"| scene | object px | whole-frame bias, plan + {d} | object bias, plan + {d} | object noise, "
+                  f"plan + {d} | object bias, plan | object noise, plan | detail, plan + {d} | detail, plan | "
+                  "object bias below the plan's noise? |")
+            print("|---|---|---|---|---|---|---|---|---|---|")
+            for r in ob:
+                x = r["denoisers"][d]
+                o_d, o_p = x["object"]["denoised"], x["object"]["plan"]
+                print(f"| {r['scene']} | {o_d['pixels']} | {x['bias_at_spp'] * 255:.2f} | {o_d['bias'] * 255:.2f} | "
+                      f"{o_d['noise'] * 255:.2f} | {o_p['bias'] * 255:.2f} | {o_p['noise'] * 255:.2f} | "
+                      f"{o_d['detail']:.2f} | {o_p['detail']:.2f} | "
+                      f"{'yes' if o_d['bias'] < o_p['noise'] else 'no'} |")
+            print()
     if results["grad"]:
         g = results.get("grad_args", a)
         print(f"(b) Stage 1 gradient, {g['grad_views']} views at {g['grad_resolution']}^2, maps {g['map_resolution']}^2 "

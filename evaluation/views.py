@@ -134,7 +134,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 
 
 def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
-                    denoise: bool = True):
+                    denoise: bool = False):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -144,7 +144,7 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     light seen through it) from those cameras, and keeps every bounce whose light over the whole frame is above
     0.3 x the noise at ``spp`` (:class:`optimizer.rendering.planner.Planner`, purpose ``evaluate``; stream
     ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce). With
-    ``denoise`` the measured plan denoises where the noise at ``spp`` is above the denoiser's measured bias
+    ``denoise`` (opt-in, ``--denoise``) the measured plan denoises where the noise at ``spp`` is above the denoiser's measured bias
     (:data:`optimizer.rendering.planner.DENOISER_BIAS`; ``plan.denoise``)."""
     from camo_base import seeds
     from optimizer.rendering.planner import Planner, PlannerSettings, plan

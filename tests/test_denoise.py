@@ -169,3 +169,31 @@ def test_evaluation_renders_are_denoised_alike_and_the_object_is_no_noisier_than
     r = ViewRenderer(64, 0)
     with pytest.raises(ValueError, match="denoised as its background"):
         r.with_object(env, mesh, cams, integ, r.background(pack, env, cams, integ, ""), None, denoise="oidn-raw")
+
+
+def test_the_denoiser_is_opt_in_everywhere_the_evaluation_renders_are_made():
+    """Off by default (it smooths the ground seen through a see-through object: docs/evaluation.md) in the planner,
+    ``camo evaluate``'s settings, the evaluation plan and the study stimuli; ``--denoise`` turns it on in both CLIs
+    (and ``--no-denoise`` is no longer a flag)."""
+    import argparse
+    import inspect
+
+    from evaluation.settings import EvalSettings, SettingError
+    from evaluation.views import evaluation_plan
+    from optimizer.rendering.planner import PlannerSettings
+    from study_site import cli as study_cli
+    from study_site.render_stimuli import render_stimuli
+
+    assert PlannerSettings().denoise is False and EvalSettings().denoise is False
+    assert inspect.signature(evaluation_plan).parameters["denoise"].default is False
+    assert inspect.signature(render_stimuli).parameters["denoise"].default is False
+    assert EvalSettings.from_options({}).denoise is False
+    assert EvalSettings.from_options({"denoise": True}).denoise is True
+    # the other switches still turn their fields off
+    assert EvalSettings.from_options({"no_noise_match": True, "denoise": True}).noise_match is False
+    with pytest.raises(SettingError, match="no_denoise"):
+        EvalSettings.from_options({"no_denoise": True})
+    ap = argparse.ArgumentParser()
+    study_cli.register(ap.add_subparsers(dest="cmd"))
+    base = ["study", "build-stimuli", "EVAL", "--out", "OUT"]
+    assert ap.parse_args(base).denoise is False and ap.parse_args(base + ["--denoise"]).denoise is True
