@@ -23,6 +23,10 @@ Equal-error speed-up: the seconds full tracing takes at the stage's spp (evaluat
 ``--train-spp``) over the seconds the plan takes to reach the same error (log-log interpolation along its curve).
 Gradient ratio: the plan's cosine at full tracing's seconds (interpolated) over full tracing's cosine.
 
+With ``--denoisers``, the denoised plan is also measured on the object's own pixels (its coverage in the
+with-object render): its bias and noise there beside the whole frame's, and its detail ratio against the reference
+(:func:`object_region`): the denoiser smooths what a see-through object shows of the ground behind it.
+
     python bench/bench_planner.py [--scenes meadow,room] [--real] [--views 4] [--resolution 64] [--out DIR]
 
 Prints Markdown tables and writes ``DIR/bench_planner.json`` (every measured point).
@@ -750,11 +754,12 @@ def print_tables(results: dict) -> None:
             print(f"On the object's own pixels (coverage >= 0.5 in the with-object render; its starting material, "
                   f"see-through) at {a['eval_spp']} spp, {k} seeds, against the reference (sRGB /255): the bias of the "
                   "seeds' mean (spread and reference noise subtracted) beside one seed's noise, and the detail ratio "
-                  "(mean |Laplacian| of the luma against the reference's; 1 = its texture, < 1 smoothed). Whole-frame "
-                  "bias from the table above\n")
+                  "(mean |Laplacian| of the luma against the reference's; 1 = its texture, < 1 smoothed, > 1 noise). "
+                  "The plan's own object bias is the estimator's floor (the plan is unbiased over the frame; 3 seeds "
+                  "with fireflies leave their spread poorly estimated). Whole-frame bias from the table above\n")
             print(f"| scene | object px | whole-frame bias, plan + {d} | object bias, plan + {d} | object noise, "
                   f"plan + {d} | object bias, plan | object noise, plan | detail, plan + {d} | detail, plan | "
-                  "object bias below the plan's noise? |")
+                  f"object bias of plan + {d} below the plan's noise / below its own noise? |")
             print("|---|---|---|---|---|---|---|---|---|---|")
             for r in ob:
                 x = r["denoisers"][d]
@@ -762,7 +767,8 @@ def print_tables(results: dict) -> None:
                 print(f"| {r['scene']} | {o_d['pixels']} | {x['bias_at_spp'] * 255:.2f} | {o_d['bias'] * 255:.2f} | "
                       f"{o_d['noise'] * 255:.2f} | {o_p['bias'] * 255:.2f} | {o_p['noise'] * 255:.2f} | "
                       f"{o_d['detail']:.2f} | {o_p['detail']:.2f} | "
-                      f"{'yes' if o_d['bias'] < o_p['noise'] else 'no'} |")
+                      f"{'yes' if o_d['bias'] < o_p['noise'] else 'no'} / "
+                      f"{'yes' if o_d['bias'] < o_d['noise'] else 'no'} |")
             print()
     if results["grad"]:
         g = results.get("grad_args", a)
