@@ -60,7 +60,8 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    reading per place: Lindeberg 1998's scale selection) say whether it lies (wider than tall, or elongated off
    the vertical: its discount rises to 1), stands (taller than wide: its discount falls to 0, so an upright dark
    face, a dark object or a glass object that the renderer leaves as dark as a shadow is evidence in full) or
-   neither (a blob, or the inside of a shade larger than every window: ``shadow_discount`` as without the cue). With the default "surround" reference it reads the image only (the shadow-likeness of each place, against
+   neither (a blob, or the inside of a shade larger than every window: ``shadow_discount`` as without the cue). With
+   the default "surround" reference it reads the image only (the shadow-likeness of each place, against
    the background's pooled 4 deg statistics as in step 1), never the object-free view at the same place; the
    verification's null (step 5) applies the same rule to the object-free view.
 3. **Priority map** ``G`` (GS6's priority map: top-down guidance by the target template): the object prior of a
@@ -188,8 +189,8 @@ class ObserverConfig:
     #: "background" put meadow's three visible baselines in or at the edge of the human range, "surround" gravel's
     #: Mean and Random and split's Random (with "background" a plain box's face turned from the sun -- 36 % of the
     #: light of the gravel behind it, darker than gravel's own cast shadows, 42-47 % -- is discounted as a
-    #: shadow). With the shape cue, "surround" puts 7 of the 9 cells in the human range (docs/results/observer.md),
-    #: hence the default.
+    #: shadow). With the shape cue, "surround" put 7 of the 9 cells in the human range (8 with the cue read at the
+    #: object sizes, ``shadow_shape="scales"``; docs/results/observer.md), hence the default.
     shadow_reference: str = "surround"
     #: Share of a shadow-like place's difference discounted with the "surround" reference (:data:`SHADOW_DISCOUNT`;
     #: 0 = no shadow analysis, 1 = a shadow-like place is no candidate at all).
@@ -794,8 +795,9 @@ def ground_segments(lab: np.ndarray, sky: np.ndarray, config: ObserverConfig | N
     return labels
 
 
-#: Window of the shape cue (Gaussian sigma, degrees): the region read around a place spans ~2.4 deg (its FWHM), the
-#: middle of the object sizes the study shows (1.6-4.8 deg) -- about a cast shadow's length and an object's height.
+#: Window of the shape cue with ``shadow_shape="lying"`` (Gaussian sigma, degrees): the region read around a place
+#: spans ~2.4 deg (its FWHM), the middle of the object sizes the study shows (1.6-4.8 deg) -- about a cast shadow's
+#: length and an object's height. The default ``"scales"`` reads one window per object size (:func:`shape_over_sizes`).
 SHAPE_WINDOW_DEG = 1.0
 #: Shape score (:func:`lying_shape`) from which a shadow-like region counts fully as lying (or, negated, as
 #: upright): 0.3, the elongation ``(a^2 - 1) / (a^2 + 1)`` of a region 1.4 times as long as it is thick -- a

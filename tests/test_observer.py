@@ -520,7 +520,8 @@ def test_shadow_settings_are_checked():
 
     cfg = parse_observer("shadow_reference=background,shadow_discount=1")
     assert (cfg.shadow_reference, cfg.shadow_discount) == ("background", 1.0)
-    with pytest.raises(CamoError, match=r"^observer shadow_shape must be 'scales' or 'lying' or 'none', not 'round'$"):
+    with pytest.raises(CamoError,
+                       match=r"^observer shadow_shape must be 'scales' or 'lying' or 'none', not 'round'$"):
         ObserverConfig(shadow_shape="round").validate()
     assert parse_observer("shadow_shape=none").shadow_shape == "none"
     with pytest.raises(CamoError, match="shadow_shape") as e:
