@@ -90,8 +90,9 @@ class EvalSettings:
 @dataclasses.dataclass(frozen=True)
 class EvalOption:
     """One evaluation setting a caller gives by name (module doc). ``kind``: int, float, str, or bool (a switch:
-    given means true, and it sets its ``field`` to the other value than its default: off for ``no_*``, on for ``denoise``). ``field``: the :class:`EvalSettings` field it sets (weights
-    options: ``weights``, for ``metric``). ``default``: what absent means, as the option would be written."""
+    given means true, and it flips its ``field``'s default: off for ``no_*``, on for ``denoise``). ``field``: the
+    :class:`EvalSettings` field it sets (weights options: ``weights``, for ``metric``). ``default``: what absent
+    means, as the option would be written."""
 
     name: str
     kind: type

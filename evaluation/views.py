@@ -144,8 +144,8 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     light seen through it) from those cameras, and keeps every bounce whose light over the whole frame is above
     0.3 x the noise at ``spp`` (:class:`optimizer.rendering.planner.Planner`, purpose ``evaluate``; stream
     ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce). With
-    ``denoise`` (opt-in, ``--denoise``) the measured plan denoises where the noise at ``spp`` is above the denoiser's measured bias
-    (:data:`optimizer.rendering.planner.DENOISER_BIAS`; ``plan.denoise``)."""
+    ``denoise`` (opt-in, ``--denoise``) the measured plan denoises where the noise at ``spp`` is above the
+    denoiser's measured bias (:data:`optimizer.rendering.planner.DENOISER_BIAS`; ``plan.denoise``)."""
     from camo_base import seeds
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 

@@ -248,7 +248,8 @@ class PlannerSettings:
     accuracy: float = 1.0 / 255  # the stated accuracy (sRGB RMS noise) the spp table is computed for
     rr_depth: int = RR_DEPTH
     region: bool = True  # restrict renders to what the object can change
-    denoise: bool = False  # evaluation renders, opt-in: a denoiser where the noise at the stage's spp is above its bias
+    denoise: bool = False  # evaluation renders, opt-in: a denoiser where the noise at the stage's spp is above
+    # its bias (off by default: it smooths what a see-through object shows of the ground, DENOISER)
 
 
 class Planner:
