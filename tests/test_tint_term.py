@@ -149,3 +149,42 @@ def test_stage1_adds_the_term_linearly_in_its_weight(mi_backend, batched):
     last20, last40 = runs[20.0][2], runs[40.0][2]
     assert last20["value"] > 0 and last40["value"] == pytest.approx(2 * last20["value"], rel=1e-4)
     assert last20["error"] == pytest.approx(last40["error"], rel=1e-4)
+
+
+def test_local_form_gradient_and_its_wide_limit():
+    """The local form (``--tint-scale S``): its gradient against central differences (the zero-padded Gaussian is its
+    own transpose), and a uniform cast far from the window's edges costs what the mean form charges."""
+    rng = np.random.default_rng(4)
+    h, w = 9, 8
+    bg = rng.random((h, w, 3))
+    img = bg + (0.3, -0.1, 0.2) + 0.2 * rng.random((h, w, 3))  # a cast and texture
+    c = rng.random((h, w)) * (rng.random((h, w)) > 0.5)
+    g = tint.lowpass_grad_np(img, bg, c, 0.3, 4.0, 1.5)
+    num = np.zeros_like(img)
+    for idx in np.ndindex(*img.shape):
+        up, dn = img.copy(), img.copy()
+        up[idx] += 1e-6
+        dn[idx] -= 1e-6
+        num[idx] = (tint.lowpass_term_np(up, bg, c, 0.3, 4.0, 1.5) - tint.lowpass_term_np(dn, bg, c, 0.3, 4.0, 1.5)) / 2e-6
+    assert np.abs(num).max() > 1e-3
+    np.testing.assert_allclose(g, num, rtol=1e-6, atol=1e-9)
+    big = np.zeros((40, 40, 3))
+    cast = big + (0.1, -0.2, 0.05)
+    mask = np.zeros((40, 40))
+    mask[17:23, 17:23] = 1.0
+    assert tint.lowpass_term_np(cast, big, mask, 0.2, 3.0, 2.0) == pytest.approx(
+        tint.term_np(cast, big, mask, 0.2, 3.0), rel=1e-9)
+    # texture of zero mean is damped by the low-pass (a checkerboard of +-0.2): far below its squared error
+    checker = big + 0.2 * np.where(np.indices((40, 40)).sum(0) % 2 == 0, 1.0, -1.0)[..., None]
+    assert tint.lowpass_term_np(checker, big, mask, 1.0, 1.0, 2.0) < 1e-3 * 0.04
+
+
+def test_scale_needs_the_weight():
+    from optimizer.optimise.spec import RunSpec
+
+    assert RunSpec.from_options({"scene": "meadow", "tint_match": 4, "tint_scale": 2}).validate().stage1.tint_scale == 2
+    with pytest.raises(CamoError, match="tint.scale") as e:
+        RunSpec.from_options({"scene": "meadow", "tint_scale": 2}).validate()
+    assert "\n" not in str(e.value)
+    with pytest.raises(CamoError, match="tint.scale"):
+        RunSpec.from_options({"scene": "meadow", "tint_match": 4, "tint_scale": -1}).validate()

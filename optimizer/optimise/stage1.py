@@ -96,6 +96,7 @@ class Stage1Settings:
     # > 0: add this weight x the squared error of the body's mean colour per view (the mask's coverage-weighted mean
     # against the background target's in the same pixels: the glassy tint, optimizer/optimise/tint.py, issue 29); 0: off
     tint_match: float = 0.0
+    tint_scale: float = 0.0  # the mean-colour term's scale: 0 the mask's mean per view, > 0 a Gaussian low-pass of S px
     # > 1: after the other start searches, also try clear glass on the held-out views: this shared index of
     # refraction with a smooth start (startsearch.CLEAR_ROUGHNESS), kept with its IOR when it scores better
     # (optimizer/optimise/startsearch.py, issue 29); 0: off
@@ -374,7 +375,8 @@ class Stage1:
             weights.append(w)
             share.append(float(w.sum()) / max(float((dom > 0).sum()) if dom is not None else float(w.size), 1.0))
         H, W = self.cams[0].height, self.cams[0].width
-        return TintTerm(targets, weights, share, self.cfg.tint_match, film=(H, W, V) if self._batched else None)
+        return TintTerm(targets, weights, share, self.cfg.tint_match, film=(H, W, V) if self._batched else None,
+                        sigma=self.cfg.tint_scale)
 
     # --- set-up -------------------------------------------------------------
     def _prepare(self, values: dict[str, np.ndarray], warm: bool | None = None):

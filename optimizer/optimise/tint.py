@@ -25,6 +25,17 @@ term and the squared error agree at the match and do not pull against each other
 ``dT / dI_p = 2 W s_v c_p (m_v - m*_v) / (3 V sum c)``; the render is read back once a step and the gradient enters
 the backward pass through the surrogate ``sum(I * G)`` (one multiply-add per pixel), as the detail term does.
 
+Local form (``--tint-scale S`` > 0). One mean per view pushes every texel of the body the same way, also where one
+part is too bright and another too dark. With ``S`` > 0 the term compares the colour error low-passed by a Gaussian of
+``S`` pixels instead, each pixel its own neighbourhood's cast::
+
+    b_v  = G_S * (I - B)                         zero outside the window (``scipy.ndimage.gaussian_filter``,
+                                                 mode "constant": a symmetric operator, so its transpose is itself)
+    T    = W * mean_v  sum_p c_p |b_p|^2 / (3 |domain_v|)
+
+with the gradient ``dT / dI = 2 W G_S * (c b) / (3 V |domain_v|)``. As ``S`` grows past the mask this tends to the
+mean form; at ``S`` = 0 the mean form is used.
+
 Noise. ``m_v`` of a 4-spp render averages the noise of every covered pixel (tens to hundreds), so its square's bias
 (the variance of the mean) is small and does not depend on where the mean is: no correction is made.
 """
@@ -80,17 +91,51 @@ def grad_np(img: np.ndarray, target: np.ndarray, weights: np.ndarray, share: flo
     return (2.0 * float(weight) * float(share) / (3.0 * total)) * w[..., None] * d[None, None, :]
 
 
+def _blur(x: np.ndarray, sigma: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(np.asarray(x, np.float64), sigma=(sigma, sigma, 0.0), mode="constant", truncate=3.0)
+
+
+def lowpass_term_np(img: np.ndarray, target: np.ndarray, weights: np.ndarray, share: float, weight: float,
+                    sigma: float) -> float:
+    """The local form's term of one view (module doc, ``S`` = ``sigma`` px > 0): ``W sum c |G_S (I - B)|^2 / (3
+    |domain|)`` with ``|domain| = sum c / share``.
+
+    >>> bg = np.zeros((9, 9, 3)); img = bg.copy(); img[:, :, 0] = 0.3                  # a uniform red cast
+    >>> c = np.zeros((9, 9)); c[4, 4] = 1.0                                               # one covered pixel, mid-frame
+    >>> round(lowpass_term_np(img, bg, c, 1.0, 1.0, 1.0), 4)   # the blur keeps a constant away from the edges: 0.09 / 3
+    0.03
+    """
+    w = np.asarray(weights, np.float64)
+    if w.sum() <= 0 or share <= 0:
+        return 0.0
+    b = _blur(np.asarray(img, np.float64) - np.asarray(target, np.float64), sigma)
+    return float(weight) * float(np.sum(w[..., None] * b**2)) * float(share) / (3.0 * float(w.sum()))
+
+
+def lowpass_grad_np(img: np.ndarray, target: np.ndarray, weights: np.ndarray, share: float, weight: float,
+                    sigma: float) -> np.ndarray:
+    """``dT / dI`` ``(h, w, 3)`` float64 of :func:`lowpass_term_np`."""
+    w = np.asarray(weights, np.float64)
+    if w.sum() <= 0 or share <= 0:
+        return np.zeros(np.shape(img), np.float64)
+    b = _blur(np.asarray(img, np.float64) - np.asarray(target, np.float64), sigma)
+    return _blur(w[..., None] * b, sigma) * (2.0 * float(weight) * float(share) / (3.0 * float(w.sum())))
+
+
 class TintTerm:
     """The term over a stage's views (module doc). ``targets``: per view the background target ``(h, w, 3)`` of its
     training window as the loss compares it; ``weights``: per view :func:`mask_weights` ``(h, w)``; ``share``: per
-    view the mask's share of the loss domain's pixels (``sum weights / domain pixels``); ``weight`` W.
+    view the mask's share of the loss domain's pixels (``sum weights / domain pixels``); ``weight`` W; ``sigma`` S
+    (px; 0: the mean form, > 0: the local form).
 
     For the batch film (views side by side in one ``(H, V W, 3)`` render) pass ``film=(H, W, V)``: view ``v`` is the
     film's columns ``v W .. (v + 1) W``. :meth:`surrogate` returns the Dr.Jit scalar to add to the loss before
     ``dr.backward``; :attr:`last` holds the term's value and the mean ``|m - m*|`` (linear RGB) of the step."""
 
     def __init__(self, targets: list[np.ndarray], weights: list[np.ndarray], share: list[float], weight: float,
-                 film: tuple[int, int, int] | None = None):
+                 film: tuple[int, int, int] | None = None, sigma: float = 0.0):
         if not (len(targets) == len(weights) == len(share)):
             raise ValueError("one target, weight map and share per view")
         self.weight = float(weight)
@@ -98,6 +143,7 @@ class TintTerm:
         self.targets = [np.asarray(t, np.float64) for t in targets]
         self.share = [float(s) for s in share]
         self.film = film
+        self.sigma = float(sigma)
         self.last = {"value": 0.0, "error": None}
 
     def _view(self, arr: np.ndarray, v: int) -> np.ndarray:
@@ -115,10 +161,15 @@ class TintTerm:
             img = self._view(arrays[k], v)
             if self.weights[v].sum() <= 0:
                 continue
-            value += term_np(img, self.targets[v], self.weights[v], self.share[v], self.weight) / n
+            args = (img, self.targets[v], self.weights[v], self.share[v], self.weight)
+            if self.sigma > 0:
+                value += lowpass_term_np(*args, self.sigma) / n
+                g = lowpass_grad_np(*args, self.sigma) / n
+            else:
+                value += term_np(*args) / n
+                g = grad_np(*args) / n
             errors.append(float(np.linalg.norm(mean_colour(img, self.weights[v])
                                                - mean_colour(self.targets[v], self.weights[v]))))
-            g = grad_np(img, self.targets[v], self.weights[v], self.share[v], self.weight) / n
             full = grads.setdefault(k, np.zeros(arrays[k].shape, np.float64))
             self._view(full, v)[...] += g
         self.last = {"value": value, "error": float(np.mean(errors)) if errors else None}
