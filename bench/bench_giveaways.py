@@ -61,6 +61,7 @@ ARMS = {
     "tint16": ["--tint-match", "16"],
     "tint4_auto": ["--tint-match", "4", "--clear-candidate", "1.05"],
     "tint16_auto": ["--tint-match", "16", "--clear-candidate", "1.05"],
+    "tint1_auto": ["--tint-match", "1", "--clear-candidate", "1.05"],
     # its local form: the colour error low-passed by a Gaussian of 2 px, each pixel its own neighbourhood's cast
     "tint4_s2": ["--tint-match", "4", "--tint-scale", "2"],
 }
@@ -205,7 +206,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
           "clear": "ours, IOR 1.05, R0 0.2", "auto": "ours, clear chosen per scene",
           "tint4": "ours + tint 4", "tint16": "ours + tint 16", "tint4_auto": "tint 4 + clear per scene",
-          "tint16_auto": "tint 16 + clear per scene", "tint4_s2": "ours + local tint 4",
+          "tint16_auto": "tint 16 + clear per scene", "tint1_auto": "tint 1 + clear per scene", "tint4_s2": "ours + local tint 4",
           "mean": "Mean"}
 
 
