@@ -52,14 +52,16 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    (the ratio image with the background render, on a cast shadow's physical range :data:`SHADOW_FACTOR_RATIO`)
    and a shadow-like place is discounted fully: a dark object in the scene's own shade is then not shadow-like,
    but a plain object's face turned from the sun is (docs/results/observer.md).
-   **Shape** (``shadow_shape="lying"``, the default; :func:`lying_shape`): where photometry cannot decide, the
-   outline can. A cast shadow lies on the ground plane -- flattened by perspective, stretched along the light, away
-   from its caster -- whereas the objects searched for stand up from the ground (Mamassian, Knill & Kersten 1998;
-   Stevens 1981; Biederman et al. 1982). The second moments of the shadow-like region around each place (a 1 deg
-   Gaussian window) say whether it lies (wider than tall, or elongated off the vertical: its discount rises to
-   1), stands (taller than wide: its discount falls to 0, so an upright dark face or a dark object is evidence in
-   full) or neither (a blob, or the inside of a shade larger than the window: ``shadow_discount`` as without the
-   cue). With the default "surround" reference it reads the image only (the shadow-likeness of each place, against
+   **Shape** (``shadow_shape="scales"``, the default; :func:`lying_shape`, :func:`shape_over_sizes`): where
+   photometry cannot decide, the outline can. A cast shadow lies on the ground plane -- flattened by perspective,
+   stretched along the light, away from its caster -- whereas the objects searched for stand up from the ground
+   (Mamassian, Knill & Kersten 1998; Stevens 1981; Biederman et al. 1982). The second moments of the shadow-like
+   region around each place (Gaussian windows whose FWHM are the object sizes the study shows, the most decisive
+   reading per place: Lindeberg 1998's scale selection) say whether it lies (wider than tall, or elongated off
+   the vertical: its discount rises to 1), stands (taller than wide: its discount falls to 0, so an upright dark
+   face, a dark object or a glass object that the renderer leaves as dark as a shadow is evidence in full) or
+   neither (a blob, or the inside of a shade larger than every window: ``shadow_discount`` as without the cue). With
+   the default "surround" reference it reads the image only (the shadow-likeness of each place, against
    the background's pooled 4 deg statistics as in step 1), never the object-free view at the same place; the
    verification's null (step 5) applies the same rule to the object-free view.
 3. **Priority map** ``G`` (GS6's priority map: top-down guidance by the target template): the object prior of a
@@ -138,7 +140,7 @@ from camo_base.errors import CamoError
 
 #: The observer's settings that take one of a few words (the default first).
 _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
-            "shadow_shape": ("lying", "none"), "shadow_reference": ("surround", "background")}
+            "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background")}
 
 
 @dataclass(frozen=True)
@@ -187,22 +189,24 @@ class ObserverConfig:
     #: "background" put meadow's three visible baselines in or at the edge of the human range, "surround" gravel's
     #: Mean and Random and split's Random (with "background" a plain box's face turned from the sun -- 36 % of the
     #: light of the gravel behind it, darker than gravel's own cast shadows, 42-47 % -- is discounted as a
-    #: shadow). With the shape cue, "surround" puts 7 of the 9 cells in the human range (docs/results/observer.md),
-    #: hence the default.
+    #: shadow). With the shape cue, "surround" put 7 of the 9 cells in the human range (8 with the cue read at the
+    #: object sizes, ``shadow_shape="scales"``; docs/results/observer.md), hence the default.
     shadow_reference: str = "surround"
     #: Share of a shadow-like place's difference discounted with the "surround" reference (:data:`SHADOW_DISCOUNT`;
     #: 0 = no shadow analysis, 1 = a shadow-like place is no candidate at all).
     shadow_discount: float = 0.6
-    #: The shape cue of step 2 (:func:`lying_shape`): "lying" scales the discount of a shadow-like place by the shape
-    #: of the shadow-like region around it -- a region lying on the ground (wider than tall, or elongated off the
+    #: The shape cue of step 2 (:func:`lying_shape`): the discount of a shadow-like place scaled by the shape of the
+    #: shadow-like region around it -- a region lying on the ground (wider than tall, or elongated off the
     #: vertical, as a cast shadow is: flattened by the ground's foreshortening and stretched along the light) is
     #: discounted fully, an upright one bounded on both sides (taller than wide, as a standing object or its face
     #: turned from the sun is) not at all, a round or unbounded one (a blob, the inside or the straight edge of a
-    #: shade larger than the window) by ``shadow_discount`` as before; "none": the shape is not looked at (the
-    #: former default). Measured on the built-in scenes' stimuli (docs/results/observer.md): 7 of the 9
-    #: visible-baseline cells in the human range with "lying", 3 with "none"; Ours stays above the visible
-    #: baselines where it was, and Kendall's tau against the metrics stays positive on every scene.
-    shadow_shape: str = "lying"
+    #: shade larger than the window) by ``shadow_discount``. "scales" (default, :func:`shape_over_sizes`): read
+    #: with one window per object size the study shows (FWHM 1.6, 3.2, 4.8 deg), the most decisive reading per
+    #: place (Lindeberg 1998's scale selection) -- an object larger than a 1 deg window (gravel's glass box,
+    #: 3.1 x 4.6 deg) is read as the upright thing it is; "lying": one 1 deg window (the former default: 7 of the
+    #: 9 visible-baseline cells in the human range, 3 with "none"); "none": the shape is not looked at. Measured
+    #: on the built-in scenes' stimuli: docs/results/observer.md.
+    shadow_shape: str = "scales"
     #: Candidate cell size (degrees): about the foveal radius; the grid the fixations land on.
     cell_deg: float = 0.5
     #: Eccentricity (degrees) at which the visibility of the priority halves. E2 is ~1-3 deg for fine pattern
@@ -679,8 +683,11 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
             zi = _zscore(m_inv, cfg.spread_floor, ground)
             shadow_like = darker * illum
             disc = (1.0 if log_bg is not None and cfg.shadow_reference == "background" else cfg.shadow_discount)
-            if cfg.shadow_shape == "lying":
+            if cfg.shadow_shape == "scales":
+                k = shape_over_sizes(own, [size / FWHM * ppd for size in cfg.object_deg])
+            elif cfg.shadow_shape == "lying":
                 k = lying_shape(own, SHAPE_WINDOW_DEG * ppd)
+            if cfg.shadow_shape != "none":
                 disc = np.where(k > 0, disc + (1.0 - disc) * k, disc * (1.0 + k))
             zo = _zscore((1.0 - disc * shadow_like) * m_full, cfg.spread_floor, ground)
             sh = shadow_like * np.maximum(zf, 0.0)
@@ -788,8 +795,9 @@ def ground_segments(lab: np.ndarray, sky: np.ndarray, config: ObserverConfig | N
     return labels
 
 
-#: Window of the shape cue (Gaussian sigma, degrees): the region read around a place spans ~2.4 deg (its FWHM), the
-#: middle of the object sizes the study shows (1.6-4.8 deg) -- about a cast shadow's length and an object's height.
+#: Window of the shape cue with ``shadow_shape="lying"`` (Gaussian sigma, degrees): the region read around a place
+#: spans ~2.4 deg (its FWHM), the middle of the object sizes the study shows (1.6-4.8 deg) -- about a cast shadow's
+#: length and an object's height. The default ``"scales"`` reads one window per object size (:func:`shape_over_sizes`).
 SHAPE_WINDOW_DEG = 1.0
 #: Shape score (:func:`lying_shape`) from which a shadow-like region counts fully as lying (or, negated, as
 #: upright): 0.3, the elongation ``(a^2 - 1) / (a^2 + 1)`` of a region 1.4 times as long as it is thick -- a
@@ -852,6 +860,28 @@ def lying_shape(mass: np.ndarray, sigma: float) -> np.ndarray:
     thin = np.clip((SHAPE_THIN[1] - l2) / (SHAPE_THIN[1] - SHAPE_THIN[0]), 0.0, 1.0)
     score = np.clip((e - 2.0 * upright) / SHAPE_FULL, -1.0, 1.0)
     return np.where(score < 0.0, score * thin, score)  # upright: only a region bounded on both sides
+
+
+#: Full width at half maximum of a Gaussian in units of its sigma (2 sqrt(2 ln 2)): a shape window whose FWHM is an
+#: object size the study shows.
+FWHM = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def shape_over_sizes(mass: np.ndarray, sigmas: Sequence[float]) -> np.ndarray:
+    """:func:`lying_shape` read with one window per object size the participant expects (``sigmas``, px: the
+    sizes of ``ObserverConfig.object_deg`` as the windows' FWHM, 0.68 / 1.36 / 2.04 deg for 1.6 / 3.2 / 4.8 deg),
+    keeping per place the most decisive reading (the largest ``|score|``).
+
+    One 1 deg window (:data:`SHAPE_WINDOW_DEG`) reads a region only up to ~2.4 deg across: inside a larger one --
+    gravel's glass box, 3.1 x 4.6 deg, whose rendered glass keeps 55 % of the light with a shadow's blue shift --
+    the window is filled and reads neither way, so the object kept ``shadow_discount`` and went unverified. Read at
+    the object's own size it is the upright thing it is. The scale is chosen per place where the reading is
+    strongest: automatic scale selection by the maximum over scales of a normalised response (Lindeberg 1998,
+    Int. J. Comput. Vision 30, "Feature detection with automatic scale selection"); the score is already
+    normalised (a ratio of second moments in [-1, 1]), so it needs no scale factor. A lying shadow stays lying at
+    every window; a shade larger than every window keeps ``shadow_discount`` as before."""
+    ks = np.stack([lying_shape(mass, s) for s in sigmas])
+    return np.take_along_axis(ks, np.abs(ks).argmax(0)[None], 0)[0]
 
 
 #: Largest change of log luminance or log chromaticity (``LOG_UNITS`` units) between neighbouring feature pixels

@@ -520,7 +520,8 @@ def test_shadow_settings_are_checked():
 
     cfg = parse_observer("shadow_reference=background,shadow_discount=1")
     assert (cfg.shadow_reference, cfg.shadow_discount) == ("background", 1.0)
-    with pytest.raises(CamoError, match=r"^observer shadow_shape must be 'lying' or 'none', not 'round'$"):
+    with pytest.raises(CamoError,
+                       match=r"^observer shadow_shape must be 'scales' or 'lying' or 'none', not 'round'$"):
         ObserverConfig(shadow_shape="round").validate()
     assert parse_observer("shadow_shape=none").shadow_shape == "none"
     with pytest.raises(CamoError, match="shadow_shape") as e:
@@ -574,6 +575,41 @@ def test_shadow_shape_tells_a_cast_shadow_from_an_object_of_the_same_colour():
     assert vs1 < 1.2 and vo1 > 3.0 and vo1 > vs1 + 2.0 and vo1 > vo0 + 1.5
     res = simulate_search(img, n=200, seed=1, config=ObserverConfig(shadow_shape="lying"), mask=obj, background=bg)
     assert not (res.clicked & cast[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)]).any()
+
+
+def test_a_glass_box_at_the_start_of_its_shadow_is_found_fast():
+    """A refracting, glassy object as the built-in scenes render one (gravel's glass box): the ground seen through
+    it flipped and displaced, keeping 55 % of the light with a skylight-blue tint (photometrically a shadow: the
+    path tracer leaves the ground behind the glass in the sun's shadow) and sparse glints, 3.1 x 4.6 deg -- larger
+    than the 1 deg window of the shape cue -- standing at the start of its own cast shadow (45 % of the light,
+    lying). It is found at once, fast, and its shadow is never clicked. The shape cue reads it as upright only at
+    a window of the object sizes the study shows (``shadow_shape="scales"``): within 1 deg the inside of the box
+    fills the window and reads neither way (so ``"lying"`` discounted it as shadow-like: object evidence 35 vs 40
+    here, 3.6 vs 10.7 on gravel's view 1, where it was never found)."""
+    from evaluation.observer import _resample, lying_shape
+
+    rng = np.random.default_rng(44)
+    g = 0.42 + 0.06 * rng.normal(size=(N, N)) + 0.03 * np.kron(rng.normal(size=(N // 4, N // 4)), np.ones((4, 4)))
+    bg = np.clip(np.stack([g, 0.9 * g, 0.75 * g], -1), 0, 1).astype(np.float32)  # fine brown gravel
+    yy, xx = np.mgrid[0:N, 0:N]
+    box = (xx >= 70) & (xx < 120) & (yy >= 110) & (yy < 184)
+    cast = ellipse(150, 178, 45, 9) & ~box
+    img = shadowed(bg, cast, 0.45)
+    seen = np.roll(bg[::-1], (17, -9), (0, 1))  # refraction: the ground behind, flipped and displaced
+    glass = np.clip(shadowed(seen, box, 0.55) * np.array([0.9, 1.0, 1.2], np.float32), 0, 1)
+    glints = box & (np.random.default_rng(5).random((N, N)) < 0.03)
+    glass[glints] = np.clip(glass[glints] + 0.4, 0, 1)
+    img[box] = glass[box]
+    p = predict_stimulus(img, box, n=200, seed=1, background=bg)
+    assert p.p_found >= 0.99 and p.p_timeout == 0, (p.p_found, p.p_miss)  # measured 1.00
+    assert 1.4 <= float(p.rt_found_s.mean()) <= 3.0  # 1.48 s
+    r = p.result
+    assert not (r.clicked & cast[np.maximum(r.click_y, 0), np.maximum(r.click_x, 0)]).any()
+    lying = predict_stimulus(img, box, n=200, seed=1, config=ObserverConfig(shadow_shape="lying"), background=bg)
+    assert p.object_evidence > 1.1 * lying.object_evidence  # 40.1 vs 35.2
+    # the box's outline read at 1 deg and at the largest object size (4.8 deg: sigma 2.04 deg = 20.4 px)
+    m = _resample(np.repeat(box[..., None], 3, -1).astype(np.float32), 160 / N)[..., 0].astype(np.float64)
+    assert abs(lying_shape(m, 10.0)[92, 59]) < 0.05 and lying_shape(m, 20.4)[92, 59] < -0.9
 
 
 def two_grounds(seed: int = 0, n: int = N) -> tuple[np.ndarray, np.ndarray]:

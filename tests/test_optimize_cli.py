@@ -473,9 +473,9 @@ def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_pat
     m_new = pd.read_parquet(tmp_path / "e_new" / "metrics.parquet")
     assert len(m_old) == len(m_new) == 2 * 2
     # same result, same cameras, same seeds: equal up to the float summation order of a 2-thread LLVM render
-    # (not bit-stable; the exact comparison failed once in a combined run, cause not captured); a different appearance or pack
-    # moves PSNR by far more than 1e-4 dB
-    np.testing.assert_allclose(m_old["psnr"].to_numpy(), m_new["psnr"].to_numpy(), rtol=0, atol=1e-4)
+    # (not bit-stable: differences of 5.7e-4 dB were seen under load); a different appearance, IOR or pack moves PSNR by
+    # tenths of a dB or more, so 0.01 dB still tells the same run from a different one
+    np.testing.assert_allclose(m_old["psnr"].to_numpy(), m_new["psnr"].to_numpy(), rtol=0, atol=1e-2)
     assert np.isfinite(m_old["psnr"]).all()
     capsys.readouterr()
     assert optimize(old, 12, "--resume") == 2
