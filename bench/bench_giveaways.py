@@ -1,7 +1,8 @@
 """Give-away measures (detail ratio, tint, shadow share) of today's default against changes of the method, on the
 built-in scenes: the detail term (``detail8``: ``--detail-match 8``), the map resolution (``map256``), no gradient
 blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start; ``auto``: clear glass as a start the held-out
-views keep or reject per scene, ``--clear-candidate 1.05``), the perceptual term (``lpips``), a lower shared IOR
+views keep or reject per scene, ``--clear-candidate 1.05``), the mean-colour term (``tint4``, ``tint16``:
+``--tint-match W``; ``tint16_auto`` with ``--clear-candidate 1.05``), the perceptual term (``lpips``), a lower shared IOR
 (``eta1.2``), a lower transmittance start (``today_t0.3``) and the "large steps" map update;
 docs/results/giveaways.md.
 
@@ -54,6 +55,15 @@ ARMS = {
     # clear glass as a candidate start the held-out views choose per scene (optimizer/optimise/startsearch.py):
     # today's start (IOR 1.5, the searched roughness) against IOR 1.05 with roughness 0.2
     "auto": ["--clear-candidate", "1.05"],
+    # the mean-colour term (optimizer/optimise/tint.py): the body's mean colour per view weighted 1 + W times in
+    # Stage 1's squared error (the glassy tint is a low-frequency colour error); alone and with clear glass per scene
+    "tint4": ["--tint-match", "4"],
+    "tint16": ["--tint-match", "16"],
+    "tint4_auto": ["--tint-match", "4", "--clear-candidate", "1.05"],
+    "tint16_auto": ["--tint-match", "16", "--clear-candidate", "1.05"],
+    "tint1_auto": ["--tint-match", "1", "--clear-candidate", "1.05"],
+    # its local form: the colour error low-passed by a Gaussian of 2 px, each pixel its own neighbourhood's cast
+    "tint4_s2": ["--tint-match", "4", "--tint-scale", "2"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -195,6 +205,8 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
           "clear": "ours, IOR 1.05, R0 0.2", "auto": "ours, clear chosen per scene",
+          "tint4": "ours + tint 4", "tint16": "ours + tint 16", "tint4_auto": "tint 4 + clear per scene",
+          "tint16_auto": "tint 16 + clear per scene", "tint1_auto": "tint 1 + clear per scene", "tint4_s2": "ours + local tint 4",
           "mean": "Mean"}
 
 

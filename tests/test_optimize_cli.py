@@ -473,9 +473,9 @@ def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_pat
     m_new = pd.read_parquet(tmp_path / "e_new" / "metrics.parquet")
     assert len(m_old) == len(m_new) == 2 * 2
     # same result, same cameras, same seeds: equal up to the float summation order of a 2-thread LLVM render
-    # (not bit-stable; the exact comparison failed once in a combined run, cause not captured); a different appearance or pack
-    # moves PSNR by far more than 1e-4 dB
-    np.testing.assert_allclose(m_old["psnr"].to_numpy(), m_new["psnr"].to_numpy(), rtol=0, atol=1e-4)
+    # (not bit-stable: differences of 5.7e-4 dB were seen under load); a different appearance, IOR or pack moves PSNR by
+    # tenths of a dB or more, so 0.01 dB still tells the same run from a different one
+    np.testing.assert_allclose(m_old["psnr"].to_numpy(), m_new["psnr"].to_numpy(), rtol=0, atol=1e-2)
     assert np.isfinite(m_old["psnr"]).all()
     capsys.readouterr()
     assert optimize(old, 12, "--resume") == 2
@@ -501,7 +501,7 @@ def test_every_flag_lands_in_its_spec_field():
             "--holdout-views", "3", "--holdout-every", "7", "--holdout-spp", "5", "--patience", "2",
             "--pose-search", "5", "--average", "0.8", "--roughness-search", "0.4,0.6", "--loss-clamp", "4",
             "--grad-clip", "2", "--init-search", "on", "--perceptual", "0.002", "--perceptual-net", "vgg",
-            "--eta", "1.3", "--detail-match", "6", "--clear-candidate", "1.1"]
+            "--eta", "1.3", "--detail-match", "6", "--tint-match", "3", "--tint-scale", "1.5", "--clear-candidate", "1.1"]
     assert {a[2:].replace("-", "_") for a in argv if a.startswith("--")} - {"out"} == set(OPTIONS) - {"scene"}
     d = spec_of(*argv).to_dict()
     assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
@@ -514,7 +514,7 @@ def test_every_flag_lands_in_its_spec_field():
                            "pose_search": 5, "lr_schedule": "cosine", "lr_floor": 0.1, "average": 0.8,
                            "roughness_search": [0.4, 0.6], "loss_clamp": 4.0, "grad_clip": 2.0, "init_search": True,
                            "perceptual": 0.002, "perceptual_net": "vgg", "detail_match": 6.0,
-                           "clear_candidate": 1.1}
+                           "tint_match": 3.0, "tint_scale": 1.5, "clear_candidate": 1.1}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]

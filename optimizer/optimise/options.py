@@ -35,6 +35,7 @@ RANGES: dict[str, Range] = {
     "stage1.average": Range(float, 0.0, 0.999),
     "stage1.loss_clamp": Range(float, 0.0, 1e6), "stage1.grad_clip": Range(float, 0.0, 1e6),
     "stage1.perceptual": Range(float, 0.0, 1e3), "stage1.detail_match": Range(float, 0.0, 1e3),
+    "stage1.tint_match": Range(float, 0.0, 1e3), "stage1.tint_scale": Range(float, 0.0, 1e3),
     "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
@@ -147,6 +148,13 @@ def _options() -> tuple[Option, ...]:
           "luma on the object's pixels) with the background target's in the same pixels: the squared error alone "
           "leaves the body smoother than the ground (optimizer/optimise/detail.py)" + _p("stage1.detail_match")
           + "; 0: off", metavar="WEIGHT"),
+        o("tint_match", "stage1.tint_match", float,
+          "add this weight times the squared error of the body's mean colour in each view (its coverage-weighted "
+          "mean against the background target's in the same pixels; 1 doubles that part of the squared error): the "
+          "glassy tint (optimizer/optimise/tint.py)" + _p("stage1.tint_match") + "; 0: off", metavar="WEIGHT"),
+        o("tint_scale", "stage1.tint_scale", float,
+          "--tint-match compares the colour error low-passed by a Gaussian of this many pixels, each pixel its own "
+          "neighbourhood's cast (0: one mean colour per view)" + _p("stage1.tint_scale"), metavar="PX"),
         o("init_search", "stage1.init_search", str,
           "when --init sets maps, also warm-start the start the run takes without it (at each starting roughness of "
           "the preset's search) and start from whichever scores best on the held-out views"

@@ -93,6 +93,10 @@ class Stage1Settings:
     # > 0: add this weight x the mismatch of the body's pixel-scale texture energy with the background's in the same
     # pixels (optimizer/optimise/detail.py: the squared error's multi-view optimum is too smooth, issue 29); 0: off
     detail_match: float = 0.0
+    # > 0: add this weight x the squared error of the body's mean colour per view (the mask's coverage-weighted mean
+    # against the background target's in the same pixels: the glassy tint, optimizer/optimise/tint.py, issue 29); 0: off
+    tint_match: float = 0.0
+    tint_scale: float = 0.0  # the mean-colour term's scale: 0 the mask's mean per view, > 0 a Gaussian low-pass of S px
     # > 1: after the other start searches, also try clear glass on the held-out views: this shared index of
     # refraction with a smooth start (startsearch.CLEAR_ROUGHNESS), kept with its IOR when it scores better
     # (optimizer/optimise/startsearch.py, issue 29); 0: off
@@ -246,6 +250,7 @@ class Stage1:
         self._perceptual = None  # the perceptual term's network (build)
         self._last_perceptual = 0.0
         self._detail = None  # the detail term (build; optimizer/optimise/detail.py)
+        self._tint = None  # the mean-colour term (build; optimizer/optimise/tint.py)
 
     # --- preparation: the named steps ------------------------------------------------
     def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
@@ -336,6 +341,7 @@ class Stage1:
             self._perceptual = network(self.cfg.perceptual_net)
             self._bg_np = [np.ascontiguousarray(b, np.float32) for b in bg]
         self._detail = self._detail_term() if getattr(self.cfg, "detail_match", 0.0) > 0 and self.STAGE == 1 else None
+        self._tint = self._tint_term() if getattr(self.cfg, "tint_match", 0.0) > 0 and self.STAGE == 1 else None
         dr.eval()
         return self
 
@@ -353,6 +359,24 @@ class Stage1:
             share.append(interior_taps(covered[v]).shape[1] / max(dom, 1.0))
         H, W = self.cams[0].height, self.cams[0].width
         return DetailTerm(targets, covered, share, self.cfg.detail_match, film=(H, W, V) if self._batched else None)
+
+    def _tint_term(self):
+        """The mean-colour term (:mod:`optimizer.optimise.tint`) on this stage's training windows (or the batch film):
+        the background targets as the loss compares them, the object's coverage inside the loss domain and its share
+        of the domain's pixels."""
+        from optimizer.optimise.tint import TintTerm, mask_weights
+
+        V = len(self.cams)
+        targets = [self._tonemap_np(self.window(v, self.targets.background[v])) for v in range(V)]
+        weights, share = [], []
+        for v in range(V):
+            dom = self.window(v, self.targets.domain[v]) if self.cfg.domain != "frame" else None
+            w = mask_weights(self.window(v, self.targets.coverage[v]), dom)
+            weights.append(w)
+            share.append(float(w.sum()) / max(float((dom > 0).sum()) if dom is not None else float(w.size), 1.0))
+        H, W = self.cams[0].height, self.cams[0].width
+        return TintTerm(targets, weights, share, self.cfg.tint_match, film=(H, W, V) if self._batched else None,
+                        sigma=self.cfg.tint_scale)
 
     # --- set-up -------------------------------------------------------------
     def _prepare(self, values: dict[str, np.ndarray], warm: bool | None = None):
@@ -658,6 +682,10 @@ class Stage1:
                 det = self._detail.surrogate([self._tonemap(img)], [(v, 0) for v in views])
                 if det is not None:
                     total = total + det
+            if self._tint is not None:
+                tin = self._tint.surrogate([self._tonemap(img)], [(v, 0) for v in views])
+                if tin is not None:
+                    total = total + tin
             dr.backward(total)
         else:
             # One backward per iteration: the parameter mapping (displacement sampling, pose, roughness
@@ -693,6 +721,10 @@ class Stage1:
                 det = self._detail.surrogate([self._tonemap(i) for i in imgs], [(v, k) for k, v in enumerate(views)])
                 if det is not None:
                     total = total + det
+            if self._tint is not None:
+                tin = self._tint.surrogate([self._tonemap(i) for i in imgs], [(v, k) for k, v in enumerate(views)])
+                if tin is not None:
+                    total = total + tin
             if dr.grad_enabled(total):
                 dr.backward(total)
         return float(photo[0]), float(lum[0]), float(chroma[0]), float(linear[0]), has_terms
@@ -774,6 +806,9 @@ class Stage1:
         if self._detail is not None:
             # the detail term's value and sqrt(E / E*) over the step's views (NaN on the first step: no previous render)
             rec.update(loss_detail=self._detail.last["value"], detail_energy_ratio=self._detail.last["ratio"])
+        if self._tint is not None:
+            # the mean-colour term's value and the mean |m - m*| (linear RGB) over the step's views
+            rec.update(loss_tint=self._tint.last["value"], tint_error=self._tint.last["error"])
         self.history.append(rec)
         return rec
 
