@@ -22,21 +22,11 @@ import time
 import numpy as np
 
 
-def fireflies(a1: np.ndarray, a2: np.ndarray, pixels: np.ndarray, level: float = 20.0) -> float:
-    """Per 1000 pixels of ``pixels``: those whose two 8-bit sRGB renders differ by more than ``level`` (any
-    channel)."""
-    from camo_base.imaging import linear_to_srgb
-
-    e = lambda x: np.round(np.clip(linear_to_srgb(np.clip(x, 0, None)), 0, 1) * 255)  # noqa: E731
-    d = np.abs(e(a1) - e(a2)).max(-1)[pixels]
-    return float((d > level).mean() * 1000) if d.size else 0.0
-
-
 def bench_scene(name: str, args) -> dict:
     import dataclasses
 
     from evaluation.views import ViewRenderer, evaluation_cameras, evaluation_plan
-    from optimizer.rendering.noise import noise_rms
+    from optimizer.rendering.noise import fireflies, noise_rms
     from optimizer.rendering.placement import prepare_object, static_object_fn
     from optimizer.rendering.region import dilate_px
     from optimizer.scenes.builtin_scenes import resolve_scene
@@ -54,21 +44,22 @@ def bench_scene(name: str, args) -> dict:
     out = {"scene": name, "max_depth": plan.max_depth, "transmittance": float(pack.material.transmittance),
            "roughness": float(pack.material.roughness)}
     renders = {}
-    for matched in (False, True):
-        rs = []
-        for seed in (1, 2):
-            r = ViewRenderer(args.spp, seed, noise_match=matched)
-            bg = r.background(pack, env, cams, integ)
-            t = time.perf_counter()
-            o = r.with_object(env, mesh_fn, cams, integ, bg, threshold)
-            rs.append((bg.image, o, time.perf_counter() - t, bg.seconds))
-        renders[matched] = rs
-    (b0, o0, _, _), (b1, o1, _, _) = renders[False]
+    for denoise in ("", *([args.denoise] if args.denoise else [])):
+        for matched in (False, True):
+            rs = []
+            for seed in (1, 2):
+                r = ViewRenderer(args.spp, seed, noise_match=matched)
+                bg = r.background(pack, env, cams, integ, denoise)
+                t = time.perf_counter()
+                o = r.with_object(env, mesh_fn, cams, integ, bg, threshold)
+                rs.append((bg.image, o, time.perf_counter() - t, bg.seconds))
+            renders[(matched, denoise)] = rs
+    (b0, o0, _, _), (b1, o1, _, _) = renders[(False, "")]
     near = np.stack([dilate_px(m, 2) for m in o0.mask])
-    bg_noise = noise_rms(b0, b1, near)
-    for matched, rs in renders.items():
+    for (matched, denoise), rs in renders.items():
         (b0, o0, s0, bs0), (b1, o1, s1, bs1) = rs
-        key = "matched" if matched else "plain"
+        bg_noise = noise_rms(b0, b1, near)
+        key = ("matched" if matched else "plain") + (f"+{denoise}" if denoise else "")
         out[key] = {"object_noise": noise_rms(o0.image, o1.image, near), "background_noise": bg_noise,
                     "ratio": noise_rms(o0.image, o1.image, near) / max(bg_noise, 1e-9),
                     "fireflies": fireflies(o0.image, o1.image, near), "bg_fireflies": fireflies(b0, b1, near),
@@ -86,6 +77,8 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--target-vertices", type=int, default=8000)
+    ap.add_argument("--denoise", default="", help="also both renders denoised by this denoiser (optimizer/rendering/"
+                    "denoise.py VARIANTS, e.g. oidn-raw), without and with noise matching")
     args = ap.parse_args()
 
     from optimizer import backend
@@ -110,6 +103,21 @@ def main() -> None:
               f"{p['ratio']:.2f} -> {m['ratio']:.2f} | {p['fireflies']:.1f} -> {m['fireflies']:.1f} "
               f"({p['bg_fireflies']:.1f}) | +{m['extra_samples_share']:.0%} (max {m['max_factor']}x) | "
               f"{p['seconds']:.2f} -> {m['seconds']:.2f} |")
+    if args.denoise:
+        print_denoised(rows, args.denoise)
+
+
+def print_denoised(rows: list[dict], denoise: str) -> None:
+    """The noise table with the denoiser: background noise (denoised alike) and the object's, per setting."""
+    keys = ("plain", "matched", f"plain+{denoise}", f"matched+{denoise}")
+    print(f"\nWith the denoiser {denoise} on both renders (noise (/255) object / background, ratio; fireflies /1000 "
+          "object (background))\n")
+    print("| scene | " + " | ".join(keys) + " |")
+    print("|---|" + "---|" * len(keys))
+    for r in rows:
+        cells = [f"{r[k]['object_noise']:.2f} / {r[k]['background_noise']:.2f} = {r[k]['ratio']:.2f}; "
+                 f"{r[k]['fireflies']:.1f} ({r[k]['bg_fireflies']:.1f})" for k in keys]
+        print(f"| {r['scene']} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -23,6 +23,10 @@ Equal-error speed-up: the seconds full tracing takes at the stage's spp (evaluat
 ``--train-spp``) over the seconds the plan takes to reach the same error (log-log interpolation along its curve).
 Gradient ratio: the plan's cosine at full tracing's seconds (interpolated) over full tracing's cosine.
 
+With ``--denoisers``, the denoised plan is also measured on the object's own pixels (its coverage in the
+with-object render): its bias and noise there beside the whole frame's, and its detail ratio against the reference
+(:func:`object_region`): the denoiser smooths what a see-through object shows of the ground behind it.
+
     python bench/bench_planner.py [--scenes meadow,room] [--real] [--views 4] [--resolution 64] [--out DIR]
 
 Prints Markdown tables and writes ``DIR/bench_planner.json`` (every measured point).
@@ -145,14 +149,38 @@ def bench_evaluation(name: str, args) -> dict:
                                            object_floor=object_floor)
         return img, clock() - t, alloc.to_dict()
 
-    def plan_render(spp, seed):
-        bg = render_shaded(env.build(), None, cams, integ, spp, seed)  # shared by every input: not timed
+    def plan_render(spp, seed, with_background=False, rr_depth=None):
+        """The plan's render (``rr_depth``: Russian roulette from that vertex instead of the plan's, in the
+        background render too)."""
+        it = integ if rr_depth is None else dict(integ, rr_depth=int(rr_depth))
+        bg = render_shaded(env.build(), None, cams, it, spp, seed)  # shared by every input: not timed
         t = clock()
         if not plan.region_search:  # the plan renders whole frames here
-            return render_shaded(env.build(), mesh, cams, integ, spp, seed), clock() - t, 1.0, 0
-        img, reg = render_with_region(env.build, mesh, cams, integ, spp, seed, bg, cov, plan.region_threshold,
-                                      cache=cache)
-        return img, clock() - t, float(reg.masks.mean()), reg.steps
+            out = render_shaded(env.build(), mesh, cams, it, spp, seed), clock() - t, 1.0, 0
+        else:
+            img, reg = render_with_region(env.build, mesh, cams, it, spp, seed, bg, cov, plan.region_threshold,
+                                          cache=cache)
+            out = img, clock() - t, float(reg.masks.mean()), reg.steps
+        return (*out, bg) if with_background else out
+
+    from optimizer.rendering.denoise import denoise_variant, render_features
+    from optimizer.rendering.region import dilate_px
+    from optimizer.rendering.noise import noise_rms
+
+    dens = args.denoisers
+    near = np.stack([dilate_px(m, 2) for m in cov >= 0.5])  # the object and a 2-pixel rim (item 4's pixels)
+    obj_mask = cov >= 0.5  # the object's own pixels (what a participant searches; the metrics' mask)
+
+    def features(obj, spp, seed):
+        """The denoiser's features (first-hit albedo, normal) at min(spp, --aux-spp), the colour's seed; timed."""
+        t = clock()
+        a, n = render_features(env.build(), obj, cams, min(spp, args.aux_spp), seed)
+        return a, n, clock() - t
+
+    def denoised(img, feats, variant):
+        t = clock()
+        out = denoise_variant(img, feats[0], feats[1], variant)
+        return out, clock() - t
 
     def full_render(spp, seed):
         t = clock()
@@ -167,6 +195,13 @@ def bench_evaluation(name: str, args) -> dict:
     alloc_ref = {e: alloc_render(args.ref_spp, base + 996, e)[0] for e in ests}
     ref_var = srgb_rms(full_ref, ref) ** 2 / 2.0
     bias = math.sqrt(max(srgb_rms(plan_ref, ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0))
+    den_out: dict = {}
+    if dens:  # the denoiser on a converged render: what it changes where there is (almost) no noise left
+        f_ref = features(mesh, args.ref_spp, base + 997)
+        for d in dens:
+            den_out[d] = {"bias_at_ref_spp": math.sqrt(max(srgb_rms(denoised(plan_ref, f_ref, d)[0], ref) ** 2
+                                                           - srgb_rms(full_ref, ref) ** 2, 0.0))}
+    at_spp: dict = {"plan": [], "bg": [], **{d: [] for d in dens}, **{f"bg-{d}": [] for d in dens}}
     rows = []
     for spp in args.eval_levels:
         for k in range(args.warmup):  # untimed: the JIT compiles of this spp's kernels (a render at a new spp, a
@@ -174,12 +209,40 @@ def bench_evaluation(name: str, args) -> dict:
             full_render(spp, base + k)
             for e in ests:
                 alloc_render(spp, base + k, e)
+            for rr in args.rr_depths:
+                plan_render(spp, base + k, rr_depth=rr)
+            if dens:
+                w_img = plan_render(spp, base + k)[0]
+                fw = features(mesh, spp, base + k)
+                features(None, spp, base + k)
+                for d in dens:
+                    denoised(w_img, fw, d)
         for rep in range(args.reps):
             seed = base + 17 * spp + rep
-            p_img, p_s, share, steps = plan_render(spp, seed)
+            p_img, p_s, share, steps, p_bg = plan_render(spp, seed, with_background=True)
             f_img, f_s = full_render(spp, seed)
             row = {"spp": spp, "rep": rep, "plan_seconds": p_s, "full_seconds": f_s, "region_share": share,
                    "region_launches": steps}
+            for rr in args.rr_depths:
+                r_img, r_s = plan_render(spp, seed, rr_depth=rr)[:2]
+                row[f"plan-rr{rr}_seconds"] = r_s
+                row[f"plan-rr{rr}_error"] = math.sqrt(max(srgb_rms(r_img, ref) ** 2 - ref_var, 0.0))
+            if dens:
+                fe = features(mesh, spp, seed)
+                row["features_seconds"] = fe[2]
+                bg_fe = features(None, spp, seed) if spp == args.eval_spp else None  # shared: not timed
+                for d in dens:
+                    for who, img, s_ in (("plan", p_img, p_s), ("full", f_img, f_s)):
+                        out, d_s = denoised(img, fe, d)
+                        row[f"{who}+{d}_seconds"] = s_ + fe[2] + d_s
+                        row[f"{who}+{d}_error"] = math.sqrt(max(srgb_rms(out, ref) ** 2 - ref_var, 0.0))
+                        row[f"{who}+{d}_denoise_seconds"] = d_s
+                        if who == "plan" and spp == args.eval_spp:
+                            at_spp[d].append(out)
+                            at_spp[f"bg-{d}"].append(denoised(p_bg, bg_fe, d)[0])
+            if spp == args.eval_spp:
+                at_spp["plan"].append(p_img)
+                at_spp["bg"].append(p_bg)
             for e in ests:
                 a_img, a_s, a_stats = alloc_render(spp, seed, e)
                 row.update({f"alloc-{e}": a_stats, f"alloc-{e}_seconds": a_s,
@@ -211,7 +274,51 @@ def bench_evaluation(name: str, args) -> dict:
                  "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, who).items()], s)),
                  "bias": math.sqrt(max(srgb_rms(alloc_ref[est], ref) ** 2 - srgb_rms(full_ref, ref) ** 2, 0.0)),
                  "curve": a_curve, "noise_floor": args.noise_floor}
-    return {"scene": name, "pilot_seconds": pilot_seconds, "allocations": allocs,
+    for d in dens:  # the denoised plan: its curve, speed-up, bias at the stage's spp, noise around the object
+        who = f"plan+{d}"
+        d_curve = _mean_curve(rows, who)
+        d_t = seconds_at(d_curve, e_full)
+        imgs = at_spp[d]
+        mean_bias = float("nan")
+        if len(imgs) >= 2:  # bias^2 = |mean - ref|^2 - var/K - ref noise, var from the spread of the K seeds
+            from camo_base.imaging import linear_to_srgb
+
+            e = [linear_to_srgb(np.clip(x, 0, None)).astype(np.float64) for x in imgs]
+            m = np.mean(e, axis=0)
+            var = float(np.mean(np.var(e, axis=0, ddof=1)))
+            r_ = linear_to_srgb(np.clip(ref, 0, None)).astype(np.float64)
+            mean_bias = math.sqrt(max(float(np.mean((m - r_) ** 2)) - var / len(e) - ref_var, 0.0))
+        noise = {}
+        if len(imgs) >= 2:
+            noise = {"object": noise_rms(imgs[0], imgs[1], near), "background": noise_rms(
+                at_spp[f"bg-{d}"][0], at_spp[f"bg-{d}"][1], near)}
+        on_object = {"denoised": object_region(imgs, ref, full_ref, obj_mask),
+                     "plan": object_region(at_spp["plan"], ref, full_ref, obj_mask)}
+        den_out[d].update({
+            "curve": d_curve, "seconds_at_equal_error": d_t, "speedup": t_full / d_t,
+            "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
+            "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in _by_spp(rows, who).items()], s)),
+            "full_denoised_error_at_spp": math.exp(value_at(
+                [(k, math.log(v[1])) for k, v in _by_spp(rows, f"full+{d}").items()], s)),
+            "full_denoised_speedup": t_full / seconds_at(_mean_curve(rows, f"full+{d}"), e_full),
+            "full_curve": _mean_curve(rows, f"full+{d}"),
+            "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise, "object": on_object,
+            "features_seconds": float(np.min([r["features_seconds"] for r in rows if r["spp"] == s])),
+            "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
+    rr_out = {}
+    for rr in args.rr_depths:
+        who = f"plan-rr{rr}"
+        r_t = seconds_at(_mean_curve(rows, who), e_full)
+        rr_out[str(rr)] = {"curve": _mean_curve(rows, who), "seconds_at_equal_error": r_t, "speedup": t_full / r_t,
+                           "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
+                           "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in
+                                                              _by_spp(rows, who).items()], s))}
+    plain_noise = ({"object": noise_rms(at_spp["plan"][0], at_spp["plan"][1], near),
+                    "background": noise_rms(at_spp["bg"][0], at_spp["bg"][1], near)}
+                   if len(at_spp["plan"]) >= 2 else {})
+    return {"scene": name, "pilot_seconds": pilot_seconds, "allocations": allocs, "denoisers": den_out,
+            "rr_depths": rr_out,
+            "noise_near_object": plain_noise,
             "region_search": bool(plan.region_search), "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
             "noise_at_spp": e_plan_at_s, "full_error_at_spp": e_full, "full_seconds_at_spp": t_full,
@@ -220,6 +327,46 @@ def bench_evaluation(name: str, args) -> dict:
             "region_launches": float(np.mean([r["region_launches"] for r in rows])),
             "plan_curve": plan_curve, "full_curve": full_curve,
             "effects": [e.to_dict() for e in plan.effects]}
+
+
+def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mask: np.ndarray) -> dict:
+    """What the seeds ``imgs`` (V, H, W, 3 linear, >= 2) of a render do to the object's pixels ``mask`` (V, H, W)
+    against the converged reference ``ref`` (``ref2``: a second one, for its noise), all in sRGB /1:
+
+    ``bias``: RMS over the mask of the seeds' mean minus the reference, the seeds' spread (/K) and the reference's
+    noise subtracted; ``noise``: one seed's RMS deviation from the seeds' mean over the mask (ddof 1);
+    ``detail``: mean over seeds and views of :func:`evaluation.metrics.detail_ratio.detail_ratio` of the render
+    against the reference in the mask (1 = the reference's texture energy, < 1 smoothed, > 1 speckle: noise adds
+    to it). NaNs where fewer than two seeds or no mask."""
+    from camo_base.imaging import linear_to_srgb
+    from evaluation.metrics.detail_ratio import detail_ratio
+
+    nan = {"bias": float("nan"), "noise": float("nan"), "detail": float("nan"), "pixels": int(mask.sum())}
+    if len(imgs) < 2 or not mask.any():
+        return nan
+    e = np.stack([linear_to_srgb(np.clip(x, 0, None)).astype(np.float64) for x in imgs])  # (K, V, H, W, 3)
+    r_ = linear_to_srgb(np.clip(ref, 0, None)).astype(np.float64)
+    r2 = linear_to_srgb(np.clip(ref2, 0, None)).astype(np.float64)
+    m = e.mean(0)
+    var = float(np.mean(np.var(e, axis=0, ddof=1)[mask]))
+    ref_var = float(np.mean((r2 - r_)[mask] ** 2)) / 2.0
+    bias = math.sqrt(max(float(np.mean((m - r_)[mask] ** 2)) - var / len(e) - ref_var, 0.0))
+    det = [float(detail_ratio(np.clip(x[v], 0, 1).astype(np.float32), np.clip(r_[v], 0, 1).astype(np.float32),
+                              mask[v]))
+           for x in e for v in range(len(mask)) if mask[v].any()]
+    det = [x for x in det if math.isfinite(x)]
+    return {"bias": bias, "noise": math.sqrt(var), "detail": float(np.mean(det)) if det else float("nan"),
+            "pixels": int(mask.sum())}
+
+
+def clamped_seconds(curve: list[tuple[float, float]], error: float, seconds: float) -> tuple[float, bool]:
+    """``seconds`` (a curve's seconds at ``error``, :func:`seconds_at`) kept within the measured levels: where the
+    curve's cheapest level is already below ``error`` its seconds are taken (the speed-up then a lower bound,
+    ``True``) rather than an extrapolation below the levels measured."""
+    first = min(curve)
+    if first[1] <= error and seconds < first[0]:
+        return first[0], True
+    return seconds, False
 
 
 def _by_spp(rows, who):
@@ -410,6 +557,13 @@ def main() -> None:
     ap.add_argument("--estimators", default="sturdy-floor", help="with the allocation: comma list of its variants "
                     "(per-pixel variance estimate, object floor), each measured interleaved (optimizer/rendering/"
                     "allocation.py VARIANTS: local, sturdy, sturdy-floor)")
+    ap.add_argument("--denoisers", default="", help="also the plan and full tracing denoised by Open Image Denoise "
+                    "(comma list of optimizer/rendering/denoise.py VARIANTS: oidn, oidn-balanced, oidn-raw, "
+                    "oidn-color), interleaved; the features' render and the denoising are timed")
+    ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
+                    "(comma list; the plan's own is 5), interleaved")
+    ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
+                    "(at most the colour's)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
                     "over every pixel, not only the region the object can change (exact everywhere)")
     ap.add_argument("--no-noise-floor", dest="noise_floor", action="store_false", help="allocation without the "
@@ -454,6 +608,13 @@ def main() -> None:
     bad = [e for e in args.estimators if e not in ESTIMATORS]
     if bad or not args.estimators:
         ap.error(f"--estimators: unknown {', '.join(bad) or '(none given)'}; choose from {', '.join(ESTIMATORS)}")
+    from optimizer.rendering.denoise import VARIANTS as DENOISERS
+
+    args.denoisers = [d for d in args.denoisers.split(",") if d]
+    bad = [d for d in args.denoisers if d not in DENOISERS]
+    if bad:
+        ap.error(f"--denoisers: unknown {', '.join(bad)}; choose from {', '.join(DENOISERS)}")
+    args.rr_depths = [int(x) for x in args.rr_depths.split(",") if x]
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     args.train_levels = [int(x) for x in args.train_levels.split(",")]
     args.full_levels = [int(x) for x in args.full_levels.split(",")]
@@ -535,6 +696,80 @@ def print_tables(results: dict) -> None:
                 print(f"The plan's rule (the allocation, {est}, where the plan renders whole frames; its region "
                       "elsewhere): " + ", ".join(f"{n} {v:.2f}x ({k})" for n, v, k in rule) +
                       f"; mean {np.mean([v for _, v, _ in rule]):.2f}x, minimum {np.min([v for _, v, _ in rule]):.2f}x\n")
+    rrs = list(dict.fromkeys(k for r in results["eval"] for k in (r.get("rr_depths") or {})))
+    if rrs:
+        print("The plan with Russian roulette from an earlier vertex (the plan's depth and region; its own: from "
+              f"vertex {results['eval'][0].get('rr_depth', 5)}), measured in the same run against the same full tracing\n")
+        print("| scene | " + " | ".join(f"from vertex {k}: CPU s @ equal error, speed-up, @{top} spp (equal spp), "
+                                         f"error @{a['eval_spp']} spp (/255)" for k in rrs) + " | (plan) |")
+        print("|---|" + "---|" * len(rrs) + "---|")
+        for r in results["eval"]:
+            cells = []
+            for k in rrs:
+                x = (r.get("rr_depths") or {}).get(k)
+                cells.append("-" if x is None else f"{x['seconds_at_equal_error']:.2f}, {x['speedup']:.2f}x, "
+                             f"{x['speedup_equal_spp']:.2f}x, {x['error_at_spp'] * 255:.3f}")
+            print(f"| {r['scene']} | " + " | ".join(cells) + f" | {r['speedup']:.2f}x |")
+        for k in rrs:
+            sp = [r["rr_depths"][k]["speedup"] for r in results["eval"] if k in (r.get("rr_depths") or {})]
+            print(f"\nfrom vertex {k}: mean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x")
+        print()
+    dens = list(dict.fromkeys(d for r in results["eval"] for d in (r.get("denoisers") or {})))
+    for d in dens:
+        al = [r for r in results["eval"] if d in (r.get("denoisers") or {})]
+        k = al[0]["denoisers"][d].get("seeds_at_spp", 0)
+        print(f"The plan denoised by Open Image Denoise, variant {d} (optimizer/rendering/denoise.py VARIANTS; features "
+              f"at {a.get('aux_spp', 16)} spp, their render and the denoising timed), measured in the same run against "
+              "the same full tracing. Bias: the mean of the denoised plan over its "
+              f"{k} seeds at {a['eval_spp']} spp against the reference, the seeds' spread and the reference's noise "
+              f"subtracted; at {a['ref_spp']} spp: the denoised converged plan. Noise near the object: the object and "
+              "a 2-pixel rim, two seeds, with-object / background (both denoised alike)\n")
+        print(f"| scene | plan + {d} CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | full + {d}: "
+              f"speed-up | error @{a['eval_spp']} spp, plan + {d} / plan / full (/255) | bias @{a['eval_spp']} spp / "
+              f"@{a['ref_spp']} spp (/255) | noise near the object / bg, plan | plan + {d} (/255) | features s | "
+              "denoise s |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        sd = []
+        for r in al:
+            x = r["denoisers"][d]
+            n0, n1 = r.get("noise_near_object") or {}, x.get("noise_near_object") or {}
+            t_eq, low = clamped_seconds(x["curve"], r["full_error_at_spp"], x["seconds_at_equal_error"])
+            sp = r["full_seconds_at_spp"] / t_eq
+            sd.append(sp)
+            f_curve = x.get("full_curve") or _mean_curve(r["rows"], f"full+{d}")
+            t_f, f_low = clamped_seconds(f_curve, r["full_error_at_spp"],
+                                         r["full_seconds_at_spp"] / x["full_denoised_speedup"])
+            fsp = r["full_seconds_at_spp"] / t_f
+            print(f"| {r['scene']} | {t_eq:.2f}{' (lowest level)' if low else ''} | {'>= ' if low else ''}{sp:.2f}x | "
+                  f"{x['speedup_equal_spp']:.2f}x | {'>= ' if f_low else ''}{fsp:.2f}x | "
+                  f"{x['error_at_spp'] * 255:.3f} / {r['noise_at_spp'] * 255:.3f} / {r['full_error_at_spp'] * 255:.3f} | "
+                  f"{x['bias_at_spp'] * 255:.3f} / {x['bias_at_ref_spp'] * 255:.3f} | "
+                  f"{n0.get('object', float('nan')):.2f} / {n0.get('background', float('nan')):.2f} | "
+                  f"{n1.get('object', float('nan')):.2f} / {n1.get('background', float('nan')):.2f} | "
+                  f"{x['features_seconds']:.2f} | {x['denoise_seconds']:.2f} |")
+        print(f"\nplan + {d}: mean speed-up {np.mean(sd):.2f}x, minimum {np.min(sd):.2f}x (where its cheapest level, "
+              f"{min(a['eval_levels'])} spp, is already below the target error, its seconds: a lower bound)\n")
+        ob = [r for r in al if r["denoisers"][d].get("object")]
+        if ob:
+            print(f"On the object's own pixels (coverage >= 0.5 in the with-object render; its starting material, "
+                  f"see-through) at {a['eval_spp']} spp, {k} seeds, against the reference (sRGB /255): the bias of the "
+                  "seeds' mean (spread and reference noise subtracted) beside one seed's noise, and the detail ratio "
+                  "(mean |Laplacian| of the luma against the reference's; 1 = its texture, < 1 smoothed, > 1 noise). "
+                  "The plan's own object bias is the estimator's floor (the plan is unbiased over the frame; 3 seeds "
+                  "with fireflies leave their spread poorly estimated). Whole-frame bias from the table above\n")
+            print(f"| scene | object px | whole-frame bias, plan + {d} | object bias, plan + {d} | object noise, "
+                  f"plan + {d} | object bias, plan | object noise, plan | detail, plan + {d} | detail, plan | "
+                  f"object bias of plan + {d} below the plan's noise / below its own noise? |")
+            print("|---|---|---|---|---|---|---|---|---|---|")
+            for r in ob:
+                x = r["denoisers"][d]
+                o_d, o_p = x["object"]["denoised"], x["object"]["plan"]
+                print(f"| {r['scene']} | {o_d['pixels']} | {x['bias_at_spp'] * 255:.2f} | {o_d['bias'] * 255:.2f} | "
+                      f"{o_d['noise'] * 255:.2f} | {o_p['bias'] * 255:.2f} | {o_p['noise'] * 255:.2f} | "
+                      f"{o_d['detail']:.2f} | {o_p['detail']:.2f} | "
+                      f"{'yes' if o_d['bias'] < o_p['noise'] else 'no'} / "
+                      f"{'yes' if o_d['bias'] < o_d['noise'] else 'no'} |")
+            print()
     if results["grad"]:
         g = results.get("grad_args", a)
         print(f"(b) Stage 1 gradient, {g['grad_views']} views at {g['grad_resolution']}^2, maps {g['map_resolution']}^2 "

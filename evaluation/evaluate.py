@@ -270,11 +270,11 @@ def _plan_jobs(jobs: list[_Job], settings: EvalSettings, say: Callable[[str], No
         key = (json.dumps(dataclasses.asdict(j.entry.pack.environment), sort_keys=True, default=str), j.cams.key())
         if key not in plans:
             plans[key] = evaluation_plan(j.entry.pack, j.env, j.cams.cams, settings.spp, settings.seed,
-                                         settings.planner)
+                                         settings.planner, denoise=settings.denoise)
             p = plans[key]
             if p.measured:
                 say(f"plan for {j.entry.scene}: max_depth {p.max_depth}, Russian roulette from {p.rr_depth}, "
-                    f"pilot {p.pilot['seconds']:.1f} s")
+                    f"denoiser {p.denoise or 'off'}, pilot {p.pilot['seconds']:.1f} s")
         j.plan = plans[key]
 
 
@@ -358,7 +358,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         ec = j.cams
         say(f"evaluating {e.name} ({e.kind}, {e.scene}, {e.method}, ablation {e.ablation}): {len(ec.cams)} views, "
             f"{ec.cams[0].width}x{ec.cams[0].height} px, {settings.spp} spp")
-        bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator)
+        bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator, j.plan.denoise)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
         objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator, bg,
                                     j.plan.region_threshold if j.plan.region_search else None)
@@ -371,6 +371,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
             "training_cameras": [list(c.origin) for c in ec.training],
             "cameras": [list(c.origin) for c in ec.cams], "targets": [list(c.target) for c in ec.cams],
             "base_views": ec.base, "background_seconds": bg.seconds,
+            "denoise": bg.denoise or "off", "background_denoise_seconds": bg.denoise_seconds,
         })
         base = {**ident, "seed": settings.seed, "spp": settings.spp, "width": ec.cams[0].width,
                 "height": ec.cams[0].height, "jitter": float(settings.jitter), "camera_set": cam_key,
@@ -388,6 +389,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
                         "region_seconds": objr.region_seconds,
                         "region_share": None if objr.region is None else float(objr.region.mean()),
                         "noise_match": None if objr.noise is None else objr.noise.to_dict(),
+                        "denoise": objr.denoise or "off", "denoise_seconds": objr.denoise_seconds,
                         "seconds": _plain_seconds(secs), "warnings": warnings, **e.placement})
         for wmsg in warnings:
             say(f"warning: {wmsg}")

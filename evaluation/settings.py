@@ -53,6 +53,8 @@ class EvalSettings:
     write_report: bool = True
     planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
     noise_match: bool = True  # more samples where the object's render is noisier than the background's
+    denoise: bool = False  # opt-in: the plan's denoiser where the noise at spp is above its bias (after noise
+    # matching); off by default, as it smooths the ground seen through a see-through object (docs/evaluation.md)
 
     def validate(self) -> "EvalSettings":
         """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
@@ -81,15 +83,16 @@ class EvalSettings:
             if opt.kind in (int, float) and opt.name in values:
                 kw[opt.field] = values[opt.name]
             elif opt.kind is bool and values.get(opt.name):
-                kw[opt.field] = False  # (every switch turns its field off)
+                kw[opt.field] = not _FIELD_DEFAULTS[opt.field]  # (a switch flips its field's default)
         return cls(**kw, metrics=parse_metrics(values.get("metrics")), weights=parse_weights(values)).validate()
 
 
 @dataclasses.dataclass(frozen=True)
 class EvalOption:
     """One evaluation setting a caller gives by name (module doc). ``kind``: int, float, str, or bool (a switch:
-    given means true, and it turns its ``field`` off). ``field``: the :class:`EvalSettings` field it sets (weights
-    options: ``weights``, for ``metric``). ``default``: what absent means, as the option would be written."""
+    given means true, and it flips its ``field``'s default: off for ``no_*``, on for ``denoise``). ``field``: the
+    :class:`EvalSettings` field it sets (weights options: ``weights``, for ``metric``). ``default``: what absent
+    means, as the option would be written."""
 
     name: str
     kind: type
@@ -143,12 +146,18 @@ def _options() -> tuple[EvalOption, ...]:
         o("no_noise_match", bool, "noise_match", "the same spp everywhere (default: pixels where the render with the "
           "object is noisier than the background get more samples, up to 8x, so noise does not give the object "
           "away)", default=False),
+        o("denoise", bool, "denoise", "denoise both renders alike by Open Image Denoise (albedo and normal features, "
+          "after noise matching) where the plan's pilot measures the noise at --spp above the denoiser's bias "
+          "(default: off; it smooths the ground seen through a see-through object, docs/evaluation.md)",
+          default=False),
         o("quiet", bool, "progress", "no progress messages", default=False),
     )
 
 
 #: Every evaluation setting by name.
 OPTIONS: dict[str, EvalOption] = {o.name: o for o in _options()}
+#: The :class:`EvalSettings` fields' defaults (a switch sets its field to the other value).
+_FIELD_DEFAULTS: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(EvalSettings)}
 
 
 def parse_weights(values: Mapping[str, Any]) -> dict[str, str]:

@@ -133,7 +133,8 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 # --------------------------------------------------------------------------------------------------------------
 
 
-def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True):
+def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
+                    denoise: bool = False):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -142,9 +143,11 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     made fully transmissive (the deepest light transport any result can have: light through it onto the ground,
     light seen through it) from those cameras, and keeps every bounce whose light over the whole frame is above
     0.3 x the noise at ``spp`` (:class:`optimizer.rendering.planner.Planner`, purpose ``evaluate``; stream
-    ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce)."""
+    ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce). With
+    ``denoise`` (opt-in, ``--denoise``) the measured plan denoises where the noise at ``spp`` is above the
+    denoiser's measured bias (:data:`optimizer.rendering.planner.DENOISER_BIAS`; ``plan.denoise``)."""
     from camo_base import seeds
-    from optimizer.rendering.planner import Planner, plan
+    from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
     if cams is None or not measured:
@@ -154,9 +157,14 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     # the pilot renders at ~48 px: a light mesh will do (and it is prepared once, then cached)
     mesh = static_object_fn(worst, prepare_object(worst, target_vertices=min(worst.object.target_vertices,
                                                                              PILOT_VERTICES)))
-    planner = Planner()
+    planner = Planner(PlannerSettings(denoise=bool(denoise)))
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
     return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
+
+
+#: The denoiser's features (first-hit albedo, normal) are rendered at min(spp, FEATURE_SPP) (bench/bench_planner.py
+#: ``--aux-spp``, the setting measured).
+FEATURE_SPP = 16
 
 
 def render_seed(seed: int) -> int:
@@ -172,6 +180,14 @@ class Background:
     seconds: float
     key: str
     groups: np.ndarray | None = None  # (G, V, H, W, 3) means of groups of its samples (noise matching), or None
+    raw: np.ndarray | None = None  # (V, H, W, 3) linear, before the denoiser (None: not denoised; ``image`` is raw)
+    denoise: str = ""  # the denoiser applied to ``image`` (optimizer.rendering.denoise.VARIANTS), or ""
+    denoise_seconds: float = 0.0  # of ``seconds``: the features' render and the denoising
+
+    @property
+    def fill(self) -> np.ndarray:
+        """The render the region renders take their other pixels from: the background before any denoiser."""
+        return self.image if self.raw is None else self.raw
 
 
 @dataclasses.dataclass
@@ -183,6 +199,8 @@ class ObjectRenders:
     region: np.ndarray | None = None  # (V, H, W) bool: the pixels rendered (the rest is the background's), or None
     region_seconds: float = 0.0  # of ``seconds``: finding the region
     noise: Any = None  # optimizer.rendering.noise.NoiseMatch when the noise was matched
+    denoise: str = ""  # the denoiser applied to ``image``, or ""
+    denoise_seconds: float = 0.0  # of ``seconds``: the features' render and the denoising
 
 
 class ViewRenderer:
@@ -196,16 +214,28 @@ class ViewRenderer:
         self.background_renders = 0  # how many times a background was actually rendered
         self.region_cache: dict[str, dict] = {}  # per background: the region pass' renders without the object
 
-    def _key(self, pack, cams: list[Camera], integrator: dict) -> str:
+    def _key(self, pack, cams: list[Camera], integrator: dict, denoise: str = "") -> str:
         blob = json.dumps({"env": dataclasses.asdict(pack.environment), "cams": [dataclasses.astuple(c) for c in cams],
-                           "spp": self.spp, "integrator": integrator, "seed": self.seed}, sort_keys=True, default=str)
+                           "spp": self.spp, "integrator": integrator, "seed": self.seed,
+                           **({"denoise": denoise} if denoise else {})}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
-    def background(self, pack, env, cams: list[Camera], integrator: dict) -> Background:
+    def _denoised(self, env, obj, cams: list[Camera], img: np.ndarray, denoise: str) -> tuple[np.ndarray, float]:
+        """``img`` denoised by ``denoise`` with the features of the same scene, cameras and seed
+        (:mod:`optimizer.rendering.denoise`: first-hit albedo and normal at up to :data:`FEATURE_SPP` spp); with the
+        seconds it took."""
+        from optimizer.rendering.denoise import denoise_variant, render_features
+
+        t = time.perf_counter()
+        albedo, normal = render_features(env.build(), obj, cams, min(self.spp, FEATURE_SPP), render_seed(self.seed))
+        return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t
+
+    def background(self, pack, env, cams: list[Camera], integrator: dict, denoise: str = "") -> Background:
+        """The scene without the object; ``denoise``: the denoiser of the evaluation plan (``plan.denoise``), or ""."""
         from optimizer.rendering import scene as scn
         from optimizer.rendering.render import coverage_and_depth, render_shaded
 
-        key = self._key(pack, cams, integrator)
+        key = self._key(pack, cams, integrator, denoise)
         if key not in self.cache:
             t = time.perf_counter()
             groups = None
@@ -216,19 +246,28 @@ class ViewRenderer:
                                            render_seed(self.seed))(groups=GROUPS)
             else:
                 img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
+            raw, d_s = None, 0.0
+            if denoise:
+                raw = img
+                img, d_s = self._denoised(env, None, cams, raw, denoise)
             sc = scn.build_scene(env.build())
             depth = np.stack([coverage_and_depth(sc, c, None, self.ss)[1] for c in cams])
-            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, groups)
+            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, groups, raw, denoise, d_s)
             self.background_renders += 1
         return self.cache[key]
 
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
-                    background: Background | None = None, region_threshold: float | None = None) -> ObjectRenders:
+                    background: Background | None = None, region_threshold: float | None = None,
+                    denoise: str | None = None) -> ObjectRenders:
         """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
         ``region_threshold`` (sRGB) only the region the object can change is rendered
         (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
         random numbers drew there (``tests/test_region.py``). With noise matching, pixels where the render is
-        noisier than the background get more samples (:mod:`optimizer.rendering.noise`)."""
+        noisier than the background get more samples (:mod:`optimizer.rendering.noise`). ``denoise`` (default: the
+        background's): the denoiser applied to the render (after noise matching), exactly as to the background (same
+        features' spp and seed). Noise matching stays on beside it: alone, the denoiser leaves a transmissive
+        object's fireflies (fewer, but more visible against a background it smooths: ``bench/bench_noise.py
+        --denoise``)."""
         from optimizer.rendering import scene as scn
         from optimizer.rendering.render import PathRenderer, coverage_and_depth, render_shaded, render_with_region
 
@@ -238,11 +277,16 @@ class ViewRenderer:
         cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
         seed = render_seed(self.seed)
         path = integrator.get("type") == "path"
+        if denoise is None:
+            denoise = background.denoise if background is not None else ""
+        if background is not None and denoise != background.denoise:
+            raise ValueError(f"the render with the object must be denoised as its background ({background.denoise!r}),"
+                             f" not {denoise!r}")
         match_noise = self.noise_match and path and background is not None and background.groups is not None
         g = GROUPS if match_noise else 1
         region, t_region, groups = None, 0.0, None
         if background is not None and path and region_threshold is not None:
-            out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.image, cov,
+            out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.fill, cov,
                                      region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}))
             img, reg = out[0], out[1]
             groups = out[2] if match_noise else None
@@ -259,4 +303,7 @@ class ViewRenderer:
             img, matched = match(lambda sel, spp, first: more(sel, None, spp, first), img, groups,
                                  background.groups, region if region is not None else np.ones(img.shape[:3], bool),
                                  self.spp)
-        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched)
+        d_s = 0.0
+        if denoise:
+            img, d_s = self._denoised(env, mesh, cams, img, denoise)
+        return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched, denoise, d_s)

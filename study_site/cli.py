@@ -79,6 +79,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--no-noise-match", action="store_true",
                    help="the same spp everywhere (default: more samples, up to 8x, where the render with the object is "
                    "noisier than the background, so noise does not give the object away)")
+    b.add_argument("--denoise", action="store_true",
+                   help="denoise the renders with and without the object alike by Open Image Denoise (albedo and "
+                   "normal features, after noise matching) where the evaluation plan's pilot measures the noise at "
+                   "--spp above the denoiser's bias (default: off; it smooths the ground seen through a see-through "
+                   "object, docs/evaluation.md)")
     b.add_argument("--observer-trials", type=Range(int, 0, 100_000).arg_type(), default=200, metavar="N",
                    help="simulated observer trials per stimulus for the predicted Table I and power (default 200; "
                    "0 = none; docs/observer.md)")
@@ -299,7 +304,7 @@ def cmd_build_stimuli(args) -> int:
             args.eval_dirs, args.out, practice_dirs=args.practice, practice_scenes=scenes, size=args.size,
             views=args.views, spp=args.spp, seed=args.seed, object_frac=_pair(args.object_size, "--object-size"),
             margin=args.margin, synthetic_practice_n=args.synthetic_practice, threads=args.threads, force=args.force,
-            noise_match=not args.no_noise_match,
+            noise_match=not args.no_noise_match, denoise=args.denoise,
         )
     print(f"{args.out}: {summarize(manifest)}")
     if args.observer_trials > 0:

@@ -26,7 +26,10 @@ actual placement is *measured* on the rendered mask and recorded in the manifest
 ``fov``, ``target``). Background-only and with-object images use the same camera and sampler seed
 (``evaluation.views.ViewRenderer``: common random numbers); only the region the object can change is rendered with
 it, and pixels where that render is noisier than the background get more samples (``noise_match``, the default:
-:mod:`optimizer.rendering.noise`), so a participant cannot find the object by its fireflies.
+:mod:`optimizer.rendering.noise`), so a participant cannot find the object by its fireflies. With ``denoise=True``
+(``--denoise``; off by default: the denoiser smooths the ground seen through a see-through object, a give-away of
+its own), where the evaluation plan then denoises (``plan.denoise``: the noise at ``spp`` above the denoiser's
+measured bias), both renders are denoised alike after noise matching (:mod:`optimizer.rendering.denoise`).
 
 Views whose mask is empty (object hidden, e.g. occluded) are skipped with a warning. A triplet folder (given
 2D images) has no scene to render from new cameras, so an evaluation holding one needs ``--copy``
@@ -210,6 +213,7 @@ def render_stimuli(
     force: bool = False,
     log: Callable[[str], None] | None = None,
     noise_match: bool = True,
+    denoise: bool = False,
 ) -> dict[str, Any]:
     """Render a stimulus set (see the module docstring); returns the manifest."""
     from evaluation.evaluate import srgb8
@@ -264,11 +268,11 @@ def render_stimuli(
             draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
                           "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
         if e.scene not in plans:
-            plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed)
+            plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed, denoise=denoise)
         plan = plans[e.scene]
         log(f"rendering {e.name} ({e.kind}, {e.scene}, {e.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
             + (" [practice]" if practice else ""))
-        bg = renderer.background(e.pack, env, cams, plan.integrator)
+        bg = renderer.background(e.pack, env, cams, plan.integrator, plan.denoise)
         objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator, bg,
                                     plan.region_threshold if plan.region_search else None)
         for v in range(len(cams)):
@@ -283,6 +287,7 @@ def render_stimuli(
                     "environment": env_of[id(e)], "background_phash": phash(srgb8(bg.image[v]))}
             if objr.noise is not None:  # the object's pixels got up to 8x the spp where it was noisier
                 meta["spp_factor_max"] = int(objr.noise.factor[v].max())
+            meta["denoise"] = objr.denoise or "off"
             writer.add(srgb8(objr.image[v]), mask, meta, practice)
             # the background of the same camera and seed is kept next to the set (not served)
             _save_background(writer.out, e.scene, v, srgb8(bg.image[v]))

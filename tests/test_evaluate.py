@@ -546,3 +546,28 @@ def test_giveaway_measures_recomputed_from_the_saved_png_and_mask(eval_dir):
         assert rows.loc[region, "detail_ratio"] == pytest.approx(float(detail_ratio(x, y, m)), rel=1e-4, nan_ok=True)
     report = (eval_dir / "report.md").read_text()
     assert "Detail→1" in report and "Tint↓" in report and "below 1024" in report  # 8 spp: the noise warning
+
+
+def test_the_denoiser_is_off_by_default_and_denoise_turns_the_plans_decision_on(runs, eval_dir, tmp_path):
+    """By default the evaluation renders are not denoised (the denoiser smooths the ground seen through a see-through
+    object): eval_config.toml records "off" per scene and run, with the plan's reason. With ``--denoise``, at 8 spp
+    the plan denoises (its pilot's noise is far above the denoiser's bias): recorded per scene (with the plan's
+    reason) and per run (with its seconds), and the same views come out denoised."""
+    cfg = tomllib.loads((eval_dir / "eval_config.toml").read_text())
+    (scene,) = cfg["scenes"]
+    assert scene["denoise"] == "off" and scene["background_denoise_seconds"] == 0
+    assert any(r.startswith("denoise: off by default (--denoise") for r in scene["plan_reasons"])
+    assert all(r["denoise"] == "off" and r["denoise_seconds"] == 0 for r in cfg["runs"])
+    out = tmp_path / "denoised"
+    assert main(["evaluate", str(runs[0]), "--out", str(out), "--resolution", "32", "--spp", "8", "--quiet",
+                 "--denoise", "--metrics", "psnr"]) == 0
+    on = tomllib.loads((out / "eval_config.toml").read_text())
+    assert on["scenes"][0]["denoise"] == "oidn-raw" and on["scenes"][0]["background_denoise_seconds"] > 0
+    assert any(r.startswith("denoise: oidn-raw") for r in on["scenes"][0]["plan_reasons"])
+    assert all(r["denoise"] == "oidn-raw" and r["denoise_seconds"] > 0 for r in on["runs"])
+    assert "denoised (oidn-raw)" in (out / "report.md").read_text()
+    den = np.load(out / "renders" / "ours_full" / "view_00_bg.npy")
+    raw = np.load(eval_dir / "renders" / "ours_full" / "view_00_bg.npy")
+    assert den.shape == raw.shape and not np.array_equal(den, raw)
+    # the denoised background keeps the raw one's mean (the denoiser moves light, it does not make or lose it)
+    assert abs(den.mean() / raw.mean() - 1) < 0.05

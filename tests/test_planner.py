@@ -307,3 +307,55 @@ def test_an_emitter_below_the_noise_is_dropped(mi_backend):
         p = planner.plan(pack, env, {"albedo"}, "optimize", planner.pilot(env, mesh, cams, seed=1), {"targets": 64})
         assert (p.drop_emitters == ["fill"]) is dropped, (level, p.drop_emitters)
         assert ("fill" in p.environment(env).build()) is not dropped
+
+
+def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_above_the_denoisers_bias(mi_backend):
+    """The denoiser is opt-in: by default an evaluation plan does not denoise, even where the noise is far above the
+    denoiser's bias, and its reason says why (it smooths the ground seen through a see-through object). Asked for
+    (``denoise=True``, ``--denoise``) the decision is the measured rule: on where the pilot's noise at the stage's spp
+    is above the denoiser's measured bias (64 spp on a small sunlit scene), off where it is below (a million spp);
+    the decision, its reason and its effect row survive the record."""
+    import math
+
+    import trimesh
+
+    mi, _ = mi_backend
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.planner import DENOISER, DENOISER_BIAS, Plan, Planner, PlannerSettings
+    from optimizer.scenes.cameras import Camera
+
+    def build():
+        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
+                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.4, 0.4, 0.4]}}},
+                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
+
+    env = Environment("test", "test", build, ("sun", "sky"))
+    box = trimesh.creation.box(extents=[0.5, 0.5, 0.8])
+    v = (np.asarray(box.vertices) + [0, 0, 0.4]).astype(np.float32)
+
+    def mesh():
+        return scn.object_mesh(v, np.asarray(box.faces), None, scn.principled(
+            {"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": 1.0}), smooth=False)
+
+    cams = [Camera((3.0, -2.0, 1.5), (0.0, 0.0, 0.4), 40.0, 32, 32), Camera((-2.5, -2.5, 1.8), (0.0, 0.0, 0.4), 40.0, 32, 32)]
+    pack = builtin_scenes.get("meadow")
+    assert PlannerSettings().denoise is False
+    planner = Planner(PlannerSettings(denoise=True))
+    pilot = planner.pilot(env, mesh, cams, seed=1)
+    low = planner.plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})
+    high = planner.plan(pack, env, set(), "evaluate", pilot, {"evaluation": 1 << 20})
+    off = Planner().plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})  # the default
+    n_low, n_high = (next(e for e in p.effects if e.name.startswith("denoiser")).noise for p in (low, high))
+    assert n_low > DENOISER_BIAS > n_high
+    # the noise at the stage's spp (the deeper plan a million spp affords varies a little more per sample)
+    assert math.isclose(n_low / n_high, math.sqrt((1 << 20) / 64), rel_tol=0.1)
+    assert low.denoise == DENOISER and high.denoise == "" and off.denoise == ""
+    assert "above" in dict(low.reasons)["denoise"] and "not above" in dict(high.reasons)["denoise"]
+    why_off = dict(off.reasons)["denoise"]
+    assert why_off.startswith("off by default (--denoise") and "see-through" in why_off
+    assert "above the denoiser's measured bias" in why_off  # the measured rule it would apply, stated
+    assert not next(e for e in off.effects if e.name.startswith("denoiser")).kept
+    assert Plan.from_dict(low.to_dict()).denoise == DENOISER
+    assert "denoise: oidn" in low.describe()
+    # a training plan never denoises (the loss needs unbiased renders)
+    assert planner.plan(pack, env, {"albedo"}, "optimize", pilot, {"targets": 64}).denoise == ""

@@ -127,3 +127,13 @@ def noise_rms(a1: np.ndarray, a2: np.ndarray, pixels: np.ndarray) -> float:
     e = lambda x: np.round(np.clip(linear_to_srgb(np.clip(x, 0, None)), 0, 1) * 255)  # noqa: E731
     d = (e(a1) - e(a2))[pixels] / np.sqrt(2.0)
     return float(np.sqrt(np.mean(d ** 2))) if d.size else 0.0
+
+
+def fireflies(a1: np.ndarray, a2: np.ndarray, pixels: np.ndarray, level: float = 20.0) -> float:
+    """Per 1000 pixels of ``pixels``: those whose two 8-bit sRGB renders differ by more than ``level`` (any
+    channel)."""
+    from camo_base.imaging import linear_to_srgb
+
+    e = lambda x: np.round(np.clip(linear_to_srgb(np.clip(x, 0, None)), 0, 1) * 255)  # noqa: E731
+    d = np.abs(e(a1) - e(a2)).max(-1)[pixels]
+    return float((d > level).mean() * 1000) if d.size else 0.0
