@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from camo_base.errors import CamoError
 from fixture_stage1 import tiny_gravel_stage1
 from optimizer.optimise import detail
 
@@ -102,31 +101,6 @@ def test_surrogate_gradient_is_the_terms_gradient(mi_backend):
         num[idx] = (value(up) - value(dn)) / 2e-5
     assert np.abs(num).max() > 0
     np.testing.assert_allclose(grad, num, rtol=1e-3, atol=1e-4 * np.abs(num).max())
-
-
-def test_option_parsing_and_errors():
-    from optimizer.optimise.spec import RunSpec
-
-    assert RunSpec.from_options({"scene": "meadow", "detail_match": 8}).stage1.detail_match == 8.0
-    assert RunSpec.from_options({"scene": "meadow"}).stage1.detail_match == 0.0  # off by default
-    for bad in (-1, 1e4, "lots"):
-        with pytest.raises(CamoError, match="detail.match") as e:
-            RunSpec.from_options({"scene": "meadow", "detail_match": bad}).validate()
-        assert "\n" not in str(e.value)
-    with pytest.raises(CamoError, match="does not use"):
-        RunSpec.from_options({"scene": "meadow", "method": "mean", "detail_match": 8}).validate()
-
-
-def test_cli_rejects_a_negative_weight_in_one_line(capsys):
-    from camo.cli import main
-
-    try:
-        rc = main(["optimize", "meadow", "--out", "/nonexistent/x", "--detail-match", "-2"])
-    except SystemExit as e:
-        rc = e.code
-    assert rc not in (0, None)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err and "--detail-match" in err[-1]
 
 
 @pytest.mark.parametrize("batched", [False, True], ids=["per-view", "batch-film"])

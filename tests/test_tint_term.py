@@ -99,31 +99,6 @@ def test_surrogate_gradient_per_view_and_on_the_film(mi_backend):
     assert empty.surrogate(xs, [(0, 0), (1, 1)]) is None
 
 
-def test_option_parsing_and_errors():
-    from optimizer.optimise.spec import RunSpec
-
-    assert RunSpec.from_options({"scene": "meadow", "tint_match": 4}).stage1.tint_match == 4.0
-    assert RunSpec.from_options({"scene": "meadow"}).stage1.tint_match == 0.0  # off by default
-    for bad in (-1, 1e4, "lots"):
-        with pytest.raises(CamoError, match="tint.match") as e:
-            RunSpec.from_options({"scene": "meadow", "tint_match": bad}).validate()
-        assert "\n" not in str(e.value)
-    with pytest.raises(CamoError, match="does not use"):  # a method without Stage 1 ignores it: refused
-        RunSpec.from_options({"scene": "meadow", "method": "mean", "tint_match": 4}).validate()
-
-
-def test_cli_rejects_a_negative_weight_in_one_line(capsys):
-    from camo.cli import main
-
-    try:
-        rc = main(["optimize", "meadow", "--out", "/nonexistent/x", "--tint-match", "-2"])
-    except SystemExit as e:
-        rc = e.code
-    assert rc not in (0, None)
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err and "--tint-match" in err[-1]
-
-
 @pytest.mark.parametrize("batched", [False, True], ids=["per-view", "batch-film"])
 def test_stage1_adds_the_term_linearly_in_its_weight(mi_backend, batched):
     """A real Stage 1 on gravel (2 views, 24 px), one thread and the same seeds (the same renders): the albedo's

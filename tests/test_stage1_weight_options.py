@@ -1,0 +1,38 @@
+"""The Stage 1 loss-term weights (``--detail-match W``, ``--tint-match W``): parsed into the spec, off by default,
+refused out of range or by a method without Stage 1, and a bad value is one line on the CLI. The terms themselves are
+tested in ``test_detail_term.py`` and ``test_tint_term.py``."""
+from __future__ import annotations
+
+import pytest
+
+from camo_base.errors import CamoError
+
+WEIGHTS = [("detail_match", 8.0), ("tint_match", 4.0)]
+
+
+@pytest.mark.parametrize(("field", "value"), WEIGHTS)
+def test_option_parsing_and_errors(field, value):
+    from optimizer.optimise.spec import RunSpec
+
+    assert getattr(RunSpec.from_options({"scene": "meadow", field: value}).stage1, field) == value
+    assert getattr(RunSpec.from_options({"scene": "meadow"}).stage1, field) == 0.0  # off by default
+    for bad in (-1, 1e4, "lots"):
+        with pytest.raises(CamoError, match=field.replace("_", ".")) as e:
+            RunSpec.from_options({"scene": "meadow", field: bad}).validate()
+        assert "\n" not in str(e.value)
+    with pytest.raises(CamoError, match="does not use"):  # a method without Stage 1 ignores it: refused
+        RunSpec.from_options({"scene": "meadow", "method": "mean", field: value}).validate()
+
+
+@pytest.mark.parametrize(("field", "value"), WEIGHTS)
+def test_cli_rejects_a_negative_weight_in_one_line(field, value, capsys):
+    from camo.cli import main
+
+    flag = "--" + field.replace("_", "-")
+    try:
+        rc = main(["optimize", "meadow", "--out", "/nonexistent/x", flag, "-2"])
+    except SystemExit as e:
+        rc = e.code
+    assert rc not in (0, None)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and flag in err[-1]
