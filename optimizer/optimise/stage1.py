@@ -378,6 +378,17 @@ class Stage1:
         return TintTerm(targets, weights, share, self.cfg.tint_match, film=(H, W, V) if self._batched else None,
                         sigma=self.cfg.tint_scale)
 
+    def _image_terms(self, imgs: list, keys: list[tuple[int, int]]):
+        """The sum of the active terms on the tone-mapped renders (the detail and the mean-colour term; each gives its
+        surrogate, or None when it has nothing to add this step), or None when none adds anything. ``imgs``: the
+        step's renders (one batch film, or one per view); ``keys``: (view, index into ``imgs``) per view."""
+        terms = [t for t in (self._detail, self._tint) if t is not None]
+        if not terms:
+            return None
+        mapped = [self._tonemap(i) for i in imgs]  # tone-mapped once for every term
+        parts = [x for x in (t.surrogate(mapped, keys) for t in terms) if x is not None]
+        return sum(parts[1:], parts[0]) if parts else None
+
     # --- set-up -------------------------------------------------------------
     def _prepare(self, values: dict[str, np.ndarray], warm: bool | None = None):
         """A start as Stage 1 takes it: the warm-started albedo (when on; ``warm`` overrides the stage's choice),
@@ -678,14 +689,9 @@ class Stage1:
                 W = self.cams[0].width
                 _, perc = self._perceptual_surrogate([img], [(v, slice(v * W, (v + 1) * W)) for v in views])
                 total = total + perc
-            if self._detail is not None:
-                det = self._detail.surrogate([self._tonemap(img)], [(v, 0) for v in views])
-                if det is not None:
-                    total = total + det
-            if self._tint is not None:
-                tin = self._tint.surrogate([self._tonemap(img)], [(v, 0) for v in views])
-                if tin is not None:
-                    total = total + tin
+            extra = self._image_terms([img], [(v, 0) for v in views])
+            if extra is not None:
+                total = total + extra
             dr.backward(total)
         else:
             # One backward per iteration: the parameter mapping (displacement sampling, pose, roughness
@@ -717,14 +723,9 @@ class Stage1:
             if self._perceptual is not None:
                 _, perc = self._perceptual_surrogate(imgs, [(v, None) for v in views])
                 total = total + perc
-            if self._detail is not None:
-                det = self._detail.surrogate([self._tonemap(i) for i in imgs], [(v, k) for k, v in enumerate(views)])
-                if det is not None:
-                    total = total + det
-            if self._tint is not None:
-                tin = self._tint.surrogate([self._tonemap(i) for i in imgs], [(v, k) for k, v in enumerate(views)])
-                if tin is not None:
-                    total = total + tin
+            extra = self._image_terms(imgs, [(v, k) for k, v in enumerate(views)])
+            if extra is not None:
+                total = total + extra
             if dr.grad_enabled(total):
                 dr.backward(total)
         return float(photo[0]), float(lum[0]), float(chroma[0]), float(linear[0]), has_terms
