@@ -163,7 +163,7 @@ def bench_evaluation(name: str, args) -> dict:
             out = img, clock() - t, float(reg.masks.mean()), reg.steps
         return (*out, bg) if with_background else out
 
-    from optimizer.rendering.denoise import denoise_variant, render_features
+    from optimizer.rendering.denoise import VARIANTS as denoise_vars, denoise_variant, variant_features
     from optimizer.rendering.region import dilate_px
     from optimizer.rendering.noise import noise_rms
 
@@ -172,14 +172,20 @@ def bench_evaluation(name: str, args) -> dict:
     obj_mask = cov >= 0.5  # the object's own pixels (what a participant searches; the metrics' mask)
 
     def features(obj, spp, seed):
-        """The denoiser's features (first-hit albedo, normal) at min(spp, --aux-spp), the colour's seed; timed."""
-        t = clock()
-        a, n = render_features(env.build(), obj, cams, min(spp, args.aux_spp), seed)
-        return a, n, clock() - t
+        """The denoisers' features at min(spp, --aux-spp), the colour's seed, one render per kind the variants use
+        (first-hit, see-through): ``{variant: (albedo, normal, seconds)}``, each timed."""
+        kinds: dict = {}
+        for d in dens:
+            kind = (denoise_vars[d].see_through, denoise_vars[d].sharp)
+            if kind not in kinds:
+                t = clock()
+                a, n = variant_features(d, env.build(), obj, cams, min(spp, args.aux_spp), seed)
+                kinds[kind] = (a, n, clock() - t)
+        return {d: kinds[(denoise_vars[d].see_through, denoise_vars[d].sharp)] for d in dens}
 
     def denoised(img, feats, variant):
         t = clock()
-        out = denoise_variant(img, feats[0], feats[1], variant)
+        out = denoise_variant(img, feats[variant][0], feats[variant][1], variant)
         return out, clock() - t
 
     def full_render(spp, seed):
@@ -229,12 +235,12 @@ def bench_evaluation(name: str, args) -> dict:
                 row[f"plan-rr{rr}_error"] = math.sqrt(max(srgb_rms(r_img, ref) ** 2 - ref_var, 0.0))
             if dens:
                 fe = features(mesh, spp, seed)
-                row["features_seconds"] = fe[2]
                 bg_fe = features(None, spp, seed) if spp == args.eval_spp else None  # shared: not timed
                 for d in dens:
                     for who, img, s_ in (("plan", p_img, p_s), ("full", f_img, f_s)):
                         out, d_s = denoised(img, fe, d)
-                        row[f"{who}+{d}_seconds"] = s_ + fe[2] + d_s
+                        row[f"{d}_features_seconds"] = fe[d][2]
+                        row[f"{who}+{d}_seconds"] = s_ + fe[d][2] + d_s
                         row[f"{who}+{d}_error"] = math.sqrt(max(srgb_rms(out, ref) ** 2 - ref_var, 0.0))
                         row[f"{who}+{d}_denoise_seconds"] = d_s
                         if who == "plan" and spp == args.eval_spp:
@@ -303,7 +309,7 @@ def bench_evaluation(name: str, args) -> dict:
             "full_denoised_speedup": t_full / seconds_at(_mean_curve(rows, f"full+{d}"), e_full),
             "full_curve": _mean_curve(rows, f"full+{d}"),
             "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise, "object": on_object,
-            "features_seconds": float(np.min([r["features_seconds"] for r in rows if r["spp"] == s])),
+            "features_seconds": float(np.min([r[f"{d}_features_seconds"] for r in rows if r["spp"] == s])),
             "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
     rr_out = {}
     for rr in args.rr_depths:
@@ -559,7 +565,8 @@ def main() -> None:
                     "allocation.py VARIANTS: local, sturdy, sturdy-floor)")
     ap.add_argument("--denoisers", default="", help="also the plan and full tracing denoised by Open Image Denoise "
                     "(comma list of optimizer/rendering/denoise.py VARIANTS: oidn, oidn-balanced, oidn-raw, "
-                    "oidn-color), interleaved; the features' render and the denoising are timed")
+                    "oidn-through, oidn-through-sharp, oidn-color), interleaved; the features' render (one per kind: "
+                    "first-hit, see-through, see-through sharp) and the denoising are timed")
     ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
                     "(comma list; the plan's own is 5), interleaved")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
