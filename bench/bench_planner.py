@@ -343,7 +343,11 @@ def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mas
     noise subtracted; ``noise``: one seed's RMS deviation from the seeds' mean over the mask (ddof 1);
     ``detail``: mean over seeds and views of :func:`evaluation.metrics.detail_ratio.detail_ratio` of the render
     against the reference in the mask (1 = the reference's texture energy, < 1 smoothed, > 1 speckle: noise adds
-    to it). NaNs where fewer than two seeds or no mask."""
+    to it). The reference has noise of its own on a see-through object (its caustics converge slowly), which adds
+    to its texture energy: ``ref_detail_2x`` is the detail of the two references' mean (twice the spp) against
+    ``ref``, and ``converged`` its extrapolation to infinite spp, ``sqrt(2 d^2 - 1)`` (the reference's Laplacian
+    energy = texture + noise / spp, the detail ratio taken as its square root), so that ``detail / converged`` is
+    the render's detail against the converged render's. NaNs where fewer than two seeds or no mask."""
     from camo_base.imaging import linear_to_srgb
     from evaluation.metrics.detail_ratio import detail_ratio
 
@@ -361,8 +365,12 @@ def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mas
                               mask[v]))
            for x in e for v in range(len(mask)) if mask[v].any()]
     det = [x for x in det if math.isfinite(x)]
+    both = linear_to_srgb(np.clip((ref + ref2) / 2, 0, None)).astype(np.float64)
+    d2 = [float(detail_ratio(np.clip(both[v], 0, 1).astype(np.float32), np.clip(r_[v], 0, 1).astype(np.float32),
+                             mask[v])) for v in range(len(mask)) if mask[v].any()]
+    d2 = float(np.mean([x for x in d2 if math.isfinite(x)] or [float("nan")]))
     return {"bias": bias, "noise": math.sqrt(var), "detail": float(np.mean(det)) if det else float("nan"),
-            "pixels": int(mask.sum())}
+            "pixels": int(mask.sum()), "ref_detail_2x": d2, "converged": math.sqrt(max(2 * d2 ** 2 - 1, 1e-6))}
 
 
 def clamped_seconds(curve: list[tuple[float, float]], error: float, seconds: float) -> tuple[float, bool]:
@@ -762,18 +770,23 @@ def print_tables(results: dict) -> None:
                   f"see-through) at {a['eval_spp']} spp, {k} seeds, against the reference (sRGB /255): the bias of the "
                   "seeds' mean (spread and reference noise subtracted) beside one seed's noise, and the detail ratio "
                   "(mean |Laplacian| of the luma against the reference's; 1 = its texture, < 1 smoothed, > 1 noise). "
-                  "The plan's own object bias is the estimator's floor (the plan is unbiased over the frame; 3 seeds "
+                  "The reference's own noise adds to its detail: the two references' mean (2x spp) against it, and "
+                  "its extrapolation to infinite spp, sqrt(2 d^2 - 1), by which the detail is divided to give the "
+                  "detail against the converged render. The plan's own object bias is the estimator's floor (the plan is unbiased over the frame; 3 seeds "
                   "with fireflies leave their spread poorly estimated). Whole-frame bias from the table above\n")
             print(f"| scene | object px | whole-frame bias, plan + {d} | object bias, plan + {d} | object noise, "
                   f"plan + {d} | object bias, plan | object noise, plan | detail, plan + {d} | detail, plan | "
+                  f"reference at 2x spp: detail / converged (extrapolated) | detail vs converged, plan + {d} | "
                   f"object bias of plan + {d} below the plan's noise / below its own noise? |")
-            print("|---|---|---|---|---|---|---|---|---|---|")
+            print("|---|---|---|---|---|---|---|---|---|---|---|---|")
             for r in ob:
                 x = r["denoisers"][d]
                 o_d, o_p = x["object"]["denoised"], x["object"]["plan"]
                 print(f"| {r['scene']} | {o_d['pixels']} | {x['bias_at_spp'] * 255:.2f} | {o_d['bias'] * 255:.2f} | "
                       f"{o_d['noise'] * 255:.2f} | {o_p['bias'] * 255:.2f} | {o_p['noise'] * 255:.2f} | "
                       f"{o_d['detail']:.2f} | {o_p['detail']:.2f} | "
+                      f"{o_d.get('ref_detail_2x', float('nan')):.2f} / {o_d.get('converged', float('nan')):.2f} | "
+                      f"{o_d['detail'] / o_d.get('converged', float('nan')):.2f} | "
                       f"{'yes' if o_d['bias'] < o_p['noise'] else 'no'} / "
                       f"{'yes' if o_d['bias'] < o_d['noise'] else 'no'} |")
             print()
