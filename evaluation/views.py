@@ -162,8 +162,8 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
 
 
-#: The denoiser's features (first-hit albedo, normal) are rendered at min(spp, FEATURE_SPP) (bench/bench_planner.py
-#: ``--aux-spp``, the setting measured).
+#: The denoiser's features (albedo, normal: first-hit or see-through, as its variant says) are rendered at
+#: min(spp, FEATURE_SPP) (bench/bench_planner.py ``--aux-spp``, the setting measured).
 FEATURE_SPP = 16
 
 
