@@ -107,26 +107,6 @@ def render_features(elements: dict, obj, cams: Sequence, spp: int, seed: int = 0
     return albedo, normal
 
 
-def _stratified_rays(cam, ss: int, gen: np.random.Generator | None = None):
-    """``ss x ss`` camera rays per pixel, ordered (pixel row, pixel col, sub-row, sub-col): one per stratum, at its
-    centre or, with ``gen``, uniformly jittered within it (:func:`optimizer.rendering.render.camera_rays` with
-    jitter)."""
-    import mitsuba as mi
-
-    from optimizer.rendering import scene as scn
-
-    sensor = mi.load_dict(scn.perspective(cam, spp=1))
-    w, h = cam.width, cam.height
-    idx = np.arange(w * h * ss * ss)
-    sub, pix = idx % (ss * ss), idx // (ss * ss)
-    jx, jy = (gen.random((2, len(idx))) if gen is not None else np.full((2, len(idx)), 0.5))
-    px = (pix % w + (sub % ss + jx) / ss) / w
-    py = (pix // w + (sub // ss + jy) / ss) / h
-    rays, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px.astype(np.float32), py.astype(np.float32)),
-                                mi.Point2f(0.5, 0.5))
-    return rays
-
-
 def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, seed: int = 0,
                          lobe: bool = True, jitter: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The see-through albedo and normal of every view (module docstring), ``((V, H, W, 3), (V, H, W, 3))``
@@ -150,6 +130,7 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     import mitsuba as mi
 
     from optimizer.rendering import scene as scn
+    from optimizer.rendering.render import camera_rays
 
     ss = max(1, int(round(float(spp) ** 0.5)))
     sc = scn.build_scene(elements, obj)
@@ -160,7 +141,7 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     # opaque: a value baked into the kernel as a literal would compile a new kernel per seed or index (measured 0.2 s)
     eta = dr.opaque(mi.Float, float(params["eta"][0]) if "eta" in params else 1.5)
     gen = np.random.default_rng(int(seed))
-    rays = [_stratified_rays(cam, ss, gen if jitter else None) for cam in cams]  # every view in one wavefront
+    rays = [camera_rays(cam, ss, gen if jitter else None) for cam in cams]  # every view in one wavefront
     sizes = [cam.width * cam.height * ss * ss for cam in cams]
     ray = mi.Ray3f(mi.Point3f(np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)),
                    mi.Vector3f(np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)))
