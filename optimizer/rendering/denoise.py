@@ -43,6 +43,7 @@ import numpy as np
 #: ``aov`` integrator setting of the feature pass: first-hit albedo and shading normal.
 FEATURES_AOV = {"type": "aov", "aovs": "albedo:albedo,normal:sh_normal"}
 
+
 class Variant(NamedTuple):
     """A denoiser setting: whether it uses the albedo and normal features, prefilters them (``cleanAux``), OIDN's
     quality, and whether the features are the see-through kind (:func:`see_through_features`)."""
