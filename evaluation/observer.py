@@ -140,7 +140,8 @@ from camo_base.errors import CamoError
 
 #: The observer's settings that take one of a few words (the default first).
 _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
-            "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background")}
+            "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background"),
+            "props": ("scene", "none"), "click": ("body", "peak")}
 
 
 @dataclass(frozen=True)
@@ -277,6 +278,11 @@ class ObserverConfig:
     #: -> ``(1, 1, h, w)`` (or ``(1, h, w)``) scores, higher = more conspicuous; resized to the feature grid and
     #: z-scored like the weight-free map. Never downloaded; "" = the weight-free model.
     saliency_model: str = ""
+    #: The scene's props (crates, walls, a box in a room): "scene" (default) -- the things the object-free view
+    #: holds (:func:`scene_props`) are known as part of the scene, like the sky: they carry no object evidence,
+    #: so they neither draw the search nor pass verification, and do not raise the null around them; "none".
+    props: str = "scene"
+    click: str = "body"
 
     def validate(self) -> None:
         for f in dataclasses.fields(self):
@@ -695,7 +701,16 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
             shadow, obj = (sh, zo) if shadow is None else (np.maximum(shadow, sh), np.maximum(obj, zo))
     if cfg.saliency_model:
         sky = np.zeros(obj.shape, bool)
+    bgm = props = None
+    if regional and background is not None:
+        # the object-free view's own maps: the verification's null below, and the scene's props
+        same = background if cfg.shadow_reference == "background" else None
+        bgm = evidence_maps(background, cfg, same, regional=False, segments=segments)
+        if cfg.props == "scene" and not cfg.saliency_model:
+            props = scene_props(bgm, cfg)
     obj = np.where(sky, np.minimum(obj, 0.0), obj)  # no object rests on the sky (ground support)
+    if props is not None:  # on a known prop only what the object-free view does not have there counts
+        obj = np.where(props, obj - np.maximum(bgm.obj, 0.0), obj)
     # object-likeness at each expected size: the object evidence pooled over a disc of that size minus the largest
     # pooled evidence on a ring just outside it (a compact thing differs from its surround on every side; an edge
     # or a horizon runs through its own ring)
@@ -707,9 +722,13 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         # and spread, over the surround); from the object-free view when there is one, else from the image
         # (with shadow_reference "background" the object-free view is its own reference -- nothing in it is darker
         # than itself -- as at the image's places the object leaves unchanged)
-        same = background if cfg.shadow_reference == "background" else None
-        ref = verify if background is None else evidence_maps(background, cfg, same, regional=False,
-                                                              segments=segments).verify
+        if bgm is None:
+            ref = verify
+        elif props is None:
+            ref = bgm.verify
+        else:  # the props are known in the object-free view as well: they do not raise the null around them
+            ob_ = np.where(bgm.sky | props, np.minimum(bgm.obj, 0.0), bgm.obj)
+            ref = np.max([_compactness(ob_, size / 2.0 * ppd) for size in sizes], axis=0)
         ground = ~sky
         sig = cfg.surround_sigma_deg * ppd
         mu = _seg_blur(ref, sig, segments)
@@ -726,6 +745,26 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         g = g + cfg.shadow_gain * np.maximum(near - own, 0.0)  # around the shadow, not on it
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky)
+
+
+#: Object evidence (d', z over the ground) from which a place of the object-free view connected to a prop's
+#: compact core belongs to the same prop (:func:`scene_props`): 2, the 98th percentile of a normal ground.
+PROP_EVIDENCE = 2.0
+
+
+def scene_props(bg_maps: Maps, config: ObserverConfig | None = None) -> np.ndarray:
+    """``(h, w)`` bool: the places of the *object-free* view (its :class:`Maps`, computed with ``regional=False``)
+    that belong to a prop of the scene -- a thing that stands out from the ground as compactly as an object must:
+    its priority (object-sized compactness, z over the ground) at least ``criterion``, on places whose own object
+    evidence is at least :data:`PROP_EVIDENCE`."""
+    from scipy import ndimage
+
+    cfg = config or ObserverConfig()
+    ground = ~bg_maps.sky
+    core = (bg_maps.guidance >= cfg.criterion) & ground
+    lab, _ = ndimage.label((bg_maps.obj >= PROP_EVIDENCE) & ground)
+    keep = np.unique(lab[core])
+    return core | np.isin(lab, keep[keep > 0])
 
 
 #: Pooling of the features that tell one ground from another (Gaussian sigma, degrees): half a degree, a third of
@@ -1035,6 +1074,8 @@ def make_cells(image: np.ndarray, config: ObserverConfig | None = None, maps: Ma
     # the click: from the window's best place up the evidence to its local peak (the candidate's centre, not the
     # edge of the window nearest to it)
     py, px = _climb(maps.verify, py.ravel(), px.ravel())
+    if cfg.click == "body":
+        py, px = _climb(_gauss(maps.obj.astype(np.float64), cfg.verify_sigma_deg * ppd), py, px)
     py, px = py.reshape(cy.shape), px.reshape(cx.shape)
     sy, sx = H / h, W / w
     click = np.stack([np.clip(((px + 0.5) * sx).astype(int), 0, W - 1),
