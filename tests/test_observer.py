@@ -680,8 +680,13 @@ def test_decision_and_surround_settings_are_checked():
         ObserverConfig(surround="sky").validate()
     with pytest.raises(CamoError, match="decision_time_s must be > 0"):
         ObserverConfig(decision_time_s=0).validate()
-    cfg = parse_observer("decision=threshold, surround=all, decision_time_s=0.8")
-    assert (cfg.decision, cfg.surround, cfg.decision_time_s) == ("threshold", "all", 0.8)
+    with pytest.raises(CamoError, match=r"^observer props must be 'scene' or 'none', not 'all'$"):
+        ObserverConfig(props="all").validate()
+    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'peak', not 'centre'$"):
+        ObserverConfig(click="centre").validate()
+    cfg = parse_observer("decision=threshold, surround=all, decision_time_s=0.8, props=none, click=peak")
+    assert (cfg.decision, cfg.surround, cfg.decision_time_s, cfg.props, cfg.click) == ("threshold", "all", 0.8,
+                                                                                     "none", "peak")
 
 
 def crate(bg: np.ndarray, x0: int, y0: int, w: int = 40, h: int = 34) -> tuple[np.ndarray, np.ndarray]:
