@@ -121,9 +121,10 @@ the human range for plainly visible objects (:data:`HUMAN_VISIBLE`: confusion <=
 other constant comes from the sources cited (the decision's time scale from Palmer, Huk & Shadlen 2005; the
 grounds' separation from the overlap of two normal distributions; the shape cue's window and thresholds from the
 study's object sizes and the geometry of a half-plane -- the cue was made the default after one on/off comparison
-on the nine visible cells; the diffusion decision and the own-ground surround after one comparison each, with
-the former settings kept as options: ``decision="threshold"``, ``surround="all"``); nothing is fitted to any image
-metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
+on the nine visible cells; the diffusion decision, the own-ground surround, the scene's props and the click on the
+body after one comparison each, with the former settings kept as options: ``decision="threshold"``,
+``surround="all"``, ``props="none"``, ``click="peak"``; the props' core is the verification criterion itself, their
+extent the 98th percentile of a normal ground); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
 the built-in scenes' stimuli, and where and why they part.
 
 Outputs: :func:`simulate_search` (per simulated trial: click, time, found), :func:`predict_stimulus` (probability
