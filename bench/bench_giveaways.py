@@ -64,6 +64,14 @@ ARMS = {
     "tint1_auto": ["--tint-match", "1", "--clear-candidate", "1.05"],
     # its local form: the colour error low-passed by a Gaussian of 2 px, each pixel its own neighbourhood's cast
     "tint4_s2": ["--tint-match", "4", "--tint-scale", "2"],
+    # a coarse level under the albedo and transmittance maps (optimizer/optimise/coarse.py): the body's colour moved as
+    # a whole by Adam at its own rate (1: one offset per channel; 4: 4 x 4 cells over the atlas); alone, with clear
+    # glass per scene, and at twice the maps' rate
+    "coarse1": ["--coarse-grid", "1"],
+    "coarse1_auto": ["--coarse-grid", "1", "--clear-candidate", "1.05"],
+    "coarse4_auto": ["--coarse-grid", "4", "--clear-candidate", "1.05"],
+    "coarse1_lr3_auto": ["--coarse-grid", "1", "--coarse-lr", "3e-2", "--clear-candidate", "1.05"],
+    "coarse1_tint1_auto": ["--coarse-grid", "1", "--tint-match", "1", "--clear-candidate", "1.05"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -207,6 +215,9 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "clear": "ours, IOR 1.05, R0 0.2", "auto": "ours, clear chosen per scene",
           "tint4": "ours + tint 4", "tint16": "ours + tint 16", "tint4_auto": "tint 4 + clear per scene",
           "tint16_auto": "tint 16 + clear per scene", "tint1_auto": "tint 1 + clear per scene", "tint4_s2": "ours + local tint 4",
+          "coarse1": "ours + coarse 1", "coarse1_auto": "coarse 1 + clear per scene",
+          "coarse4_auto": "coarse 4 + clear per scene", "coarse1_lr3_auto": "coarse 1 (lr 3e-2) + clear",
+          "coarse1_tint1_auto": "coarse 1 + tint 1 + clear",
           "mean": "Mean"}
 
 
