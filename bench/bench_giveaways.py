@@ -72,6 +72,7 @@ ARMS = {
     "coarse4_auto": ["--coarse-grid", "4", "--clear-candidate", "1.05"],
     "coarse1_lr3_auto": ["--coarse-grid", "1", "--coarse-lr", "3e-2", "--clear-candidate", "1.05"],
     "coarse1_tint1_auto": ["--coarse-grid", "1", "--tint-match", "1", "--clear-candidate", "1.05"],
+    "coarse1_lr3": ["--coarse-grid", "1", "--coarse-lr", "3e-2"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -263,7 +264,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "tint16_auto": "tint 16 + clear per scene", "tint1_auto": "tint 1 + clear per scene", "tint4_s2": "ours + local tint 4",
           "coarse1": "ours + coarse 1", "coarse1_auto": "coarse 1 + clear per scene",
           "coarse4_auto": "coarse 4 + clear per scene", "coarse1_lr3_auto": "coarse 1 (lr 3e-2) + clear",
-          "coarse1_tint1_auto": "coarse 1 + tint 1 + clear",
+          "coarse1_tint1_auto": "coarse 1 + tint 1 + clear", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
           "mean": "Mean"}
 
 
