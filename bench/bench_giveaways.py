@@ -75,6 +75,7 @@ ARMS = {
     "coarse1_lr3": ["--coarse-grid", "1", "--coarse-lr", "3e-2"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
     "lr2": ["--lr-maps", "2e-2"],
+    "lr2_auto": ["--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -267,7 +268,7 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "coarse1": "ours + coarse 1", "coarse1_auto": "coarse 1 + clear per scene",
           "coarse4_auto": "coarse 4 + clear per scene", "coarse1_lr3_auto": "coarse 1 (lr 3e-2) + clear",
           "coarse1_tint1_auto": "coarse 1 + tint 1 + clear", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
-          "lr2": "ours, map rate 2e-2",
+          "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 
 
