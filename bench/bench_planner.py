@@ -163,7 +163,7 @@ def bench_evaluation(name: str, args) -> dict:
             out = img, clock() - t, float(reg.masks.mean()), reg.steps
         return (*out, bg) if with_background else out
 
-    from optimizer.rendering.denoise import denoise_variant, render_features
+    from optimizer.rendering.denoise import VARIANTS as denoise_vars, denoise_variant, variant_features
     from optimizer.rendering.region import dilate_px
     from optimizer.rendering.noise import noise_rms
 
@@ -172,14 +172,20 @@ def bench_evaluation(name: str, args) -> dict:
     obj_mask = cov >= 0.5  # the object's own pixels (what a participant searches; the metrics' mask)
 
     def features(obj, spp, seed):
-        """The denoiser's features (first-hit albedo, normal) at min(spp, --aux-spp), the colour's seed; timed."""
-        t = clock()
-        a, n = render_features(env.build(), obj, cams, min(spp, args.aux_spp), seed)
-        return a, n, clock() - t
+        """The denoisers' features at min(spp, --aux-spp), the colour's seed, one render per kind the variants use
+        (first-hit, see-through): ``{variant: (albedo, normal, seconds)}``, each timed."""
+        kinds: dict = {}
+        for d in dens:
+            kind = (denoise_vars[d].see_through, denoise_vars[d].sharp)
+            if kind not in kinds:
+                t = clock()
+                a, n = variant_features(d, env.build(), obj, cams, min(spp, args.aux_spp), seed)
+                kinds[kind] = (a, n, clock() - t)
+        return {d: kinds[(denoise_vars[d].see_through, denoise_vars[d].sharp)] for d in dens}
 
     def denoised(img, feats, variant):
         t = clock()
-        out = denoise_variant(img, feats[0], feats[1], variant)
+        out = denoise_variant(img, feats[variant][0], feats[variant][1], variant)
         return out, clock() - t
 
     def full_render(spp, seed):
@@ -229,12 +235,12 @@ def bench_evaluation(name: str, args) -> dict:
                 row[f"plan-rr{rr}_error"] = math.sqrt(max(srgb_rms(r_img, ref) ** 2 - ref_var, 0.0))
             if dens:
                 fe = features(mesh, spp, seed)
-                row["features_seconds"] = fe[2]
                 bg_fe = features(None, spp, seed) if spp == args.eval_spp else None  # shared: not timed
                 for d in dens:
                     for who, img, s_ in (("plan", p_img, p_s), ("full", f_img, f_s)):
                         out, d_s = denoised(img, fe, d)
-                        row[f"{who}+{d}_seconds"] = s_ + fe[2] + d_s
+                        row[f"{d}_features_seconds"] = fe[d][2]
+                        row[f"{who}+{d}_seconds"] = s_ + fe[d][2] + d_s
                         row[f"{who}+{d}_error"] = math.sqrt(max(srgb_rms(out, ref) ** 2 - ref_var, 0.0))
                         row[f"{who}+{d}_denoise_seconds"] = d_s
                         if who == "plan" and spp == args.eval_spp:
@@ -303,7 +309,7 @@ def bench_evaluation(name: str, args) -> dict:
             "full_denoised_speedup": t_full / seconds_at(_mean_curve(rows, f"full+{d}"), e_full),
             "full_curve": _mean_curve(rows, f"full+{d}"),
             "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise, "object": on_object,
-            "features_seconds": float(np.min([r["features_seconds"] for r in rows if r["spp"] == s])),
+            "features_seconds": float(np.min([r[f"{d}_features_seconds"] for r in rows if r["spp"] == s])),
             "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
     rr_out = {}
     for rr in args.rr_depths:
@@ -337,7 +343,11 @@ def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mas
     noise subtracted; ``noise``: one seed's RMS deviation from the seeds' mean over the mask (ddof 1);
     ``detail``: mean over seeds and views of :func:`evaluation.metrics.detail_ratio.detail_ratio` of the render
     against the reference in the mask (1 = the reference's texture energy, < 1 smoothed, > 1 speckle: noise adds
-    to it). NaNs where fewer than two seeds or no mask."""
+    to it). The reference has noise of its own on a see-through object (its caustics converge slowly), which adds
+    to its texture energy: ``ref_detail_2x`` is the detail of the two references' mean (twice the spp) against
+    ``ref``, and ``converged`` its extrapolation to infinite spp, ``sqrt(2 d^2 - 1)`` (the reference's Laplacian
+    energy = texture + noise / spp, the detail ratio taken as its square root), so that ``detail / converged`` is
+    the render's detail against the converged render's. NaNs where fewer than two seeds or no mask."""
     from camo_base.imaging import linear_to_srgb
     from evaluation.metrics.detail_ratio import detail_ratio
 
@@ -355,8 +365,12 @@ def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mas
                               mask[v]))
            for x in e for v in range(len(mask)) if mask[v].any()]
     det = [x for x in det if math.isfinite(x)]
+    both = linear_to_srgb(np.clip((ref + ref2) / 2, 0, None)).astype(np.float64)
+    d2 = [float(detail_ratio(np.clip(both[v], 0, 1).astype(np.float32), np.clip(r_[v], 0, 1).astype(np.float32),
+                             mask[v])) for v in range(len(mask)) if mask[v].any()]
+    d2 = float(np.mean([x for x in d2 if math.isfinite(x)] or [float("nan")]))
     return {"bias": bias, "noise": math.sqrt(var), "detail": float(np.mean(det)) if det else float("nan"),
-            "pixels": int(mask.sum())}
+            "pixels": int(mask.sum()), "ref_detail_2x": d2, "converged": math.sqrt(max(2 * d2 ** 2 - 1, 1e-6))}
 
 
 def clamped_seconds(curve: list[tuple[float, float]], error: float, seconds: float) -> tuple[float, bool]:
@@ -559,7 +573,8 @@ def main() -> None:
                     "allocation.py VARIANTS: local, sturdy, sturdy-floor)")
     ap.add_argument("--denoisers", default="", help="also the plan and full tracing denoised by Open Image Denoise "
                     "(comma list of optimizer/rendering/denoise.py VARIANTS: oidn, oidn-balanced, oidn-raw, "
-                    "oidn-color), interleaved; the features' render and the denoising are timed")
+                    "oidn-through, oidn-through-sharp, oidn-color), interleaved; the features' render (one per kind: "
+                    "first-hit, see-through, see-through sharp) and the denoising are timed")
     ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
                     "(comma list; the plan's own is 5), interleaved")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
@@ -755,18 +770,23 @@ def print_tables(results: dict) -> None:
                   f"see-through) at {a['eval_spp']} spp, {k} seeds, against the reference (sRGB /255): the bias of the "
                   "seeds' mean (spread and reference noise subtracted) beside one seed's noise, and the detail ratio "
                   "(mean |Laplacian| of the luma against the reference's; 1 = its texture, < 1 smoothed, > 1 noise). "
-                  "The plan's own object bias is the estimator's floor (the plan is unbiased over the frame; 3 seeds "
+                  "The reference's own noise adds to its detail: the two references' mean (2x spp) against it, and "
+                  "its extrapolation to infinite spp, sqrt(2 d^2 - 1), by which the detail is divided to give the "
+                  "detail against the converged render. The plan's own object bias is the estimator's floor (the plan is unbiased over the frame; 3 seeds "
                   "with fireflies leave their spread poorly estimated). Whole-frame bias from the table above\n")
             print(f"| scene | object px | whole-frame bias, plan + {d} | object bias, plan + {d} | object noise, "
                   f"plan + {d} | object bias, plan | object noise, plan | detail, plan + {d} | detail, plan | "
+                  f"reference at 2x spp: detail / converged (extrapolated) | detail vs converged, plan + {d} | "
                   f"object bias of plan + {d} below the plan's noise / below its own noise? |")
-            print("|---|---|---|---|---|---|---|---|---|---|")
+            print("|---|---|---|---|---|---|---|---|---|---|---|---|")
             for r in ob:
                 x = r["denoisers"][d]
                 o_d, o_p = x["object"]["denoised"], x["object"]["plan"]
                 print(f"| {r['scene']} | {o_d['pixels']} | {x['bias_at_spp'] * 255:.2f} | {o_d['bias'] * 255:.2f} | "
                       f"{o_d['noise'] * 255:.2f} | {o_p['bias'] * 255:.2f} | {o_p['noise'] * 255:.2f} | "
                       f"{o_d['detail']:.2f} | {o_p['detail']:.2f} | "
+                      f"{o_d.get('ref_detail_2x', float('nan')):.2f} / {o_d.get('converged', float('nan')):.2f} | "
+                      f"{o_d['detail'] / o_d.get('converged', float('nan')):.2f} | "
                       f"{'yes' if o_d['bias'] < o_p['noise'] else 'no'} / "
                       f"{'yes' if o_d['bias'] < o_d['noise'] else 'no'} |")
             print()

@@ -63,7 +63,7 @@ def compare(variants: list[tuple[str, list[Path]]]) -> str:
     from scipy.stats import spearmanr
 
     visible = ("Mean [6]", "Random [6]", "Transparent")
-    cells, inrange, ev = {}, {}, {}
+    cells, inrange, n_visible, ev = {}, {}, {}, {}
     for name, dirs in variants:
         views, trials, _ = load_simulated(dirs)
         f = views[views["p_found"] > 0]
@@ -79,6 +79,7 @@ def compare(variants: list[tuple[str, list[Path]]]) -> str:
             ok = (lab in visible and r.confusion_rate <= HUMAN_VISIBLE["max_confusion"]
                   and lo <= r.mean_time_found_s <= hi)
             inrange[name] = inrange.get(name, 0) + ok
+            n_visible[name] = n_visible.get(name, 0) + (lab in visible)
             cells.setdefault((lab != "Ours", scene, lab), {})[name] = (
                 f"{100 * r.confusion_rate:.1f} % / {r.mean_time_found_s:.2f} s" + (" *" if ok else ""))
     names = [n for n, _ in variants]
@@ -88,8 +89,8 @@ def compare(variants: list[tuple[str, list[Path]]]) -> str:
         hum = PAPER_TABLE_I.get(lab)
         out.append(f"| {scene} {lab} | " + " | ".join(cells[key].get(n, "—") for n in names) + " | "
                    + (f"{100 * hum[0]:.1f} % / {hum[1]:.2f} s" if hum else "—") + " |")
-    out.append("| **visible cells in the human range** | " + " | ".join(f"**{inrange.get(n, 0)} of 9**" for n in names)
-               + " | |")
+    out.append("| **visible cells in the human range** | "
+               + " | ".join(f"**{inrange.get(n, 0)} of {n_visible.get(n, 0)}**" for n in names) + " | |")
     out.append("| evidence vs time: Spearman's rho of the object's evidence and the mean time of finds over the "
                "stimuli found at all; mean time of finds with evidence < 10 (n) vs >= 10 (n) | "
                + " | ".join(ev[n] for n in names) + " | |")

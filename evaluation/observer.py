@@ -74,7 +74,11 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    or a shadow's border runs through two opposite sides; z-scored per size over the ground, maximum over sizes. A
    cast shadow is evidence that an object is *near* (it touches the ground where its shadow begins): the shadow
    evidence ``S * D``, spread over one object size, adds ``shadow_gain`` of itself to the priority *around* the
-   shadow -- not on it, and never to the verification of the shadow itself.
+   shadow -- not on it, and never to the verification of the shadow itself. **The scene's props** (``props``,
+   :func:`scene_props`): the compact things of the object-free view -- a crate, a wall, a ceiling light -- are
+   known as the scene's own furniture, as a participant recognises them at a glance; on them only the evidence
+   the object-free view lacks there counts (in the image and in step 5's null), so they neither draw the search
+   nor pass verification, nor raise the bar of a target beside them.
 4. **Fixations** (Najemnik & Geisler 2005/2009; Itti & Koch 2001): at onset the eyes are at the image centre
    (central fixation bias at onset, Tatler 2007, JoV 7(14)) and the first saccade is planned there without a
    check (so an object at the centre has no head start). At each fixation the observer sees every cell's priority
@@ -93,8 +97,10 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    2005, JoV 5(5): drift proportional to the stimulus strength), with drift ``k (V - criterion)`` and bounds
    ``+-a`` (:func:`diffusion_parameters`: ``a^2 = decision_time_s``, the mean decision time at the criterion;
    ``k`` such that the probability of the "object" bound is the one-shot rule's ``Phi((V - criterion) /
-   verify_noise)``). "Object here": the observer clicks the local peak of ``V`` it climbs to from there; a
-   background place that passes is a **false verification**, a click off the object, a miss as in the study.
+   verify_noise)``). "Object here": the observer clicks the thing it identified -- from the local peak of ``V``
+   up the object evidence to the body's own peak (``click="body"``; saccades and pointing land on a target's
+   centre of gravity, Findlay 1982, Vishwanath & Kowler 2003); a background place that passes is a **false
+   verification**, a click off the object, a miss as in the study.
    "Background here": search goes on. So weak evidence near the criterion gives slow decisions and errors both
    ways (false verifications and rejected objects), strong evidence fast, sure ones; misses fall as the object's
    evidence rises (it is verified before many background places have been checked); a hidden object leaves only
@@ -115,9 +121,10 @@ the human range for plainly visible objects (:data:`HUMAN_VISIBLE`: confusion <=
 other constant comes from the sources cited (the decision's time scale from Palmer, Huk & Shadlen 2005; the
 grounds' separation from the overlap of two normal distributions; the shape cue's window and thresholds from the
 study's object sizes and the geometry of a half-plane -- the cue was made the default after one on/off comparison
-on the nine visible cells; the diffusion decision and the own-ground surround after one comparison each, with
-the former settings kept as options: ``decision="threshold"``, ``surround="all"``); nothing is fitted to any image
-metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
+on the nine visible cells; the diffusion decision, the own-ground surround, the scene's props and the click on the
+body after one comparison each, with the former settings kept as options: ``decision="threshold"``,
+``surround="all"``, ``props="none"``, ``click="peak"``; the props' core is the verification criterion itself, their
+extent the 98th percentile of a normal ground); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
 the built-in scenes' stimuli, and where and why they part.
 
 Outputs: :func:`simulate_search` (per simulated trial: click, time, found), :func:`predict_stimulus` (probability
@@ -140,7 +147,8 @@ from camo_base.errors import CamoError
 
 #: The observer's settings that take one of a few words (the default first).
 _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
-            "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background")}
+            "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background"),
+            "props": ("scene", "none"), "click": ("body", "peak")}
 
 
 @dataclass(frozen=True)
@@ -277,6 +285,28 @@ class ObserverConfig:
     #: -> ``(1, 1, h, w)`` (or ``(1, h, w)``) scores, higher = more conspicuous; resized to the feature grid and
     #: z-scored like the weight-free map. Never downloaded; "" = the weight-free model.
     saliency_model: str = ""
+    #: The scene's props (occluded's crate and brick walls, panorama's pillar and block, room's ceiling light):
+    #: "scene" (default) -- the compact things of the object-free view and what is connected to them
+    #: (:func:`scene_props`) are known as the scene's own furniture: on them only the object evidence the
+    #: object-free view does not have there counts, in the image and in the verification's null, so a prop neither
+    #: draws the search nor passes verification nor raises the bar of a target beside it, while a target in front
+    #: of a prop keeps what it changes. A participant recognises a crate or a wall as such at a glance (scene gist
+    #: and layout before search, Wolfe, Vo, Evans & Greene 2011; objects identified within a fixation, Henderson &
+    #: Hollingworth 1999, Annu. Rev. Psychol. 50) and does not check it as the camouflaged object again: recognised
+    #: distractors are rejected and their features can be set aside (GS6's identification stage; "templates for
+    #: rejection", Arita, Carlisle & Woodman 2012, JEP:HPP 38). The model has no recogniser, so the object-free
+    #: view of the framing stands for that recognition (it is not contextual cueing: a participant sees one image
+    #: per scene, paper Sec. IV and ``study_site.assign``, so nothing is learned from repeats of a scene). It only
+    #: takes evidence away, and only where the object-free view has a compact thing of its own. "none": the former
+    #: model (props are searched and verified as candidates like any other place).
+    props: str = "scene"
+    #: Where a verified candidate is clicked. "body" (default): from the peak of the verification evidence up the
+    #: object evidence ``O`` (pooled at the foveal scale ``verify_sigma_deg``) to its local maximum -- onto the
+    #: thing that was identified, not the contrast peak at its outline or its shadow: saccades and pointing land
+    #: near the centre of gravity of a target's body (Findlay 1982, Vision Res. 22; Vishwanath & Kowler 2003,
+    #: Vision Res. 43). "peak": the local peak of the verification evidence (the former rule; split's glass vase
+    #: was clicked 1 px outside its outline, at its base where the grounds' border and its shadow meet).
+    click: str = "body"
 
     def validate(self) -> None:
         for f in dataclasses.fields(self):
@@ -695,7 +725,16 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
             shadow, obj = (sh, zo) if shadow is None else (np.maximum(shadow, sh), np.maximum(obj, zo))
     if cfg.saliency_model:
         sky = np.zeros(obj.shape, bool)
+    bgm = props = None
+    if regional and background is not None:
+        # the object-free view's own maps: the verification's null below, and the scene's props
+        same = background if cfg.shadow_reference == "background" else None
+        bgm = evidence_maps(background, cfg, same, regional=False, segments=segments)
+        if cfg.props == "scene" and not cfg.saliency_model:
+            props = scene_props(bgm, cfg)
     obj = np.where(sky, np.minimum(obj, 0.0), obj)  # no object rests on the sky (ground support)
+    if props is not None:  # on a known prop only what the object-free view does not have there counts
+        obj = np.where(props, obj - np.maximum(bgm.obj, 0.0), obj)
     # object-likeness at each expected size: the object evidence pooled over a disc of that size minus the largest
     # pooled evidence on a ring just outside it (a compact thing differs from its surround on every side; an edge
     # or a horizon runs through its own ring)
@@ -707,9 +746,13 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         # and spread, over the surround); from the object-free view when there is one, else from the image
         # (with shadow_reference "background" the object-free view is its own reference -- nothing in it is darker
         # than itself -- as at the image's places the object leaves unchanged)
-        same = background if cfg.shadow_reference == "background" else None
-        ref = verify if background is None else evidence_maps(background, cfg, same, regional=False,
-                                                              segments=segments).verify
+        if bgm is None:
+            ref = verify
+        elif props is None:
+            ref = bgm.verify
+        else:  # the props are known in the object-free view as well: they do not raise the null around them
+            ob_ = np.where(bgm.sky | props, np.minimum(bgm.obj, 0.0), bgm.obj)
+            ref = np.max([_compactness(ob_, size / 2.0 * ppd) for size in sizes], axis=0)
         ground = ~sky
         sig = cfg.surround_sigma_deg * ppd
         mu = _seg_blur(ref, sig, segments)
@@ -726,6 +769,34 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         g = g + cfg.shadow_gain * np.maximum(near - own, 0.0)  # around the shadow, not on it
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky)
+
+
+#: Object evidence (d', z over the ground) from which a place of the object-free view connected to a prop's
+#: compact core belongs to the same prop (:func:`scene_props`): 2, the 98th percentile of a normal ground.
+PROP_EVIDENCE = 2.0
+
+
+def scene_props(bg_maps: Maps, config: ObserverConfig | None = None) -> np.ndarray:
+    """``(h, w)`` bool: the places of the *object-free* view (its :class:`Maps`, computed with ``regional=False``)
+    that belong to a prop of the scene (``ObserverConfig.props``).
+
+    A prop's core is a place of the object-free view that stands out from its ground as compactly as a target
+    must to be verified: its priority (object-sized compactness, z over the ground, step 3) at least the
+    verification ``criterion``. The rest of the same thing -- a wall's middle, whose ring is the wall itself, a
+    crate's faces -- is the connected region of object evidence at least :data:`PROP_EVIDENCE` that holds a core
+    (hysteresis linking, Canny 1986, IEEE PAMI 8). Ground texture rarely forms a core: on the six built-in scenes'
+    object-free views cores lie on occluded's crate and walls, panorama's pillar and block (and their shadows),
+    room's ceiling light and a wall's edge, and, from the grounds alone, on one grass patch (meadow view 1), the
+    horizon under the sun's glow (gravel view 1) and the border of split's two grounds (view 1) -- those places too
+    then count only by what the object-free view lacks there."""
+    from scipy import ndimage
+
+    cfg = config or ObserverConfig()
+    ground = ~bg_maps.sky
+    core = (bg_maps.guidance >= cfg.criterion) & ground
+    lab, _ = ndimage.label((bg_maps.obj >= PROP_EVIDENCE) & ground)
+    keep = np.unique(lab[core])
+    return core | np.isin(lab, keep[keep > 0])
 
 
 #: Pooling of the features that tell one ground from another (Gaussian sigma, degrees): half a degree, a third of
@@ -1035,6 +1106,8 @@ def make_cells(image: np.ndarray, config: ObserverConfig | None = None, maps: Ma
     # the click: from the window's best place up the evidence to its local peak (the candidate's centre, not the
     # edge of the window nearest to it)
     py, px = _climb(maps.verify, py.ravel(), px.ravel())
+    if cfg.click == "body":
+        py, px = _climb(_gauss(maps.obj.astype(np.float64), cfg.verify_sigma_deg * ppd), py, px)
     py, px = py.reshape(cy.shape), px.reshape(cx.shape)
     sy, sx = H / h, W / w
     click = np.stack([np.clip(((px + 0.5) * sx).astype(int), 0, W - 1),

@@ -162,8 +162,8 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
 
 
-#: The denoiser's features (first-hit albedo, normal) are rendered at min(spp, FEATURE_SPP) (bench/bench_planner.py
-#: ``--aux-spp``, the setting measured).
+#: The denoiser's features (albedo, normal: first-hit or see-through, as its variant says) are rendered at
+#: min(spp, FEATURE_SPP) (bench/bench_planner.py ``--aux-spp``, the setting measured).
 FEATURE_SPP = 16
 
 
@@ -222,12 +222,14 @@ class ViewRenderer:
 
     def _denoised(self, env, obj, cams: list[Camera], img: np.ndarray, denoise: str) -> tuple[np.ndarray, float]:
         """``img`` denoised by ``denoise`` with the features of the same scene, cameras and seed
-        (:mod:`optimizer.rendering.denoise`: first-hit albedo and normal at up to :data:`FEATURE_SPP` spp); with the
+        (:mod:`optimizer.rendering.denoise`: the variant's albedo and normal, first-hit or see-through, at up to
+        :data:`FEATURE_SPP` spp); with the
         seconds it took."""
-        from optimizer.rendering.denoise import denoise_variant, render_features
+        from optimizer.rendering.denoise import denoise_variant, variant_features
 
         t = time.perf_counter()
-        albedo, normal = render_features(env.build(), obj, cams, min(self.spp, FEATURE_SPP), render_seed(self.seed))
+        albedo, normal = variant_features(denoise, env.build(), obj, cams, min(self.spp, FEATURE_SPP),
+                                          render_seed(self.seed))
         return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t
 
     def background(self, pack, env, cams: list[Camera], integrator: dict, denoise: str = "") -> Background:

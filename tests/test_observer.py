@@ -680,5 +680,46 @@ def test_decision_and_surround_settings_are_checked():
         ObserverConfig(surround="sky").validate()
     with pytest.raises(CamoError, match="decision_time_s must be > 0"):
         ObserverConfig(decision_time_s=0).validate()
-    cfg = parse_observer("decision=threshold, surround=all, decision_time_s=0.8")
-    assert (cfg.decision, cfg.surround, cfg.decision_time_s) == ("threshold", "all", 0.8)
+    with pytest.raises(CamoError, match=r"^observer props must be 'scene' or 'none', not 'all'$"):
+        ObserverConfig(props="all").validate()
+    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'peak', not 'centre'$"):
+        ObserverConfig(click="centre").validate()
+    cfg = parse_observer("decision=threshold, surround=all, decision_time_s=0.8, props=none, click=peak")
+    assert (cfg.decision, cfg.surround, cfg.decision_time_s, cfg.props, cfg.click) == ("threshold", "all", 0.8,
+                                                                                     "none", "peak")
+
+
+def crate(bg: np.ndarray, x0: int, y0: int, w: int = 40, h: int = 34) -> tuple[np.ndarray, np.ndarray]:
+    """A scene prop painted into the object-free view: a smooth tan box with a darker side face (a crate), and its
+    mask."""
+    img = bg.copy()
+    m = np.zeros(bg.shape[:2], bool)
+    m[y0:y0 + h, x0:x0 + w] = True
+    img[y0:y0 + h, x0:x0 + w] = [0.62, 0.48, 0.3]
+    img[y0:y0 + h, x0 + 2 * w // 3:x0 + w] = [0.42, 0.32, 0.2]
+    return img, m
+
+
+def test_a_scene_prop_is_not_taken_for_the_object():
+    """A crate that is part of the scene (in the object-free view, as in every stimulus of the scene) next to a
+    plainly visible object: with the scene's props known (``props="scene"``, the default) the crate is neither
+    clicked nor in the way; without (``props="none"``) it draws the search and is clicked as the object. The prop
+    knowledge only takes evidence away: the crate's place with an invisible object is not found more often than
+    without the prop, and an object standing right beside the crate is still found."""
+    ground = fine_grass(31)
+    bg, prop = crate(ground, 150, 60)
+    obj = disc(70, 180, 14)
+    img = with_object(bg, obj, 0.75)
+    known = simulate_search(img, n=300, seed=6, mask=obj, background=bg)
+    on_prop = prop[np.maximum(known.click_y, 0), np.maximum(known.click_x, 0)] & known.clicked
+    assert known.found.mean() >= 0.95 and on_prop.mean() <= 0.01
+    unknown = simulate_search(img, n=300, seed=6, mask=obj, background=bg, config=ObserverConfig(props="none"))
+    on_prop_unknown = prop[np.maximum(unknown.click_y, 0), np.maximum(unknown.click_x, 0)] & unknown.clicked
+    assert on_prop_unknown.mean() >= 0.3 and unknown.found.mean() <= 0.7  # the crate wins without the knowledge
+    # beside the crate (its left face 3 px away), still found
+    beside = disc(133, 80, 14)
+    p = predict_stimulus(with_object(bg, beside, 0.75), beside, n=300, seed=6, background=bg)
+    assert p.p_found >= 0.9
+    # nothing to find: the prop's knowledge does not make the invisible object's place a candidate
+    empty = simulate_search(bg, n=300, seed=6, mask=beside, background=bg)
+    assert empty.found.mean() <= 0.03

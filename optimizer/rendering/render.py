@@ -125,8 +125,9 @@ def split_batch(img: np.ndarray, views: int) -> np.ndarray:
     return img.reshape(h, views, vw // views, c).transpose(1, 0, 2, 3).copy()
 
 
-def camera_rays(cam: Camera, ss: int = 4):
-    """Stratified camera rays, ``ss x ss`` per pixel, ordered (pixel row, pixel col, sub-row, sub-col)."""
+def camera_rays(cam: Camera, ss: int = 4, gen: np.random.Generator | None = None):
+    """Stratified camera rays, ``ss x ss`` per pixel, ordered (pixel row, pixel col, sub-row, sub-col): at the
+    strata's centres or, with ``gen``, uniformly jittered within them."""
     import drjit as dr
     import mitsuba as mi
 
@@ -136,8 +137,9 @@ def camera_rays(cam: Camera, ss: int = 4):
     idx = dr.arange(mi.UInt32, n)
     sub = idx % (ss * ss)
     pix = idx // (ss * ss)
-    px = mi.Float(pix % w) + (mi.Float(sub % ss) + 0.5) / ss
-    py = mi.Float(pix // w) + (mi.Float(sub // ss) + 0.5) / ss
+    jx, jy = (mi.Float(0.5), mi.Float(0.5)) if gen is None else (mi.Float(j) for j in gen.random((2, n), np.float32))
+    px = mi.Float(pix % w) + (mi.Float(sub % ss) + jx) / ss
+    py = mi.Float(pix // w) + (mi.Float(sub // ss) + jy) / ss
     pos = mi.Point2f(px / w, py / h)
     rays, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     return rays
