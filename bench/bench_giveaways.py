@@ -64,6 +64,18 @@ ARMS = {
     "tint1_auto": ["--tint-match", "1", "--clear-candidate", "1.05"],
     # its local form: the colour error low-passed by a Gaussian of 2 px, each pixel its own neighbourhood's cast
     "tint4_s2": ["--tint-match", "4", "--tint-scale", "2"],
+    # a coarse level under the albedo and transmittance maps (optimizer/optimise/coarse.py): the body's colour moved as
+    # a whole by Adam at its own rate (1: one offset per channel; 4: 4 x 4 cells over the atlas); alone, with clear
+    # glass per scene, and at twice the maps' rate
+    "coarse1": ["--coarse-grid", "1"],
+    "coarse1_auto": ["--coarse-grid", "1", "--clear-candidate", "1.05"],
+    "coarse4_auto": ["--coarse-grid", "4", "--clear-candidate", "1.05"],
+    "coarse1_lr3_auto": ["--coarse-grid", "1", "--coarse-lr", "3e-2", "--clear-candidate", "1.05"],
+    "coarse1_tint1_auto": ["--coarse-grid", "1", "--tint-match", "1", "--clear-candidate", "1.05"],
+    "coarse1_lr3": ["--coarse-grid", "1", "--coarse-lr", "3e-2"],
+    # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
+    "lr2": ["--lr-maps", "2e-2"],
+    "lr2_auto": ["--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
@@ -200,6 +212,52 @@ def table(out: Path, scenes, arms) -> str:
     return "\n".join(lines)
 
 
+def shadow_table(out: Path, scenes, arms) -> str:
+    """What the cast shadow costs, per scene and arm (crop rows, mean over views): the shadow's share of the crop's
+    pixels, of its squared error and of its real LPIPS (the Shapley split of :mod:`evaluation.giveaway`, AlexNet; NaN
+    without the weights), the crop PSNR of the saved 8-bit renders and the crop PSNR the same renders would have if
+    the shadow's pixels matched the background (the object's and the rest's error only): the most that a change
+    of the object's material, which leaves its shadow as it is, could win."""
+    import numpy as np
+    import pandas as pd
+
+    from evaluation.giveaway import split_eval_dir
+
+    try:
+        from evaluation.metrics.lpips import load_lpips, lpips
+        model = load_lpips("alex")
+        lpips_fn = lambda x, y: lpips(x, y, model).tolist()  # noqa: E731
+    except Exception:  # noqa: BLE001 - weights missing: the LPIPS column says NaN
+        lpips_fn = None
+    lines = ["| scene | arm | shadow pixels | shadow share of squared error | shadow share of LPIPS | crop PSNR (8 bit) | "
+             "crop PSNR, shadow matched |", "|---|---|---|---|---|---|---|"]
+    rows = []
+    for scene in scenes:
+        evals = [d for d in sorted(out.glob(f"eval*/{scene}")) if (d / "metrics.parquet").is_file()]
+        for arm in arms:
+            d = next((d for d in evals if (d / "renders" / f"{scene}-{arm}").is_dir()), None)
+            if d is None:
+                continue
+            sp = split_eval_dir(d, lpips_fn)
+            sp = sp[(sp.region == "crop") & (sp.run == f"{scene}-{arm}")]
+            px = sp[["pixels_object", "pixels_shadow", "pixels_rest"]].sum(axis=1)
+            mse = sp[["sqerr_object", "sqerr_shadow", "sqerr_rest"]].sum(axis=1)
+            lp = sp[["lpips_object", "lpips_shadow", "lpips_rest"]].sum(axis=1)
+            r = {"scene": scene, "arm": arm, "px": float((sp.pixels_shadow / px).mean()),
+                 "se": float((sp.sqerr_shadow / mse.clip(lower=1e-12)).mean()),
+                 "lp": float((sp.lpips_shadow / lp.where(lp > 0)).mean()),
+                 "psnr": float((-10 * np.log10(mse.clip(lower=1e-12))).mean()),
+                 "psnr_ns": float((-10 * np.log10((mse - sp.sqerr_shadow).clip(lower=1e-12))).mean())}
+            rows.append(r)
+            lines.append(f"| {scene} | {arm} | {r['px']:.2f} | {r['se']:.2f} | {r['lp']:.2f} | {r['psnr']:.2f} | "
+                         f"{r['psnr_ns']:.2f} |")
+    df = pd.DataFrame(rows)
+    for arm, g in (df.groupby("arm", sort=False) if len(df) else ()):
+        lines.append(f"| **mean of {len(g)}** | {arm} | {g.px.mean():.2f} | {g.se.mean():.2f} | {g.lp.mean():.2f} | "
+                     f"{g.psnr.mean():.2f} | {g.psnr_ns.mean():.2f} |")
+    return "\n".join(lines)
+
+
 LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
@@ -207,6 +265,10 @@ LABELS = {"today": "ours (today)", "large_steps": "ours, large steps", "large_st
           "clear": "ours, IOR 1.05, R0 0.2", "auto": "ours, clear chosen per scene",
           "tint4": "ours + tint 4", "tint16": "ours + tint 16", "tint4_auto": "tint 4 + clear per scene",
           "tint16_auto": "tint 16 + clear per scene", "tint1_auto": "tint 1 + clear per scene", "tint4_s2": "ours + local tint 4",
+          "coarse1": "ours + coarse 1", "coarse1_auto": "coarse 1 + clear per scene",
+          "coarse4_auto": "coarse 4 + clear per scene", "coarse1_lr3_auto": "coarse 1 (lr 3e-2) + clear",
+          "coarse1_tint1_auto": "coarse 1 + tint 1 + clear", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
+          "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 
 
@@ -260,13 +322,15 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-views", type=int, default=4)
     ap.add_argument("--eval-dir", default="eval", help="evaluate into OUT/EVAL_DIR/SCENE (arms added later: "
                     "eval_NAME; the table and the contact sheets read every eval*/SCENE)")
+    ap.add_argument("--sheet-arms", help="the arms of the contact sheets (comma-separated; default: --arms)")
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
     ap.add_argument("--section", default="table", help="the table goes between the markers "
                     "'<!-- bench_giveaways: SECTION -->' and '<!-- /bench_giveaways -->' of giveaways.md; only the "
                     "default section ('table') also writes the contact sheets (another section: e.g. a second "
-                    "evaluation of the same runs at a higher --eval-spp in another --out)")
+                    "evaluation of the same runs at a higher --eval-spp in another --out; 'shadow': the shadow's cost "
+                    "per scene and arm, shadow_table, instead of the give-away table)")
     a = ap.parse_args(argv)
     out, scenes, arms = Path(a.out), a.scenes.split(","), a.arms.split(",")
     budget = ["--time-budget", str(a.seconds)] if a.seconds else ["--iterations", str(a.iterations)]
@@ -278,12 +342,13 @@ def main(argv=None) -> int:
             evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
         names = [name_of(s) for s in scenes]
-        text = table(out, names, arms)
+        text = shadow_table(out, names, arms) if a.section == "shadow" else table(out, names, arms)
         print(text)
         if a.docs:
             docs = Path(a.docs)
             for scene in names if a.section == "table" else ():
-                print(contact_sheet(out / "eval" / scene, scene, arms, docs / f"giveaways_{scene}.png"))
+                print(contact_sheet(out / "eval" / scene, scene, a.sheet_arms.split(",") if a.sheet_arms else arms,
+                                    docs / f"giveaways_{scene}.png"))
             doc = docs / "giveaways.md"
             start, end = f"<!-- bench_giveaways: {a.section} -->", "<!-- /bench_giveaways -->"
             body = doc.read_text(encoding="utf-8") if doc.is_file() else f"{start}\n{end}\n"

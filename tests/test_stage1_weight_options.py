@@ -1,13 +1,14 @@
-"""The Stage 1 loss-term weights (``--detail-match W``, ``--tint-match W``): parsed into the spec, off by default,
-refused out of range or by a method without Stage 1, and a bad value is one line on the CLI. The terms themselves are
-tested in ``test_detail_term.py`` and ``test_tint_term.py``."""
+"""The Stage 1 loss-term weights (``--detail-match W``, ``--tint-match W``) and the maps' coarse level (``--coarse-grid
+K``): parsed into the spec, off by default, refused out of range or by a method without Stage 1, and a bad value is one
+line on the CLI. The terms themselves are tested in ``test_detail_term.py``, ``test_tint_term.py`` and
+``test_coarse_level.py``."""
 from __future__ import annotations
 
 import pytest
 
 from camo_base.errors import CamoError
 
-WEIGHTS = [("detail_match", 8.0), ("tint_match", 4.0)]
+WEIGHTS = [("detail_match", 8.0), ("tint_match", 4.0), ("coarse_grid", 4)]
 
 
 @pytest.mark.parametrize(("field", "value"), WEIGHTS)

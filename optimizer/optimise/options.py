@@ -36,6 +36,7 @@ RANGES: dict[str, Range] = {
     "stage1.loss_clamp": Range(float, 0.0, 1e6), "stage1.grad_clip": Range(float, 0.0, 1e6),
     "stage1.perceptual": Range(float, 0.0, 1e3), "stage1.detail_match": Range(float, 0.0, 1e3),
     "stage1.tint_match": Range(float, 0.0, 1e3), "stage1.tint_scale": Range(float, 0.0, 1e3),
+    "stage1.coarse_grid": Range(int, 0, 64), "stage1.coarse_lr": Range(float, 0.0, 1.0),
     "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
@@ -164,6 +165,13 @@ def _options() -> tuple[Option, ...]:
           "refraction (e.g. 1.05) with a smooth start (roughness 0.2), kept with its IOR (Stage 2, final renders, the "
           "exported asset) when it scores better (optimizer/optimise/startsearch.py)" + _p("stage1.clear_candidate")
           + "; 0: off", metavar="ETA"),
+        o("coarse_grid", "stage1.coarse_grid", int,
+          "give the albedo and transmittance maps a coarse level of this many cells a side (1: one offset per channel "
+          "for the whole body), added before rendering and stepped by Adam at its own rate, so the body's colour "
+          "moves as a whole (optimizer/optimise/coarse.py)" + _p("stage1.coarse_grid") + "; 0: off", metavar="K"),
+        o("coarse_lr", "stage1.coarse_lr", float,
+          "the learning rate of --coarse-grid's level" + _p("stage1.coarse_lr") + "; 0: the maps' rate",
+          metavar="LR"),
         o("roughness_search", "stage1.roughness_search", str,
           "before Stage 1, warm-start each of these uniform starting roughness values and start from the one that "
           "scores best on the held-out views" + _p("stage1.roughness_search") + "; off with 'off' or --init "

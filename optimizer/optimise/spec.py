@@ -357,6 +357,11 @@ class RunSpec:
             raise SettingError("{0} needs held-out views ({1} >= 1)", "stage1.init_search", "holdout.views")
         if m.reads_path("stage1.tint_scale") and self.stage1.tint_scale and not self.stage1.tint_match:
             raise SettingError("{0} is the scale of {1}: set {1} > 0 too", "stage1.tint_scale", "stage1.tint_match")
+        if m.reads_path("stage1.coarse_grid") and self.stage1.coarse_grid > self.appearance.map_resolution:
+            raise SettingError(f"{{0}} must be at most {{1}} ({self.appearance.map_resolution}), got "
+                               f"{literal(self.stage1.coarse_grid)}", "stage1.coarse_grid", "appearance.map_resolution")
+        if m.reads_path("stage1.coarse_lr") and self.stage1.coarse_lr and not self.stage1.coarse_grid:
+            raise SettingError("{0} is the rate of {1}: set {1} > 0 too", "stage1.coarse_lr", "stage1.coarse_grid")
         if m.reads_path("stage1.clear_candidate") and self.stage1.clear_candidate:
             if not 1.0 < self.stage1.clear_candidate <= 4.0:
                 raise SettingError(f"{{0}} must be 0 (off) or an index of refraction in (1, 4], got "

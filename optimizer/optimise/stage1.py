@@ -101,6 +101,11 @@ class Stage1Settings:
     # refraction with a smooth start (startsearch.CLEAR_ROUGHNESS), kept with its IOR when it scores better
     # (optimizer/optimise/startsearch.py, issue 29); 0: off
     clear_candidate: float = 0.0
+    # > 0: the albedo and transmittance maps get a coarse level of this many cells a side (1: one offset per channel
+    # for the whole body), added before rendering and optimised by Adam at its own rate (optimizer/optimise/coarse.py:
+    # the body's colour moved as a whole, issue 29); 0: off
+    coarse_grid: int = 0
+    coarse_lr: float = 0.0  # the coarse level's learning rate; 0: the maps' (appearance.lr_maps)
 
 
 @dataclasses.dataclass
@@ -251,6 +256,7 @@ class Stage1:
         self._last_perceptual = 0.0
         self._detail = None  # the detail term (build; optimizer/optimise/detail.py)
         self._tint = None  # the mean-colour term (build; optimizer/optimise/tint.py)
+        self._coarse = None  # the maps' coarse level (_make_optimiser; optimizer/optimise/coarse.py)
 
     # --- preparation: the named steps ------------------------------------------------
     def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
@@ -407,13 +413,39 @@ class Stage1:
         return values, info
 
     def _make_optimiser(self) -> None:
+        import drjit as dr
         import mitsuba as mi
 
         uniform = tuple(n for n in MAPS if self.app.map_update == "large_steps")
-        self.opt = Adam(self.app.learning_rates(), average=self.cfg.average, uniform=uniform, clip=self.cfg.grad_clip)
+        lrs = self.app.learning_rates()
+        self._coarse = self._coarse_level()
+        if self._coarse is not None:
+            from optimizer.optimise.coarse import OFFSET_BOUND, coarse_key
+
+            rate = self.cfg.coarse_lr or self.app.lr_maps
+            lrs.update({coarse_key(n): rate for n in self._coarse.channels})
+            bound = lambda x: dr.clip(dr.select(dr.isfinite(x), x, 0.0), -OFFSET_BOUND, OFFSET_BOUND)  # noqa: E731
+            self.project.update({coarse_key(n): bound for n in self._coarse.channels})
+        self.opt = Adam(lrs, average=self.cfg.average, uniform=uniform, clip=self.cfg.grad_clip)
         for name in self.app.trainable():
             v = self.values[name]
             self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
+        if self._coarse is not None:
+            for name in self._coarse.channels:
+                self.opt.add(coarse_key(name), mi.TensorXf(self._coarse.initial(name)))
+
+    def _coarse_level(self):
+        """The coarse level of the albedo and transmittance maps (:mod:`optimizer.optimise.coarse`) when
+        ``cfg.coarse_grid`` > 0 in Stage 1 and one of them is optimised, else None."""
+        grid = int(getattr(self.cfg, "coarse_grid", 0) or 0)
+        if grid <= 0 or self.STAGE != 1:
+            return None
+        from optimizer.optimise.coarse import COARSE_MAPS, CoarseLevel
+
+        names = [n for n in COARSE_MAPS if n in self.app.trainable()]
+        if not names:
+            return None
+        return CoarseLevel(self.values[names[0]].shape[0], grid, {n: MAPS[n].channels for n in names})
 
     def search_start(self, candidates, score) -> "StartSearchInfo":
         """Restart from the best starting roughness among ``candidates``, each warm-started and scored by
@@ -562,7 +594,12 @@ class Stage1:
             out[keys["positions"]] = g.positions_dr(d, dt, th)
         for name, m in MAPS.items():
             if name in opt and name in keys:
-                out[keys[name]] = m.rendered(opt[name])  # (the roughness' safe minimum)
+                x = opt[name]
+                if self._coarse is not None and name in self._coarse.channels:  # fine + U coarse, clipped
+                    from optimizer.optimise.coarse import coarse_key
+
+                    x = self._coarse.add(x, opt[coarse_key(name)], m.low)
+                out[keys[name]] = m.rendered(x)  # (the roughness' safe minimum)
         return out
 
     def _apply(self) -> None:
@@ -656,7 +693,8 @@ class Stage1:
         out = {}
         for name in self.opt.values:
             x = self.opt[name]
-            out[name] = dr_numpy(dr.grad(x)).reshape(self.values[name].shape)
+            g = dr_numpy(dr.grad(x))
+            out[name] = g.reshape(self.values[name].shape) if name in self.values else g  # (a coarse level: its own)
             dr.clear_grad(x)
         return photo, out
 
@@ -810,6 +848,12 @@ class Stage1:
         if self._tint is not None:
             # the mean-colour term's value and the mean |m - m*| (linear RGB) over the step's views
             rec.update(loss_tint=self._tint.last["value"], tint_error=self._tint.last["error"])
+        if self._coarse is not None:
+            # the coarse levels' offsets after the step, averaged over their cells, per channel
+            from optimizer.optimise.coarse import coarse_key
+
+            rec["coarse_offset"] = {n: np.round(dr_numpy(self.opt[coarse_key(n)]).reshape(-1, c).mean(0), 5).tolist()
+                                    for n, c in self._coarse.channels.items()}
         self.history.append(rec)
         return rec
 
@@ -862,9 +906,18 @@ class Stage1:
         """The stage's current result: the iterate, or with ``average`` > 0 the moving average of the iterates
         (:class:`~optimizer.optimise.adam.Adam`; the gradients are taken at the iterate)."""
         out = dict(self.values)
+        coarse = {}
         for name in self.opt.values:
             arr = dr_numpy(self.opt.averaged(name))
-            out[name] = arr.reshape(self.values[name].shape)
+            if name in self.values:
+                out[name] = arr.reshape(self.values[name].shape)
+            else:  # a coarse level: folded into its map (optimizer/optimise/coarse.py)
+                coarse[name] = arr
+        if self._coarse is not None:
+            from optimizer.optimise.coarse import coarse_key, fold
+
+            out = fold(out, {n: coarse[coarse_key(n)].reshape(self._coarse.initial(n).shape)
+                             for n in self._coarse.channels}, {n: MAPS[n].low for n in self._coarse.channels})
         return out
 
     def pose(self) -> dict[str, Any]:
