@@ -71,7 +71,9 @@ def eval_settings_table() -> str:
     rows = ["| flag | grid `[evaluate]` key | values | default | what |", "|---|---|---|---|---|"]
     for o in OPTIONS.values():
         values = o.range.describe() if o.range else "a switch" if o.kind is bool else \
-            f"`{o.metric}=PATH` of `--weights`" if o.metric else "text"
+            f"`{o.metric}=PATH` of `--weights`" if o.metric else \
+            "one of " + ", ".join(f"`{c}`" for c in o.choices) + (f" (the flag alone, or `true`: `{o.const}`)"
+                                                                   if o.const else "") if o.choices else "text"
         default = "-" if o.default is None or o.kind is bool else f"`{o.default}`"
         key = "set by the grid" if o.name in RESERVED["evaluate"] else f"`{o.name.replace('_', '-')}`"
         rows.append(f"| `{o.flag}` | {key} | {values} | {default} | {o.help} |")

@@ -49,6 +49,10 @@ def register(sub) -> None:
             kw["help"] = f"= {OPTIONS['weights'].flag} {opt.metric}=PATH: {opt.help}"
         if opt.range is not None:
             kw["type"] = opt.range.arg_type()
+        if opt.choices is not None:
+            kw["choices"] = opt.choices
+        if opt.const is not None:
+            kw.update(nargs="?", const=opt.const)
         p.add_argument(opt.flag, **kw)
     p.set_defaults(func=run_evaluate)  # (camo.cli shows each setting an error names as its flag)
 

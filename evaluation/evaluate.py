@@ -442,6 +442,9 @@ def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], 
             "render_seed_meaning": "sampler seed of the background and the with-object renders (common random "
                                    "numbers), the same for every run",
             "metrics": list(names),
+            "denoise": settings.denoise or "off",
+            "denoise_meaning": "--denoise: the denoiser the plan applies where its pilot's noise at spp is above the "
+                               "denoiser's bias (each scene's and run's denoise: where it did), or off",
             "regions": list(REGIONS),
             "image_encoding": IMAGE_ENCODING,
             "mask": "object coverage >= 0.5 (ray-cast, 4x4 rays per pixel, occlusion aware)",

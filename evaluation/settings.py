@@ -20,7 +20,7 @@ inputs`.
     ...
     camo_base.errors.SettingError: jitter must be a number in (0, 100], got 0
 
-This module imports nothing heavy: ``camo --help`` reads it.
+This module imports nothing heavy (the planner's denoiser names: no renderer): ``camo --help`` reads it.
 """
 
 from __future__ import annotations
@@ -53,16 +53,20 @@ class EvalSettings:
     write_report: bool = True
     planner: bool = True  # False: full path tracing (depth 12) of every full frame (the bench's reference)
     noise_match: bool = True  # more samples where the object's render is noisier than the background's
-    denoise: bool = False  # opt-in: the plan's denoiser where the noise at spp is above its bias (after noise
-    # matching); off by default, as it smooths the ground seen through a see-through object (docs/evaluation.md)
+    denoise: str = ""  # opt-in: the denoiser (optimizer.rendering.planner.DENOISERS) the plan applies where the noise
+    # at spp is above its bias (after noise matching), or "": off by default, as it smooths the ground seen through a
+    # see-through object (docs/evaluation.md)
 
     def validate(self) -> "EvalSettings":
         """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
-        jitter must be > 0: evaluation never uses the training cameras). Returns the settings."""
+        jitter must be > 0: evaluation never uses the training cameras; the denoiser one of its choices). Returns the
+        settings."""
         for name in ("views", "jitter", "spp", "resolution", "seed", "threads"):
             v = getattr(self, name)
             if v is not None:
                 RANGES[name].check(v, name)
+        if self.denoise:
+            OPTIONS["denoise"].convert(self.denoise)
         return self
 
     @classmethod
@@ -84,15 +88,18 @@ class EvalSettings:
                 kw[opt.field] = values[opt.name]
             elif opt.kind is bool and values.get(opt.name):
                 kw[opt.field] = not _FIELD_DEFAULTS[opt.field]  # (a switch flips its field's default)
+            elif opt.choices is not None and values.get(opt.name):
+                kw[opt.field] = values[opt.name]
         return cls(**kw, metrics=parse_metrics(values.get("metrics")), weights=parse_weights(values)).validate()
 
 
 @dataclasses.dataclass(frozen=True)
 class EvalOption:
     """One evaluation setting a caller gives by name (module doc). ``kind``: int, float, str, or bool (a switch:
-    given means true, and it flips its ``field``'s default: off for ``no_*``, on for ``denoise``). ``field``: the
+    given means true, and it flips its ``field``'s default: off for ``no_*``). ``field``: the
     :class:`EvalSettings` field it sets (weights options: ``weights``, for ``metric``). ``default``: what absent
-    means, as the option would be written."""
+    means, as the option would be written. ``choices``: the names a str option takes; ``const``: its value when the
+    flag is given without one (``--denoise``; in a grid, ``denoise = true``; false means absent)."""
 
     name: str
     kind: type
@@ -101,6 +108,8 @@ class EvalOption:
     default: Any = None
     metavar: str | None = None
     metric: str | None = None  # a weights option's metric (`lpips_weights`: the same as `weights` lpips=PATH)
+    choices: tuple[str, ...] | None = None
+    const: str | None = None
 
     @property
     def flag(self) -> str:
@@ -113,10 +122,14 @@ class EvalOption:
     def convert(self, value: Any, name: str | None = None) -> Any:
         """``value`` as this option's type (:func:`camo_base.ranges.convert`); SettingError naming ``name``
         (default: the option's name)."""
-        return convert(value, self.kind, name or self.name, rng=self.range)
+        if self.const is not None and isinstance(value, bool):
+            return self.const if value else None
+        return convert(value, self.kind, name or self.name, choices=self.choices, rng=self.range)
 
 
 def _options() -> tuple[EvalOption, ...]:
+    from optimizer.rendering.planner import DENOISER, DENOISERS
+
     o = EvalOption
     weights = (
         ("lpips", "an AlexNet trunk (torchvision layout, .pth or .safetensors), or a folder with the trunk and the "
@@ -146,10 +159,11 @@ def _options() -> tuple[EvalOption, ...]:
         o("no_noise_match", bool, "noise_match", "the same spp everywhere (default: pixels where the render with the "
           "object is noisier than the background get more samples, up to 8x, so noise does not give the object "
           "away)", default=False),
-        o("denoise", bool, "denoise", "denoise both renders alike by Open Image Denoise (albedo and normal features, "
-          "after noise matching) where the plan's pilot measures the noise at --spp above the denoiser's bias "
-          "(default: off; it smooths the ground seen through a see-through object, docs/evaluation.md)",
-          default=False),
+        o("denoise", str, "denoise", "denoise both renders alike by Open Image Denoise (after noise matching) where "
+          "the plan's pilot measures the noise at --spp above the denoiser's bias; VARIANT: "
+          f"{DENOISER} (first-hit albedo and normal, the flag alone) or oidn-through (see-through features: keeps "
+          "more of the ground seen through a see-through object); default: off, as it smooths that ground "
+          "(docs/evaluation.md)", metavar="VARIANT", choices=DENOISERS, const=DENOISER),
         o("quiet", bool, "progress", "no progress messages", default=False),
     )
 

@@ -134,7 +134,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 
 
 def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
-                    denoise: bool = False):
+                    denoise: str = ""):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -144,8 +144,9 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     light seen through it) from those cameras, and keeps every bounce whose light over the whole frame is above
     0.3 x the noise at ``spp`` (:class:`optimizer.rendering.planner.Planner`, purpose ``evaluate``; stream
     ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce). With
-    ``denoise`` (opt-in, ``--denoise``) the measured plan denoises where the noise at ``spp`` is above the
-    denoiser's measured bias (:data:`optimizer.rendering.planner.DENOISER_BIAS`; ``plan.denoise``)."""
+    ``denoise`` (opt-in, ``--denoise [VARIANT]``: a name of :data:`optimizer.rendering.planner.DENOISERS`, "" off)
+    the measured plan denoises with it where the noise at ``spp`` is above its measured bias
+    (:data:`optimizer.rendering.planner.DENOISER_BIASES`; ``plan.denoise``)."""
     from camo_base import seeds
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
@@ -157,7 +158,7 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     # the pilot renders at ~48 px: a light mesh will do (and it is prepared once, then cached)
     mesh = static_object_fn(worst, prepare_object(worst, target_vertices=min(worst.object.target_vertices,
                                                                              PILOT_VERTICES)))
-    planner = Planner(PlannerSettings(denoise=bool(denoise)))
+    planner = Planner(PlannerSettings(denoise=denoise))
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
     return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
 

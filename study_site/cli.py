@@ -79,11 +79,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     b.add_argument("--no-noise-match", action="store_true",
                    help="the same spp everywhere (default: more samples, up to 8x, where the render with the object is "
                    "noisier than the background, so noise does not give the object away)")
-    b.add_argument("--denoise", action="store_true",
-                   help="denoise the renders with and without the object alike by Open Image Denoise (albedo and "
-                   "normal features, after noise matching) where the evaluation plan's pilot measures the noise at "
-                   "--spp above the denoiser's bias (default: off; it smooths the ground seen through a see-through "
-                   "object, docs/evaluation.md)")
+    from optimizer.rendering.planner import DENOISER, DENOISERS
+
+    b.add_argument("--denoise", nargs="?", const=DENOISER, default="", choices=DENOISERS, metavar="VARIANT",
+                   help="denoise the renders with and without the object alike by Open Image Denoise (after noise "
+                   "matching) where the evaluation plan's pilot measures the noise at --spp above the denoiser's "
+                   f"bias; VARIANT: {DENOISER} (first-hit albedo and normal, the flag alone) or oidn-through "
+                   "(see-through features: keeps more of the ground seen through a see-through object); default: "
+                   "off, as it smooths that ground (docs/evaluation.md)")
     b.add_argument("--observer-trials", type=Range(int, 0, 100_000).arg_type(), default=200, metavar="N",
                    help="simulated observer trials per stimulus for the predicted Table I and power (default 200; "
                    "0 = none; docs/observer.md)")

@@ -26,10 +26,11 @@ actual placement is *measured* on the rendered mask and recorded in the manifest
 ``fov``, ``target``). Background-only and with-object images use the same camera and sampler seed
 (``evaluation.views.ViewRenderer``: common random numbers); only the region the object can change is rendered with
 it, and pixels where that render is noisier than the background get more samples (``noise_match``, the default:
-:mod:`optimizer.rendering.noise`), so a participant cannot find the object by its fireflies. With ``denoise=True``
-(``--denoise``; off by default: the denoiser smooths the ground seen through a see-through object, a give-away of
-its own), where the evaluation plan then denoises (``plan.denoise``: the noise at ``spp`` above the denoiser's
-measured bias), both renders are denoised alike after noise matching (:mod:`optimizer.rendering.denoise`).
+:mod:`optimizer.rendering.noise`), so a participant cannot find the object by its fireflies. With ``denoise``
+a denoiser's name (``--denoise [VARIANT]``: ``oidn-raw``, ``oidn-through``; "" off, the default: the denoiser smooths
+the ground seen through a see-through object, a give-away of its own), where the evaluation plan then denoises
+(``plan.denoise``: the noise at ``spp`` above that denoiser's measured bias), both renders are denoised alike after
+noise matching (:mod:`optimizer.rendering.denoise`); each stimulus records it (``denoise``).
 
 Views whose mask is empty (object hidden, e.g. occluded) are skipped with a warning. A triplet folder (given
 2D images) has no scene to render from new cameras, so an evaluation holding one needs ``--copy``
@@ -213,7 +214,7 @@ def render_stimuli(
     force: bool = False,
     log: Callable[[str], None] | None = None,
     noise_match: bool = True,
-    denoise: bool = False,
+    denoise: str = "",
 ) -> dict[str, Any]:
     """Render a stimulus set (see the module docstring); returns the manifest."""
     from evaluation.evaluate import srgb8

@@ -278,24 +278,36 @@ def test_evaluation_renders_are_denoised_alike_and_the_object_is_no_noisier_than
         r.with_object(env, mesh, cams, integ, r.background(pack, env, cams, integ, ""), None, denoise=den)
 
 
-def test_the_denoiser_is_opt_in_everywhere_the_evaluation_renders_are_made():
+def test_the_denoiser_is_opt_in_everywhere_the_evaluation_renders_are_made(capsys):
     """Off by default (it smooths the ground seen through a see-through object: docs/evaluation.md) in the planner,
-    ``camo evaluate``'s settings, the evaluation plan and the study stimuli; ``--denoise`` turns it on in both CLIs
-    (and ``--no-denoise`` is no longer a flag)."""
+    ``camo evaluate``'s settings, the evaluation plan and the study stimuli; ``--denoise`` alone turns on the default
+    denoiser (oidn-raw), ``--denoise oidn-through`` the see-through one, in both CLIs and a grid's ``[evaluate]``
+    (``denoise = true`` / a name); an unknown variant is a one-line error (and ``--no-denoise`` is no flag)."""
     import argparse
     import inspect
 
     from evaluation.settings import EvalSettings, SettingError
     from evaluation.views import evaluation_plan
-    from optimizer.rendering.planner import PlannerSettings
+    from optimizer.rendering.denoise import VARIANTS
+    from optimizer.rendering.planner import DENOISER, DENOISER_BIASES, DENOISERS, PlannerSettings
     from study_site import cli as study_cli
     from study_site.render_stimuli import render_stimuli
 
-    assert PlannerSettings().denoise is False and EvalSettings().denoise is False
-    assert inspect.signature(evaluation_plan).parameters["denoise"].default is False
-    assert inspect.signature(render_stimuli).parameters["denoise"].default is False
-    assert EvalSettings.from_options({}).denoise is False
-    assert EvalSettings.from_options({"denoise": True}).denoise is True
+    assert DENOISER == "oidn-raw" and set(DENOISERS) == set(DENOISER_BIASES) == {"oidn-raw", "oidn-through"}
+    assert set(DENOISERS) <= set(VARIANTS)
+    assert PlannerSettings().denoise == "" and EvalSettings().denoise == ""
+    assert inspect.signature(evaluation_plan).parameters["denoise"].default == ""
+    assert inspect.signature(render_stimuli).parameters["denoise"].default == ""
+    assert EvalSettings.from_options({}).denoise == ""
+    assert EvalSettings.from_options({"denoise": True}).denoise == "oidn-raw"  # a grid's `denoise = true`
+    assert EvalSettings.from_options({"denoise": False}).denoise == ""
+    assert EvalSettings.from_options({"denoise": "oidn-through"}).denoise == "oidn-through"
+    with pytest.raises(SettingError, match=r"denoise must be one of oidn-raw, oidn-through, got 'bm3d'"):
+        EvalSettings.from_options({"denoise": "bm3d"})
+    with pytest.raises(SettingError, match="denoise must be one of"):
+        EvalSettings(denoise="oidn-color").validate()  # a variant without a measured bias on the object
+    with pytest.raises(ValueError, match="unknown denoiser 'bm3d'"):
+        PlannerSettings(denoise="bm3d")
     # the other switches still turn their fields off
     assert EvalSettings.from_options({"no_noise_match": True, "denoise": True}).noise_match is False
     with pytest.raises(SettingError, match="no_denoise"):
@@ -303,4 +315,11 @@ def test_the_denoiser_is_opt_in_everywhere_the_evaluation_renders_are_made():
     ap = argparse.ArgumentParser()
     study_cli.register(ap.add_subparsers(dest="cmd"))
     base = ["study", "build-stimuli", "EVAL", "--out", "OUT"]
-    assert ap.parse_args(base).denoise is False and ap.parse_args(base + ["--denoise"]).denoise is True
+    assert ap.parse_args(base).denoise == "" and ap.parse_args(base + ["--denoise"]).denoise == "oidn-raw"
+    assert ap.parse_args(base + ["--denoise", "oidn-through"]).denoise == "oidn-through"
+    assert ap.parse_args(base + ["--denoise=oidn-through"]).denoise == "oidn-through"
+    with pytest.raises(SystemExit) as exc:
+        ap.parse_args(base + ["--denoise", "bm3d"])
+    assert exc.value.code != 0
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--denoise" in err and "invalid choice: 'bm3d'" in err and "oidn-through" in err

@@ -566,8 +566,31 @@ def test_the_denoiser_is_off_by_default_and_denoise_turns_the_plans_decision_on(
     assert any(r.startswith("denoise: oidn-raw") for r in on["scenes"][0]["plan_reasons"])
     assert all(r["denoise"] == "oidn-raw" and r["denoise_seconds"] > 0 for r in on["runs"])
     assert "denoised (oidn-raw)" in (out / "report.md").read_text()
+    assert cfg["evaluate"]["denoise"] == "off" and on["evaluate"]["denoise"] == "oidn-raw"  # the setting itself
     den = np.load(out / "renders" / "ours_full" / "view_00_bg.npy")
     raw = np.load(eval_dir / "renders" / "ours_full" / "view_00_bg.npy")
     assert den.shape == raw.shape and not np.array_equal(den, raw)
     # the denoised background keeps the raw one's mean (the denoiser moves light, it does not make or lose it)
     assert abs(den.mean() / raw.mean() - 1) < 0.05
+    # --denoise oidn-through: the see-through variant, recorded where oidn-raw was, its features' own denoising
+    thr = tmp_path / "through"
+    assert main(["evaluate", str(runs[0]), "--out", str(thr), "--resolution", "32", "--spp", "8", "--quiet",
+                 "--denoise", "oidn-through", "--metrics", "psnr"]) == 0
+    th = tomllib.loads((thr / "eval_config.toml").read_text())
+    assert th["evaluate"]["denoise"] == "oidn-through" and th["scenes"][0]["denoise"] == "oidn-through"
+    assert any(r.startswith("denoise: oidn-through (Open Image Denoise with see-through")
+               for r in th["scenes"][0]["plan_reasons"])
+    assert all(r["denoise"] == "oidn-through" and r["denoise_seconds"] > 0 for r in th["runs"])
+    assert "denoised (oidn-through)" in (thr / "report.md").read_text()
+    assert not np.array_equal(np.load(thr / "renders" / "ours_full" / "view_00_bg.npy"), den)
+
+
+def test_an_unknown_denoiser_is_a_one_line_error(runs, tmp_path, capsys):
+    """``camo evaluate --denoise bm3d``: argparse's one-line error naming the flag and the choices, exit 2, nothing
+    written."""
+    out = tmp_path / "bad"
+    capsys.readouterr()
+    assert main(["evaluate", str(runs[0]), "--out", str(out), "--denoise", "bm3d"]) == 2 and not out.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("camo: error: evaluate: argument --denoise: invalid choice: 'bm3d'")
+    assert "oidn-through" in err[0]

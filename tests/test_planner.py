@@ -321,7 +321,7 @@ def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_abov
 
     mi, _ = mi_backend
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.planner import DENOISER, DENOISER_BIAS, Plan, Planner, PlannerSettings
+    from optimizer.rendering.planner import DENOISER, DENOISER_BIAS, DENOISER_BIASES, Plan, Planner, PlannerSettings
     from optimizer.scenes.cameras import Camera
 
     def build():
@@ -339,8 +339,8 @@ def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_abov
 
     cams = [Camera((3.0, -2.0, 1.5), (0.0, 0.0, 0.4), 40.0, 32, 32), Camera((-2.5, -2.5, 1.8), (0.0, 0.0, 0.4), 40.0, 32, 32)]
     pack = builtin_scenes.get("meadow")
-    assert PlannerSettings().denoise is False
-    planner = Planner(PlannerSettings(denoise=True))
+    assert PlannerSettings().denoise == ""
+    planner = Planner(PlannerSettings(denoise=DENOISER))
     pilot = planner.pilot(env, mesh, cams, seed=1)
     low = planner.plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})
     high = planner.plan(pack, env, set(), "evaluate", pilot, {"evaluation": 1 << 20})
@@ -357,5 +357,15 @@ def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_abov
     assert not next(e for e in off.effects if e.name.startswith("denoiser")).kept
     assert Plan.from_dict(low.to_dict()).denoise == DENOISER
     assert "denoise: oidn" in low.describe()
+    # --denoise oidn-through: that variant, against its own measured bias, named in the reason and the effect
+    through = Planner(PlannerSettings(denoise="oidn-through")).plan(pack, env, set(), "evaluate", pilot,
+                                                                     {"evaluation": 64})
+    eff = next(e for e in through.effects if e.name.startswith("denoiser"))
+    assert through.denoise == "oidn-through" and eff.kept and "oidn-through" in eff.name
+    assert eff.contribution == DENOISER_BIASES["oidn-through"] != DENOISER_BIAS
+    why = dict(through.reasons)["denoise"]
+    assert why.startswith("oidn-through (Open Image Denoise with see-through albedo") and "--denoise oidn-through" in why
+    assert f"({DENOISER_BIASES['oidn-through'] * 255:.1f}/255, oidn-through)" in why
+    assert dict(low.reasons)["denoise"].startswith("oidn-raw (Open Image Denoise with first-hit albedo")
     # a training plan never denoises (the loss needs unbiased renders)
     assert planner.plan(pack, env, {"albedo"}, "optimize", pilot, {"targets": 64}).denoise == ""

@@ -42,6 +42,7 @@ import dataclasses
 import math
 from typing import Any, Callable, Sequence
 
+from optimizer.rendering.denoise import VARIANTS as DENOISE_VARIANTS
 from optimizer.rendering.pilot import FULL_DEPTH, RR_DEPTH, Pilot, PilotSettings, run_pilot
 from optimizer.scenes.environments import Environment
 from optimizer.scenes.scenepack import ScenePack
@@ -71,8 +72,11 @@ REGION_PAYS = 0.6
 #: participant looks. ``oidn-raw`` (first-hit features): 1.26-1.83/255 (meadow the largest; whole frame
 #: 0.77-1.97); ``oidn-through`` (see-through features): 1.31-1.69/255 (split; whole frame 0.79-1.92).
 DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
-#: The denoiser an evaluation plan may choose (:data:`optimizer.rendering.denoise.VARIANTS`) and its bias on the
-#: object (:data:`DENOISER_BIASES`). A plan denoises where the noise at the stage's spp is above that bias: the
+#: The denoisers an evaluation plan may apply (``PlannerSettings.denoise``, ``--denoise [VARIANT]``): the variants of
+#: :data:`optimizer.rendering.denoise.VARIANTS` whose bias on the object is measured (:data:`DENOISER_BIASES`).
+DENOISERS = tuple(DENOISER_BIASES)
+#: The denoiser ``--denoise`` alone chooses, and its bias on the object. A plan denoises where the noise at the
+#: stage's spp is above the chosen denoiser's bias: the
 #: denoiser then trades noise for a smaller, stated bias; where the noise is below it (high spp) it would add more
 #: error than it removes. It is opt-in (``PlannerSettings.denoise``, ``--denoise``): neither feature kind meets
 #: both tests on the object's pixels on every built-in scene (detail within 0.9-1.1 of the converged render's:
@@ -253,8 +257,12 @@ class PlannerSettings:
     accuracy: float = 1.0 / 255  # the stated accuracy (sRGB RMS noise) the spp table is computed for
     rr_depth: int = RR_DEPTH
     region: bool = True  # restrict renders to what the object can change
-    denoise: bool = False  # evaluation renders, opt-in: a denoiser where the noise at the stage's spp is above
-    # its bias (off by default: it smooths what a see-through object shows of the ground, DENOISER)
+    denoise: str = ""  # evaluation renders, opt-in: the denoiser (one of DENOISERS) applied where the noise at the
+    # stage's spp is above its bias, or "" (off, the default: it smooths what a see-through object shows of the ground)
+
+    def __post_init__(self):
+        if self.denoise and self.denoise not in DENOISERS:
+            raise ValueError(f"unknown denoiser {self.denoise!r}; choose one of {', '.join(DENOISERS)}")
 
 
 class Planner:
@@ -383,18 +391,22 @@ class Planner:
                    for stage, n in spp.items()}
         if purpose == "evaluate":
             noise_eval = math.sqrt(f.variance[depth - 1] / s_max)
-            use = bool(st.denoise) and noise_eval > DENOISER_BIAS
-            out.denoise = DENOISER if use else ""
+            den = st.denoise or DENOISER  # the rule stated when off is the default denoiser's
+            bias = DENOISER_BIASES[den]
+            use = bool(st.denoise) and noise_eval > bias
+            out.denoise = den if use else ""
             measured = (f"the noise at {s_max} spp ({noise_eval * 255:.2f}/255 over the whole frame) is "
-                        f"{'above' if noise_eval > DENOISER_BIAS else 'not above'} the denoiser's measured bias "
-                        f"({DENOISER_BIAS * 255:.1f}/255)")
-            why = (f"{DENOISER} (Open Image Denoise with first-hit albedo and normal, on the renders with and without "
-                   f"the object alike, after noise matching; --denoise): {measured}" if use else
-                   (f"off by default (--denoise turns it on where {measured}): the first-hit albedo of a see-through "
-                    "object is its own smooth map, so the denoiser wipes the ground texture seen through it and the "
-                    "object reads as a smooth patch on grainy ground" if not st.denoise else f"off: {measured}"))
+                        f"{'above' if noise_eval > bias else 'not above'} the denoiser's measured bias "
+                        f"({bias * 255:.1f}/255, {den})")
+            feats = "see-through" if DENOISE_VARIANTS[den].see_through else "first-hit"
+            why = (f"{den} (Open Image Denoise with {feats} albedo and normal, on the renders with and without "
+                   f"the object alike, after noise matching; --denoise {den}): {measured}" if use else
+                   (f"off by default (--denoise [VARIANT] turns it on where {measured}): the first-hit albedo of a "
+                    "see-through object is its own smooth map, so oidn-raw wipes the ground texture seen through it "
+                    "and the object reads as a smooth patch on grainy ground (oidn-through, with see-through "
+                    "features, keeps more of it)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
-            effects.append(Effect("denoiser (Open Image Denoise; its bias)", DENOISER_BIAS, noise_eval, use,
+            effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
         out.pilot = pilot.to_dict()
         out.curve = curve(pilot, depth, rr, pilot.region(), out.region_search)
