@@ -403,8 +403,9 @@ class Planner:
                    f"the object alike, after noise matching; --denoise {den}): {measured}" if use else
                    (f"off by default (--denoise [VARIANT] turns it on where {measured}): the first-hit albedo of a "
                     "see-through object is its own smooth map, so oidn-raw wipes the ground texture seen through it "
-                    "and the object reads as a smooth patch on grainy ground (oidn-through, with see-through "
-                    "features, keeps more of it)" if not st.denoise else f"off: {measured}"))
+                    "and the object reads as a smooth patch on grainy ground; oidn-through (see-through features) "
+                    "keeps it but leaves the object noisier than its denoised surroundings (up to 1.6x, "
+                    "docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
