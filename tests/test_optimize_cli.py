@@ -185,7 +185,8 @@ def test_init_sets_the_starting_maps_and_is_recorded(tmp_path, capsys):
     # one Adam step (lr 1e-2) from the initial values; roughness is exported as rendered (0.035 + 0.965 r)
     assert np.abs(maps["roughness"] - (0.035 + 0.965 * 0.3)).max() < 0.011
     assert np.abs(maps["metallic"] - 0.1).max() < 0.011
-    assert np.abs(maps["albedo"] - [0.2, 0.4, 0.6]).max() < 0.011
+    # the albedo: one step of its map and one of its coarse level (the fast preset's --coarse-grid 1), each <= lr
+    assert np.abs(maps["albedo"] - [0.2, 0.4, 0.6]).max() < 0.021
     capsys.readouterr()
     assert optimize(tmp_path / "bad", 1, "--init", "roughness=2") == 2
     err = capsys.readouterr().err.strip().splitlines()
