@@ -318,6 +318,20 @@ def test_observer_agreement_lists_the_pairs_ordered_differently():
     by = {x["metric"]: x["tau"] for x in taus}
     assert by["psnr"] == pytest.approx(1.0) and by["lpips_proxy"] == pytest.approx(1 / 3)
     assert [(x["metric"], x["better_by_metric"], x["better_by_observer"]) for x in dis] == [("lpips_proxy", "C", "B")]
+    # every method found (confusion ties): the mean time of finds orders them (found later = better hidden), as
+    # Table I's second measure; equal times stay ties; a label never found ranks above every label found
+    from evaluation.report import observer_rank
+
+    found = views.assign(p_found=1.0, mean_time_found_s=[4.0, 2.5, 1.6])
+    taus, dis = observer_agreement(df, found)
+    by = {x["metric"]: x["tau"] for x in taus}
+    assert by["psnr"] == pytest.approx(1.0) and by["lpips_proxy"] == pytest.approx(1 / 3)
+    tied = views.assign(p_found=1.0, mean_time_found_s=2.0)
+    assert {x["tau"] for x in observer_agreement(df, tied)[0]} == {0.0}
+    two_runs = pd.DataFrame({"scene": ["s"] * 5, "run": ["a", "a", "b", "c", "c"], "label": list("AABCC"),
+                             "p_found": [1.0, 1.0, 1.0, 0.0, 0.0], "mean_time_found_s": [3.0, 1.0, 2.5, np.nan, np.nan]})
+    r = observer_rank(two_runs)
+    assert r["C"] > r["B"] > r["A"]  # C never found; B (2.5 s) found later than A (mean of 3 and 1 s = 2 s)
 
 
 # ---------------------------------------------------------------------------
