@@ -797,7 +797,8 @@ def simulated_section(df, stimuli_dirs: Sequence[str | Path], out: Path | None =
         tr = [[(str(scene), False)] + [("—" if not np.isfinite(by.get((scene, m), math.nan)) else
                                          f"{by[(scene, m)]:+.2f}", False) for m in metrics]
               for scene in dict.fromkeys(x["scene"] for x in taus)]
-        tnote = ("Kendall's tau between the observer's order of the methods (predicted confusion rate) and each "
+        tnote = ("Kendall's tau between the observer's order of the methods (predicted confusion rate, then -- where "
+                 "it ties, as when every method is found -- the mean time of finds, longer = better hidden) and each "
                  "metric's (crop region; higher PSNR/SSIM or lower distance = better hidden), per scene; +1 = the "
                  "same order, -1 = reversed.")
         md += ["### Observer vs metrics", "", tnote, "", markdown_table(th, tr), ""]
