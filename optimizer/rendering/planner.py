@@ -121,6 +121,7 @@ class Plan:
     region_threshold: float = 0.5 / 255  # sRGB: a change below this is left to the background render
     region_search: bool = False  # searching the region of a render with the object pays (evaluation, targets)
     denoise: str = ""  # evaluation: the denoiser (optimizer.rendering.denoise.VARIANTS) applied to both renders, or ""
+    object_spp: int = 1  # evaluation with a denoiser: the object and its rim get this many times the spp (measured)
 
     @property
     def measured(self) -> bool:
@@ -157,7 +158,7 @@ class Plan:
                 "reasons": [[k, v] for k, v in self.reasons], "effects": [e.to_dict() for e in self.effects],
                 "spp": self.spp, "pilot": self.pilot, "curve": self.curve, "drop_emitters": list(self.drop_emitters),
                 "region_threshold": float(self.region_threshold), "region_search": self.region_search,
-                "denoise": self.denoise}
+                "denoise": self.denoise, "object_spp": int(self.object_spp)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Plan":
@@ -167,7 +168,7 @@ class Plan:
                    int(d.get("rr_depth", RR_DEPTH)), bool(d.get("region", False)), str(d.get("purpose", "optimize")),
                    [Effect(**e) for e in d.get("effects", [])], dict(d.get("spp", {})), d.get("pilot"),
                    d.get("curve"), list(d.get("drop_emitters", [])), float(d.get("region_threshold", 0.5 / 255)),
-                   bool(d.get("region_search", False)), str(d.get("denoise", "")))
+                   bool(d.get("region_search", False)), str(d.get("denoise", "")), int(d.get("object_spp", 1)))
 
     def environment(self, env: Environment) -> Environment:
         """``env`` without the emitters the plan dropped (``env`` itself when none)."""
