@@ -171,8 +171,9 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
 
 
 #: The denoised noise on the object's pixels falls as spp^-DENOISED_NOISE_EXPONENT (measured with
-#: ``bench/bench_noise.py --object-spp 1,2,4`` on the built-in scenes, oidn-through after noise matching: 0.26-0.45,
-#: median 0.31; slower than a raw render's 0.5, as the denoiser keeps less of the noise of fewer samples).
+#: ``bench/bench_noise.py --denoise oidn-through --object-spp 2,4,8``, after noise matching, on the four built-in scenes
+#: whose ratio is above 1: 0.26-0.46, median 0.31; slower than a raw render's 0.5: the denoiser removes more of the
+#: noise of fewer samples).
 DENOISED_NOISE_EXPONENT = 0.3
 #: The largest object spp factor the pilot chooses (on top of noise matching's, itself up to 8x).
 OBJECT_SPP_MAX = 8
@@ -214,10 +215,13 @@ def object_spp_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 
     the denoiser; this pilot measures it *after*: it renders ``views`` of the evaluation cameras as the evaluation
     will (the pack's object at its starting material, ``mesh_fn`` to choose another), twice, and measures the
     ratio ``r`` (:func:`denoised_noise_ratio`). ``r <= 1``: factor 1. Otherwise the factor is the power of two at
-    or above ``r ** (1 / DENOISED_NOISE_EXPONENT)`` (at most :data:`OBJECT_SPP_MAX`), verified by a second
+    or above ``r ** (1 / DENOISED_NOISE_EXPONENT) / 1.1`` (noise matching's tolerance; at least 2, at most
+    :data:`OBJECT_SPP_MAX`), verified by a second
     measurement at that factor; if the ratio is still above 1 the factor is doubled once more (unverified).
     Returns the factor, the ratios, the noises, the seconds and a one-line ``why``."""
     import math
+
+    from optimizer.rendering.noise import TOLERANCE
 
     from optimizer.rendering.placement import prepare_object, static_object_fn
     from optimizer.scenes.cameras import evenly_spaced
@@ -231,8 +235,8 @@ def object_spp_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 
     o1, b1, r1 = denoised_noise_ratio(pack, env, mesh_fn, sub, plan, spp, seed, 1, noise_match, rs)
     factor, rk, ok = 1, r1, o1
     if r1 > 1.0:
-        need = r1 ** (1.0 / DENOISED_NOISE_EXPONENT)
-        factor = min(OBJECT_SPP_MAX, 2 ** max(1, math.ceil(math.log2(need))))
+        need = r1 ** (1.0 / DENOISED_NOISE_EXPONENT) / TOLERANCE  # within noise matching's tolerance: verified
+        factor = min(OBJECT_SPP_MAX, 2 ** max(1, math.ceil(math.log2(max(need, 1.0)))))
         ok, _, rk = denoised_noise_ratio(pack, env, mesh_fn, sub, plan, spp, seed, factor, noise_match, rs)
     verified = factor
     if rk > 1.0 and factor < OBJECT_SPP_MAX:
@@ -386,10 +390,12 @@ class ViewRenderer:
 
         t = time.perf_counter()
         mesh = mesh_fn()
-        sc = scn.build_scene(env.build(), mesh)
-        cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
         seed = self.sampler_seed
         path = integrator.get("type") == "path"
+        # one scene for every pass of a path render (coverage, region, further samples): a build costs 20-50 ms
+        pr = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed) if path else None
+        sc = pr.scene if pr is not None else scn.build_scene(env.build(), mesh)
+        cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
         if denoise is None:
             denoise = background.denoise if background is not None else ""
         if background is not None and denoise != background.denoise:
@@ -400,12 +406,13 @@ class ViewRenderer:
         region, t_region, groups = None, 0.0, None
         if background is not None and path and region_threshold is not None:
             out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.fill, cov,
-                                     region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}))
+                                     region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}),
+                                     renderer=pr)
             img, reg = out[0], out[1]
             groups = out[2] if match_noise else None
             region, t_region = reg.masks, reg.seconds
         elif match_noise:
-            img, groups = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(groups=g)
+            img, groups = pr(groups=g)
         else:
             img = render_shaded(env.build(), mesh, cams, integrator, self.spp, seed)
         matched = None
@@ -414,8 +421,7 @@ class ViewRenderer:
         boost = object_pixels(cov, region) if int(object_spp) > 1 and path else None
         if boost is not None:
             boost = np.where(boost, int(object_spp), 1)
-        more = (lambda sel, spp, first: PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(
-            sel, None, spp, first))
+        more = (lambda sel, spp, first: pr(sel, None, spp, first))
         if match_noise:
             from optimizer.rendering.noise import match
 
