@@ -279,6 +279,31 @@ def test_ganmouflage_embedders_follow_the_authors_decoder():
         build_networks(GanmouflageConfig(embedder="learned"), z_dim=7)
 
 
+def test_ganmouflage_crop_is_exact_on_a_linear_ramp_and_differentiable():
+    """Bilinear interpolation reproduces a linear image exactly, so kornia's crop-and-resize of a ramp must equal the
+    ramp at the window's sample positions ``x0 + (j + 0.5) * ww / size`` (continuous coordinates, pixel centres at
+    ``i + 0.5``); every in-window pixel receives gradient."""
+    import torch
+
+    from optimizer.optimise.baselines.ganmouflage import crop
+
+    H, W = 48, 64
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float32) + 0.5, torch.arange(W, dtype=torch.float32) + 0.5,
+                            indexing="ij")
+    img = torch.stack([0.01 * xx, 0.02 * yy, 0.003 * xx - 0.004 * yy + 0.5]).requires_grad_(True)
+    for win, size in (((5.25, 7.5, 30.0, 40.0), 16), ((0.0, 0.0, 48.0, 64.0), 32), ((10.0, 3.0, 20.0, 20.0), 40)):
+        y0, x0, hh, ww = win
+        t = (torch.arange(size, dtype=torch.float32) + 0.5) / size
+        ys, xs = torch.meshgrid(y0 + t * hh, x0 + t * ww, indexing="ij")
+        expect = torch.stack([0.01 * xs, 0.02 * ys, 0.003 * xs - 0.004 * ys + 0.5])
+        got = crop(img, win, size)
+        assert got.shape == (3, size, size)
+        torch.testing.assert_close(got, expect, atol=2e-5, rtol=0)
+    crop(img, (8.0, 8.0, 16.0, 16.0), 32).sum().backward()
+    g = img.grad[0]
+    assert float(g[8:24, 8:24].min()) > 0 and float(g[:6].abs().max()) == 0.0
+
+
 def test_filter_bank_perceptual_loss_is_zero_for_equal_images_and_grows_with_difference():
     import torch
 
