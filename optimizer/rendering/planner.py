@@ -81,7 +81,10 @@ DENOISERS = tuple(DENOISER_BIASES)
 #: error than it removes. It is opt-in (``PlannerSettings.denoise``, ``--denoise``): neither feature kind meets
 #: both tests on the object's pixels on every built-in scene (detail within 0.9-1.1 of the converged render's:
 #: 0.81-1.14 first-hit, 0.84-1.11 see-through; bias below the denoised render's remaining noise: not on gravel and
-#: the panorama), docs/results/planner.md.
+#: the panorama), and the see-through kind needs the object's extra samples (``evaluation.views.object_spp_pilot``)
+#: to leave it no noisier than its denoised surroundings, which, with the features, cost more than the denoiser
+#: saves in an evaluation render as ``camo evaluate`` makes it (``bench/bench_planner.py --evaluate-as``),
+#: docs/results/planner.md.
 DENOISER = "oidn-raw"
 DENOISER_BIAS = DENOISER_BIASES[DENOISER]
 
@@ -405,8 +408,9 @@ class Planner:
                    (f"off by default (--denoise [VARIANT] turns it on where {measured}): the first-hit albedo of a "
                     "see-through object is its own smooth map, so oidn-raw wipes the ground texture seen through it "
                     "and the object reads as a smooth patch on grainy ground; oidn-through (see-through features) "
-                    "keeps it but leaves the object noisier than its denoised surroundings (up to 1.6x, "
-                    "docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
+                    "keeps it, and with the object's spp factor its own pilot measures the object is no noisier than "
+                    "its denoised surroundings, but those samples and features cost more than the denoiser saves at "
+                    "the evaluation's sizes (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
