@@ -82,9 +82,9 @@ DENOISERS = tuple(DENOISER_BIASES)
 #: both tests on the object's pixels on every built-in scene (detail within 0.9-1.1 of the converged render's:
 #: 0.81-1.14 first-hit, 0.84-1.11 see-through; bias below the denoised render's remaining noise: not on gravel and
 #: the panorama), and the see-through kind needs the object's extra samples (``evaluation.views.object_spp_pilot``)
-#: to leave it no noisier than its denoised surroundings, which, with the features, cost more than the denoiser
-#: saves in an evaluation render as ``camo evaluate`` makes it (``bench/bench_planner.py --evaluate-as``),
-#: docs/results/planner.md.
+#: to leave it no noisier than its denoised surroundings; counting those and the features, an evaluation render as
+#: ``camo evaluate`` makes it is short of the 2x speed target against full path tracing at equal error
+#: (``bench/bench_planner.py --evaluate-as``), docs/results/planner.md.
 DENOISER = "oidn-raw"
 DENOISER_BIAS = DENOISER_BIASES[DENOISER]
 
@@ -409,8 +409,8 @@ class Planner:
                     "see-through object is its own smooth map, so oidn-raw wipes the ground texture seen through it "
                     "and the object reads as a smooth patch on grainy ground; oidn-through (see-through features) "
                     "keeps it, and with the object's spp factor its own pilot measures the object is no noisier than "
-                    "its denoised surroundings, but those samples and features cost more than the denoiser saves at "
-                    "the evaluation's sizes (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
+                    "its denoised surroundings, but counting those samples and its features it is short of the "
+                    "planner's 2x speed target against full path tracing at equal error (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
