@@ -47,8 +47,8 @@ def tables(pairs: list[tuple[Path, Path]]) -> str:
                        + (f"{100 * hum[0]:.1f} % | {hum[1]:.2f} / {hum[2]:.2f}" if hum else "— | —") + f" | {ok} |")
         taus, _ = observer_agreement(df, views)
         if taus:
-            out += ["", "Kendall's tau, observer order (predicted confusion) vs metric order (crop): "
-                    + ", ".join(f"{x['metric']} {x['tau']:+.2f}" for x in taus) + "."]
+            out += ["", "Kendall's tau, observer order (predicted confusion, then mean time of finds) vs metric order "
+                    "(crop): " + ", ".join(f"{x['metric']} {x['tau']:+.2f}" for x in taus) + "."]
         out.append("")
     return "\n".join(out)
 

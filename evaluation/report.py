@@ -677,9 +677,34 @@ def _kendall(a: Sequence[float], b: Sequence[float]) -> float:
     return float(s / (n * (n - 1) / 2))
 
 
+def observer_rank(views) -> "pd.Series":
+    """The observer's order of the labels of one scene's stimuli (``views``: rows of ``predicted.parquet``), as a
+    rank (higher = better hidden; equal ranks only where both measures tie): by predicted confusion rate, then --
+    where the confusion ties, as when every method is found -- by the mean time of finds (longer = better hidden).
+    These are Table I's two measures in the paper's reading of them (a method is better hidden when it is missed
+    more often and, among methods missed equally, found later); a label never found has no time of finds and ties
+    with any other never found (as do labels without recorded times). Per label the means are over its runs, each run's over its stimuli; the time of
+    finds is the mean over a run's simulated finds (each stimulus weighted by its p found)."""
+    import pandas as pd
+
+    rows = []
+    for (label, run), g in views.groupby(["label", "run"]):
+        w = g["p_found"].to_numpy(float)
+        t = (g["mean_time_found_s"] if "mean_time_found_s" in g else pd.Series(math.nan, g.index)).to_numpy(float)
+        ok = (w > 0) & np.isfinite(t)
+        rows.append({"label": label, "confusion": 1.0 - float(w.mean()),
+                     "time": float((w[ok] * t[ok]).sum() / w[ok].sum()) if ok.any() else math.inf})
+    per = pd.DataFrame(rows).groupby("label").agg(confusion=("confusion", "mean"),
+                                                   time=("time", lambda x: float(np.mean(x))))
+    keys = sorted({(round(c, 12), t) for c, t in zip(per["confusion"], per["time"])})
+    return pd.Series([float(keys.index((round(c, 12), t))) for c, t in zip(per["confusion"], per["time"])],
+                     index=per.index)
+
+
 def observer_agreement(df, views) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Per scene, the observer's order of the labels (predicted confusion rate, higher = better hidden) set
-    against each computed metric's (crop region, camouflage direction: higher PSNR/SSIM, lower distances).
+    """Per scene, the observer's order of the labels (:func:`observer_rank`: predicted confusion rate, then the
+    mean time of finds where the confusion ties; higher = better hidden) set against each computed metric's (crop
+    region, camouflage direction: higher PSNR/SSIM, lower distances).
 
     Returns ``(taus, disagreements)``: ``{scene, metric, tau, labels}`` (Kendall's tau between the two orders) and
     ``{scene, metric, better_by_metric, better_by_observer, confusion, metric values}`` for every pair of labels
@@ -690,8 +715,10 @@ def observer_agreement(df, views) -> tuple[list[dict[str, Any]], list[dict[str, 
     metrics = [m for m in AGREEMENT_METRICS if m in crop.columns and crop[m].notna().any()]
     taus, dis = [], []
     for scene in sorted(views["scene"].unique()):
-        pv = views.loc[views["scene"] == scene].groupby(["label", "run"])["p_found"].mean().groupby("label").mean()
+        sv = views.loc[views["scene"] == scene]
+        pv = sv.groupby(["label", "run"])["p_found"].mean().groupby("label").mean()
         conf = 1.0 - pv
+        rank = observer_rank(sv)
         pm = crop.loc[crop["scene"] == scene].groupby(["label", "run"])[metrics].mean().groupby("label").mean()
         labels = [lab for lab in conf.index if lab in pm.index]
         if len(labels) < 2:
@@ -700,10 +727,10 @@ def observer_agreement(df, views) -> tuple[list[dict[str, Any]], list[dict[str, 
             # camouflage direction: larger = better hidden (for a metric best at a target value: closer to it)
             good = [-METRICS[m].badness(float(pm.loc[lab, m])) if m in METRICS else float(pm.loc[lab, m])
                     for lab in labels]
-            taus.append({"scene": scene, "metric": m, "tau": _kendall([float(conf[lab]) for lab in labels], good),
+            taus.append({"scene": scene, "metric": m, "tau": _kendall([float(rank[lab]) for lab in labels], good),
                          "labels": len(labels)})
             for i, j in combinations(range(len(labels)), 2):
-                dm, do = np.sign(good[i] - good[j]), np.sign(float(conf[labels[i]]) - float(conf[labels[j]]))
+                dm, do = np.sign(good[i] - good[j]), np.sign(float(rank[labels[i]]) - float(rank[labels[j]]))
                 if dm != 0 and do != 0 and dm != do:
                     a, b = (labels[i], labels[j]) if dm > 0 else (labels[j], labels[i])
                     dis.append({"scene": scene, "metric": m, "better_by_metric": a, "better_by_observer": b,
@@ -771,7 +798,8 @@ def simulated_section(df, stimuli_dirs: Sequence[str | Path], out: Path | None =
         tr = [[(str(scene), False)] + [("—" if not np.isfinite(by.get((scene, m), math.nan)) else
                                          f"{by[(scene, m)]:+.2f}", False) for m in metrics]
               for scene in dict.fromkeys(x["scene"] for x in taus)]
-        tnote = ("Kendall's tau between the observer's order of the methods (predicted confusion rate) and each "
+        tnote = ("Kendall's tau between the observer's order of the methods (predicted confusion rate, then -- where "
+                 "it ties, as when every method is found -- the mean time of finds, longer = better hidden) and each "
                  "metric's (crop region; higher PSNR/SSIM or lower distance = better hidden), per scene; +1 = the "
                  "same order, -1 = reversed.")
         md += ["### Observer vs metrics", "", tnote, "", markdown_table(th, tr), ""]

@@ -318,6 +318,20 @@ def test_observer_agreement_lists_the_pairs_ordered_differently():
     by = {x["metric"]: x["tau"] for x in taus}
     assert by["psnr"] == pytest.approx(1.0) and by["lpips_proxy"] == pytest.approx(1 / 3)
     assert [(x["metric"], x["better_by_metric"], x["better_by_observer"]) for x in dis] == [("lpips_proxy", "C", "B")]
+    # every method found (confusion ties): the mean time of finds orders them (found later = better hidden), as
+    # Table I's second measure; equal times stay ties; a label never found ranks above every label found
+    from evaluation.report import observer_rank
+
+    found = views.assign(p_found=1.0, mean_time_found_s=[4.0, 2.5, 1.6])
+    taus, dis = observer_agreement(df, found)
+    by = {x["metric"]: x["tau"] for x in taus}
+    assert by["psnr"] == pytest.approx(1.0) and by["lpips_proxy"] == pytest.approx(1 / 3)
+    tied = views.assign(p_found=1.0, mean_time_found_s=2.0)
+    assert {x["tau"] for x in observer_agreement(df, tied)[0]} == {0.0}
+    two_runs = pd.DataFrame({"scene": ["s"] * 5, "run": ["a", "a", "b", "c", "c"], "label": list("AABCC"),
+                             "p_found": [1.0, 1.0, 1.0, 0.0, 0.0], "mean_time_found_s": [3.0, 1.0, 2.5, np.nan, np.nan]})
+    r = observer_rank(two_runs)
+    assert r["C"] > r["B"] > r["A"]  # C never found; B (2.5 s) found later than A (mean of 3 and 1 s = 2 s)
 
 
 # ---------------------------------------------------------------------------
@@ -682,11 +696,15 @@ def test_decision_and_surround_settings_are_checked():
         ObserverConfig(decision_time_s=0).validate()
     with pytest.raises(CamoError, match=r"^observer props must be 'scene' or 'none', not 'all'$"):
         ObserverConfig(props="all").validate()
-    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'peak', not 'centre'$"):
+    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'core' or 'peak', not 'centre'$"):
         ObserverConfig(click="centre").validate()
+    with pytest.raises(CamoError, match=r"^observer prop_test must be 'verify' or 'priority', not 'all'$"):
+        ObserverConfig(prop_test="all").validate()
     cfg = parse_observer("decision=threshold, surround=all, decision_time_s=0.8, props=none, click=peak")
     assert (cfg.decision, cfg.surround, cfg.decision_time_s, cfg.props, cfg.click) == ("threshold", "all", 0.8,
                                                                                      "none", "peak")
+    cfg = parse_observer("click=core, prop_test=priority")
+    assert (cfg.click, cfg.prop_test) == ("core", "priority")
 
 
 def crate(bg: np.ndarray, x0: int, y0: int, w: int = 40, h: int = 34) -> tuple[np.ndarray, np.ndarray]:
@@ -723,3 +741,56 @@ def test_a_scene_prop_is_not_taken_for_the_object():
     # nothing to find: the prop's knowledge does not make the invisible object's place a candidate
     empty = simulate_search(bg, n=300, seed=6, mask=beside, background=bg)
     assert empty.found.mean() <= 0.03
+
+
+def test_a_flat_prop_that_only_verification_would_take_is_known():
+    """A large flat grey box standing on a blotchy floor in the object-free view: with the priority test alone
+    (``prop_test="priority"``) part of it is no prop and the scene without the object gets clicked on it; with the
+    default (``prop_test="verify"``) every place that the verification would accept in the object-free view is a
+    prop, so no place of the object-free view reaches the criterion against its own null any more, and the box is
+    clicked far less. A visible object beside it is still found."""
+    from evaluation.observer import _null_evidence, _regional_null, scene_props
+
+    g = grass(24)
+    bg = np.clip(g[..., [1, 0, 2]] * np.array([0.72, 0.6, 0.44], np.float32), 0, 1).astype(np.float32)  # a floor
+    box = np.zeros((N, N), bool)
+    box[70:134, 150:230] = True
+    bg[box] = (0.36 * (1 + 0.03 * np.random.default_rng(1).normal(size=(box.sum(), 1)))).astype(np.float32)
+    bgm = evidence_maps(bg, regional=False)
+    ground = ~bgm.sky
+
+    def self_verification(cfg):
+        props = scene_props(bgm, cfg)
+        mu, scale = _regional_null(_null_evidence(bgm, props, cfg), bgm.sky, None, cfg)
+        return float(((_null_evidence(bgm, props, cfg) - mu) / scale)[ground & ~props].max())
+
+    assert self_verification(ObserverConfig(prop_test="priority")) >= 6.0  # a place the verification would take
+    assert self_verification(ObserverConfig()) < 6.0
+    clicks = {}
+    for test in ("priority", "verify"):
+        r = simulate_search(bg, n=300, seed=6, mask=box, background=bg, config=ObserverConfig(prop_test=test))
+        clicks[test] = float(r.found.mean())
+    assert clicks["priority"] >= 0.8 and clicks["verify"] <= 0.5, clicks  # measured 0.94 and 0.31
+    obj = disc(70, 180, 14)
+    assert predict_stimulus(with_object(bg, obj, 0.75), obj, n=200, seed=6, background=bg).p_found >= 0.95
+
+
+def test_core_click_lands_inside_the_identified_thing():
+    """``click="core"``: the centre of gravity of the connected object evidence at the verified place, kept in its
+    core -- a ring is clicked on its body (its centre of gravity lies in the hole), a bar whose evidence peaks at
+    one end in its middle; the start is returned where its evidence is below the level."""
+    from evaluation.observer import core_click
+
+    yy, xx = np.mgrid[0:60, 0:60]
+    rr = np.hypot(yy - 30, xx - 30)
+    ring = np.where((rr >= 10) & (rr <= 20), 4.0, 0.0)
+    y, x = core_click(ring, np.array([30, 12]), np.array([49, 30]), 25.0)
+    depth = np.minimum(rr - 10, 20 - rr)[y, x]
+    assert (ring[y, x] > 0).all() and (depth >= 1.5).all(), (y, x)  # on the body, off both outlines
+    bar = np.zeros((40, 40))
+    bar[10:30, 5:35] = 3.0
+    bar[10:30, 30:35] = 9.0
+    y, x = core_click(bar, np.array([20]), np.array([33]), 30.0)
+    assert abs(int(y[0]) - 19.5) <= 1 and abs(int(x[0]) - 19.5) <= 1
+    y, x = core_click(bar, np.array([2]), np.array([2]), 30.0)
+    assert (int(y[0]), int(x[0])) == (2, 2)
