@@ -119,8 +119,8 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
     checks that bound map by map). So a copy of the run whose ``maps/*.npy`` hold the GLB's decoded maps is the same
     scene as the GLB: with the same cameras and sampler seed every view must score the same to 0.01 dB (not exactly:
     the LLVM backend's multi-threaded film accumulation sums in scheduling order, which moved one view by 0.0026 dB
-    under a load of 15, 2026-11-27; a decoding error costs several dB). That is
-    deterministic, unlike a bound on the quantisation's own effect: with transmittance near 0.75 (the fast
+    under a load of 15, 2026-11-27; a decoding error costs several dB). That bound is
+    tight, unlike a bound on the quantisation's own effect: with transmittance near 0.75 (the fast
     preset's start) a texel off by 1/255 flips which lobe some paths sample, the common random numbers decorrelate
     there, and the unquantised run moved by 0.02-0.15 dB per view between machines (CI, 2026-11-23), the size of
     the seed-to-seed noise. That effect is only bounded loosely here (< 0.5 dB per view), where a decoding error
