@@ -44,22 +44,33 @@ def bench_scene(name: str, args) -> dict:
     out = {"scene": name, "max_depth": plan.max_depth, "transmittance": float(pack.material.transmittance),
            "roughness": float(pack.material.roughness)}
     renders = {}
-    for denoise in ("", *([args.denoise] if args.denoise else [])):
-        for matched in (False, True):
-            rs = []
-            for seed in (1, 2):
-                r = ViewRenderer(args.spp, seed, noise_match=matched)
-                bg = r.background(pack, env, cams, integ, denoise)
-                t = time.perf_counter()
-                o = r.with_object(env, mesh_fn, cams, integ, bg, threshold)
-                rs.append((bg.image, o, time.perf_counter() - t, bg.seconds))
-            renders[(matched, denoise)] = rs
-    (b0, o0, _, _), (b1, o1, _, _) = renders[(False, "")]
+    settings = [(m, "", 1) for m in (False, True)]
+    if args.denoise:
+        settings += [(m, args.denoise, 1) for m in (False, True)]
+        settings += [(True, args.denoise, k) for k in args.object_spp if k != 1]
+        if args.auto:  # what the evaluation plan would choose (evaluation.views.object_spp_pilot), on its own seeds
+            from evaluation.views import object_spp_pilot
+
+            plan.denoise = args.denoise
+            pilot = object_spp_pilot(pack, env, cams, plan, args.spp, 0, True, mesh_fn)
+            out["pilot"] = {k: v for k, v in pilot.items() if k != "why"}
+            settings.append((True, args.denoise, pilot["factor"]))
+            settings = list(dict.fromkeys(settings))
+    for matched, denoise, k in settings:
+        rs = []
+        for seed in (1, 2):
+            r = ViewRenderer(args.spp, seed, noise_match=matched)
+            bg = r.background(pack, env, cams, integ, denoise)
+            t = time.perf_counter()
+            o = r.with_object(env, mesh_fn, cams, integ, bg, threshold, object_spp=k)
+            rs.append((bg.image, o, time.perf_counter() - t, bg.seconds))
+        renders[(matched, denoise, k)] = rs
+    (b0, o0, _, _), (b1, o1, _, _) = renders[(False, "", 1)]
     near = np.stack([dilate_px(m, 2) for m in o0.mask])
-    for (matched, denoise), rs in renders.items():
+    for (matched, denoise, k), rs in renders.items():
         (b0, o0, s0, bs0), (b1, o1, s1, bs1) = rs
         bg_noise = noise_rms(b0, b1, near)
-        key = ("matched" if matched else "plain") + (f"+{denoise}" if denoise else "")
+        key = ("matched" if matched else "plain") + (f"+{denoise}" if denoise else "") + (f"+x{k}" if k > 1 else "")
         out[key] = {"object_noise": noise_rms(o0.image, o1.image, near), "background_noise": bg_noise,
                     "ratio": noise_rms(o0.image, o1.image, near) / max(bg_noise, 1e-9),
                     "fireflies": fireflies(o0.image, o1.image, near), "bg_fireflies": fireflies(b0, b1, near),
@@ -79,7 +90,19 @@ def main() -> None:
     ap.add_argument("--target-vertices", type=int, default=8000)
     ap.add_argument("--denoise", default="", help="also both renders denoised by this denoiser (optimizer/rendering/"
                     "denoise.py VARIANTS, e.g. oidn-raw), without and with noise matching")
+    ap.add_argument("--object-spp", default="1", help="with --denoise: also matched and denoised with the object and "
+                    "its rim at these factors of the spp (comma list of integers >= 1, e.g. 2,4)")
+    ap.add_argument("--auto", action="store_true", help="with --denoise: also the factor the evaluation's pilot "
+                    "chooses (evaluation.views.object_spp_pilot; its own seeds, timed)")
     args = ap.parse_args()
+    try:
+        args.object_spp = [int(x) for x in args.object_spp.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--object-spp: integers >= 1, not {args.object_spp!r}")
+    if any(k < 1 for k in args.object_spp):
+        ap.error(f"--object-spp: integers >= 1, not {args.object_spp}")
+    if (args.auto or args.object_spp != [1]) and not args.denoise:
+        ap.error("--object-spp / --auto need --denoise VARIANT")
 
     from optimizer import backend
     from optimizer.scenes import builtin_scenes
@@ -105,6 +128,28 @@ def main() -> None:
               f"{p['seconds']:.2f} -> {m['seconds']:.2f} |")
     if args.denoise:
         print_denoised(rows, args.denoise)
+        print_object_spp(rows, args.denoise)
+
+
+def print_object_spp(rows: list[dict], denoise: str) -> None:
+    """Matched and denoised, the object and its rim at more spp: noise ratio and what it costs."""
+    cols = sorted({int(k.rsplit("+x", 1)[1]) for r in rows for k in r if k.startswith(f"matched+{denoise}+x")})
+    if not cols and not any("pilot" in r for r in rows):
+        return
+    print(f"\nMatched and {denoise}, the object and a 3-pixel rim at k x the spp (ratio = object / background noise "
+          "after the denoiser; extra samples as a share of a frame; with-object seconds)\n")
+    head = ["k = 1", *[f"k = {k}" for k in cols]]
+    print("| scene | " + " | ".join(head) + " | pilot: r -> k (r at k), s |")
+    print("|---|" + "---|" * (len(head) + 1))
+    for r in rows:
+        cells = []
+        for k in [1, *cols]:
+            x = r.get(f"matched+{denoise}" + (f"+x{k}" if k > 1 else ""))
+            cells.append("-" if x is None else f"{x['ratio']:.2f}; +{x['extra_samples_share']:.0%}; {x['seconds']:.2f} s")
+        p = r.get("pilot")
+        pc = "-" if p is None else (f"{p['ratio']:.2f} -> x{p['factor']} ({p['ratio_at_factor']:.2f} at "
+                                   f"x{p['verified_factor']}), {p['seconds']:.1f} s")
+        print(f"| {r['scene']} | " + " | ".join(cells) + f" | {pc} |")
 
 
 def print_denoised(rows: list[dict], denoise: str) -> None:

@@ -107,6 +107,18 @@ def load_pack(name: str, views: int, resolution: int, target_vertices: int):
 # (a) evaluation render
 # ------------------------------------------------------------------------------------------------------------------
 
+class _SharedCache(dict):
+    """A ViewRenderer's region cache that gives every background the one dict of the scene (what it holds -- the
+    background scene, its compact lights -- does not depend on the seed or spp)."""
+
+    def __init__(self, shared: dict):
+        super().__init__()
+        self.shared = shared
+
+    def setdefault(self, key, default=None):
+        return self.shared
+
+
 def bench_evaluation(name: str, args) -> dict:
     from evaluation.views import evaluation_cameras, evaluation_plan, render_seed
     from optimizer.rendering.placement import prepare_object, static_object_fn
@@ -193,6 +205,37 @@ def bench_evaluation(name: str, args) -> dict:
         img = render_shaded(env.build(), mesh, cams, full, spp, seed)
         return img, clock() - t
 
+    # the evaluation render as `camo evaluate` makes it (evaluation.views.ViewRenderer: region, noise matching, the
+    # denoiser and the object's spp factor), each setting "DENOISER:FACTOR" ("off" no denoiser; "auto": the factor
+    # the evaluation's pilot chooses, its seconds listed apart)
+    from evaluation.views import ViewRenderer, object_spp_pilot
+
+    as_eval: dict[str, tuple[str, int]] = {}
+    as_eval_pilots: dict = {}
+    for setting in args.evaluate_as:
+        d, k = setting.split(":") if ":" in setting else (setting, "1")
+        d = "" if d == "off" else d
+        if k == "auto":
+            pl = dataclasses.replace(plan, denoise=d)
+            t = time.perf_counter()
+            pilot = object_spp_pilot(pack, env, cams, pl, args.eval_spp, args.seed, True, mesh_fn)
+            as_eval_pilots[setting] = {**{a: b for a, b in pilot.items()}, "wall_seconds": time.perf_counter() - t}
+            say(f"{name}: object-spp pilot ({d}): {pilot['why']}")
+            k = pilot["factor"]
+        as_eval[setting] = (d, int(k))
+
+    def eval_render(spp, seed, setting):
+        """``(image, seconds, background image, ObjectRenders)``: the with-object render timed, the background
+        (shared by every input of a scene, its denoising too) not."""
+        d, k = as_eval[setting]
+        r = ViewRenderer(spp, args.seed, noise_match=True, sampler_seed=seed)
+        r.region_cache = _SharedCache(cache)  # the scene's compact lights: found once, as for plan_render
+        bg = r.background(pack, env, cams, integ, d)
+        t = clock()
+        o = r.with_object(env, lambda: mesh, cams, integ, bg,
+                          plan.region_threshold if plan.region_search else None, object_spp=k)
+        return o.image, clock() - t, bg.image, o
+
     base = render_seed(args.seed)
     ref, _ = full_render(args.ref_spp, base + 999)
     full_ref, _ = full_render(args.ref_spp, base + 998)  # its distance to ref: twice the reference noise
@@ -207,7 +250,8 @@ def bench_evaluation(name: str, args) -> dict:
         for d in dens:
             den_out[d] = {"bias_at_ref_spp": math.sqrt(max(srgb_rms(denoised(plan_ref, f_ref, d)[0], ref) ** 2
                                                            - srgb_rms(full_ref, ref) ** 2, 0.0))}
-    at_spp: dict = {"plan": [], "bg": [], **{d: [] for d in dens}, **{f"bg-{d}": [] for d in dens}}
+    at_spp: dict = {"plan": [], "bg": [], **{d: [] for d in dens}, **{f"bg-{d}": [] for d in dens},
+                    **{f"eval-{e}": [] for e in as_eval}, **{f"eval-bg-{e}": [] for e in as_eval}}
     rows = []
     for spp in args.eval_levels:
         for k in range(args.warmup):  # untimed: the JIT compiles of this spp's kernels (a render at a new spp, a
@@ -217,6 +261,8 @@ def bench_evaluation(name: str, args) -> dict:
                 alloc_render(spp, base + k, e)
             for rr in args.rr_depths:
                 plan_render(spp, base + k, rr_depth=rr)
+            for e in as_eval:
+                eval_render(spp, base + k, e)
             if dens:
                 w_img = plan_render(spp, base + k)[0]
                 fw = features(mesh, spp, base + k)
@@ -246,6 +292,15 @@ def bench_evaluation(name: str, args) -> dict:
                         if who == "plan" and spp == args.eval_spp:
                             at_spp[d].append(out)
                             at_spp[f"bg-{d}"].append(denoised(p_bg, bg_fe, d)[0])
+            for e in as_eval:
+                e_img, e_s, e_bg, e_o = eval_render(spp, seed, e)
+                row[f"eval-{e}_seconds"] = e_s
+                row[f"eval-{e}_error"] = math.sqrt(max(srgb_rms(e_img, ref) ** 2 - ref_var, 0.0))
+                row[f"eval-{e}_extra_samples"] = e_o.noise.extra_samples if e_o.noise is not None else 0.0
+                row[f"eval-{e}_denoise_seconds"] = e_o.denoise_seconds
+                if spp == args.eval_spp:
+                    at_spp[f"eval-{e}"].append(e_img)
+                    at_spp[f"eval-bg-{e}"].append(e_bg)
             if spp == args.eval_spp:
                 at_spp["plan"].append(p_img)
                 at_spp["bg"].append(p_bg)
@@ -311,6 +366,20 @@ def bench_evaluation(name: str, args) -> dict:
             "bias_at_spp": mean_bias, "seeds_at_spp": len(imgs), "noise_near_object": noise, "object": on_object,
             "features_seconds": float(np.min([r[f"{d}_features_seconds"] for r in rows if r["spp"] == s])),
             "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
+    eval_out = {}
+    for e, (d, k) in as_eval.items():
+        who = f"eval-{e}"
+        e_t = seconds_at(_mean_curve(rows, who), e_full)
+        imgs, bgs = at_spp[who], at_spp[f"eval-bg-{e}"]
+        eval_out[e] = {"denoise": d, "object_spp": k, "pilot": as_eval_pilots.get(e), "curve": _mean_curve(rows, who),
+                       "seconds_at_equal_error": e_t, "speedup": t_full / e_t,
+                       "seconds_at_spp": value_at([(k_, v[0]) for k_, v in _by_spp(rows, who).items()], s),
+                       "error_at_spp": math.exp(value_at([(k_, math.log(v[1])) for k_, v in
+                                                          _by_spp(rows, who).items()], s)),
+                       "extra_samples": float(np.mean([r[f"{who}_extra_samples"] for r in rows if r["spp"] == s])),
+                       "noise_near_object": ({"object": noise_rms(imgs[0], imgs[1], near),
+                                              "background": noise_rms(bgs[0], bgs[1], near)} if len(imgs) >= 2
+                                             else {})}
     rr_out = {}
     for rr in args.rr_depths:
         who = f"plan-rr{rr}"
@@ -323,6 +392,7 @@ def bench_evaluation(name: str, args) -> dict:
                     "background": noise_rms(at_spp["bg"][0], at_spp["bg"][1], near)}
                    if len(at_spp["plan"]) >= 2 else {})
     return {"scene": name, "pilot_seconds": pilot_seconds, "allocations": allocs, "denoisers": den_out,
+            "evaluate_as": eval_out,
             "rr_depths": rr_out,
             "noise_near_object": plain_noise,
             "region_search": bool(plan.region_search), "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
@@ -577,6 +647,10 @@ def main() -> None:
                     "first-hit, see-through, see-through sharp) and the denoising are timed")
     ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
                     "(comma list; the plan's own is 5), interleaved")
+    ap.add_argument("--evaluate-as", default="", help="also the evaluation render exactly as camo evaluate makes it "
+                    "(evaluation.views.ViewRenderer: region, noise matching, denoiser, the object's spp factor), "
+                    "interleaved: comma list of DENOISER:FACTOR (DENOISER 'off' or a variant; FACTOR an integer or "
+                    "'auto', the factor the evaluation's pilot chooses), e.g. off:1,oidn-through:auto")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
                     "(at most the colour's)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
@@ -629,6 +703,12 @@ def main() -> None:
     bad = [d for d in args.denoisers if d not in DENOISERS]
     if bad:
         ap.error(f"--denoisers: unknown {', '.join(bad)}; choose from {', '.join(DENOISERS)}")
+    args.evaluate_as = [x for x in args.evaluate_as.split(",") if x]
+    for x in args.evaluate_as:
+        d, _, k = x.partition(":")
+        if (d != "off" and d not in DENOISERS) or not (k in ("", "auto") or (k.isdigit() and int(k) >= 1)):
+            ap.error(f"--evaluate-as: {x!r} is not DENOISER:FACTOR (DENOISER off or one of {', '.join(DENOISERS)}; "
+                     "FACTOR an integer >= 1 or auto)")
     args.rr_depths = [int(x) for x in args.rr_depths.split(",") if x]
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     args.train_levels = [int(x) for x in args.train_levels.split(",")]
@@ -662,6 +742,45 @@ def main() -> None:
     results["seconds"] = time.perf_counter() - t_all
     (out / "bench_planner.json").write_text(json.dumps(results, indent=1))
     print_tables(results)
+
+
+def print_evaluate_as(results: dict) -> None:
+    """The table of ``--evaluate-as``: the evaluation render as ``camo evaluate`` makes it, per setting."""
+    a = results["args"]
+    sets = list(dict.fromkeys(e for r in results["eval"] for e in (r.get("evaluate_as") or {})))
+    if not sets:
+        return
+    print(f"The evaluation render as camo evaluate makes it (evaluation.views.ViewRenderer: the plan's depth and "
+          f"region, noise matching, the denoiser on both renders, the object and a 3-pixel rim at k x the spp), "
+          f"measured in the same run against the same full tracing; the with-object render timed whole (region "
+          f"search, noise matching's and the object's extra samples, features, denoising), the background not. "
+          f"Noise near the object: the object and a 2-pixel rim at {a['eval_spp']} spp, two seeds, with-object / "
+          "background (both denoised alike)\n")
+    print("| scene | setting | k | CPU s @ equal error | speed-up | CPU s @"
+          f"{a['eval_spp']} spp (full's) | extra samples @{a['eval_spp']} spp | error @{a['eval_spp']} spp (/255) | "
+          "noise near the object / bg (/255) = ratio | pilot s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    sp: dict = {e: [] for e in sets}
+    for r in results["eval"]:
+        for e in sets:
+            x = (r.get("evaluate_as") or {}).get(e)
+            if x is None:
+                continue
+            t_eq, low = clamped_seconds(x["curve"], r["full_error_at_spp"], x["seconds_at_equal_error"])
+            speed = r["full_seconds_at_spp"] / t_eq
+            sp[e].append(speed)
+            nz = x.get("noise_near_object") or {}
+            ratio = (f"{nz['object']:.2f} / {nz['background']:.2f} = {nz['object'] / max(nz['background'], 1e-9):.2f}"
+                     if nz else "-")
+            pil = x.get("pilot") or {}
+            print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''} | "
+                  f"{'>= ' if low else ''}{speed:.2f}x | {x['seconds_at_spp']:.2f} ({r['full_seconds_at_spp']:.2f}) | "
+                  f"+{x['extra_samples']:.0%} | {x['error_at_spp'] * 255:.3f} | {ratio} | "
+                  f"{pil.get('wall_seconds', 0):.1f} |")
+    for e in sets:
+        print(f"\n{e}: mean speed-up {np.mean(sp[e]):.2f}x, minimum {np.min(sp[e]):.2f}x (>= where the cheapest level "
+              "is already below the target error)")
+    print()
 
 
 def print_tables(results: dict) -> None:
@@ -729,6 +848,7 @@ def print_tables(results: dict) -> None:
             sp = [r["rr_depths"][k]["speedup"] for r in results["eval"] if k in (r.get("rr_depths") or {})]
             print(f"\nfrom vertex {k}: mean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x")
         print()
+    print_evaluate_as(results)
     dens = list(dict.fromkeys(d for r in results["eval"] for d in (r.get("denoisers") or {})))
     for d in dens:
         al = [r for r in results["eval"] if d in (r.get("denoisers") or {})]

@@ -79,6 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "requires, every bounce kept)")
     p.add_argument("--threads", type=RENDER_RANGES["threads"].arg_type(),
                    help="CPU threads for the LLVM backend (default: all cores)")
+    from optimizer.rendering.planner import DENOISER, DENOISERS
+
+    p.add_argument("--denoise", nargs="?", const=DENOISER, default="", choices=DENOISERS, metavar="VARIANT",
+                   help="--purpose evaluate: the plan with this denoiser (as camo evaluate --denoise; the flag alone: "
+                   f"{DENOISER}), and the object's spp factor its pilot measures (the object no noisier than its "
+                   "denoised surroundings)")
     p.set_defaults(func=_plan, setting_names=lambda name, args: f"--{name}")
 
     from camo import grid, optimize_cli, video_cli
@@ -159,6 +165,8 @@ def _plan(args) -> int:
     env = get_environment(pack.environment)
     print(f"scene: {pack.name} ({env.description})")
     print(f"purpose: {args.purpose}; optimised parameters: {', '.join(sorted(params)) if args.purpose == 'optimize' else '-'}")
+    if args.denoise and args.purpose != "evaluate":
+        raise CamoError(f"--denoise {args.denoise}: only with --purpose evaluate (the evaluation's denoiser)")
     if args.no_pilot:
         pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
     elif args.purpose == "optimize":
@@ -173,7 +181,8 @@ def _plan(args) -> int:
         from optimizer.scenes.cameras import cameras
 
         cams = evaluation_cameras(pack, seed=args.seed).cams if args.purpose == "evaluate" else cameras(pack)
-        pl = evaluation_plan(pack, env, cams, args.spp or 64, args.seed)
+        pl = evaluation_plan(pack, env, cams, args.spp or 64, args.seed,
+                             denoise=args.denoise if args.purpose == "evaluate" else "")
     if pl.pilot:
         p = pl.pilot
         print(f"pilot: {p['views']} views at {p['width']}x{p['height']}, {p['spp']} spp, full depth {p['max_depth']}, "

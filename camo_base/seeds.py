@@ -34,6 +34,8 @@ reproduce bit for bit (s = the run seed, e = the evaluation seed, i = iteration,
     evaluation_cameras  e                                         the jitter of the evaluation's novel views
     evaluation_render   (7919 e + 104729) & 0x7FFFFFFF            every evaluation render (all runs, background and
                                                                   with-object images alike)
+    denoise_pilot       (7919 e + 3571 + pair) & 0x7FFFFFFF      the evaluation's object-spp pilot (two independent
+                                                                  pairs of renders, with and without the object)
     observer            e + 7919 k                                the simulated observer on the k-th stimulus of a
                                                                   stimulus set (e = the build-stimuli / predict seed)
     turntable_render    (7919 t + 611953 + f) & 0x7FFFFFFF        frame f of a turntable video (``camo video --seed
@@ -107,6 +109,8 @@ STREAMS: dict[str, Stream] = {s.name: s for s in (
            run=7919, offset=977, indices=(("pair", 1),)),
     Stream("evaluation_cameras", "jitter of the evaluation's novel views", source="evaluation"),
     Stream("evaluation_render", "every evaluation render", run=7919, offset=104729, mask=MASK31, source="evaluation"),
+    Stream("denoise_pilot", "the evaluation's object-spp pilot (evaluation/views.py object_spp_pilot), per pair",
+           run=7919, offset=3571, indices=(("pair", 1),), mask=MASK31, source="evaluation"),
     Stream("observer", "the simulated observer, per stimulus", indices=(("stimulus", 7919),), source="evaluation"),
     Stream("turntable_render", "every panel of one turntable frame (evaluation/turntable.py)", run=7919,
            offset=611953, indices=(("frame", 1),), mask=MASK31, source="video"),

@@ -270,11 +270,13 @@ def _plan_jobs(jobs: list[_Job], settings: EvalSettings, say: Callable[[str], No
         key = (json.dumps(dataclasses.asdict(j.entry.pack.environment), sort_keys=True, default=str), j.cams.key())
         if key not in plans:
             plans[key] = evaluation_plan(j.entry.pack, j.env, j.cams.cams, settings.spp, settings.seed,
-                                         settings.planner, denoise=settings.denoise)
+                                         settings.planner, denoise=settings.denoise,
+                                         noise_match=settings.noise_match)
             p = plans[key]
             if p.measured:
                 say(f"plan for {j.entry.scene}: max_depth {p.max_depth}, Russian roulette from {p.rr_depth}, "
-                    f"denoiser {p.denoise or 'off'}, pilot {p.pilot['seconds']:.1f} s")
+                    f"denoiser {p.denoise or 'off'}" + (f" (object x{p.object_spp} spp)" if p.denoise else "")
+                    + f", pilot {p.pilot['seconds']:.1f} s")
         j.plan = plans[key]
 
 
@@ -361,7 +363,8 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
         bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator, j.plan.denoise)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
         objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator, bg,
-                                    j.plan.region_threshold if j.plan.region_search else None)
+                                    j.plan.region_threshold if j.plan.region_search else None,
+                                    object_spp=j.plan.object_spp)
         cam_key = ec.key()
         scenes.setdefault(bg.key, {
             "scene": e.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),
@@ -390,6 +393,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
                         "region_share": None if objr.region is None else float(objr.region.mean()),
                         "noise_match": None if objr.noise is None else objr.noise.to_dict(),
                         "denoise": objr.denoise or "off", "denoise_seconds": objr.denoise_seconds,
+                        "object_spp": int(j.plan.object_spp),
                         "seconds": _plain_seconds(secs), "warnings": warnings, **e.placement})
         for wmsg in warnings:
             say(f"warning: {wmsg}")

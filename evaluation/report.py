@@ -590,7 +590,8 @@ def plans_section(eval_dirs: Sequence[str | Path]) -> tuple[list[str], list[str]
             evaluation = (f"depth {ev.get('max_depth', '?')}, "
                           + (f"{share:.0%} of the frames rendered" if share is not None else "whole frames")
                           + (f", +{nm.get('extra_samples_share', 0):.0%} samples (noise matched)" if nm else "")
-                          + (f", denoised ({r.get('denoise')})" if r.get("denoise") not in (None, "off") else ""))
+                          + (f", denoised ({r.get('denoise')})" if r.get("denoise") not in (None, "off") else "")
+                          + (f", x{r.get('object_spp')} spp on the object" if (r.get("object_spp") or 1) > 1 else ""))
             rows.append([(str(r.get("name")), False), (str(r.get("scene")), False), (str(r.get("method")), False),
                          (train, False), (evaluation, False)])
     if not rows:

@@ -134,7 +134,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 
 
 def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
-                    denoise: str = ""):
+                    denoise: str = "", noise_match: bool = True, object_spp: bool = True):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -146,8 +146,9 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     ``evaluation_pilot`` of :mod:`camo_base.seeds`). Without cameras: the rule-based plan (every bounce). With
     ``denoise`` (opt-in, ``--denoise [VARIANT]``: a name of :data:`optimizer.rendering.planner.DENOISERS`, "" off)
     the measured plan denoises with it where the noise at ``spp`` is above its measured bias
-    (:data:`optimizer.rendering.planner.DENOISER_BIASES`; ``plan.denoise``)."""
-    from camo_base import seeds
+    (:data:`optimizer.rendering.planner.DENOISER_BIASES`; ``plan.denoise``); then, with ``object_spp``,
+    :func:`object_spp_pilot` measures how many times the spp the object needs to be no noisier than its
+    surroundings after the denoiser (``plan.object_spp``; ``noise_match``: as the evaluation renders)."""
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
@@ -160,7 +161,111 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
                                                                              PILOT_VERTICES)))
     planner = Planner(PlannerSettings(denoise=denoise))
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
-    return planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
+    out = planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
+    if out.denoise and object_spp:
+        obj = object_spp_pilot(pack, env, cams, out, spp, seed, noise_match)
+        out.object_spp = obj["factor"]
+        out.pilot = {**(out.pilot or {}), "object_spp": obj}
+        out.reasons.append(("object spp", obj["why"]))
+    return out
+
+
+#: The denoised noise on the object's pixels falls as spp^-DENOISED_NOISE_EXPONENT (measured with
+#: ``bench/bench_noise.py --denoise oidn-through --object-spp 2,4,8``, after noise matching, on the four built-in scenes
+#: whose ratio is above 1: 0.26-0.46, median 0.31; slower than a raw render's 0.5: the denoiser removes more of the
+#: noise of fewer samples).
+DENOISED_NOISE_EXPONENT = 0.3
+#: The largest object spp factor the pilot chooses (on top of noise matching's, itself up to 8x).
+OBJECT_SPP_MAX = 8
+#: Evaluation cameras the object-spp pilot renders (evenly spaced), at the evaluation's resolution and spp.
+OBJECT_PILOT_VIEWS = 2
+
+
+def denoised_noise_ratio(pack, env, mesh_fn, cams: list[Camera], plan, spp: int, seed: int, object_spp: int = 1,
+                         noise_match: bool = True, renderers: list | None = None) -> tuple[float, float, float]:
+    """``(object noise, background noise, ratio)`` (sRGB /255) of the evaluation renders as ``plan`` makes them
+    (region, noise matching, the plan's denoiser on both, the object's ``object_spp`` factor): RMS difference of two
+    independent renders (stream ``denoise_pilot``, pairs 0 and 1) over sqrt 2, on the object and a 2-pixel rim, the
+    background's over the same pixels (:func:`optimizer.rendering.noise.noise_rms`). ``renderers``: two
+    :class:`ViewRenderer` of those streams, reused across calls (their backgrounds are cached)."""
+    from optimizer.rendering.noise import noise_rms
+    from optimizer.rendering.region import dilate_px
+
+    rs = renderers or [ViewRenderer(spp, seed, noise_match=noise_match,
+                                    sampler_seed=seeds.seed("denoise_pilot", seed, pair=p)) for p in (0, 1)]
+    thr = plan.region_threshold if plan.region_search else None
+    out = []
+    for r in rs:
+        bg = r.background(pack, env, cams, plan.integrator, plan.denoise)
+        out.append((bg.image, r.with_object(env, mesh_fn, cams, plan.integrator, bg, thr, object_spp=object_spp)))
+    (b0, o0), (b1, o1) = out
+    near = np.stack([dilate_px(m, 2) for m in o0.mask])
+    on, bn = noise_rms(o0.image, o1.image, near), noise_rms(b0, b1, near)
+    return on, bn, on / max(bn, 1e-9)
+
+
+def object_spp_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 0, noise_match: bool = True,
+                     mesh_fn=None, views: int = OBJECT_PILOT_VIEWS) -> dict[str, Any]:
+    """How many times the spp the object and its rim need so that, after ``plan.denoise``, they are no noisier
+    than the denoised background in the same pixels (issue 28 item 4), measured.
+
+    A denoiser smooths the background's noise more than a see-through object's (its features there are themselves
+    noisy and its colour has the rarer, brighter paths): at equal spp the denoised object and rim were 1.1-1.6x
+    noisier than the denoised background (docs/results/planner.md). Noise matching equalises the noise *before*
+    the denoiser; this pilot measures it *after*: it renders ``views`` of the evaluation cameras as the evaluation
+    will (the pack's object at its starting material, ``mesh_fn`` to choose another), twice, and measures the
+    ratio ``r`` (:func:`denoised_noise_ratio`). ``r <= 1``: factor 1. Otherwise the factor is the power of two at
+    or above ``r ** (1 / DENOISED_NOISE_EXPONENT) / 1.1`` (noise matching's tolerance; at least 2, at most
+    :data:`OBJECT_SPP_MAX`), verified by a second
+    measurement at that factor; if the ratio is still above 1 the factor is doubled once more (unverified).
+    Returns the factor, the ratios, the noises, the seconds and a one-line ``why``."""
+    import math
+
+    from optimizer.rendering.noise import TOLERANCE
+
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.scenes.cameras import evenly_spaced
+
+    t = time.perf_counter()
+    sub = [cams[i] for i in evenly_spaced(len(cams), min(int(views), len(cams)))]
+    if mesh_fn is None:
+        mesh_fn = static_object_fn(pack, prepare_object(pack, target_vertices=pack.object.target_vertices))
+    rs = [ViewRenderer(spp, seed, noise_match=noise_match, sampler_seed=seeds.seed("denoise_pilot", seed, pair=p))
+          for p in (0, 1)]
+    o1, b1, r1 = denoised_noise_ratio(pack, env, mesh_fn, sub, plan, spp, seed, 1, noise_match, rs)
+    factor, rk, ok = 1, r1, o1
+    if r1 > 1.0:
+        need = r1 ** (1.0 / DENOISED_NOISE_EXPONENT) / TOLERANCE  # within noise matching's tolerance: verified
+        factor = min(OBJECT_SPP_MAX, 2 ** max(1, math.ceil(math.log2(max(need, 1.0)))))
+        ok, _, rk = denoised_noise_ratio(pack, env, mesh_fn, sub, plan, spp, seed, factor, noise_match, rs)
+    verified = factor
+    if rk > 1.0 and factor < OBJECT_SPP_MAX:
+        factor *= 2
+    secs = time.perf_counter() - t
+    why = (f"the denoised object and rim are {r1:.2f}x as noisy as the denoised background at {spp} spp "
+           f"({o1:.2f} vs {b1:.2f}/255, {len(sub)} views, the pack's object)"
+           + (f"; x{verified} spp on the object and a {OBJECT_MARGIN}-pixel rim: {rk:.2f}x"
+              + (f", not <= 1, so x{factor} (unverified)" if factor != verified else "") if r1 > 1.0 else
+              ": no extra samples")
+           + f" (pilot {secs:.1f} s)")
+    return {"factor": int(factor), "ratio": float(r1), "ratio_at_factor": float(rk), "verified_factor": int(verified),
+            "object_noise": float(o1), "object_noise_at_factor": float(ok), "background_noise": float(b1),
+            "views": len(sub), "spp": int(spp), "seconds": float(secs), "why": why}
+
+
+#: Pixels around the object's silhouette that get its spp factor (:func:`object_pixels`): the denoiser's
+#: footprint spreads the object's noise over a few pixels beyond its silhouette.
+OBJECT_MARGIN = 3
+
+
+def object_pixels(coverage: np.ndarray, region: np.ndarray | None = None, margin: int = OBJECT_MARGIN) -> np.ndarray:
+    """``(V, H, W)`` bool: the pixels the object covers at all (coverage > 0) and a ``margin``-pixel rim, within
+    ``region`` (the pixels rendered with the object) when given. Decided by geometry alone, never by a pixel's
+    samples, so extra samples there keep the render unbiased."""
+    from optimizer.rendering.region import dilate_px
+
+    px = np.stack([dilate_px(c > 0, int(margin)) for c in np.asarray(coverage)])
+    return px & region if region is not None else px
 
 
 #: The denoiser's features (albedo, normal: first-hit or see-through, as its variant says) are rendered at
@@ -207,10 +312,14 @@ class ObjectRenders:
 class ViewRenderer:
     """Evaluation renders with a background cache (one entry per scene, camera set, spp, integrator, seed)."""
 
-    def __init__(self, spp: int, seed: int = 0, ss: int = 4, noise_match: bool = False):
+    def __init__(self, spp: int, seed: int = 0, ss: int = 4, noise_match: bool = False,
+                 sampler_seed: int | None = None):
         """``noise_match``: renders with an object get more samples where they are noisier than the background
-        (:mod:`optimizer.rendering.noise`; needs a ``path`` integrator and the background of the same seed)."""
+        (:mod:`optimizer.rendering.noise`; needs a ``path`` integrator and the background of the same seed).
+        ``sampler_seed``: the renders' sampler seed (default :func:`render_seed` of ``seed``; the pilot of
+        :func:`object_spp_pilot` uses its own stream)."""
         self.spp, self.seed, self.ss, self.noise_match = int(spp), int(seed), int(ss), bool(noise_match)
+        self.sampler_seed = render_seed(self.seed) if sampler_seed is None else int(sampler_seed)
         self.cache: dict[str, Background] = {}
         self.background_renders = 0  # how many times a background was actually rendered
         self.region_cache: dict[str, dict] = {}  # per background: the region pass' renders without the object
@@ -218,6 +327,8 @@ class ViewRenderer:
     def _key(self, pack, cams: list[Camera], integrator: dict, denoise: str = "") -> str:
         blob = json.dumps({"env": dataclasses.asdict(pack.environment), "cams": [dataclasses.astuple(c) for c in cams],
                            "spp": self.spp, "integrator": integrator, "seed": self.seed,
+                           **({"sampler_seed": self.sampler_seed} if self.sampler_seed != render_seed(self.seed)
+                              else {}),
                            **({"denoise": denoise} if denoise else {})}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -230,7 +341,7 @@ class ViewRenderer:
 
         t = time.perf_counter()
         albedo, normal = variant_features(denoise, env.build(), obj, cams, min(self.spp, FEATURE_SPP),
-                                          render_seed(self.seed))
+                                          self.sampler_seed)
         return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t
 
     def background(self, pack, env, cams: list[Camera], integrator: dict, denoise: str = "") -> Background:
@@ -246,9 +357,9 @@ class ViewRenderer:
                 from optimizer.rendering.render import PathRenderer
 
                 img, groups = PathRenderer(env.build(), None, cams, integrator, self.spp,
-                                           render_seed(self.seed))(groups=GROUPS)
+                                           self.sampler_seed)(groups=GROUPS)
             else:
-                img = render_shaded(env.build(), None, cams, integrator, self.spp, render_seed(self.seed))
+                img = render_shaded(env.build(), None, cams, integrator, self.spp, self.sampler_seed)
             raw, d_s = None, 0.0
             if denoise:
                 raw = img
@@ -261,7 +372,7 @@ class ViewRenderer:
 
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
                     background: Background | None = None, region_threshold: float | None = None,
-                    denoise: str | None = None) -> ObjectRenders:
+                    denoise: str | None = None, object_spp: int = 1) -> ObjectRenders:
         """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
         ``region_threshold`` (sRGB) only the region the object can change is rendered
         (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
@@ -270,16 +381,21 @@ class ViewRenderer:
         background's): the denoiser applied to the render (after noise matching), exactly as to the background (same
         features' spp and seed). Noise matching stays on beside it: alone, the denoiser leaves a transmissive
         object's fireflies (fewer, but more visible against a background it smooths: ``bench/bench_noise.py
-        --denoise``)."""
+        --denoise``). ``object_spp`` > 1 (the plan's ``object_spp``, :func:`object_spp_pilot`): the object and a
+        :data:`OBJECT_MARGIN`-pixel rim get that many times the samples (on top of noise matching's factor; the
+        further samples of the same streams, merged as one render at that spp), so that after the denoiser the
+        object is no noisier than its denoised surroundings."""
         from optimizer.rendering import scene as scn
         from optimizer.rendering.render import PathRenderer, coverage_and_depth, render_shaded, render_with_region
 
         t = time.perf_counter()
         mesh = mesh_fn()
-        sc = scn.build_scene(env.build(), mesh)
-        cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
-        seed = render_seed(self.seed)
+        seed = self.sampler_seed
         path = integrator.get("type") == "path"
+        # one scene for every pass of a path render (coverage, region, further samples): a build costs 20-50 ms
+        pr = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed) if path else None
+        sc = pr.scene if pr is not None else scn.build_scene(env.build(), mesh)
+        cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
         if denoise is None:
             denoise = background.denoise if background is not None else ""
         if background is not None and denoise != background.denoise:
@@ -290,22 +406,32 @@ class ViewRenderer:
         region, t_region, groups = None, 0.0, None
         if background is not None and path and region_threshold is not None:
             out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.fill, cov,
-                                     region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}))
+                                     region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}),
+                                     renderer=pr)
             img, reg = out[0], out[1]
             groups = out[2] if match_noise else None
             region, t_region = reg.masks, reg.seconds
         elif match_noise:
-            img, groups = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)(groups=g)
+            img, groups = pr(groups=g)
         else:
             img = render_shaded(env.build(), mesh, cams, integrator, self.spp, seed)
         matched = None
+        if int(object_spp) < 1:
+            raise ValueError(f"object_spp must be >= 1, got {object_spp}")
+        boost = object_pixels(cov, region) if int(object_spp) > 1 and path else None
+        if boost is not None:
+            boost = np.where(boost, int(object_spp), 1)
+        more = (lambda sel, spp, first: pr(sel, None, spp, first))
         if match_noise:
             from optimizer.rendering.noise import match
 
-            more = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed)
-            img, matched = match(lambda sel, spp, first: more(sel, None, spp, first), img, groups,
+            img, matched = match(more, img, groups,
                                  background.groups, region if region is not None else np.ones(img.shape[:3], bool),
-                                 self.spp)
+                                 self.spp, boost=boost)
+        elif boost is not None:
+            from optimizer.rendering.noise import more_samples
+
+            img = more_samples(more, img, boost, self.spp)[0]
         d_s = 0.0
         if denoise:
             img, d_s = self._denoised(env, mesh, cams, img, denoise)

@@ -269,13 +269,14 @@ def render_stimuli(
             draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
                           "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
         if e.scene not in plans:
-            plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed, denoise=denoise)
+            plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed, denoise=denoise, noise_match=noise_match)
         plan = plans[e.scene]
         log(f"rendering {e.name} ({e.kind}, {e.scene}, {e.method}): {len(cams)} views, {size}x{size} px, {spp} spp"
             + (" [practice]" if practice else ""))
         bg = renderer.background(e.pack, env, cams, plan.integrator, plan.denoise)
         objr = renderer.with_object(env, e.asset.mesh, cams, plan.integrator, bg,
-                                    plan.region_threshold if plan.region_search else None)
+                                    plan.region_threshold if plan.region_search else None,
+                                    object_spp=plan.object_spp)
         for v in range(len(cams)):
             mask = objr.mask[v]
             if not mask.any():
@@ -289,6 +290,7 @@ def render_stimuli(
             if objr.noise is not None:  # the object's pixels got up to 8x the spp where it was noisier
                 meta["spp_factor_max"] = int(objr.noise.factor[v].max())
             meta["denoise"] = objr.denoise or "off"
+            meta["object_spp"] = int(plan.object_spp)
             writer.add(srgb8(objr.image[v]), mask, meta, practice)
             # the background of the same camera and seed is kept next to the set (not served)
             _save_background(writer.out, e.scene, v, srgb8(bg.image[v]))

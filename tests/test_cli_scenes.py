@@ -49,6 +49,13 @@ def test_plan_prints_reasons(capsys):
     out = capsys.readouterr().out
     assert "integrator: {'type': 'prb'" in out and "- max_depth: 12" in out and "- sensors:" in out
     assert main(["plan", "room", "--ablate", "wings"]) == 2
+    capsys.readouterr()
+    assert main(["plan", "room", "--denoise", "oidn-through", "--no-pilot"]) == 2  # the evaluation's denoiser only
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "only with --purpose evaluate" in err[0], err
+    assert main(["plan", "room", "--purpose", "evaluate", "--denoise", "bm3d"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "invalid choice: 'bm3d'" in err[0], err
 
 
 def test_plan_runs_the_pilot_and_draws_the_curve(tmp_path, capsys, mi_backend):
@@ -65,6 +72,12 @@ def test_plan_runs_the_pilot_and_draws_the_curve(tmp_path, capsys, mi_backend):
     assert main(["plan", "meadow", "--purpose", "evaluate", "--resolution", "32", "--views", "4"]) == 0
     out = capsys.readouterr().out
     assert "integrator: {'type': 'path'" in out and "the whole frame" in out
+    assert "object spp" not in out
+    # with the see-through denoiser: its reason and the object's spp factor, measured by its own pilot
+    assert main(["plan", "meadow", "--purpose", "evaluate", "--resolution", "32", "--views", "2", "--spp", "16",
+                 "--denoise", "oidn-through"]) == 0
+    out = capsys.readouterr().out
+    assert "- denoise: oidn-through" in out and "- object spp: the denoised object and rim are" in out, out
     assert main(["plan", "meadow", "--png", str(tmp_path / "curve.jpg")]) == 2
     assert "must end in .png" in capsys.readouterr().err
 

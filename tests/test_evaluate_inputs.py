@@ -117,8 +117,10 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
     The files differ from ``result.ply`` + ``maps/*.npy`` only by their 8-bit textures (albedo sRGB, roughness /
     metallic / transmittance linear: <= 0.5/255 each; ``test_run_asset_reads_the_same_mesh_and_maps_as_the_run``
     checks that bound map by map). So a copy of the run whose ``maps/*.npy`` hold the GLB's decoded maps is the same
-    scene as the GLB: with the same cameras and sampler seed every view must score the same to 1e-3 dB. That is
-    deterministic, unlike a bound on the quantisation's own effect: with transmittance near 0.75 (the fast
+    scene as the GLB: with the same cameras and sampler seed every view must score the same to 0.01 dB (not exactly:
+    the LLVM backend's multi-threaded film accumulation sums in scheduling order, which moved one view by 0.0026 dB
+    under a load of 15, 2026-11-27; a decoding error costs several dB). That bound is
+    tight, unlike a bound on the quantisation's own effect: with transmittance near 0.75 (the fast
     preset's start) a texel off by 1/255 flips which lobe some paths sample, the common random numbers decorrelate
     there, and the unquantised run moved by 0.02-0.15 dB per view between machines (CI, 2026-11-23), the size of
     the seed-to-seed noise. That effect is only bounded loosely here (< 0.5 dB per view), where a decoding error
@@ -147,7 +149,7 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
     for name in ("glb", "obj"):
         got = df[df["run"] == name].set_index(["view", "region"])[metrics]
         assert (got.index == q.index).all()
-        np.testing.assert_allclose(got["psnr"], q["psnr"], atol=1e-3, err_msg=name)
+        np.testing.assert_allclose(got["psnr"], q["psnr"], atol=1e-2, err_msg=name)
         np.testing.assert_allclose(got[["ssim", "lpips_proxy"]], q[["ssim", "lpips_proxy"]], atol=1e-4,
                                    err_msg=name)
         # the 8-bit quantisation itself: at 32 px and 8 spp a 1/255 step can flip which lobe a path samples over

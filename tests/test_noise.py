@@ -95,3 +95,33 @@ def test_a_transmissive_object_under_the_sun_is_no_noisier_than_the_background(m
     sel = o0.mask
     diff = abs(float((m0.image[sel] + m1.image[sel]).mean() - (o0.image[sel] + o1.image[sel]).mean())) / 2
     assert diff < 0.05 * float(o0.image[sel].mean()), diff
+
+
+def test_more_samples_merge_into_the_render_at_that_spp(mi_backend):
+    """Further samples of some pixels (samples spp.. of their streams), merged with the first spp, are the render
+    at factor x spp there (the same estimator, not a second one averaged in), the other pixels untouched; the extra
+    share counts them; bad factors are refused."""
+    import pytest
+
+    mi, _ = mi_backend
+    from optimizer.rendering.noise import more_samples
+    from optimizer.rendering.render import PathRenderer
+    from optimizer.scenes.cameras import Camera
+
+    build, mesh = _glass_scene(mi)
+    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 24, 24)]
+    r = PathRenderer(build(), mesh(), cams, {"type": "path", "max_depth": 6, "rr_depth": 5}, 8, seed=3)
+    base = r()
+    factor = np.ones((1, 24, 24), np.int64)
+    factor[0, 8:16, 8:16] = 4  # the sphere's middle
+    factor[0, :4] = 2
+    merged, extra = more_samples(lambda sel, n, first: r(sel, None, n, first), base, factor, 8)
+    for k, full in ((4, r(None, None, 32)), (2, r(None, None, 16))):
+        np.testing.assert_allclose(merged[factor == k], full[factor == k], rtol=1e-4, atol=1e-6)
+    np.testing.assert_array_equal(merged[factor == 1], base[factor == 1])
+    assert not np.allclose(merged[factor == 4], base[factor == 4])
+    assert extra == (64 * 3 + 96 * 1) / factor.size
+    with pytest.raises(ValueError, match=">= 1"):
+        more_samples(lambda *a: base, base, np.zeros((1, 24, 24), int), 8)
+    with pytest.raises(ValueError, match="shape"):
+        more_samples(lambda *a: base, base, np.ones((2, 24, 24), int), 8)

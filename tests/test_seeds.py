@@ -33,6 +33,7 @@ def old_formulas(s: int, it: int, v: int, k: int) -> dict[str, int | list[int]]:
         "evaluation_render": (s * 7919 + 104729) & 0x7FFFFFFF,  # evaluation/views.py render_seed
         "observer": s + 7919 * k,  # evaluation/observer.py predict_entries
         "turntable_render": (s * 7919 + 611953 + v) & 0x7FFFFFFF,  # new stream: evaluation/turntable.py (frame v)
+        "denoise_pilot": (s * 7919 + 3571) & 0x7FFFFFFF,  # new stream: evaluation/views.py object_spp_pilot (pair 0)
     }
 
 

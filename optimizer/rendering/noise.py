@@ -99,24 +99,43 @@ def factors(obj_var: np.ndarray, bg_var: np.ndarray, region: np.ndarray, window:
 
 
 def match(render_more, image: np.ndarray, groups: np.ndarray, bg_groups: np.ndarray, region: np.ndarray, spp: int,
-          window: int = WINDOW, max_factor: int = MAX_FACTOR) -> tuple[np.ndarray, NoiseMatch]:
+          window: int = WINDOW, max_factor: int = MAX_FACTOR,
+          boost: np.ndarray | None = None) -> tuple[np.ndarray, NoiseMatch]:
     """The with-object ``image`` (``spp`` samples) with its noise matched to the background's (module doc).
     ``groups`` / ``bg_groups``: ``(G, V, H, W, 3)`` group means of the two renders (the with-object one over
     ``region``); ``render_more(masks, spp, first_sample)`` renders further samples of the pixels in ``masks`` (their
-    means)."""
+    means). ``boost (V, H, W)`` int: a further factor on the matched one (the object's spp factor before a
+    denoiser, :func:`evaluation.views.object_spp_pilot`); it must not depend on the render's samples."""
     import time
 
     t0 = time.perf_counter()
     k, ratio = factors(display_variance(groups), display_variance(bg_groups), region, window, max_factor)
+    if boost is not None:  # a factor decided from geometry, not from any pixel's samples: stays unbiased
+        k = np.where(region, k * np.asarray(boost, np.int64), k)
+    out, extra = more_samples(render_more, image, k, spp)
+    return out, NoiseMatch(k, ratio[region] if region.any() else np.zeros(0), extra,
+                           time.perf_counter() - t0)
+
+
+def more_samples(render_more, image: np.ndarray, factor: np.ndarray, spp: int) -> tuple[np.ndarray, float]:
+    """``image`` (``spp`` samples per pixel) with ``factor (V, H, W)`` times the samples per pixel: samples ``spp``
+    to ``factor * spp - 1`` of each pixel's stream (``render_more(masks, n, first_sample)``: the means of ``n``
+    samples from ``first_sample`` on), merged as the mean of all ``factor * spp`` samples -- the same estimator as
+    one render at that spp (``tests/test_noise.py``). One launch per distinct factor. Returns the image and the
+    extra samples as a share of one full-frame render at ``spp``."""
+    factor = np.asarray(factor, np.int64)
+    if factor.shape != image.shape[:3]:
+        raise ValueError(f"factor has shape {factor.shape}, the image {image.shape[:3]}")
+    if (factor < 1).any():
+        raise ValueError("every factor must be >= 1")
     out = np.array(image, np.float32, copy=True)
     extra = 0
-    for f in sorted(set(np.unique(k).tolist()) - {1}):
-        sel = k == f
+    for f in sorted(set(np.unique(factor).tolist()) - {1}):
+        sel = factor == f
         more = render_more(sel, (f - 1) * spp, spp)
         out[sel] = (image[sel] + (f - 1) * more[sel]) / f
         extra += int(sel.sum()) * (f - 1)
-    return out, NoiseMatch(k, ratio[region] if region.any() else np.zeros(0), extra / max(k.size, 1),
-                           time.perf_counter() - t0)
+    return out, extra / max(factor.size, 1)
 
 
 def noise_rms(a1: np.ndarray, a2: np.ndarray, pixels: np.ndarray) -> float:

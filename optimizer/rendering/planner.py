@@ -81,7 +81,10 @@ DENOISERS = tuple(DENOISER_BIASES)
 #: error than it removes. It is opt-in (``PlannerSettings.denoise``, ``--denoise``): neither feature kind meets
 #: both tests on the object's pixels on every built-in scene (detail within 0.9-1.1 of the converged render's:
 #: 0.81-1.14 first-hit, 0.84-1.11 see-through; bias below the denoised render's remaining noise: not on gravel and
-#: the panorama), docs/results/planner.md.
+#: the panorama), and the see-through kind needs the object's extra samples (``evaluation.views.object_spp_pilot``)
+#: to leave it no noisier than its denoised surroundings; counting those and the features, an evaluation render as
+#: ``camo evaluate`` makes it is short of the 2x speed target against full path tracing at equal error
+#: (``bench/bench_planner.py --evaluate-as``), docs/results/planner.md.
 DENOISER = "oidn-raw"
 DENOISER_BIAS = DENOISER_BIASES[DENOISER]
 
@@ -121,6 +124,7 @@ class Plan:
     region_threshold: float = 0.5 / 255  # sRGB: a change below this is left to the background render
     region_search: bool = False  # searching the region of a render with the object pays (evaluation, targets)
     denoise: str = ""  # evaluation: the denoiser (optimizer.rendering.denoise.VARIANTS) applied to both renders, or ""
+    object_spp: int = 1  # evaluation with a denoiser: the object and its rim get this many times the spp (measured)
 
     @property
     def measured(self) -> bool:
@@ -157,7 +161,7 @@ class Plan:
                 "reasons": [[k, v] for k, v in self.reasons], "effects": [e.to_dict() for e in self.effects],
                 "spp": self.spp, "pilot": self.pilot, "curve": self.curve, "drop_emitters": list(self.drop_emitters),
                 "region_threshold": float(self.region_threshold), "region_search": self.region_search,
-                "denoise": self.denoise}
+                "denoise": self.denoise, "object_spp": int(self.object_spp)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Plan":
@@ -167,7 +171,7 @@ class Plan:
                    int(d.get("rr_depth", RR_DEPTH)), bool(d.get("region", False)), str(d.get("purpose", "optimize")),
                    [Effect(**e) for e in d.get("effects", [])], dict(d.get("spp", {})), d.get("pilot"),
                    d.get("curve"), list(d.get("drop_emitters", [])), float(d.get("region_threshold", 0.5 / 255)),
-                   bool(d.get("region_search", False)), str(d.get("denoise", "")))
+                   bool(d.get("region_search", False)), str(d.get("denoise", "")), int(d.get("object_spp", 1)))
 
     def environment(self, env: Environment) -> Environment:
         """``env`` without the emitters the plan dropped (``env`` itself when none)."""
@@ -404,8 +408,9 @@ class Planner:
                    (f"off by default (--denoise [VARIANT] turns it on where {measured}): the first-hit albedo of a "
                     "see-through object is its own smooth map, so oidn-raw wipes the ground texture seen through it "
                     "and the object reads as a smooth patch on grainy ground; oidn-through (see-through features) "
-                    "keeps it but leaves the object noisier than its denoised surroundings (up to 1.6x, "
-                    "docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
+                    "keeps it, and with the object's spp factor its own pilot measures the object is no noisier than "
+                    "its denoised surroundings, but counting those samples and its features it is short of the "
+                    "planner's 2x speed target against full path tracing at equal error (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))

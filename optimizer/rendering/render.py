@@ -91,15 +91,16 @@ def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict,
 
 def render_with_region(elements_fn, mesh, cams: Sequence[Camera], integrator: dict, spp: int, seed: int,
                        background: np.ndarray, coverage: np.ndarray, threshold: float | None = None,
-                       groups: int = 1, cache: dict | None = None):
+                       groups: int = 1, cache: dict | None = None, renderer: "PathRenderer | None" = None):
     """The render with the object ``mesh`` over the region it can change
     (:func:`optimizer.rendering.region.render_region`), the rest from ``background`` (same spp and seed); returns
     ``(image, regions)`` or, with ``groups`` > 1, ``(image, regions, group_means)`` (``(G, V, H, W, 3)``, zeros
     outside the region). ``elements_fn()``: fresh environment elements; ``cache``: a dict kept across objects of
-    one scene."""
+    one scene; ``renderer``: the :class:`PathRenderer` of this scene, spp and seed when the caller has one (a scene
+    is built once)."""
     from optimizer.rendering.region import THRESHOLD, RegionSettings, render_region
 
-    r = PathRenderer(elements_fn(), mesh, cams, integrator, spp, seed)
+    r = renderer if renderer is not None else PathRenderer(elements_fn(), mesh, cams, integrator, spp, seed)
     grouped = np.zeros((groups, *np.asarray(background).shape), np.float32) if groups > 1 else None
 
     def render(masks, fill):
