@@ -87,6 +87,21 @@ def test_a_real_stage_1_takes_the_winner_with_its_ior_and_rebuilt_scene(mi_backe
     assert np.isfinite(rec["loss"])
 
 
+def test_clear_roughness_sets_the_candidates_start(mi_backend):
+    """``--clear-roughness R``: the clear-glass candidate is scored, and kept, at a uniform roughness R."""
+    from tests.fixture_stage1 import tiny_gravel_stage1
+
+    s1 = tiny_gravel_stage1(False, warm_start=True, clear_roughness=0.5)
+    seen = []
+
+    def score(values):
+        seen.append((s1.app.eta, float(values["roughness"].mean())))
+        return (0.5 if s1.app.eta < 1.5 else 1.0), 0.0, 0.0
+
+    assert s1.search_clear(1.05, score).chosen == "clear glass"
+    assert seen[1] == (1.05, pytest.approx(0.5)) and np.all(s1.values["roughness"] == np.float32(0.5))
+
+
 def optimize(out, *flags):
     return main(["optimize", "gravel", "--out", str(out), *TINY, *flags])
 
@@ -99,6 +114,9 @@ def optimize(out, *flags):
     (["--holdout-views", "0", "--clear-candidate", "1.05"], "--clear-candidate needs held-out views"),
     (["--ablate", "bsdf", "--clear-candidate", "1.05"], "--clear-candidate needs the principled BSDF"),
     (["--method", "mean", "--clear-candidate", "1.05"], "--clear-candidate does not apply to --method mean"),
+    (["--clear-roughness", "0.5"], "--clear-roughness is the start of --clear-candidate's clear glass: set "
+                                   "--clear-candidate too"),
+    (["--clear-candidate", "1.05", "--clear-roughness", "1.5"], "--clear-roughness: must be a number in [0, 1]"),
 ])
 def test_bad_clear_candidate_flags_are_one_line_errors(tmp_path, capsys, flags, message):
     assert optimize(tmp_path / "x", *flags) == 2

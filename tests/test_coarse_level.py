@@ -100,10 +100,17 @@ def test_options_and_errors():
 
     spec = RunSpec.from_options({"scene": "meadow", "coarse_grid": 4, "coarse_lr": 0.03}).validate()
     assert (spec.stage1.coarse_grid, spec.stage1.coarse_lr) == (4, 0.03)
-    assert RunSpec.from_options({"scene": "meadow"}).stage1.coarse_grid == 0  # off by default
-    with pytest.raises(CamoError, match="coarse.lr") as e:
-        RunSpec.from_options({"scene": "meadow", "coarse_lr": 0.03}).validate()
-    assert "\n" not in str(e.value)
+    # the fast preset (the default) has one offset per channel; the paper preset and --coarse-grid 0 have none
+    assert RunSpec.from_options({"scene": "meadow"}).validate().stage1.coarse_grid == 1
+    assert RunSpec.from_options({"scene": "meadow", "preset": "fast"}).validate().stage1.coarse_grid == 1
+    assert RunSpec.from_options({"scene": "meadow", "preset": "paper"}).validate().stage1.coarse_grid == 0
+    assert RunSpec.from_options({"scene": "meadow", "coarse_grid": 0}).validate().stage1.coarse_grid == 0
+    # a rate for the default level is accepted; a rate without a level is not
+    assert RunSpec.from_options({"scene": "meadow", "coarse_lr": 0.03}).validate().stage1.coarse_lr == 0.03
+    for off in ({"coarse_grid": 0}, {"preset": "paper"}):
+        with pytest.raises(CamoError, match="coarse.lr") as e:
+            RunSpec.from_options({"scene": "meadow", "coarse_lr": 0.03, **off}).validate()
+        assert "\n" not in str(e.value)
     with pytest.raises(CamoError, match="coarse.grid") as e:
         RunSpec.from_options({"scene": "meadow", "coarse_grid": 64, "map_resolution": 32}).validate()
     assert "\n" not in str(e.value)

@@ -1,5 +1,5 @@
 """The Stage 1 loss-term weights (``--detail-match W``, ``--tint-match W``) and the maps' coarse level (``--coarse-grid
-K``): parsed into the spec, off by default, refused out of range or by a method without Stage 1, and a bad value is one
+K``): parsed into the spec, at their defaults when not given (the terms off, the level 1 in the fast preset), refused out of range or by a method without Stage 1, and a bad value is one
 line on the CLI. The terms themselves are tested in ``test_detail_term.py``, ``test_tint_term.py`` and
 ``test_coarse_level.py``."""
 from __future__ import annotations
@@ -9,6 +9,8 @@ import pytest
 from camo_base.errors import CamoError
 
 WEIGHTS = [("detail_match", 8.0), ("tint_match", 4.0), ("coarse_grid", 4)]
+#: the value a field takes when not given (the fast preset's): the loss terms off, one coarse cell
+DEFAULTS = {"detail_match": 0.0, "tint_match": 0.0, "coarse_grid": 1}
 
 
 @pytest.mark.parametrize(("field", "value"), WEIGHTS)
@@ -16,7 +18,7 @@ def test_option_parsing_and_errors(field, value):
     from optimizer.optimise.spec import RunSpec
 
     assert getattr(RunSpec.from_options({"scene": "meadow", field: value}).stage1, field) == value
-    assert getattr(RunSpec.from_options({"scene": "meadow"}).stage1, field) == 0.0  # off by default
+    assert getattr(RunSpec.from_options({"scene": "meadow"}).stage1, field) == DEFAULTS[field]
     for bad in (-1, 1e4, "lots"):
         with pytest.raises(CamoError, match=field.replace("_", ".")) as e:
             RunSpec.from_options({"scene": "meadow", field: bad}).validate()

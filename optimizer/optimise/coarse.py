@@ -22,7 +22,9 @@ so a constant ``c`` is a constant offset. ``c`` is a parameter of Stage 1's Adam
 ``--coarse-lr``, kept in [-1, 1]); its gradient is ``U^T`` of the fine map's gradient where the clip is inactive, by
 the gather's adjoint. The fine maps keep their own parameters, rate, gradient blur and projection. The result of the
 stage is folded (:func:`fold`): the maps a run saves, exports and hands to Stage 2 are ``clip(X_fine + U c)``, so
-nothing downstream knows the level existed. Off by default; Stage 1 only.
+nothing downstream knows the level existed. Stage 1 only; the ``fast`` preset's default is ``K = 1`` (no worse than
+no level on crop PSNR and LPIPS-proxy on the six built-in scenes, docs/results/giveaways.md; ``--coarse-grid 0``
+turns it off), the ``paper`` preset has none.
 
 Cost: four gathers of the coarse grid per map and step (``R^2 C`` each; 0.2 M at 128 texels), next to a render.
 """

@@ -38,6 +38,7 @@ RANGES: dict[str, Range] = {
     "stage1.tint_match": Range(float, 0.0, 1e3), "stage1.tint_scale": Range(float, 0.0, 1e3),
     "stage1.coarse_grid": Range(int, 0, 64), "stage1.coarse_lr": Range(float, 0.0, 1.0),
     "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
+    "stage1.clear_roughness": Range(float, 0.0, 1.0),
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
     "time_budget": Range(float, 0.0, None, lo_open=True),
@@ -165,6 +166,10 @@ def _options() -> tuple[Option, ...]:
           "refraction (e.g. 1.05) with a smooth start (roughness 0.2), kept with its IOR (Stage 2, final renders, the "
           "exported asset) when it scores better (optimizer/optimise/startsearch.py)" + _p("stage1.clear_candidate")
           + "; 0: off", metavar="ETA"),
+        o("clear_roughness", "stage1.clear_roughness", float,
+          "the starting roughness of --clear-candidate's clear glass (rougher glass spreads the sunlight it focuses "
+          "into its shadow and blurs the ground seen through it)" + _p("stage1.clear_roughness") + "; 0: 0.2",
+          metavar="R"),
         o("coarse_grid", "stage1.coarse_grid", int,
           "give the albedo and transmittance maps a coarse level of this many cells a side (1: one offset per channel "
           "for the whole body), added before rendering and stepped by Adam at its own rate, so the body's colour "

@@ -362,6 +362,9 @@ class RunSpec:
                                f"{literal(self.stage1.coarse_grid)}", "stage1.coarse_grid", "appearance.map_resolution")
         if m.reads_path("stage1.coarse_lr") and self.stage1.coarse_lr and not self.stage1.coarse_grid:
             raise SettingError("{0} is the rate of {1}: set {1} > 0 too", "stage1.coarse_lr", "stage1.coarse_grid")
+        if m.reads_path("stage1.clear_roughness") and self.stage1.clear_roughness and not self.stage1.clear_candidate:
+            raise SettingError("{0} is the start of {1}'s clear glass: set {1} too", "stage1.clear_roughness",
+                               "stage1.clear_candidate")
         if m.reads_path("stage1.clear_candidate") and self.stage1.clear_candidate:
             if not 1.0 < self.stage1.clear_candidate <= 4.0:
                 raise SettingError(f"{{0}} must be 0 (off) or an index of refraction in (1, 4], got "

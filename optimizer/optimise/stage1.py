@@ -101,6 +101,9 @@ class Stage1Settings:
     # refraction with a smooth start (startsearch.CLEAR_ROUGHNESS), kept with its IOR when it scores better
     # (optimizer/optimise/startsearch.py, issue 29); 0: off
     clear_candidate: float = 0.0
+    # the clear-glass candidate's uniform starting roughness; 0: startsearch.CLEAR_ROUGHNESS (0.2). Rougher glass
+    # spreads the sunlight it focuses (its caustic in the shadow) and blurs the ground seen through it
+    clear_roughness: float = 0.0
     # > 0: the albedo and transmittance maps get a coarse level of this many cells a side (1: one offset per channel
     # for the whole body), added before rendering and optimised by Adam at its own rate (optimizer/optimise/coarse.py:
     # the body's colour moved as a whole, issue 29); 0: off
@@ -498,7 +501,7 @@ class Stage1:
 
     def search_clear(self, eta: float, score) -> "ClearSearchInfo":
         """Start from the better of the prepared start (at the run's IOR) and clear glass: IOR ``eta``, a uniform
-        roughness :data:`~optimizer.optimise.startsearch.CLEAR_ROUGHNESS`, the other maps the start's, warm-started
+        roughness (``clear_roughness``, else :data:`~optimizer.optimise.startsearch.CLEAR_ROUGHNESS`), the other maps the start's, warm-started
         at that IOR; ``score(values) -> (score, bias2, variance)`` on the run's held-out views, which render with
         this stage's ``app`` (:func:`optimizer.optimise.startsearch.clear_search`). When clear glass wins the
         stage's IOR becomes ``eta`` and the training scene is rebuilt."""
@@ -513,7 +516,8 @@ class Stage1:
                 self.app = have[2]
                 return have[0], have[1]
             self.app = dataclasses.replace(have[2], eta=float(candidate_eta))
-            values = {**self.values, "roughness": np.full_like(self.values["roughness"], CLEAR_ROUGHNESS)}
+            rough = float(getattr(self.cfg, "clear_roughness", 0.0) or CLEAR_ROUGHNESS)
+            values = {**self.values, "roughness": np.full_like(self.values["roughness"], rough)}
             return self._prepare(values)  # warm-started (when the stage warm-starts) at the candidate's IOR
 
         before = have[1].seconds if have[1] is not None else 0.0
