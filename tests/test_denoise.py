@@ -82,6 +82,25 @@ def _sunlit(mi, dark, tiles: int):
     return elements, sphere
 
 
+def _glass_sphere_in_sun(mi):
+    """The firefly case (tests/test_noise.py): a rough transmissive sphere under the sun on a textured ground, two
+    48-px cameras, an unbiased path tracer; returns ``(env, mesh_fn, cams, integrator, pack)``, where the pack (meadow)
+    only keys the background cache by its environment spec."""
+    from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.cameras import Camera
+    from optimizer.scenes.environments import Environment
+
+    build, sphere = _sunlit(mi, (0.3, 0.35, 0.25), 60)
+
+    def mesh():
+        return sphere((0.8, 0.8, 0.8), 0.9)
+
+    env = Environment("glass", "glass", build, ("sun", "sky"))
+    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 48, 48),
+            Camera((-2.0, -3.0, 1.2), (0.0, 0.0, 0.4), 45.0, 48, 48)]
+    return env, mesh, cams, {"type": "path", "max_depth": 8, "rr_depth": 5}, builtin_scenes.get("meadow")
+
+
 def test_see_through_features_against_known_cases(mi_backend):
     """The see-through albedo and normal (optimizer.rendering.denoise.see_through_features) of a sphere on a
     checkered ground, 32 px: an opaque sphere's equal the first-hit features of Mitsuba's ``aov`` integrator (today's
@@ -237,20 +256,7 @@ def test_evaluation_renders_are_denoised_alike_and_the_object_is_no_noisier_than
     from optimizer.rendering.planner import DENOISER as den
     from optimizer.rendering.noise import fireflies, noise_rms
     from optimizer.rendering.region import dilate_px
-    from optimizer.scenes import builtin_scenes
-    from optimizer.scenes.cameras import Camera
-    from optimizer.scenes.environments import Environment
-
-    build, sphere = _sunlit(mi, (0.3, 0.35, 0.25), 60)
-
-    def mesh():
-        return sphere((0.8, 0.8, 0.8), 0.9)
-
-    env = Environment("glass", "glass", build, ("sun", "sky"))
-    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 48, 48),
-            Camera((-2.0, -3.0, 1.2), (0.0, 0.0, 0.4), 45.0, 48, 48)]
-    integ = {"type": "path", "max_depth": 8, "rr_depth": 5}
-    pack = builtin_scenes.get("meadow")  # only its environment spec keys the background cache
+    env, mesh, cams, integ, pack = _glass_sphere_in_sun(mi)
     out = {}
     for d, matched in (("", False), (den, True)):
         renders = []
@@ -334,20 +340,7 @@ def test_the_object_gets_the_samples_that_leave_it_no_noisier_than_its_denoised_
     mi, _ = mi_backend
     from evaluation.views import OBJECT_MARGIN, ViewRenderer, denoised_noise_ratio, object_pixels, object_spp_pilot
     from optimizer.rendering.planner import Plan
-    from optimizer.scenes import builtin_scenes
-    from optimizer.scenes.cameras import Camera
-    from optimizer.scenes.environments import Environment
-
-    build, sphere = _sunlit(mi, (0.3, 0.35, 0.25), 60)
-
-    def mesh():
-        return sphere((0.8, 0.8, 0.8), 0.9)
-
-    env = Environment("glass", "glass", build, ("sun", "sky"))
-    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 48, 48),
-            Camera((-2.0, -3.0, 1.2), (0.0, 0.0, 0.4), 45.0, 48, 48)]
-    integ = {"type": "path", "max_depth": 8, "rr_depth": 5}
-    pack = builtin_scenes.get("meadow")  # only its environment spec keys the background cache
+    env, mesh, cams, integ, pack = _glass_sphere_in_sun(mi)
     plan = Plan(integ, True, 8, "", [], region_search=True, denoise="oidn-through")
     pilot = object_spp_pilot(pack, env, cams, plan, 64, seed=0, mesh_fn=mesh)
     print(pilot["why"])
