@@ -137,9 +137,10 @@ grounds' separation from the overlap of two normal distributions; the shape cue'
 study's object sizes and the geometry of a half-plane -- the cue was made the default after one on/off comparison
 on the nine visible cells; the diffusion decision, the own-ground surround, the scene's props and the click on the
 body after one comparison each, with the former settings kept as options: ``decision="threshold"``,
-``surround="all"``, ``props="none"``, ``click="peak"``, ``prop_test="priority"``, ``cast_shadow="none"``; the props' core is the verification criterion itself, their
-extent the 98th percentile of a normal ground); nothing is fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows predicted and human figures side by side on
-the built-in scenes' stimuli, and where and why they part.
+``surround="all"``, ``props="none"``, ``click="peak"``, ``prop_test="priority"``, ``cast_shadow="none"``; the
+props' core is the verification criterion itself, their extent the 98th percentile of a normal ground); nothing is
+fitted to any image metric. The check is not met everywhere: docs/results/observer.md shows predicted and human
+figures side by side on the built-in scenes' stimuli, and where and why they part.
 
 Outputs: :func:`simulate_search` (per simulated trial: click, time, found), :func:`predict_stimulus` (probability
 found, search-time distribution) and :func:`predicted_table` (per method, in the shape of the study's Table I).

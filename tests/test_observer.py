@@ -563,7 +563,8 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     surround, so "surround" takes it for shadow and discounts it; it is no darker than the shaded ground at its
     place, so "background" keeps its evidence. A cast shadow pasted on the lit half (not in the background) is
     discounted fully and not clicked as the object. The references are compared without the shape cue; with it
-    (the default) "surround" discounts that flat cast shadow fully as well."""
+    (the default) "surround" discounts that flat cast shadow fully as well. Both without the cast-shadow texture
+    test (``cast_shadow="none"``), which discounts a pasted shadow whatever the reference (tested above)."""
     bg = grass(21)
     shade = np.zeros((N, N), bool)
     shade[:, :110] = True
@@ -571,8 +572,10 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     obj = ellipse(85, 150, 14, 22)
     img = bg_shade.copy()
     img[obj] = np.clip(bg_shade[shade].mean(0) * np.array([0.8, 0.9, 1.4], np.float32), 0, 1)
-    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_shape="none"), bg_shade)
-    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background", shadow_shape="none"), bg_shade)
+    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_shape="none", cast_shadow="none"),
+                          bg_shade)
+    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background", shadow_shape="none", cast_shadow="none"),
+                          bg_shade)
     core = _feature_mask(ellipse(85, 150, 8, 14), m_sur.shadow.shape)
     assert float(m_sur.shadow[core].mean()) > 0.8  # "surround": taken for shadow (measured 1.08)
     assert float(m_ref.shadow[core].mean()) < 0.2  # "background": not a shadow of the ground there (0.10)
@@ -580,15 +583,16 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     cast = ellipse(190, 170, 36, 14)
     img2 = shadowed(bg_shade, cast)
     c = _feature_mask(ellipse(190, 170, 20, 7), m_sur.shadow.shape)
-    surround = ObserverConfig(shadow_reference="surround", shadow_shape="none")
+    surround = ObserverConfig(shadow_reference="surround", shadow_shape="none", cast_shadow="none")
     o_sur = float(evidence_maps(img2, surround, bg_shade).obj[c].mean())
-    ratio = ObserverConfig(shadow_reference="background", shadow_shape="none")
+    ratio = ObserverConfig(shadow_reference="background", shadow_shape="none", cast_shadow="none")
     m2 = evidence_maps(img2, ratio, bg_shade)
     assert float(m2.obj[c].mean()) < o_sur and float(m2.verify[c].max()) < 1.0  # 0.12 vs 0.27; V 0.12
     res = simulate_search(img2, n=300, seed=3, config=ratio, mask=cast, background=bg_shade)
     assert res.found.mean() <= max(0.05, 3 * cast.mean())
-    o_lying = float(evidence_maps(img2, ObserverConfig(), bg_shade).obj[c].mean())
+    o_lying = float(evidence_maps(img2, ObserverConfig(cast_shadow="none"), bg_shade).obj[c].mean())
     assert o_lying < 0.1 < o_sur  # measured 0.06 vs 0.27
+    assert float(evidence_maps(img2, ObserverConfig(), bg_shade).obj[c].mean()) < 0.1  # the default (-0.10)
 
 
 def test_shadow_settings_are_checked():
