@@ -325,7 +325,7 @@ def check_same_framing(framings: list[tuple[str, str, list[dict[str, Any]]]], to
     """One framing per scene and view: every input of a scene must be shown from the same cameras (origin, aim and
     field of view per view), since the methods are compared on the same framings and the set keeps one object-free
     render per scene and view (``backgrounds/``, the observer's background statistics). Runs made with different
-    camera settings (``--views``, ``--resolution``, a pack's ``[cameras]``) have different evaluation cameras:
+    camera settings (views, resolution, a pack's ``[cameras]``) have different evaluation cameras:
     a one-line error names them, before anything is rendered. ``framings``: (scene, input name, per-view
     placement records with ``origin``, ``target`` and ``fov``)."""
     first: dict[str, tuple[str, list[dict[str, Any]]]] = {}
@@ -339,7 +339,7 @@ def check_same_framing(framings: list[tuple[str, str, list[dict[str, Any]]]], to
                     max(abs(x - y) for x, y in zip(a["target"], b["target"])), abs(a["fov"] - b["fov"]))
             if d > tol:
                 raise CamoError(f"scene {scene}: {name} and {other} are framed differently in view {v} (their runs' "
-                                f"cameras differ: --views, --resolution or the pack's [cameras]); build their stimuli "
+                                f"cameras differ: views, resolution or the pack's [cameras]); build their stimuli "
                                 f"in separate sets, or evaluate runs made with the same camera settings")
         if len(ref) != len(draws):
             raise CamoError(f"scene {scene}: {name} has {len(draws)} views and {other} {len(ref)}; build their stimuli "
