@@ -83,6 +83,15 @@ ARMS = {
     # the planner's glint-safe roughness
     "coarse1_auto_r35": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.35"],
     "coarse1_auto_r5": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5"],
+    # the clear glass's caustic (issue 29, fourth session): at 4 spp it arrives as rare bright samples that the soft
+    # clamp of the loss cuts, so Stage 1 sees the lit shadow as dark as the opaque start's and raises the
+    # transmittance further; without the clamp it sees the caustic's mean (r5_c0), and rougher glass spreads it (r10)
+    "coarse1_auto_r5_c0": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5",
+                           "--loss-clamp", "0"],
+    "coarse1_auto_r10": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "1.0"],
+    "coarse1_auto_r7": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.7"],
+    # an index of refraction nearer 1: light through the body bends and focuses less (the caustic's bright core)
+    "coarse1_auto_r5_eta102": ["--coarse-grid", "1", "--clear-candidate", "1.02", "--clear-roughness", "0.5"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
@@ -278,7 +287,9 @@ LABELS = {"today": "ours (today)", "coarse0": "ours, no coarse level", "large_st
           "coarse1": "ours + coarse 1", "coarse1_auto": "coarse 1 + clear per scene",
           "coarse4_auto": "coarse 4 + clear per scene", "coarse1_lr3_auto": "coarse 1 (lr 3e-2) + clear",
           "coarse1_tint1_auto": "coarse 1 + tint 1 + clear",
-          "coarse1_auto_r35": "coarse 1 + clear R0 0.35", "coarse1_auto_r5": "coarse 1 + clear R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
+          "coarse1_auto_r35": "coarse 1 + clear R0 0.35", "coarse1_auto_r5": "coarse 1 + clear R0 0.5", "coarse1_auto_r5_c0": "clear R0 0.5, no loss clamp",
+          "coarse1_auto_r10": "coarse 1 + clear R0 1.0", "coarse1_auto_r7": "coarse 1 + clear R0 0.7",
+          "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 
