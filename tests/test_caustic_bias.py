@@ -57,3 +57,4 @@ def test_shadow_mask_is_the_dark_ground_outside_the_object(bench_module):
     obj = np.zeros((3, 3), bool)
     obj[0, 0] = True
     assert cb.shadow_mask(bg, op, obj, 0.6).sum() == 2
+
