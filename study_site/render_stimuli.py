@@ -250,15 +250,9 @@ def render_stimuli(
     check_no_content_leak([{"practice": p, "scene": e.scene, "view": "any", "environment": env_of[id(e)]}
                            for e, p, _ in jobs], "build-stimuli")
 
-    backend.init(threads=threads)
-    renderer = ViewRenderer(spp, seed, noise_match=noise_match)
-    skipped = 0
-    plans: dict[str, Any] = {}  # one evaluation plan per scene (its pilot on the scene's first placed cameras)
-    for e, practice, ev in jobs:
-        env = get_environment(e.pack.environment)
+    def framing(e: Any, ev: dict[str, Any]) -> tuple[list[Any], list[dict[str, Any]]]:
         jitter = float(ev.get("jitter", DEFAULT_JITTER))
-        ev_seed = int(ev.get("seed", 0))
-        base = evaluation_cameras(e.pack, views, jitter, ev_seed, (size, size)).cams
+        base = evaluation_cameras(e.pack, views, jitter, int(ev.get("seed", 0)), (size, size)).cams
         centre = object_centre(e.pack)
         obj_size = float(e.pack.object.size)
         cams, draws = [], []
@@ -268,6 +262,18 @@ def render_stimuli(
             cams.append(new)
             draws.append({"draw_px": draw["px"], "draw_py": draw["py"], "draw_object_frac": draw["object_frac"],
                           "fov": fov, "target": [float(x) for x in target], "origin": list(new.origin)})
+        return cams, draws
+
+    framings = {id(e): framing(e, ev) for e, _, ev in jobs}
+    check_same_framing([(e.scene, e.name, framings[id(e)][1]) for e, _, _ in jobs])
+
+    backend.init(threads=threads)
+    renderer = ViewRenderer(spp, seed, noise_match=noise_match)
+    skipped = 0
+    plans: dict[str, Any] = {}  # one evaluation plan per scene (its pilot on the scene's first placed cameras)
+    for e, practice, ev in jobs:
+        env = get_environment(e.pack.environment)
+        cams, draws = framings[id(e)]
         if e.scene not in plans:
             plans[e.scene] = evaluation_plan(e.pack, env, cams, spp, seed, denoise=denoise, noise_match=noise_match)
         plan = plans[e.scene]
@@ -313,6 +319,31 @@ def render_stimuli(
         },
         skipped_empty_masks=skipped,
     )
+
+
+def check_same_framing(framings: list[tuple[str, str, list[dict[str, Any]]]], tol: float = 1e-6) -> None:
+    """One framing per scene and view: every input of a scene must be shown from the same cameras (origin, aim and
+    field of view per view), since the methods are compared on the same framings and the set keeps one object-free
+    render per scene and view (``backgrounds/``, the observer's background statistics). Runs made with different
+    camera settings (views, resolution, a pack's ``[cameras]``) have different evaluation cameras:
+    a one-line error names them, before anything is rendered. ``framings``: (scene, input name, per-view
+    placement records with ``origin``, ``target`` and ``fov``)."""
+    first: dict[str, tuple[str, list[dict[str, Any]]]] = {}
+    for scene, name, draws in framings:
+        if scene not in first:
+            first[scene] = (name, draws)
+            continue
+        other, ref = first[scene]
+        for v, (a, b) in enumerate(zip(ref, draws)):
+            d = max(max(abs(x - y) for x, y in zip(a["origin"], b["origin"])),
+                    max(abs(x - y) for x, y in zip(a["target"], b["target"])), abs(a["fov"] - b["fov"]))
+            if d > tol:
+                raise CamoError(f"scene {scene}: {name} and {other} are framed differently in view {v} (their runs' "
+                                f"cameras differ: views, resolution or the pack's [cameras]); build their stimuli "
+                                f"in separate sets, or evaluate runs made with the same camera settings")
+        if len(ref) != len(draws):
+            raise CamoError(f"scene {scene}: {name} has {len(draws)} views and {other} {len(ref)}; build their stimuli "
+                            f"in separate sets")
 
 
 def _save_background(out: Path, scene: str, view: int, rgb: np.ndarray) -> None:

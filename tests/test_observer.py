@@ -196,6 +196,69 @@ def test_an_object_with_its_shadow_is_clicked_on_the_object():
     assert on_shadow.mean() <= 0.05
 
 
+def test_an_attached_shadow_does_not_pull_the_click_off_its_object():
+    """A faint, light body (a Mean-like object: the ground's texture with 15 % of a pale colour) with a dark cast
+    shadow (20 % of the light) hugging its right side and running down past its base -- taller than wide, so the
+    shape cue reads it as upright, and darker than the body is distinct: the occluded scene's torus. Without the
+    cast-shadow texture test (``cast_shadow="none"``) the shadow carries more object evidence than the body and
+    every click lands on it (the test can fail); with it (the default) the shadow keeps the ground's texture, so it
+    carries less object evidence than the body, and the body is clicked."""
+    bg = grass(41)
+    obj = ellipse(120, 130, 13, 24)
+    sh = (ellipse(134, 140, 10, 22) | ellipse(140, 154, 14, 9)) & ~obj
+    img = shadowed(bg, sh, 0.2)
+    img[obj] = 0.85 * bg[obj] + 0.15 * np.array([0.75, 0.7, 0.6], np.float32)
+    out = {}
+    for cast in ("none", "texture"):
+        cfg = ObserverConfig(cast_shadow=cast)
+        m = evidence_maps(img, cfg, bg)
+        o_obj, o_sh = (float(m.obj[_feature_mask(r, m.obj.shape)].max()) for r in (obj, sh))
+        res = simulate_search(img, n=300, seed=4, config=cfg, mask=obj, background=bg)
+        on_sh = sh[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)] & res.clicked
+        out[cast] = (o_obj, o_sh, float(res.found.mean()), float(on_sh.mean()))
+    # measured: none O 2.98 body / 3.79 shadow, found 0 %, on the shadow 100 %; texture O 2.98 / 2.73, found 100 %
+    (oo0, os0, f0, s0), (oo1, os1, f1, s1) = out["none"], out["texture"]
+    assert os0 > oo0 and s0 >= 0.5 and f0 <= 0.5, out  # the failure exists without the test
+    assert os1 < oo1 and abs(oo1 - oo0) < 0.1, out  # the shadow loses its evidence, the body keeps its own
+    assert f1 >= 0.95 and s1 <= 0.02, out
+
+
+def test_cast_shadow_map_reads_texture_kept_under_a_darkening():
+    """:func:`cast_shadow_map`: the grass darkened to 30 % of its light (texture kept) is shadow (>= 0.7 inside, >= 0.6
+    with pixel noise of its own);
+    the same darkening painted flat (its mean colour: no texture) or the grass of another seed darkened the same
+    (a textured surface that is not this ground's) is not (<= 0.2); a light change of 80 % is not (0); an
+    untextured ground says nothing (0)."""
+    from evaluation.observer import _log_image, _resample, cast_shadow_map
+
+    cfg = ObserverConfig()
+    bg = grass(5)
+    region = ellipse(128, 128, 50, 40)
+    core = ellipse(128, 128, 34, 26)
+    flat_bg = np.full_like(bg, 0.4)
+
+    def cast_of(img, ref):
+        s = cfg.display_deg * cfg.feature_px_per_deg / N
+        c = cast_shadow_map(_log_image(_resample(img, s)), _log_image(_resample(ref, s)),
+                            cfg.centre_sigmas_deg[0] * cfg.feature_px_per_deg, cfg)
+        return float(np.median(c[_feature_mask(core, c.shape)]))
+
+    assert cast_of(shadowed(bg, region, 0.3), bg) >= 0.7
+    # the renders share their sampler's random numbers (common random numbers); with pixel noise of its own in
+    # the image (half the texture's contrast, independent of the object-free view's) the shadow still reads
+    # (measured 0.81)
+    rng = np.random.default_rng(99)
+    noisy = np.clip(bg + (0.06 * rng.normal(size=bg.shape[:2]))[..., None] * np.array([0.35, 0.75, 0.25]), 0, 1)
+    assert cast_of(shadowed(noisy.astype(np.float32), region, 0.3), bg) >= 0.6
+    flat = shadowed(bg, region, 0.3)
+    flat[region] = flat[region].mean(0)
+    other = bg.copy()
+    other[region] = shadowed(grass(6), region, 0.3)[region]
+    assert cast_of(flat, bg) <= 0.2 and cast_of(other, bg) <= 0.2
+    assert cast_of(shadowed(bg, region, 0.8), bg) == 0.0
+    assert cast_of(shadowed(flat_bg, region, 0.3), flat_bg) == 0.0
+
+
 def fine_grass(seed: int = 0, n: int = N) -> np.ndarray:
     """A green texture with stationary statistics at the object's scale (spectrum 1/f^0.5: no object-sized
     blotches that would act as distractors of their own)."""
@@ -470,14 +533,17 @@ def test_shadow_discount_scales_what_a_cast_shadow_leaves_as_object_evidence():
     """``shadow_discount`` (the "surround" reference): the object evidence O inside a pasted cast shadow falls as the
     discount rises (0: the full difference D; 1: nothing of its shadow-like part), while D and the shadow evidence
     do not change, and an object of the same shape (red-tinted) keeps its evidence whatever the discount. Without
-    the shape cue, which would discount this flat region fully whatever ``shadow_discount`` says (tested below)."""
+    the shape cue, which would discount this flat region fully whatever ``shadow_discount`` says (tested below), and
+    without the cast-shadow texture test (``cast_shadow="none"``), which does the same for a shadow that keeps the
+    ground's texture (tested below)."""
     bg = grass(12)
     region = ellipse(100, 160, 40, 16)
     img = shadowed(bg, region)
     core = None
     o, d, sh = [], [], []
     for k in (0.0, 0.6, 1.0):
-        m = evidence_maps(img, ObserverConfig(shadow_discount=k, shadow_shape="none"), background=bg)
+        m = evidence_maps(img, ObserverConfig(shadow_discount=k, shadow_shape="none", cast_shadow="none"),
+                          background=bg)
         core = _feature_mask(ellipse(100, 160, 24, 8), m.obj.shape) if core is None else core
         o.append(float(m.obj[core].mean()))
         d.append(float(m.d[core].mean()))
@@ -497,7 +563,8 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     surround, so "surround" takes it for shadow and discounts it; it is no darker than the shaded ground at its
     place, so "background" keeps its evidence. A cast shadow pasted on the lit half (not in the background) is
     discounted fully and not clicked as the object. The references are compared without the shape cue; with it
-    (the default) "surround" discounts that flat cast shadow fully as well."""
+    (the default) "surround" discounts that flat cast shadow fully as well. Both without the cast-shadow texture
+    test (``cast_shadow="none"``), which discounts a pasted shadow whatever the reference (tested above)."""
     bg = grass(21)
     shade = np.zeros((N, N), bool)
     shade[:, :110] = True
@@ -505,8 +572,10 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     obj = ellipse(85, 150, 14, 22)
     img = bg_shade.copy()
     img[obj] = np.clip(bg_shade[shade].mean(0) * np.array([0.8, 0.9, 1.4], np.float32), 0, 1)
-    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_shape="none"), bg_shade)
-    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background", shadow_shape="none"), bg_shade)
+    m_sur = evidence_maps(img, ObserverConfig(shadow_reference="surround", shadow_shape="none", cast_shadow="none"),
+                          bg_shade)
+    m_ref = evidence_maps(img, ObserverConfig(shadow_reference="background", shadow_shape="none", cast_shadow="none"),
+                          bg_shade)
     core = _feature_mask(ellipse(85, 150, 8, 14), m_sur.shadow.shape)
     assert float(m_sur.shadow[core].mean()) > 0.8  # "surround": taken for shadow (measured 1.08)
     assert float(m_ref.shadow[core].mean()) < 0.2  # "background": not a shadow of the ground there (0.10)
@@ -514,15 +583,16 @@ def test_shadow_reference_background_tells_an_object_in_the_shade_from_a_cast_sh
     cast = ellipse(190, 170, 36, 14)
     img2 = shadowed(bg_shade, cast)
     c = _feature_mask(ellipse(190, 170, 20, 7), m_sur.shadow.shape)
-    surround = ObserverConfig(shadow_reference="surround", shadow_shape="none")
+    surround = ObserverConfig(shadow_reference="surround", shadow_shape="none", cast_shadow="none")
     o_sur = float(evidence_maps(img2, surround, bg_shade).obj[c].mean())
-    ratio = ObserverConfig(shadow_reference="background", shadow_shape="none")
+    ratio = ObserverConfig(shadow_reference="background", shadow_shape="none", cast_shadow="none")
     m2 = evidence_maps(img2, ratio, bg_shade)
     assert float(m2.obj[c].mean()) < o_sur and float(m2.verify[c].max()) < 1.0  # 0.12 vs 0.27; V 0.12
     res = simulate_search(img2, n=300, seed=3, config=ratio, mask=cast, background=bg_shade)
     assert res.found.mean() <= max(0.05, 3 * cast.mean())
-    o_lying = float(evidence_maps(img2, ObserverConfig(), bg_shade).obj[c].mean())
+    o_lying = float(evidence_maps(img2, ObserverConfig(cast_shadow="none"), bg_shade).obj[c].mean())
     assert o_lying < 0.1 < o_sur  # measured 0.06 vs 0.27
+    assert float(evidence_maps(img2, ObserverConfig(), bg_shade).obj[c].mean()) < 0.1  # the default (-0.10)
 
 
 def test_shadow_settings_are_checked():
@@ -576,8 +646,8 @@ def test_shadow_shape_tells_a_cast_shadow_from_an_object_of_the_same_colour():
     img[obj] = img[cast].mean(0)
     np.testing.assert_allclose(img[obj].mean(0), img[cast].mean(0), atol=1e-6)
     out = {}
-    for shape in ("none", "lying"):
-        m = evidence_maps(img, ObserverConfig(shadow_shape=shape), bg)
+    for shape in ("none", "lying"):  # the shape cue alone (the cast-shadow texture test would discount it anyway)
+        m = evidence_maps(img, ObserverConfig(shadow_shape=shape, cast_shadow="none"), bg)
         cs = _feature_mask(ellipse(80, 190, 28, 6), m.obj.shape)
         co = _feature_mask(ellipse(180, 150, 7, 18), m.obj.shape)
         out[shape] = (float(m.obj[cs].mean()), float(m.obj[co].mean()), float(m.verify[cs].max()),
@@ -587,7 +657,8 @@ def test_shadow_shape_tells_a_cast_shadow_from_an_object_of_the_same_colour():
     assert vo0 < vs0  # without the shape cue the shadow is the stronger candidate
     assert os1 < os0 - 0.25 and os1 < 0.3 and oo1 > os1 + 0.4 and oo0 < os0 + 0.2  # O alone barely separated them
     assert vs1 < 1.2 and vo1 > 3.0 and vo1 > vs1 + 2.0 and vo1 > vo0 + 1.5
-    res = simulate_search(img, n=200, seed=1, config=ObserverConfig(shadow_shape="lying"), mask=obj, background=bg)
+    res = simulate_search(img, n=200, seed=1, config=ObserverConfig(shadow_shape="lying", cast_shadow="none"),
+                          mask=obj, background=bg)
     assert not (res.clicked & cast[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)]).any()
 
 

@@ -133,3 +133,22 @@ def test_triplets_need_copy_with_one_line(built, tmp_path, capsys):
     for s in man["stimuli"]:
         given = np.asarray(Image.open(tri / f"v{s['view']}_obj.png").convert("RGB"))
         np.testing.assert_array_equal(np.asarray(Image.open(st / "images" / f"{s['id']}.png")), given)
+
+
+def test_inputs_framed_differently_are_refused_with_one_line():
+    """One framing per scene and view (the methods are compared on the same framings and share one object-free
+    render per view, the observer's background): inputs of one scene whose cameras differ (runs made with other
+    --views / --resolution) are refused before anything is rendered; the same cameras, or other scenes, pass."""
+    from study_site.render_stimuli import check_same_framing
+
+    a = [{"origin": [4.0, 0.0, 1.5], "target": [0.0, 0.0, 0.3], "fov": 60.0},
+         {"origin": [0.0, 4.0, 1.5], "target": [0.0, 0.0, 0.3], "fov": 58.0}]
+    moved = [dict(a[0]), dict(a[1], origin=[0.2, 3.9, 1.6])]
+    wider = [dict(a[0], fov=61.0), dict(a[1])]
+    check_same_framing([("gravel", "ours", a), ("gravel", "mean", [dict(x) for x in a]), ("meadow", "mean", moved)])
+    for other in (moved, wider):
+        with pytest.raises(CamoError, match=r"^scene gravel: mean and ours are framed differently in view \d") as e:
+            check_same_framing([("gravel", "ours", a), ("gravel", "mean", other)])
+        assert "\n" not in str(e.value)
+    with pytest.raises(CamoError, match=r"^scene gravel: mean has 1 views and ours 2"):
+        check_same_framing([("gravel", "ours", a), ("gravel", "mean", a[:1])])
