@@ -115,7 +115,10 @@ def test_more_samples_merge_into_the_render_at_that_spp(mi_backend):
     factor = np.ones((1, 24, 24), np.int64)
     factor[0, 8:16, 8:16] = 4  # the sphere's middle
     factor[0, :4] = 2
-    merged, extra = more_samples(lambda sel, n, first: r(sel, None, n, first), base, factor, 8)
+    calls = []
+    merged, extra = more_samples(lambda counts, n, first: calls.append(n) or r(None, None, n, first, counts=counts),
+                                 base, factor, 8)
+    assert calls == [8]  # every factor in one launch
     for k, full in ((4, r(None, None, 32)), (2, r(None, None, 16))):
         np.testing.assert_allclose(merged[factor == k], full[factor == k], rtol=1e-4, atol=1e-6)
     np.testing.assert_array_equal(merged[factor == 1], base[factor == 1])
