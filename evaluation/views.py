@@ -376,7 +376,8 @@ class ViewRenderer:
                     background: Background | None = None, region_threshold: float | None = None,
                     denoise: str | None = None, object_spp: int = 1) -> ObjectRenders:
         """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
-        ``region_threshold`` (sRGB) only the region the object can change is rendered
+        ``region_threshold`` (sRGB) and at least :data:`optimizer.rendering.planner.REGION_MIN_SPP` spp (below it
+        whole frames are cheaper) only the region the object can change is rendered
         (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
         random numbers drew there (``tests/test_region.py``). With noise matching, pixels where the render is
         noisier than the background get more samples (:mod:`optimizer.rendering.noise`). ``denoise`` (default: the
@@ -407,6 +408,10 @@ class ViewRenderer:
         match_noise = self.noise_match and path and background is not None and background.groups is not None
         g = GROUPS if match_noise else 1
         region, t_region, groups = None, 0.0, None
+        from optimizer.rendering.planner import REGION_MIN_SPP
+
+        if self.spp < REGION_MIN_SPP:  # the search's launches cost more than the pixels it leaves out
+            region_threshold = None
         if background is not None and path and region_threshold is not None:
             out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.fill, cov,
                                      region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}),
