@@ -374,10 +374,12 @@ class ViewRenderer:
 
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
                     background: Background | None = None, region_threshold: float | None = None,
-                    denoise: str | None = None, object_spp: int = 1) -> ObjectRenders:
+                    denoise: str | None = None, object_spp: int = 1,
+                    region_min_spp: int | None = None) -> ObjectRenders:
         """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
-        ``region_threshold`` (sRGB) and at least :data:`optimizer.rendering.planner.REGION_MIN_SPP` spp (below it
-        whole frames are cheaper) only the region the object can change is rendered
+        ``region_threshold`` (sRGB) and at least ``region_min_spp`` spp (default
+        :data:`optimizer.rendering.planner.REGION_MIN_SPP`: below it whole frames are cheaper) only the region the
+        object can change is rendered
         (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
         random numbers drew there (``tests/test_region.py``). With noise matching, pixels where the render is
         noisier than the background get more samples (:mod:`optimizer.rendering.noise`). ``denoise`` (default: the
@@ -410,7 +412,7 @@ class ViewRenderer:
         region, t_region, groups = None, 0.0, None
         from optimizer.rendering.planner import REGION_MIN_SPP
 
-        if self.spp < REGION_MIN_SPP:  # the search's launches cost more than the pixels it leaves out
+        if self.spp < (REGION_MIN_SPP if region_min_spp is None else region_min_spp):  # the search would not pay
             region_threshold = None
         if background is not None and path and region_threshold is not None:
             out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.fill, cov,
