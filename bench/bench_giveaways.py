@@ -83,6 +83,17 @@ ARMS = {
     # the planner's glint-safe roughness
     "coarse1_auto_r35": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.35"],
     "coarse1_auto_r5": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5"],
+    # the clear glass's caustic (issue 29, fourth session): at 4 spp it arrives as rare bright samples that the soft
+    # clamp of the loss cuts, so Stage 1 sees the lit shadow as dark as the opaque start's and raises the
+    # transmittance further; without the clamp it sees the caustic's mean (r5_c0), and rougher glass spreads it (r10)
+    "coarse1_auto_r5_c0": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5",
+                           "--loss-clamp", "0"],
+    "coarse1_auto_r10": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "1.0"],
+    "coarse1_auto_r7": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.7"],
+    # an index of refraction nearer 1: light through the body bends and focuses less (the caustic's bright core)
+    "coarse1_auto_r5_eta102": ["--coarse-grid", "1", "--clear-candidate", "1.02", "--clear-roughness", "0.5"],
+    # clear glass at IOR 1.02 imposed (not a candidate): what the caustic becomes when the body bends light less
+    "clear102_r5": ["--coarse-grid", "1", "--eta", "1.02", "--init", "roughness=0.5", "--init-search", "off"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
@@ -278,9 +289,26 @@ LABELS = {"today": "ours (today)", "coarse0": "ours, no coarse level", "large_st
           "coarse1": "ours + coarse 1", "coarse1_auto": "coarse 1 + clear per scene",
           "coarse4_auto": "coarse 4 + clear per scene", "coarse1_lr3_auto": "coarse 1 (lr 3e-2) + clear",
           "coarse1_tint1_auto": "coarse 1 + tint 1 + clear",
-          "coarse1_auto_r35": "coarse 1 + clear R0 0.35", "coarse1_auto_r5": "coarse 1 + clear R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
+          "coarse1_auto_r35": "coarse 1 + clear R0 0.35", "coarse1_auto_r5": "coarse 1 + clear R0 0.5", "coarse1_auto_r5_c0": "clear R0 0.5, no loss clamp",
+          "coarse1_auto_r10": "coarse 1 + clear R0 1.0", "coarse1_auto_r7": "coarse 1 + clear R0 0.7",
+          "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
+
+
+def sheet_path(docs: Path, section: str, scene: str, sheet_arms: bool) -> Path | None:
+    """Where a section's contact sheet of ``scene`` goes: the first table's (section ``table``) always, as
+    ``giveaways_SCENE.png``; another section's only when its arms were named (``--sheet-arms``), as
+    ``giveaways_SECTION_SCENE.png``; the shadow table has none.
+
+    >>> sheet_path(Path("d"), "table", "meadow", False).name, sheet_path(Path("d"), "caustic", "meadow", True).name
+    ('giveaways_meadow.png', 'giveaways_caustic_meadow.png')
+    >>> sheet_path(Path("d"), "caustic", "meadow", False) is None, sheet_path(Path("d"), "shadow", "meadow", True)
+    (True, None)
+    """
+    if section == "table":
+        return docs / f"giveaways_{scene}.png"
+    return docs / f"giveaways_{section}_{scene}.png" if sheet_arms and section != "shadow" else None
 
 
 def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path:
@@ -339,7 +367,8 @@ def main(argv=None) -> int:
                     "markers of giveaways.md) here, e.g. docs/results")
     ap.add_argument("--section", default="table", help="the table goes between the markers "
                     "'<!-- bench_giveaways: SECTION -->' and '<!-- /bench_giveaways -->' of giveaways.md; only the "
-                    "default section ('table') also writes the contact sheets (another section: e.g. a second "
+                    "default section ('table') writes the contact sheets giveaways_SCENE.png, another one with --sheet-arms "
+                    "giveaways_SECTION_SCENE.png (another section: e.g. a second "
                     "evaluation of the same runs at a higher --eval-spp in another --out; 'shadow': the shadow's cost "
                     "per scene and arm, shadow_table, instead of the give-away table)")
     a = ap.parse_args(argv)
@@ -357,9 +386,11 @@ def main(argv=None) -> int:
         print(text)
         if a.docs:
             docs = Path(a.docs)
-            for scene in names if a.section == "table" else ():
-                print(contact_sheet(out / "eval" / scene, scene, a.sheet_arms.split(",") if a.sheet_arms else arms,
-                                    docs / f"giveaways_{scene}.png"))
+            for scene in names:
+                dest = sheet_path(docs, a.section, scene, bool(a.sheet_arms))
+                if dest is not None:
+                    print(contact_sheet(out / "eval" / scene, scene,
+                                        a.sheet_arms.split(",") if a.sheet_arms else arms, dest))
             doc = docs / "giveaways.md"
             start, end = f"<!-- bench_giveaways: {a.section} -->", "<!-- /bench_giveaways -->"
             body = doc.read_text(encoding="utf-8") if doc.is_file() else f"{start}\n{end}\n"
