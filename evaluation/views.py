@@ -289,6 +289,7 @@ class Background:
     raw: np.ndarray | None = None  # (V, H, W, 3) linear, before the denoiser (None: not denoised; ``image`` is raw)
     denoise: str = ""  # the denoiser applied to ``image`` (optimizer.rendering.denoise.VARIANTS), or ""
     denoise_seconds: float = 0.0  # of ``seconds``: the features' render and the denoising
+    features: tuple | None = None  # (albedo, normal) (V, H, W, 3) the denoiser's features, or None
 
     @property
     def fill(self) -> np.ndarray:
@@ -332,22 +333,24 @@ class ViewRenderer:
                            **({"denoise": denoise} if denoise else {})}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
-    def _denoised(self, env, obj, cams: list[Camera], img: np.ndarray, denoise: str) -> tuple[np.ndarray, float]:
+    def _denoised(self, env, obj, cams: list[Camera], img: np.ndarray, denoise: str, scene=None,
+                  without: tuple | None = None) -> tuple[np.ndarray, float, tuple]:
         """``img`` denoised by ``denoise`` with the features of the same scene, cameras and seed
         (:mod:`optimizer.rendering.denoise`: the variant's albedo and normal, first-hit or see-through, at up to
-        :data:`FEATURE_SPP` spp); with the
-        seconds it took."""
+        :data:`FEATURE_SPP` spp); with the seconds it took and the features. ``scene``: the scene already built;
+        ``without``: the background's features (see-through features are then traced only where a ray meets the
+        object's box, :func:`optimizer.rendering.denoise.see_through_features`)."""
         from optimizer.rendering.denoise import denoise_variant, variant_features
 
         t = time.perf_counter()
         albedo, normal = variant_features(denoise, env.build(), obj, cams, min(self.spp, FEATURE_SPP),
-                                          self.sampler_seed)
-        return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t
+                                          self.sampler_seed, scene=scene, without=without)
+        return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t, (albedo, normal)
 
     def background(self, pack, env, cams: list[Camera], integrator: dict, denoise: str = "") -> Background:
         """The scene without the object; ``denoise``: the denoiser of the evaluation plan (``plan.denoise``), or ""."""
         from optimizer.rendering import scene as scn
-        from optimizer.rendering.render import coverage_and_depth, render_shaded
+        from optimizer.rendering.render import coverage_and_depth_views, render_shaded
 
         key = self._key(pack, cams, integrator, denoise)
         if key not in self.cache:
@@ -360,21 +363,23 @@ class ViewRenderer:
                                            self.sampler_seed)(groups=GROUPS)
             else:
                 img = render_shaded(env.build(), None, cams, integrator, self.spp, self.sampler_seed)
-            raw, d_s = None, 0.0
+            raw, d_s, feats = None, 0.0, None
             if denoise:
                 raw = img
-                img, d_s = self._denoised(env, None, cams, raw, denoise)
-            sc = scn.build_scene(env.build())
-            depth = np.stack([coverage_and_depth(sc, c, None, self.ss)[1] for c in cams])
-            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, groups, raw, denoise, d_s)
+                img, d_s, feats = self._denoised(env, None, cams, raw, denoise)
+            depth = coverage_and_depth_views(scn.build_scene(env.build()), cams, None, self.ss)[1]
+            self.cache[key] = Background(img, depth, time.perf_counter() - t, key, groups, raw, denoise, d_s, feats)
             self.background_renders += 1
         return self.cache[key]
 
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
                     background: Background | None = None, region_threshold: float | None = None,
-                    denoise: str | None = None, object_spp: int = 1) -> ObjectRenders:
+                    denoise: str | None = None, object_spp: int = 1,
+                    region_min_spp: int | None = None) -> ObjectRenders:
         """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
-        ``region_threshold`` (sRGB) only the region the object can change is rendered
+        ``region_threshold`` (sRGB) and at least ``region_min_spp`` spp (default
+        :data:`optimizer.rendering.planner.REGION_MIN_SPP`: below it whole frames are cheaper) only the region the
+        object can change is rendered
         (:func:`optimizer.rendering.region.render_region`); every other pixel is the background's, which the same
         random numbers drew there (``tests/test_region.py``). With noise matching, pixels where the render is
         noisier than the background get more samples (:mod:`optimizer.rendering.noise`). ``denoise`` (default: the
@@ -386,7 +391,8 @@ class ViewRenderer:
         further samples of the same streams, merged as one render at that spp), so that after the denoiser the
         object is no noisier than its denoised surroundings."""
         from optimizer.rendering import scene as scn
-        from optimizer.rendering.render import PathRenderer, coverage_and_depth, render_shaded, render_with_region
+        from optimizer.rendering.render import (PathRenderer, coverage_and_depth_views, render_shaded,
+                                                render_with_region)
 
         t = time.perf_counter()
         mesh = mesh_fn()
@@ -395,7 +401,7 @@ class ViewRenderer:
         # one scene for every pass of a path render (coverage, region, further samples): a build costs 20-50 ms
         pr = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed) if path else None
         sc = pr.scene if pr is not None else scn.build_scene(env.build(), mesh)
-        cov = np.stack([coverage_and_depth(sc, c, mesh, self.ss)[0] for c in cams]).astype(np.float32)
+        cov = coverage_and_depth_views(sc, cams, mesh, self.ss)[0]
         if denoise is None:
             denoise = background.denoise if background is not None else ""
         if background is not None and denoise != background.denoise:
@@ -404,6 +410,10 @@ class ViewRenderer:
         match_noise = self.noise_match and path and background is not None and background.groups is not None
         g = GROUPS if match_noise else 1
         region, t_region, groups = None, 0.0, None
+        from optimizer.rendering.planner import REGION_MIN_SPP
+
+        if self.spp < (REGION_MIN_SPP if region_min_spp is None else region_min_spp):  # the search would not pay
+            region_threshold = None
         if background is not None and path and region_threshold is not None:
             out = render_with_region(env.build, mesh, cams, integrator, self.spp, seed, background.fill, cov,
                                      region_threshold, groups=g, cache=self.region_cache.setdefault(background.key, {}),
@@ -421,7 +431,7 @@ class ViewRenderer:
         boost = object_pixels(cov, region) if int(object_spp) > 1 and path else None
         if boost is not None:
             boost = np.where(boost, int(object_spp), 1)
-        more = (lambda sel, spp, first: pr(sel, None, spp, first))
+        more = (lambda counts, spp, first: pr(None, None, spp, first, counts=counts))
         if match_noise:
             from optimizer.rendering.noise import match
 
@@ -434,5 +444,6 @@ class ViewRenderer:
             img = more_samples(more, img, boost, self.spp)[0]
         d_s = 0.0
         if denoise:
-            img, d_s = self._denoised(env, mesh, cams, img, denoise)
+            img, d_s, _ = self._denoised(env, mesh, cams, img, denoise, scene=sc,
+                                         without=background.features if background is not None else None)
         return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched, denoise, d_s)

@@ -144,6 +144,38 @@ def test_see_through_features_against_known_cases(mi_backend):
     assert not np.allclose(a2[0][covered], a_f[0][covered], atol=0.05)  # not the first-hit colour
 
 
+def test_see_through_features_traced_only_where_a_ray_meets_the_object_equal_the_full_pass(mi_backend):
+    """Given the object-free features of the same cameras, spp and seed, see_through_features traces only the pixels
+    with a ray that meets the object's bounding box and takes the rest from them: the result equals the full pass
+    (every ray keeps its jitter and random stream; float rounding only), and
+    a sphere out of sight leaves the object-free features as they are."""
+    mi, _ = mi_backend
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.denoise import _box_pixels, see_through_features
+    from optimizer.scenes.cameras import Camera
+
+    elements, sphere = _sunlit(mi, (0.2, 0.3, 0.2), 40)
+    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 40, 32), Camera((-2.0, -3.0, 1.2), (0.0, 0.0, 0.4), 45.0, 40, 32)]
+    obj = sphere((0.7, 0.6, 0.5), 0.8)
+    for spp, seed in ((9, 4), (16, 7)):
+        without = see_through_features(elements(), None, cams, spp, seed)
+        full = see_through_features(elements(), obj, cams, spp, seed)
+        part = see_through_features(elements(), obj, cams, spp, seed, scene=scn.build_scene(elements(), obj),
+                                    without=without)
+        for a, b in zip(part, full):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
+        assert np.abs(full[0] - without[0]).max() > 0.1  # the object changes them
+    hidden = [Camera((2.5, -2.5, 1.5), (6.0, -6.0, 0.4), 30.0, 16, 16)]  # looking away from the sphere
+    w = see_through_features(elements(), None, hidden, 4, 1)
+    p = see_through_features(elements(), obj, hidden, 4, 1, without=w)
+    np.testing.assert_array_equal(p[0], w[0])
+    # the traced pixels: a part of the frame that holds every pixel the object changes; a box behind the camera: all
+    box = [p.size / (c.width * c.height) for c, p in zip(cams, _box_pixels(obj, cams))]
+    assert all(0.05 < b < 0.8 for b in box), box
+    behind = [Camera((0.0, 0.0, 0.5), (0.0, 5.0, 0.5), 60.0, 16, 16)]  # inside the sphere's box
+    assert _box_pixels(obj, behind) == [None]
+
+
 def test_see_through_features_keep_the_texture_seen_through_a_transmissive_object(mi_backend):
     """A rough see-through sphere (transmittance 0.9, roughness 0.3, index 1.5) on a checkered ground under the sun,
     48 px: its 16-spp render denoised with see-through features keeps more of the refracted checker than with

@@ -115,7 +115,10 @@ def test_more_samples_merge_into_the_render_at_that_spp(mi_backend):
     factor = np.ones((1, 24, 24), np.int64)
     factor[0, 8:16, 8:16] = 4  # the sphere's middle
     factor[0, :4] = 2
-    merged, extra = more_samples(lambda sel, n, first: r(sel, None, n, first), base, factor, 8)
+    calls = []
+    merged, extra = more_samples(lambda counts, n, first: calls.append(n) or r(None, None, n, first, counts=counts),
+                                 base, factor, 8)
+    assert calls == [8]  # every factor in one launch
     for k, full in ((4, r(None, None, 32)), (2, r(None, None, 16))):
         np.testing.assert_allclose(merged[factor == k], full[factor == k], rtol=1e-4, atol=1e-6)
     np.testing.assert_array_equal(merged[factor == 1], base[factor == 1])
@@ -125,3 +128,26 @@ def test_more_samples_merge_into_the_render_at_that_spp(mi_backend):
         more_samples(lambda *a: base, base, np.zeros((1, 24, 24), int), 8)
     with pytest.raises(ValueError, match="shape"):
         more_samples(lambda *a: base, base, np.ones((2, 24, 24), int), 8)
+
+
+def test_below_the_region_spp_whole_frames_are_rendered(mi_backend):
+    """At fewer than REGION_MIN_SPP spp the with-object evaluation render covers whole frames (the region search's
+    launches cost more than the pixels it leaves out); from it on, the region the object can change."""
+    mi, _ = mi_backend
+    from evaluation.views import ViewRenderer
+    from optimizer.rendering.planner import REGION_MIN_SPP
+    from optimizer.scenes import builtin_scenes
+    from optimizer.scenes.cameras import Camera
+    from optimizer.scenes.environments import Environment
+
+    build, mesh = _glass_scene(mi)
+    env = Environment("glass", "glass", build, ("sun", "sky"))
+    cams = [Camera((2.5, -2.5, 1.5), (0.0, 0.0, 0.4), 45.0, 24, 24)]
+    integ = {"type": "path", "max_depth": 4, "rr_depth": 5}
+    for spp in (REGION_MIN_SPP // 2, REGION_MIN_SPP):
+        r = ViewRenderer(spp, 0, noise_match=True)
+        bg = r.background(builtin_scenes.get("meadow"), env, cams, integ)
+        o = r.with_object(env, mesh, cams, integ, bg, 0.5 / 255)
+        assert (o.region is None) == (spp < REGION_MIN_SPP), spp
+        if o.region is not None:
+            assert 0 < o.region.mean() < 1

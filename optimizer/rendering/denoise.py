@@ -91,15 +91,16 @@ def _device():
 
 
 def render_features(elements: dict, obj, cams: Sequence, spp: int, seed: int = 0,
-                    see_through: bool = False, sharp: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                    see_through: bool = False, sharp: bool = False, scene=None,
+                    without: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Albedo and shading normal of every view, ``((V, H, W, 3), (V, H, W, 3))`` float32: means over ``spp`` samples
     per pixel (the same box pixel filter as the colour), albedo clipped to [0, 1]. First-hit features (Mitsuba's
     ``aov`` integrator, ``seed``) or, with ``see_through``, :func:`see_through_features` (``sharp``: without the
-    transmission lobe's roughness)."""
+    transmission lobe's roughness; ``scene``, ``without``: see there, the first-hit pass ignores them)."""
     from optimizer.rendering.render import render_shaded
 
     if see_through:
-        return see_through_features(elements, obj, cams, spp, seed, lobe=not sharp)
+        return see_through_features(elements, obj, cams, spp, seed, lobe=not sharp, scene=scene, without=without)
     img = render_shaded(elements, obj, cams, FEATURES_AOV, int(spp), int(seed))
     if img.shape[-1] != 6:
         raise RuntimeError(f"the feature pass gave {img.shape[-1]} channels, expected 6 (albedo, normal)")
@@ -109,7 +110,8 @@ def render_features(elements: dict, obj, cams: Sequence, spp: int, seed: int = 0
 
 
 def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, seed: int = 0,
-                         lobe: bool = True, jitter: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                         lobe: bool = True, jitter: bool = True, scene=None,
+                         without: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The see-through albedo and normal of every view (module docstring), ``((V, H, W, 3), (V, H, W, 3))``
     float32, from ``round(sqrt(spp))^2`` stratified rays per pixel, jittered within their strata by ``seed`` (as the
     ``aov`` pass samples its pixels; ``jitter=False``: at the strata's centres, the same features for every seed --
@@ -126,7 +128,13 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     has not got, and the denoiser adds it: measured over-sharpening on rough objects, docs/results/planner.md).
     Total internal reflection reflects. Fresnel reflection off the transmissive surface is left out (the sky or
     sun it mirrors has no albedo). All views are traced in one symbolic loop (one kernel launch, like the ``aov``
-    pass)."""
+    pass). ``scene``: ``elements`` with ``obj`` already built (a build costs 20-50 ms).
+
+    ``without``: the features of the same scene, cameras, spp and seed without ``obj`` (the background's). Then only
+    the pixels whose rays can meet ``obj``'s bounding box (the rectangle of its projected corners) are traced and
+    every other pixel is taken from ``without``: a ray that misses the box hits what it hits without the object,
+    with the same random numbers (each ray keeps its jitter and its stream), so the result is the full pass's
+    (``tests/test_denoise.py``)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -134,7 +142,7 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     from optimizer.rendering.render import camera_rays
 
     ss = max(1, int(round(float(spp) ** 0.5)))
-    sc = scn.build_scene(elements, obj)
+    sc = scene if scene is not None else scn.build_scene(elements, obj)
     bsdf_obj = obj.bsdf() if obj is not None else None
     principled = bsdf_obj is not None and all(bsdf_obj.has_attribute(k) for k in ("spec_trans", "metallic",
                                                                                   "base_color"))
@@ -142,10 +150,19 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     # opaque: a value baked into the kernel as a literal would compile a new kernel per seed or index (measured 0.2 s)
     eta = dr.opaque(mi.Float, float(params["eta"][0]) if "eta" in params else 1.5)
     gen = np.random.default_rng(int(seed))
-    rays = [camera_rays(cam, ss, gen if jitter else None) for cam in cams]  # every view in one wavefront
-    sizes = [cam.width * cam.height * ss * ss for cam in cams]
-    ray = mi.Ray3f(mi.Point3f(np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)),
-                   mi.Vector3f(np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)))
+    # the pixels traced: all, or (with ``without``) those whose rays can meet the object's box
+    sel = [None] * len(cams) if without is None or obj is None else [
+        np.arange(c.width * c.height) if p is None else p for c, p in zip(cams, _box_pixels(obj, cams))]
+    rays = [camera_rays(cam, ss, gen if jitter else None, p) for cam, p in zip(cams, sel)]  # one wavefront
+    sizes = [(cam.width * cam.height if p is None else p.size) * ss * ss for cam, p in zip(cams, sel)]
+    o = np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)
+    d = np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)
+    lanes = None  # the rays traced, as lanes of the full pass (None: all)
+    if sel[0] is not None:
+        offsets = np.cumsum([0] + [cam.width * cam.height * ss * ss for cam in cams])
+        lanes = np.concatenate([off + (p[:, None] * (ss * ss) + np.arange(ss * ss)).ravel()
+                                for off, p in zip(offsets, sel)]).astype(np.int64)
+    ray = mi.Ray3f(mi.Point3f(o), mi.Vector3f(d))
     obj_ptr = mi.ShapePtr(obj) if principled else None
 
     def body(ray, active, weight, share, a_acc, n_acc, k, rng):
@@ -173,23 +190,62 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
                 rng)
 
     n_rays = int(sum(sizes))
+    if n_rays == 0:  # no ray meets the object: the object-free features
+        return without[0].copy(), without[1].copy()
+    init = (0x853C49E6748FEA9B + int(seed)) % (1 << 64)
+    if lanes is None:
+        rng = mi.PCG32(n_rays, initstate=dr.opaque(mi.UInt64, init))
+    else:  # lane i's stream of the full pass: PCG32(n) seeds lane i with (initstate + i, initseq + i)
+        rng = mi.PCG32(n_rays)
+        li = mi.UInt64(lanes.astype(np.uint64))
+        rng.seed(dr.opaque(mi.UInt64, init) + li, dr.opaque(mi.UInt64, 0xDA3E39CB94B95BDB) + li)
     state = (ray, dr.full(mi.Bool, True, n_rays),
              dr.full(mi.Color3f, 1.0, n_rays),  # the tinted share still to be given (albedo)
              dr.full(mi.Float, 1.0, n_rays),  # the untinted share (normal)
-             dr.zeros(mi.Color3f, n_rays), dr.zeros(mi.Normal3f, n_rays), dr.zeros(mi.UInt32, n_rays),
-             mi.PCG32(n_rays, initstate=dr.opaque(mi.UInt64, (0x853C49E6748FEA9B + int(seed)) % (1 << 64))))
+             dr.zeros(mi.Color3f, n_rays), dr.zeros(mi.Normal3f, n_rays), dr.zeros(mi.UInt32, n_rays), rng)
     state = dr.while_loop(state, lambda ray, active, *rest: active, body, labels=(
         "ray", "active", "weight", "share", "albedo", "normal", "k", "rng"), label="see_through_features")
     a_acc, n_acc = state[4], state[5]
     out = []
-    for acc in (a_acc, n_acc):  # Dr.Jit gives (3, N): channel-major
-        flat = np.asarray(acc, dtype=np.float32).reshape(3, -1).T
+    for acc, fill in zip((a_acc, n_acc), without if lanes is not None else (None, None)):
+        flat = np.asarray(acc, dtype=np.float32).reshape(3, -1).T  # Dr.Jit gives (3, N): channel-major
         views, start = [], 0
-        for cam, n in zip(cams, sizes):
-            views.append(flat[start:start + n].reshape(cam.height, cam.width, ss * ss, 3).mean(2))
+        for v, (cam, n) in enumerate(zip(cams, sizes)):
+            means = flat[start:start + n].reshape(-1, ss * ss, 3).mean(1)
+            if sel[v] is None:
+                views.append(means.reshape(cam.height, cam.width, 3))
+            else:  # the pixels not traced: the object-free pass's
+                img = np.array(fill[v], np.float32).reshape(-1, 3)
+                img[sel[v]] = means
+                views.append(img.reshape(cam.height, cam.width, 3))
             start += n
         out.append(np.stack(views))
     return np.clip(out[0], 0.0, 1.0).astype(np.float32), np.clip(out[1], -1.0, 1.0).astype(np.float32)
+
+
+def _box_pixels(obj, cams: Sequence) -> list[np.ndarray | None]:
+    """Per view, the pixels (flat row-major indices, ascending) whose rays can meet ``obj``'s bounding box: the
+    bounding rectangle of its 8 projected corners (it holds the box's projection when every corner is in front of
+    the camera; else None: every pixel), grown by a pixel against rounding."""
+    from optimizer.rendering.projection import project
+    from optimizer.rendering.region import box_points, mesh_bounds
+
+    lo, hi = mesh_bounds(obj)
+    pad = 1e-3 * float(np.max(hi - lo))
+    corners = box_points(lo - pad, hi + pad, 2)
+    out: list[np.ndarray | None] = []
+    for cam in cams:
+        x, y, z = project(corners, cam)
+        if (z <= 0.02).any():  # a corner behind the camera (or before its near clip): no bound
+            out.append(None)
+            continue
+        x0, x1 = max(int(np.floor(x.min())) - 1, 0), min(int(np.ceil(x.max())) + 1, cam.width)
+        y0, y1 = max(int(np.floor(y.min())) - 1, 0), min(int(np.ceil(y.max())) + 1, cam.height)
+        m = np.zeros((cam.height, cam.width), bool)
+        if x0 < x1 and y0 < y1:
+            m[y0:y1, x0:x1] = True
+        out.append(np.flatnonzero(m))
+    return out
 
 
 def _run(images: dict[str, np.ndarray], hdr: bool, clean_aux: bool, quality: str) -> np.ndarray:
@@ -274,13 +330,15 @@ def denoise_variant(color: np.ndarray, albedo: np.ndarray | None, normal: np.nda
     return denoise(color, albedo if feats else None, normal if feats else None, prefilter=prefilter, quality=quality)
 
 
-def variant_features(variant: str, elements: dict, obj, cams: Sequence, spp: int,
-                     seed: int = 0) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The features ``variant`` denoises with (:func:`render_features` of its kind), or ``(None, None)`` for a
-    colour-only variant."""
+def variant_features(variant: str, elements: dict, obj, cams: Sequence, spp: int, seed: int = 0, scene=None,
+                     without: tuple[np.ndarray, np.ndarray] | None = None
+                     ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The features ``variant`` denoises with (:func:`render_features` of its kind; ``scene``, ``without``: see
+    :func:`see_through_features`), or ``(None, None)`` for a colour-only variant."""
     if variant not in VARIANTS:
         raise ValueError(f"unknown denoiser {variant!r}; choose one of {', '.join(VARIANTS)}")
     v = VARIANTS[variant]
     if not v.features:
         return None, None
-    return render_features(elements, obj, cams, spp, seed, see_through=v.see_through, sharp=v.sharp)
+    return render_features(elements, obj, cams, spp, seed, see_through=v.see_through, sharp=v.sharp, scene=scene,
+                           without=without)

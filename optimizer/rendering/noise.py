@@ -103,8 +103,8 @@ def match(render_more, image: np.ndarray, groups: np.ndarray, bg_groups: np.ndar
           boost: np.ndarray | None = None) -> tuple[np.ndarray, NoiseMatch]:
     """The with-object ``image`` (``spp`` samples) with its noise matched to the background's (module doc).
     ``groups`` / ``bg_groups``: ``(G, V, H, W, 3)`` group means of the two renders (the with-object one over
-    ``region``); ``render_more(masks, spp, first_sample)`` renders further samples of the pixels in ``masks`` (their
-    means). ``boost (V, H, W)`` int: a further factor on the matched one (the object's spp factor before a
+    ``region``); ``render_more(counts, spp, first_sample)`` renders ``counts (V, H, W)`` x ``spp`` further samples
+    per pixel (their means; :func:`more_samples`). ``boost (V, H, W)`` int: a further factor on the matched one (the object's spp factor before a
     denoiser, :func:`evaluation.views.object_spp_pilot`); it must not depend on the render's samples."""
     import time
 
@@ -119,23 +119,25 @@ def match(render_more, image: np.ndarray, groups: np.ndarray, bg_groups: np.ndar
 
 def more_samples(render_more, image: np.ndarray, factor: np.ndarray, spp: int) -> tuple[np.ndarray, float]:
     """``image`` (``spp`` samples per pixel) with ``factor (V, H, W)`` times the samples per pixel: samples ``spp``
-    to ``factor * spp - 1`` of each pixel's stream (``render_more(masks, n, first_sample)``: the means of ``n``
-    samples from ``first_sample`` on), merged as the mean of all ``factor * spp`` samples -- the same estimator as
-    one render at that spp (``tests/test_noise.py``). One launch per distinct factor. Returns the image and the
-    extra samples as a share of one full-frame render at ``spp``."""
+    to ``factor * spp - 1`` of each pixel's stream (``render_more(counts, spp, first_sample)``: per pixel the mean
+    of ``counts * spp`` samples from ``first_sample`` on, :class:`optimizer.rendering.render.PathRenderer` with
+    ``counts``), merged as the mean of all ``factor * spp`` samples -- the same estimator as one render at that spp
+    (``tests/test_noise.py``). One launch for every factor (was one per distinct factor: each launch's fixed cost,
+    ~25 ms at 96 px, is most of the matching's at low spp). Returns the image and the extra samples as a share of
+    one full-frame render at ``spp``."""
     factor = np.asarray(factor, np.int64)
     if factor.shape != image.shape[:3]:
         raise ValueError(f"factor has shape {factor.shape}, the image {image.shape[:3]}")
     if (factor < 1).any():
         raise ValueError("every factor must be >= 1")
     out = np.array(image, np.float32, copy=True)
-    extra = 0
-    for f in sorted(set(np.unique(factor).tolist()) - {1}):
-        sel = factor == f
-        more = render_more(sel, (f - 1) * spp, spp)
-        out[sel] = (image[sel] + (f - 1) * more[sel]) / f
-        extra += int(sel.sum()) * (f - 1)
-    return out, extra / max(factor.size, 1)
+    sel = factor > 1
+    if not sel.any():
+        return out, 0.0
+    more = render_more(factor - 1, spp, spp)
+    f = factor[sel][:, None].astype(np.float32)
+    out[sel] = (image[sel] + (f - 1) * more[sel]) / f
+    return out, float((factor - 1).sum()) / max(factor.size, 1)
 
 
 def noise_rms(a1: np.ndarray, a2: np.ndarray, pixels: np.ndarray) -> float:

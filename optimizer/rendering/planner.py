@@ -64,6 +64,13 @@ SPPI_COST = 35
 #: render's cost (measured at 96 px, 4 views, 64 spp: meadow, 43 % of the pixels, 1.2-1.3x faster; gravel, 73 %,
 #: not faster).
 REGION_PAYS = 0.6
+#: Below this spp an evaluation render with the object renders whole frames even where the plan searches the region:
+#: the search's growth steps (one launch each, more of them at low spp: the noisier change grows the region further)
+#: cost more than the pixels they leave out. Measured as ``camo evaluate`` renders (noise matching on, 4 views at
+#: 96 px, process time, interleaved; meadow, split, room, occluded): at 8 spp whole frames take 0.77, 0.82, 0.97 and
+#: 0.76x the region's seconds, at 16 spp 0.98, 0.95, 1.14, 0.93x, at 32 spp 1.06, 0.88, 1.17, 1.10x, at 64 spp
+#: 1.20, 1.07, 1.30, 1.27x (``evaluation.views.ViewRenderer.with_object`` applies it).
+REGION_MIN_SPP = 16
 #: Each denoiser's bias on the object: the largest RMS (sRGB) by which the mean of its output at 64 spp departed from
 #: a converged render over the object's own pixels (coverage >= 0.5; the six built-in scenes' objects at their
 #: see-through start, 2 views at 64 px, 3 seeds against 1024 spp; ``bench/bench_planner.py --denoisers``,
@@ -377,6 +384,8 @@ class Planner:
                        f"{st.bias_fraction:g} x the noise if larger)")
             if pays:
                 why = f"renders cover only what the object can change ({changed}), the rest is the background render's"
+                if purpose == "evaluate":
+                    why += f" (below {REGION_MIN_SPP} spp whole frames: the search's launches would cost more)"
             else:
                 why = (f"whole frames: {changed}; above {REGION_PAYS:.0%} of the cost, finding the region would not "
                        "pay for the pixels it leaves out")

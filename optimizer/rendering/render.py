@@ -53,17 +53,19 @@ class PathRenderer:
         self.scene = scn.build_scene(elements, obj, [scn.batch(self.cams, self.spp)])
 
     def __call__(self, masks: np.ndarray | None = None, fill: np.ndarray | None = None, spp: int | None = None,
-                 first_sample: int = 0, moments: bool = False, groups: int = 1):
+                 first_sample: int = 0, moments: bool = False, groups: int = 1, counts: np.ndarray | None = None):
         """``(V, H, W, 3)`` linear radiance: the pixels where ``masks (V, H, W)`` is set (None: all), the others
         copied from ``fill`` (zeros when None); samples ``first_sample`` on, ``spp`` of them (default the
         renderer's). ``moments``: also the mean squared luminance per sample ``(V, H, W)``; ``groups`` > 1: also the
-        means of that many consecutive groups of samples ``(G, V, H, W, 3)`` (a tuple after the image)."""
+        means of that many consecutive groups of samples ``(G, V, H, W, 3)`` (a tuple after the image). ``counts
+        (V, H, W)`` int, instead of ``masks``: ``counts`` x ``spp`` samples per pixel from ``first_sample`` on, every
+        pixel in one launch (:func:`optimizer.rendering.tracer.render_views`)."""
         from optimizer.rendering.tracer import render_views
 
         c = self.cams[0]
         return render_views(self.scene, len(self.cams), c.width, c.height, self.spp if spp is None else int(spp),
                             self.seed, self.max_depth, self.rr_depth, masks, fill, moments=moments,
-                            first_sample=first_sample, groups=groups)
+                            first_sample=first_sample, groups=groups, counts=counts)
 
 
 def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,
@@ -126,19 +128,26 @@ def split_batch(img: np.ndarray, views: int) -> np.ndarray:
     return img.reshape(h, views, vw // views, c).transpose(1, 0, 2, 3).copy()
 
 
-def camera_rays(cam: Camera, ss: int = 4, gen: np.random.Generator | None = None):
+def camera_rays(cam: Camera, ss: int = 4, gen: np.random.Generator | None = None, pixels: np.ndarray | None = None):
     """Stratified camera rays, ``ss x ss`` per pixel, ordered (pixel row, pixel col, sub-row, sub-col): at the
-    strata's centres or, with ``gen``, uniformly jittered within them."""
+    strata's centres or, with ``gen``, uniformly jittered within them. ``pixels``: only the rays of these pixels
+    (flat row-major indices, ascending), each as in the full set (``gen`` draws the full frame's jitter)."""
     import drjit as dr
     import mitsuba as mi
 
     sensor = mi.load_dict(scn.perspective(cam, spp=1))
     w, h = cam.width, cam.height
     n = w * h * ss * ss
-    idx = dr.arange(mi.UInt32, n)
+    jit = None if gen is None else gen.random((2, n), np.float32)
+    if pixels is None:
+        idx = dr.arange(mi.UInt32, n)
+    else:
+        lanes = (np.asarray(pixels, np.int64)[:, None] * (ss * ss) + np.arange(ss * ss)).ravel()
+        idx = mi.UInt32(lanes.astype(np.uint32))
+        jit = None if jit is None else jit[:, lanes]
     sub = idx % (ss * ss)
     pix = idx // (ss * ss)
-    jx, jy = (mi.Float(0.5), mi.Float(0.5)) if gen is None else (mi.Float(j) for j in gen.random((2, n), np.float32))
+    jx, jy = (mi.Float(0.5), mi.Float(0.5)) if jit is None else (mi.Float(j) for j in jit)
     px = mi.Float(pix % w) + (mi.Float(sub % ss) + jx) / ss
     py = mi.Float(pix // w) + (mi.Float(sub // ss) + jy) / ss
     pos = mi.Point2f(px / w, py / h)
@@ -171,6 +180,40 @@ def coverage_and_depth(sc, cam: Camera, target_shape=None, ss: int = 4) -> tuple
     on = hit & (si.shape == mi.ShapePtr(target_shape))
     cov = np.asarray(on, dtype=bool).reshape(shape).mean(-1).astype(np.float32)
     return cov, depth
+
+
+def coverage_and_depth_views(sc, cams: Sequence[Camera], target_shape=None,
+                             ss: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`coverage_and_depth` of every view, ``(coverage (V, H, W), depth (V, H, W))``, all views' rays in one
+    launch (the per-view calls cost ~30 ms each at 96 px, most of it the launch; ``tests/test_render.py``: equal
+    to them)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    rays = [camera_rays(c, ss) for c in cams]
+    sizes = [c.width * c.height * ss * ss for c in cams]
+    o = np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)
+    d = np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)
+    ray = mi.Ray3f(mi.Point3f(o), mi.Vector3f(d))
+    si = sc.ray_intersect(ray)
+    hit = si.is_valid()
+    centre = mi.Point3f(np.concatenate([np.repeat(np.asarray(c.origin, np.float32)[:, None], n, 1)
+                                        for c, n in zip(cams, sizes)], 1))
+    t = dr.select(hit, dr.norm(si.p - centre), 0.0)
+    on = hit & (si.shape == mi.ShapePtr(target_shape)) if target_shape is not None else None
+    dr.eval(t, hit, on) if on is not None else dr.eval(t, hit)
+    t_np, hit_np = np.asarray(t, dtype=np.float32), np.asarray(hit, dtype=bool)
+    on_np = np.asarray(on, dtype=bool) if on is not None else None
+    covs, depths, start = [], [], 0
+    for c, n in zip(cams, sizes):
+        shape = (c.height, c.width, ss * ss)
+        tv, hv = t_np[start:start + n].reshape(shape), hit_np[start:start + n].reshape(shape)
+        nhit = hv.sum(-1)
+        depths.append(np.where(nhit > 0, tv.sum(-1) / np.maximum(nhit, 1), 0.0).astype(np.float32))
+        covs.append(np.zeros(shape[:2], np.float32) if on_np is None
+                    else on_np[start:start + n].reshape(shape).mean(-1).astype(np.float32))
+        start += n
+    return np.stack(covs), np.stack(depths)
 
 
 def render_views(elements_fn, obj_fn, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,

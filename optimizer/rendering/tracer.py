@@ -191,7 +191,8 @@ def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False):
 def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, first_sample: int = 0):
     """Camera rays for ``spp`` samples of each pixel in ``pixels`` (flat row-major indices of the full
     ``width x height`` film), sample-major within a pixel, samples ``first_sample`` to ``first_sample + spp - 1``,
-    and their random streams (:func:`pixel_rng`)."""
+    and their random streams (:func:`pixel_rng`). ``first_sample`` may be an array, one per entry of ``pixels``
+    (a pixel may then appear several times, each entry another run of its samples)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -199,7 +200,11 @@ def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, firs
     n = dr.width(pix) * spp
     lane = dr.arange(mi.UInt32, n)
     p = dr.gather(mi.UInt32, pix, lane // spp)
-    rng = pixel_rng(p, lane % spp + dr.opaque(mi.UInt32, int(first_sample)), key)
+    if np.ndim(first_sample):
+        first = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(first_sample, dtype=np.uint32)), lane // spp)
+    else:
+        first = dr.opaque(mi.UInt32, int(first_sample))
+    rng = pixel_rng(p, lane % spp + first, key)
     x = mi.Float(p % width)
     y = mi.Float(p // width)
     ux = rng.next_float32()
@@ -217,12 +222,17 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
     (else None); with ``moments``, the mean squared luminance per sample ``(N,)`` (its per-sample variance is
     ``lum2 - Y^2``; else None); with ``groups`` > 1 (dividing ``spp``), the means of the ``groups`` consecutive
     groups of samples ``(N, groups, 3)`` (their mean is ``rgb``; else None). Samples ``first_sample`` to
-    ``first_sample + spp - 1`` of each pixel are traced (a later call with ``first_sample = spp`` adds new ones).
+    ``first_sample + spp - 1`` of each pixel are traced (a later call with ``first_sample = spp`` adds new ones;
+    an array: one first sample per entry of ``pixels``, which may repeat a pixel).
     Pixels are rendered in chunks of at most ``chunk`` samples (each pixel's samples stay in one chunk; the result
     does not depend on the chunking). ``seed`` keys the random streams (:func:`pixel_rng`)."""
     import drjit as dr
 
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
+    if np.ndim(first_sample):
+        first_sample = np.asarray(first_sample, dtype=np.int64).ravel()
+        if first_sample.shape != pixels.shape:
+            raise ValueError(f"first_sample has {first_sample.size} entries, pixels {pixels.size}")
     groups = int(groups)
     if groups < 1 or spp % groups:
         raise ValueError(f"groups must divide spp ({spp}), got {groups}")
@@ -235,7 +245,8 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
     with dr.suspend_grad():
         for start in range(0, pixels.size, per):
             part = pixels[start:start + per]
-            ray, weight, rng = pixel_rays(sensor, width, height, part, int(spp), key, first_sample)
+            first = first_sample[start:start + per] if np.ndim(first_sample) else first_sample
+            ray, weight, rng = pixel_rays(sensor, width, height, part, int(spp), key, first)
             L, rec = trace(scene, ray, rng, max_depth, rr_depth, record)
             L = L * weight
             dr.eval(L, rec)  # one launch of the path loop for every output (a block sum would evaluate each alone)
@@ -265,15 +276,25 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
 
 def render_views(scene, views: int, width: int, height: int, spp: int, seed: int, max_depth: int,
                  rr_depth: int = 5, masks: np.ndarray | None = None, fill: np.ndarray | None = None,
-                 record: bool = False, moments: bool = False, first_sample: int = 0, groups: int = 1):
+                 record: bool = False, moments: bool = False, first_sample: int = 0, groups: int = 1,
+                 counts: np.ndarray | None = None):
     """Every view of ``scene``'s first sensor, a ``batch`` sensor of ``views`` views of ``width x height``
     (:func:`optimizer.rendering.scene.batch`; its film is ``views * width`` wide, and pixel ``p`` of that film is
     the key of its random streams): ``(V, H, W, 3)`` float32 linear radiance. Only the pixels where ``masks
     (V, H, W)`` is set are rendered (None: all), the others copied from ``fill (V, H, W, 3)`` (zeros when None).
     With ``record``, ``moments`` and/or ``groups`` > 1, a tuple: the image, then the mean records ``(V, H, W, R)`` of
     :func:`record_names`, the mean squared luminance ``(V, H, W)`` and/or the group means ``(G, V, H, W, 3)`` (zeros
-    outside ``masks``). ``first_sample``, ``groups``: see :func:`render_pixels`."""
+    outside ``masks``). ``first_sample``, ``groups``: see :func:`render_pixels`.
+
+    ``counts (V, H, W)`` int (instead of ``masks``): pixel ``p`` gets ``counts[p] * spp`` samples, ``first_sample``
+    to ``first_sample + counts[p] * spp - 1`` of its stream, all pixels in one launch (pixels with count 0: ``fill``);
+    the image only. The mean is taken over runs of ``spp`` samples, then over the runs: the same estimator as
+    ``counts[p] * spp`` samples from ``first_sample`` (equal up to float rounding, ``tests/test_noise.py``)."""
     V, H, W = int(views), int(height), int(width)
+    if counts is not None:
+        if masks is not None or record or moments or groups > 1:
+            raise ValueError("counts renders the image only, without masks")
+        return _render_counts(scene, V, W, H, spp, seed, max_depth, rr_depth, counts, fill, first_sample)
     wide = np.zeros((H, V * W), bool)
     if masks is None:
         wide[:] = True
@@ -306,3 +327,27 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
         gg[idx] = grp
         res.append(gg.reshape(H, V, W, groups, 3).transpose(3, 1, 0, 2, 4).copy())
     return tuple(res)
+
+
+def _render_counts(scene, V: int, W: int, H: int, spp: int, seed: int, max_depth: int, rr_depth: int,
+                   counts: np.ndarray, fill: np.ndarray | None, first_sample: int) -> np.ndarray:
+    """:func:`render_views` with ``counts``: every run of ``spp`` samples is an entry of one launch."""
+    c = np.asarray(counts)
+    if c.shape != (V, H, W):
+        raise ValueError(f"counts must be {(V, H, W)}, got {c.shape}")
+    if (c < 0).any():
+        raise ValueError("counts must be >= 0")
+    wide = c.astype(np.int64).transpose(1, 0, 2).reshape(-1)
+    idx = np.flatnonzero(wide)
+    n = wide[idx]
+    entries = np.repeat(idx, n)  # pixel of each run, a pixel's runs consecutive
+    starts = np.concatenate([[0], np.cumsum(n)[:-1]])
+    run = np.arange(entries.size) - np.repeat(starts, n)  # 0 .. n - 1 within a pixel
+    rgb = render_pixels(scene, scene.sensors()[0], V * W, H, entries, spp, seed, max_depth, rr_depth,
+                        first_sample=int(first_sample) + run * int(spp))[0]
+    out = np.zeros((H * V * W, 3), np.float32)
+    if fill is not None:
+        out[:] = np.asarray(fill, np.float32).transpose(1, 0, 2, 3).reshape(H * V * W, 3)
+    if idx.size:
+        out[idx] = (np.add.reduceat(rgb.astype(np.float64), starts, axis=0) / n[:, None]).astype(np.float32)
+    return out.reshape(H, V, W, 3).transpose(1, 0, 2, 3).copy()
