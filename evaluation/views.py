@@ -393,6 +393,7 @@ class ViewRenderer:
         from optimizer.rendering import scene as scn
         from optimizer.rendering.render import (PathRenderer, coverage_and_depth_views, render_shaded,
                                                 render_with_region)
+        from optimizer.rendering.planner import REGION_MIN_SPP
 
         t = time.perf_counter()
         mesh = mesh_fn()
@@ -410,8 +411,6 @@ class ViewRenderer:
         match_noise = self.noise_match and path and background is not None and background.groups is not None
         g = GROUPS if match_noise else 1
         region, t_region, groups = None, 0.0, None
-        from optimizer.rendering.planner import REGION_MIN_SPP
-
         if self.spp < (REGION_MIN_SPP if region_min_spp is None else region_min_spp):  # the search would not pay
             region_threshold = None
         if background is not None and path and region_threshold is not None:

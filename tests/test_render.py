@@ -106,9 +106,10 @@ def test_background_equals_full_render_away_from_object(mi_backend):
     assert np.all(vr.depth > 0)  # the ground is everywhere below the horizon
 
 
-def test_coverage_of_all_views_in_one_launch_equals_the_per_view_pass(mi_backend):
-    """coverage_and_depth_views (one launch for every view) gives each view's coverage bit for bit and its depth to
-    float rounding, with and without the object."""
+def test_a_views_coverage_does_not_depend_on_the_other_views_in_its_launch(mi_backend):
+    """coverage_and_depth_views traces every view in one launch (coverage_and_depth is its one-view case): each
+    view's coverage is bit for bit and its depth to float rounding what it is when traced alone, whatever the other
+    views and their order, with and without the object (a wrong offset into the wavefront fails)."""
     from optimizer.rendering.render import coverage_and_depth_views
 
     build = ENVIRONMENTS["meadow"][1]
@@ -116,9 +117,11 @@ def test_coverage_of_all_views_in_one_launch_equals_the_per_view_pass(mi_backend
                                                "transmittance": 0.0}))()
     cams = CAMS + [Camera((2.0, 3.0, 1.0), (0.0, 0.0, 0.4), 40.0, 40, 32)]
     for sc, target in ((scn.build_scene(build(), obj), obj), (scn.build_scene(build()), None)):
-        cov, depth = coverage_and_depth_views(sc, cams, target, ss=3)
-        for v, c in enumerate(cams):
-            cv, d = coverage_and_depth(sc, c, target, ss=3)
-            np.testing.assert_array_equal(cov[v], cv)
-            np.testing.assert_allclose(depth[v], d, rtol=1e-6, atol=1e-6)
+        for order in (cams, cams[::-1]):
+            cov, depth = coverage_and_depth_views(sc, order, target, ss=3)
+            for v, c in enumerate(order):
+                cv, d = coverage_and_depth(sc, c, target, ss=3)
+                assert cv.shape == (c.height, c.width)
+                np.testing.assert_array_equal(cov[v], cv)
+                np.testing.assert_allclose(depth[v], d, rtol=1e-6, atol=1e-6)
         assert (cov.max() > 0.5) == (target is not None)

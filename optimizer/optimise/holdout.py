@@ -148,7 +148,7 @@ class Holdout:
         geometry and loss-domain rule)."""
         from optimizer.rendering import scene as scn
         from optimizer.rendering.appearance import object_mesh
-        from optimizer.rendering.render import coverage_and_depth, render_shaded
+        from optimizer.rendering.render import coverage_and_depth_views, render_shaded
 
         integrator = stage.shading_integrator()
 
@@ -164,7 +164,7 @@ class Holdout:
         def coverage(values, cams):
             m = mesh(values)
             sc = scn.build_scene(stage.env.build(), m)
-            return np.stack([coverage_and_depth(sc, c, m)[0] for c in cams])
+            return coverage_and_depth_views(sc, cams, m)[0]
 
         def masked(values, cams, spp, seed, masks, fill):
             return render_shaded(stage.env.build(), mesh(values), cams, integrator, spp, seed, masks, fill)

@@ -89,7 +89,7 @@ def pose_search(values: dict[str, np.ndarray], geometry, app, env, cams: Sequenc
     """Return ``values`` with ``rotation`` set to the best of ``angles`` turns (module doc) and what was done."""
     from optimizer.rendering import scene as scn
     from optimizer.rendering.appearance import object_mesh
-    from optimizer.rendering.render import coverage_and_depth, render_shaded
+    from optimizer.rendering.render import coverage_and_depth_views, render_shaded
     from optimizer.scenes.cameras import evenly_spaced
 
     t0 = time.perf_counter()
@@ -103,7 +103,7 @@ def pose_search(values: dict[str, np.ndarray], geometry, app, env, cams: Sequenc
         mesh = object_mesh(geometry, trial, app)
         img = render_shaded(env.build(), mesh, sub, integrator, spp, seed)
         sc = scn.build_scene(env.build(), mesh)
-        cov = np.stack([coverage_and_depth(sc, c, mesh, ss=2)[0] for c in sub])
+        cov = coverage_and_depth_views(sc, sub, mesh, ss=2)[0]
         return img, cov
 
     best, thetas, scores = search_turn(angles, render, bg)

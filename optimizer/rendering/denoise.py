@@ -139,7 +139,7 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     import mitsuba as mi
 
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.render import camera_rays
+    from optimizer.rendering.render import camera_rays, stack_rays
 
     ss = max(1, int(round(float(spp) ** 0.5)))
     sc = scene if scene is not None else scn.build_scene(elements, obj)
@@ -155,14 +155,12 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
         np.arange(c.width * c.height) if p is None else p for c, p in zip(cams, _box_pixels(obj, cams))]
     rays = [camera_rays(cam, ss, gen if jitter else None, p) for cam, p in zip(cams, sel)]  # one wavefront
     sizes = [(cam.width * cam.height if p is None else p.size) * ss * ss for cam, p in zip(cams, sel)]
-    o = np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)
-    d = np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)
     lanes = None  # the rays traced, as lanes of the full pass (None: all)
     if sel[0] is not None:
         offsets = np.cumsum([0] + [cam.width * cam.height * ss * ss for cam in cams])
         lanes = np.concatenate([off + (p[:, None] * (ss * ss) + np.arange(ss * ss)).ravel()
                                 for off, p in zip(offsets, sel)]).astype(np.int64)
-    ray = mi.Ray3f(mi.Point3f(o), mi.Vector3f(d))
+    ray = stack_rays(rays)
     obj_ptr = mi.ShapePtr(obj) if principled else None
 
     def body(ray, active, weight, share, a_acc, n_acc, k, rng):

@@ -104,8 +104,9 @@ def match(render_more, image: np.ndarray, groups: np.ndarray, bg_groups: np.ndar
     """The with-object ``image`` (``spp`` samples) with its noise matched to the background's (module doc).
     ``groups`` / ``bg_groups``: ``(G, V, H, W, 3)`` group means of the two renders (the with-object one over
     ``region``); ``render_more(counts, spp, first_sample)`` renders ``counts (V, H, W)`` x ``spp`` further samples
-    per pixel (their means; :func:`more_samples`). ``boost (V, H, W)`` int: a further factor on the matched one (the object's spp factor before a
-    denoiser, :func:`evaluation.views.object_spp_pilot`); it must not depend on the render's samples."""
+    per pixel (their means; :func:`more_samples`). ``boost (V, H, W)`` int: a further factor on the matched one
+    (the object's spp factor before a denoiser, :func:`evaluation.views.object_spp_pilot`); it must not depend on
+    the render's samples."""
     import time
 
     t0 = time.perf_counter()

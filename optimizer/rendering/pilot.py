@@ -227,7 +227,7 @@ def run_pilot(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object], ca
     (``settings.views`` of them, evenly spaced, at ``settings.resolution``). ``geometry``: also measure where the
     image responds to the pose (four more renders); ``size``: the object's size (scale of that step)."""
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.render import coverage_and_depth
+    from optimizer.rendering.render import coverage_and_depth_views
     from optimizer.rendering.tracer import record_names, render_views
 
     t0 = time.perf_counter()
@@ -245,7 +245,7 @@ def run_pilot(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object], ca
 
     obj, bg = halves(sc_obj), halves(sc_bg)
     sc_cov = scn.build_scene(elements_fn(), mesh)
-    coverage = np.stack([coverage_and_depth(sc_cov, c, mesh, 2)[0] for c in picked])
+    coverage = coverage_and_depth_views(sc_cov, picked, mesh, 2)[0]
     n_idx = [names.index(f"n{k}") for k in range(settings.max_depth)]
     vertices = float((obj[..., n_idx].sum() + bg[..., n_idx].sum()) * half)
     seconds = time.perf_counter() - t0

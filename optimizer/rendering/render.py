@@ -155,6 +155,16 @@ def camera_rays(cam: Camera, ss: int = 4, gen: np.random.Generator | None = None
     return rays
 
 
+def stack_rays(rays: Sequence) -> Any:
+    """One ``mi.Ray3f`` wavefront of several ray sets (e.g. :func:`camera_rays` of every view), in order: one
+    launch traces them all."""
+    import mitsuba as mi
+
+    o = np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)
+    d = np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)
+    return mi.Ray3f(mi.Point3f(o), mi.Vector3f(d))
+
+
 def coverage_and_depth(sc, cam: Camera, target_shape=None, ss: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Fraction of each pixel covered by ``target_shape`` (visible, i.e. first hit) and mean hit distance.
 
@@ -162,24 +172,8 @@ def coverage_and_depth(sc, cam: Camera, target_shape=None, ss: int = 4) -> tuple
     ``depth (H, W)``: the mean distance from the camera centre of the rays that hit
     anything (0 when none do).
     """
-    import drjit as dr
-    import mitsuba as mi
-
-    rays = camera_rays(cam, ss)
-    si = sc.ray_intersect(rays)
-    hit = si.is_valid()
-    # Distance from the camera centre (rays start on the near-clip plane, so si.t is short by it).
-    t = dr.select(hit, dr.norm(si.p - mi.Point3f(*cam.origin)), 0.0)
-    shape = (cam.height, cam.width, ss * ss)
-    t_np = np.asarray(t, dtype=np.float32).reshape(shape)
-    hit_np = np.asarray(hit, dtype=bool).reshape(shape)
-    nhit = hit_np.sum(-1)
-    depth = np.where(nhit > 0, t_np.sum(-1) / np.maximum(nhit, 1), 0.0).astype(np.float32)
-    if target_shape is None:
-        return np.zeros(shape[:2], np.float32), depth
-    on = hit & (si.shape == mi.ShapePtr(target_shape))
-    cov = np.asarray(on, dtype=bool).reshape(shape).mean(-1).astype(np.float32)
-    return cov, depth
+    cov, depth = coverage_and_depth_views(sc, [cam], target_shape, ss)
+    return cov[0], depth[0]
 
 
 def coverage_and_depth_views(sc, cams: Sequence[Camera], target_shape=None,
@@ -190,12 +184,8 @@ def coverage_and_depth_views(sc, cams: Sequence[Camera], target_shape=None,
     import drjit as dr
     import mitsuba as mi
 
-    rays = [camera_rays(c, ss) for c in cams]
     sizes = [c.width * c.height * ss * ss for c in cams]
-    o = np.concatenate([np.asarray(r.o, dtype=np.float32).reshape(3, -1) for r in rays], 1)
-    d = np.concatenate([np.asarray(r.d, dtype=np.float32).reshape(3, -1) for r in rays], 1)
-    ray = mi.Ray3f(mi.Point3f(o), mi.Vector3f(d))
-    si = sc.ray_intersect(ray)
+    si = sc.ray_intersect(stack_rays([camera_rays(c, ss) for c in cams]))
     hit = si.is_valid()
     centre = mi.Point3f(np.concatenate([np.repeat(np.asarray(c.origin, np.float32)[:, None], n, 1)
                                         for c, n in zip(cams, sizes)], 1))
