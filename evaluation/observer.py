@@ -388,7 +388,8 @@ class ObserverConfig:
                 raise CamoError(f"observer {f.name} must be finite numbers, not {v!r}")
             if f.name == "shadow_discount" and not 0.0 <= v <= 1.0:
                 raise CamoError(f"observer shadow_discount must be in [0, 1], not {v!r}")
-            if f.name not in ("fitts_a_s", "shadow_gain", "shadow_discount", "verify_s", "prop_margin") and any(x <= 0 for x in vals):
+            may_be_zero = ("fitts_a_s", "shadow_gain", "shadow_discount", "verify_s", "prop_margin")
+            if f.name not in may_be_zero and any(x <= 0 for x in vals):
                 raise CamoError(f"observer {f.name} must be > 0, not {v!r}")
             if any(x < 0 for x in vals):
                 raise CamoError(f"observer {f.name} must be >= 0, not {v!r}")
