@@ -253,6 +253,7 @@ def bench_evaluation(name: str, args) -> dict:
     at_spp: dict = {"plan": [], "bg": [], **{d: [] for d in dens}, **{f"bg-{d}": [] for d in dens},
                     **{f"eval-{e}": [] for e in as_eval}, **{f"eval-bg-{e}": [] for e in as_eval}}
     rows = []
+    by_level: dict = {}  # (setting, spp) -> [(with-object, background)] of each repetition (its own seed)
     for spp in args.eval_levels:
         for k in range(args.warmup):  # untimed: the JIT compiles of this spp's kernels (a render at a new spp, a
             plan_render(spp, base + k)  # region's growth steps: each a kernel of its own), paid once per scene
@@ -298,6 +299,7 @@ def bench_evaluation(name: str, args) -> dict:
                 row[f"eval-{e}_error"] = math.sqrt(max(srgb_rms(e_img, ref) ** 2 - ref_var, 0.0))
                 row[f"eval-{e}_extra_samples"] = e_o.noise.extra_samples if e_o.noise is not None else 0.0
                 row[f"eval-{e}_denoise_seconds"] = e_o.denoise_seconds
+                by_level.setdefault((e, spp), []).append((e_img, e_bg))
                 if spp == args.eval_spp:
                     at_spp[f"eval-{e}"].append(e_img)
                     at_spp[f"eval-bg-{e}"].append(e_bg)
@@ -371,6 +373,15 @@ def bench_evaluation(name: str, args) -> dict:
         who = f"eval-{e}"
         e_t = seconds_at(_mean_curve(rows, who), e_full)
         imgs, bgs = at_spp[who], at_spp[f"eval-bg-{e}"]
+        by_spp = _by_spp(rows, who)
+        # the noise near the object at every level (two seeds: the first two repetitions), and at the level where
+        # the setting reaches full tracing's error (the first level at or below it; the cheapest if all are): the
+        # speed-up is read there, so the noise it would show is judged there too, not only at --eval-spp
+        noise_lv = {str(lv): {"object": noise_rms(x[0][0], x[1][0], near), "background": noise_rms(x[0][1], x[1][1],
+                                                                                                    near)}
+                    for (e_, lv), x in by_level.items() if e_ == e and len(x) >= 2}
+        below = [lv for lv, (_, err) in sorted(by_spp.items()) if err <= e_full]
+        eq_level = below[0] if below else None
         eval_out[e] = {"denoise": d, "object_spp": k, "pilot": as_eval_pilots.get(e), "curve": _mean_curve(rows, who),
                        "seconds_at_equal_error": e_t, "speedup": t_full / e_t,
                        "seconds_at_spp": value_at([(k_, v[0]) for k_, v in _by_spp(rows, who).items()], s),
@@ -379,7 +390,8 @@ def bench_evaluation(name: str, args) -> dict:
                        "extra_samples": float(np.mean([r[f"{who}_extra_samples"] for r in rows if r["spp"] == s])),
                        "noise_near_object": ({"object": noise_rms(imgs[0], imgs[1], near),
                                               "background": noise_rms(bgs[0], bgs[1], near)} if len(imgs) >= 2
-                                             else {})}
+                                             else {}),
+                       "noise_by_spp": noise_lv, "equal_error_level": eq_level}
     rr_out = {}
     for rr in args.rr_depths:
         who = f"plan-rr{rr}"
@@ -758,9 +770,10 @@ def print_evaluate_as(results: dict) -> None:
           "background (both denoised alike)\n")
     print("| scene | setting | k | CPU s @ equal error | speed-up | CPU s @"
           f"{a['eval_spp']} spp (full's) | extra samples @{a['eval_spp']} spp | error @{a['eval_spp']} spp (/255) | "
-          "noise near the object / bg (/255) = ratio | pilot s |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "noise near the object / bg (/255) = ratio | noise ratio at the equal-error level (spp) | pilot s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     sp: dict = {e: [] for e in sets}
+    worst: dict = {e: [] for e in sets}  # the noise ratios at the equal-error level
     for r in results["eval"]:
         for e in sets:
             x = (r.get("evaluate_as") or {}).get(e)
@@ -773,13 +786,20 @@ def print_evaluate_as(results: dict) -> None:
             ratio = (f"{nz['object']:.2f} / {nz['background']:.2f} = {nz['object'] / max(nz['background'], 1e-9):.2f}"
                      if nz else "-")
             pil = x.get("pilot") or {}
+            lv = x.get("equal_error_level")
+            nl = (x.get("noise_by_spp") or {}).get(str(lv))
+            eq_ratio = (f"{nl['object'] / max(nl['background'], 1e-9):.2f} ({lv})" if nl else "-")
+            if nl:
+                worst[e].append(nl["object"] / max(nl["background"], 1e-9))
             print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''} | "
                   f"{'>= ' if low else ''}{speed:.2f}x | {x['seconds_at_spp']:.2f} ({r['full_seconds_at_spp']:.2f}) | "
-                  f"+{x['extra_samples']:.0%} | {x['error_at_spp'] * 255:.3f} | {ratio} | "
+                  f"+{x['extra_samples']:.0%} | {x['error_at_spp'] * 255:.3f} | {ratio} | {eq_ratio} | "
                   f"{pil.get('wall_seconds', 0):.1f} |")
     for e in sets:
         print(f"\n{e}: mean speed-up {np.mean(sp[e]):.2f}x, minimum {np.min(sp[e]):.2f}x (>= where the cheapest level "
-              "is already below the target error)")
+              "is already below the target error)"
+              + (f"; noise ratio at the equal-error level: worst {np.max(worst[e]):.2f}, "
+                 f"{sum(w <= 1.0 for w in worst[e])} of {len(worst[e])} scenes <= 1" if worst[e] else ""))
     print()
 
 

@@ -62,10 +62,12 @@ class Range:
             return f"{what} {'<' if self.hi_open else '<='} {g(self.hi)}"
         return f"a finite {'integer' if self.kind is int else 'number'}"
 
-    def check(self, v: Any, name: str) -> Any:
-        """``v`` when inside; SettingError naming ``name`` (``{0}``) otherwise."""
+    def check(self, v: Any, name: str, given: Any = None) -> Any:
+        """``v`` when inside; SettingError naming ``name`` (``{0}``) otherwise, quoting ``given`` when it is the number
+        as the user wrote it (``0``, not its conversion ``0.0``), else ``v``."""
         if not self.contains(v):
-            raise SettingError(f"{{0}} must be {self.describe()}, got {literal(repr(v))}", name)
+            shown = given if isinstance(given, (int, float)) and not isinstance(given, bool) else v
+            raise SettingError(f"{{0}} must be {self.describe()}, got {literal(repr(shown))}", name)
         return v
 
     def parse(self, text: str) -> Any:
@@ -135,5 +137,5 @@ def convert(value: Any, kind: type, name: str, *, choices: tuple[str, ...] | Non
     if kind is int and not isinstance(v, int):
         raise SettingError(f"{{0}} must be an integer, got {literal(repr(value))}", name)
     if rng is not None:
-        rng.check(v, name)
+        rng.check(v, name, given=value)  # the error quotes what was written: 0, not 0.0
     return v

@@ -336,3 +336,92 @@ def test_init_search_tries_the_start_without_init_and_keeps_the_best(tmp_path, m
     assert info["chosen"] == info["candidates"][int(np.argmin(info["scores"]))]
     run(RunSpec.from_options({**tiny, "init_search": "off"}), tmp_path / "off", progress=False)
     assert json.loads((tmp_path / "off" / "summary.json").read_text())["init_search"] is None
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the displacement's rate warm-up (optimizer/optimise/adam.py)
+
+def _steps(mi, dr, opt, grads):
+    """Apply ``grads`` (one per step, the same to every parameter) and return each parameter's moves ``(steps, n)``."""
+    before = {k: np.asarray(opt[k]).copy() for k in opt.values}
+    moves = {k: [] for k in opt.values}
+    for g in grads:
+        for k in opt.values:
+            dr.set_grad(opt[k], mi.Float(g))
+        opt.step()
+        for k in opt.values:
+            now = np.asarray(opt[k]).copy()
+            moves[k].append(now - before[k])
+            before[k] = now
+    return {k: np.array(v) for k, v in moves.items()}
+
+
+def test_warmup_ramps_the_rate_linearly_and_leaves_other_parameters_alone(mi_backend):
+    """A constant gradient makes every Adam step exactly ``rate x sign(g)`` (m^ / sqrt(v^) = sign(g)), so the moves are
+    the rates: ``lr t / 4`` for the first four steps of the warmed-up parameter, ``lr`` after; ``lr`` throughout for
+    the other."""
+    mi, dr = mi_backend
+    from optimizer.optimise.adam import Adam
+
+    opt = Adam({"d": 0.05, "a": 0.05}, warmup={"d": 4})
+    opt.add("d", mi.Float([0.0, 0.0]))
+    opt.add("a", mi.Float([0.0, 0.0]))
+    moves = _steps(mi, dr, opt, [[1.0, -2.0]] * 6)
+    ramp = np.array([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
+    np.testing.assert_allclose(moves["d"], -0.05 * ramp[:, None] * np.array([1.0, -1.0]), rtol=1e-5)
+    np.testing.assert_allclose(moves["a"], -0.05 * np.ones((6, 1)) * np.array([1.0, -1.0]), rtol=1e-5)
+    assert opt.rate("d", scale=0.5) == pytest.approx(0.025)
+
+
+def test_warmup_shrinks_adams_full_first_step_on_noise(mi_backend):
+    """The failure it removes: gradients that are pure noise, fifty times smaller than the rate, still move every
+    entry by a full rate on Adam's first step; with a 10-step warm-up by a tenth of it."""
+    mi, dr = mi_backend
+    from optimizer.optimise.adam import Adam
+
+    rng = np.random.default_rng(0)
+    noise = rng.choice([-1.0, 1.0], (1, 64)) * rng.uniform(1e-3, 2e-3, (1, 64))  # random signs and sizes
+    plain = Adam({"d": 0.05})
+    plain.add("d", mi.Float(np.zeros(64)))
+    warm = Adam({"d": 0.05}, warmup={"d": 10})
+    warm.add("d", mi.Float(np.zeros(64)))
+    np.testing.assert_allclose(np.abs(_steps(mi, dr, plain, noise)["d"]), 0.05, rtol=1e-3)
+    np.testing.assert_allclose(np.abs(_steps(mi, dr, warm, noise)["d"]), 0.005, rtol=1e-3)
+
+
+def test_warmup_resumes_mid_ramp_and_refuses_bad_counts(mi_backend):
+    mi, dr = mi_backend
+    from optimizer.optimise.adam import Adam
+
+    grads = [[1.0, 2.0], [0.5, -1.0], [3.0, 1.0], [1.0, 1.0], [-2.0, 0.5]]
+
+    def run(resume_at=None):
+        opt = Adam({"d": 0.05}, warmup={"d": 4})
+        opt.add("d", mi.Float([0.2, 0.8]))
+        for i, g in enumerate(grads):
+            if resume_at == i:
+                st = opt.state()
+                opt = Adam({"d": 0.05}, warmup={"d": 4})
+                opt.add("d", mi.Float([0.0, 0.0]))
+                opt.load_state(st)
+            dr.set_grad(opt["d"], mi.Float(g))
+            opt.step()
+        return np.asarray(opt["d"])
+
+    np.testing.assert_array_equal(run(), run(resume_at=2))
+    for bad in (-1, 2.5, "10"):
+        with pytest.raises(ValueError, match="warm-up of 'd'"):
+            Adam({"d": 0.1}, warmup={"d": bad})
+
+
+def test_displacement_warmup_is_the_fast_presets_and_a_baseline_refuses_it():
+    from optimizer.optimise.spec import RunSpec
+
+    assert RunSpec.from_options({"scene": "meadow"}).appearance.displacement_warmup == 10
+    assert RunSpec.from_options({"scene": "meadow", "preset": "paper"}).appearance.displacement_warmup == 0
+    ours = RunSpec.from_options({"scene": "meadow"}).to_dict()
+    for method, value, match in (("ours", -1, "displacement.warmup"), ("mean", 3, "displacement.warmup")):
+        data = {**ours, "method": method, "appearance": {**ours.get("appearance", {}), "displacement_warmup": value}}
+        with pytest.raises((SettingError, CamoError), match=match) as err:
+            RunSpec.from_dict(data).validate()
+        assert "\n" not in str(err.value)

@@ -72,6 +72,21 @@ def test_loss_decreases(run_dir):
     assert np.mean([r["loss_photo"] for r in log[-3:]]) < np.mean([r["loss_photo"] for r in log[:3]])
 
 
+def test_displacement_warmup_keeps_the_first_steps_small(run_dir):
+    """The fast preset's displacement warm-up (10 steps; optimizer/optimise/adam.py): Adam's first step moves a texel
+    by at most the ramped rate lr / 10 and the proximal step keeps half of it, so the L1 term logged at iteration 2
+    (measured before that step) is at most 0.5 lr / 10 = 0.0025; without the ramp it is up to 0.025 (0.010 measured
+    on meadow, 10x its photometric loss). Over the ramp the term stays below the sum of the ramped half-steps."""
+    import tomllib
+
+    cfg = tomllib.loads((run_dir / "config.toml").read_text())["appearance"]
+    assert cfg["displacement_warmup"] == 10 and cfg["lr_displacement"] == 0.05 and cfg["displacement_shrink"] == 0.5
+    disp = [r["loss_disp"] for r in log_of(run_dir)]
+    assert disp[0] == 0.0 and 0.0 < disp[1] <= 0.5 * 0.05 / 10 * 1.0001
+    bounds = [0.5 * 0.05 * sum(range(1, t + 1)) / 10 * 1.0001 for t in range(10)]
+    assert all(d <= b for d, b in zip(disp, bounds)), (disp, bounds)
+
+
 def test_maps_stay_in_range_and_pose_is_clipped(run_dir):
     for name in ("albedo", "metallic", "roughness", "transmittance"):
         m = np.load(run_dir / "maps" / f"{name}.npy")
@@ -462,9 +477,11 @@ def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_pat
     shutil.copytree(run_dir, old)
     (old / "config.toml").write_text(V1_CONFIG)
     a, b = open_run(old), open_run(run_dir)
-    # the old layout predates --grad-blur: its runs had per-texel gradients (0), today's fast preset blurs by 2
-    assert a.app.grad_blur == 0.0 and b.app.grad_blur == 2.0
-    assert (a.method, a.ablation, a.app) == (b.method, b.ablation, dataclasses.replace(b.app, grad_blur=0.0))
+    # the old layout predates --grad-blur and the displacement warm-up: its runs had per-texel gradients (0) and a
+    # full displacement rate from the first step (0); today's fast preset blurs by 2 and ramps over 10 steps
+    assert (a.app.grad_blur, a.app.displacement_warmup) == (0.0, 0) and (b.app.grad_blur, b.app.displacement_warmup) == (2.0, 10)
+    assert (a.method, a.ablation, a.app) == (b.method, b.ablation,
+                                             dataclasses.replace(b.app, grad_blur=0.0, displacement_warmup=0))
     assert a.pack.render.spp == 4 and a.pack == dataclasses.replace(b.pack, render=dataclasses.replace(b.pack.render, spp=4))
     assert (a.object, a.scene) == ("utility_box", "gravel")
     flags = ["--views", "2", "--spp", "4", "--metrics", "psnr,ssim", "--quiet", "--threads", "2"]

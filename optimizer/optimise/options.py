@@ -48,6 +48,7 @@ RANGES: dict[str, Range] = {
     "appearance.lr_maps": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.lr_displacement": Range(float, 0.0, 10.0, lo_open=True),
     "appearance.grad_blur": Range(float, 0.0, 64.0),
+    "appearance.displacement_warmup": Range(int, 0, UNCAPPED),
     "appearance.map_smoothness": Range(float, 0.0, 1e6, lo_open=True),
     "holdout.views": Range(int, 0, 1024), "holdout.every": Range(int, 1, UNCAPPED), "holdout.spp": Range(int, 1, 2**20),
     "holdout.patience": Range(int, 0, UNCAPPED),

@@ -86,7 +86,11 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
         # grad_blur 2: the maps' gradients blurred by 2 texels (AppearanceConfig.grad_blur); one run per scene at demo
         # sizes: meadow +0.35 dB / -0.012 LPIPS-proxy, split +0.69 / -0.022, room +0.88 / -0.040, gravel and
         # occluded level, the real sky-cone -0.12 / +0.004 (docs/results/convergence.md)
-        appearance={"lr_maps": 1e-2, "lr_displacement": 5e-2, "displacement_shrink": 0.5, "grad_blur": 2.0},
+        # displacement_warmup 10: the displacement's rate ramps up over Stage 1's and Stage 2's first 10 steps; without
+        # it Adam's sign-like first step moves every texel at once and the logged total loss jumps ~11x at iteration
+        # 2 (the L1 term; optimizer/optimise/adam.py)
+        appearance={"lr_maps": 1e-2, "lr_displacement": 5e-2, "displacement_shrink": 0.5, "grad_blur": 2.0,
+                    "displacement_warmup": 10},
         # the result is the best of the iterates checked every 10 iterations (and at each stage's end) on 4 held-out
         # jittered views (optimizer/optimise/holdout.py): Stage 2 at demo sizes can cost novel-view quality
         # (gravel -0.15 dB, meadow -0.27), and the check keeps Stage 1's result where it does
@@ -103,7 +107,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
                 "silhouette_every": 1, "pose_search": 0, "roughness_search": (), "loss_clamp": 0.0, "grad_clip": 0.0,
                 "init_search": False, "coarse_grid": 0},
         stage2={"iterations": 20},
-        appearance={"lr_maps": 1e-2, "lr_displacement": 1e-1, "displacement_shrink": 0.0, "grad_blur": 0.0},
+        appearance={"lr_maps": 1e-2, "lr_displacement": 1e-1, "displacement_shrink": 0.0, "grad_blur": 0.0,
+                    "displacement_warmup": 0},
         holdout={},  # the last iterate is the result
         material={},
         rough_start=False,

@@ -15,7 +15,9 @@ Beyond the paper (``--preset fast``, the default; ``--preset paper`` turns both 
 
 * the albedo starts from the least-squares match to the background (:mod:`optimizer.optimise.warmstart`) instead of
   grey 0.5, computed once after the targets are rendered;
-* a proximal L1 step on the displacement after each Adam step (``AppearanceConfig.displacement_shrink``);
+* a proximal L1 step on the displacement after each Adam step (``AppearanceConfig.displacement_shrink``), and the
+  displacement's rate ramped up over each stage's first steps (``AppearanceConfig.displacement_warmup``: Adam's first
+  step is a full rate for every texel, :mod:`optimizer.optimise.adam`);
 * optionally, a cosine decay of every learning rate over the stage's progress (:mod:`optimizer.optimise.schedule`);
   ``time_budget`` (seconds of iterations) ends the stage early; progress is then the larger of the iteration
   and the time fraction;
@@ -429,7 +431,8 @@ class Stage1:
             lrs.update({coarse_key(n): rate for n in self._coarse.channels})
             bound = lambda x: dr.clip(dr.select(dr.isfinite(x), x, 0.0), -OFFSET_BOUND, OFFSET_BOUND)  # noqa: E731
             self.project.update({coarse_key(n): bound for n in self._coarse.channels})
-        self.opt = Adam(lrs, average=self.cfg.average, uniform=uniform, clip=self.cfg.grad_clip)
+        warmup = {"displacement": self.app.displacement_warmup} if "displacement" in lrs else None
+        self.opt = Adam(lrs, average=self.cfg.average, uniform=uniform, clip=self.cfg.grad_clip, warmup=warmup)
         for name in self.app.trainable():
             v = self.values[name]
             self.opt.add(name, mi.TensorXf(v) if v.ndim == 3 else mi.Float(v))
@@ -884,11 +887,12 @@ class Stage1:
 
     def _shrink_displacement(self, scale: float) -> None:
         """Proximal L1 step on the normalised displacement: ``d <- sign(d) max(|d| - k lr_t, 0)``, k =
-        ``displacement_shrink``. A texel whose photometric gradient keeps one sign moves by ~lr_t per Adam step
-        and keeps (1 - k) of it; one pushed back and forth by gradient noise returns to 0."""
+        ``displacement_shrink``, ``lr_t`` the step's rate (schedule and warm-up included). A texel whose photometric
+        gradient keeps one sign moves by ~lr_t per Adam step and keeps (1 - k) of it; one pushed back and forth by
+        gradient noise returns to 0."""
         import drjit as dr
 
-        k = self.app.displacement_shrink * scale * self.opt.lrs["displacement"]
+        k = self.app.displacement_shrink * self.opt.rate("displacement", scale)
         new = soft_threshold(self.opt["displacement"], k)
         dr.enable_grad(new)
         self.opt.values["displacement"] = new

@@ -62,6 +62,9 @@ class AppearanceConfig:
     # > 0: after each Adam step, shrink d towards 0 by this fraction of the step's displacement rate (the proximal
     # step of an L1 term in Adam's normalised units; optimizer/optimise/schedule.py says why). 0 = the paper.
     displacement_shrink: float = 0.0
+    # > 0: the displacement's rate ramps up linearly over this many Adam steps of each stage (optimizer/optimise/
+    # adam.py says why: Adam's first step moves every texel by a full rate, whatever the gradient's size). 0 = paper.
+    displacement_warmup: int = 0
     # > 0: each step, the BSDF maps' gradients are blurred by a Gaussian of this many texels (sigma) before Adam.
     # Adam normalises every texel's step, so at a few spp each texel of a noise-dominated map (metallic,
     # transmittance, roughness) random-walks by ~lr per step: salt-and-pepper maps that render as sparkles. A
