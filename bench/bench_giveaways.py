@@ -98,6 +98,9 @@ ARMS = {
     # noise-driven move, so the anamorphic term ends at ~0; without it (the paper's 0, SPEC_FIELDS) can the body's
     # shape move where the clear glass's refracted sunlight lands (the caustic streak)?
     "coarse1_auto_r5_keepdisp": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5"],
+    # its replicate: coarse1_auto_r5 with another training seed (how far two runs of one arm differ)
+    "coarse1_auto_r5_seed1": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5",
+                              "--seed", "1"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
@@ -323,7 +326,7 @@ LABELS = {"today": "ours (today)", "coarse0": "ours, no coarse level", "large_st
           "coarse1_auto_r35": "coarse 1 + clear R0 0.35", "coarse1_auto_r5": "coarse 1 + clear R0 0.5", "coarse1_auto_r5_c0": "clear R0 0.5, no loss clamp",
           "coarse1_auto_r10": "coarse 1 + clear R0 1.0", "coarse1_auto_r7": "coarse 1 + clear R0 0.7",
           "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5",
-          "coarse1_auto_r5_keepdisp": "clear R0 0.5, disp. kept", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
+          "coarse1_auto_r5_keepdisp": "clear R0 0.5, disp. kept", "coarse1_auto_r5_seed1": "clear R0 0.5, seed 1", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 
