@@ -16,15 +16,19 @@ from camo_base.errors import CamoError
 N = 256
 
 
-def grass(seed: int = 0, n: int = N) -> np.ndarray:
-    """A green 1/f texture with pixel noise, sRGB (n, n, 3) float32: a stand-in for the meadow's ground."""
-    rng = np.random.default_rng(seed)
+def unit_1f(rng: np.random.Generator, n: int, power: float = 1.0) -> np.ndarray:
+    """``(n, n)`` noise with amplitude spectrum 1/f^``power`` (1: a natural ground's), mean 0, standard deviation 1."""
     f = np.fft.fftfreq(n)
     fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
     fr[0, 0] = 1.0
-    tex = np.real(np.fft.ifft2((rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / fr))
-    tex = (tex - tex.mean()) / tex.std()
-    t = 0.5 + 0.12 * tex + 0.06 * rng.normal(size=(n, n))
+    tex = np.real(np.fft.ifft2((rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / fr**power))
+    return (tex - tex.mean()) / tex.std()
+
+
+def grass(seed: int = 0, n: int = N) -> np.ndarray:
+    """A green 1/f texture with pixel noise, sRGB (n, n, 3) float32: a stand-in for the meadow's ground."""
+    rng = np.random.default_rng(seed)
+    t = 0.5 + 0.12 * unit_1f(rng, n) + 0.06 * rng.normal(size=(n, n))
     return np.clip(np.stack([0.35 * t, 0.75 * t, 0.25 * t], -1), 0, 1).astype(np.float32)
 
 
@@ -262,12 +266,7 @@ def test_cast_shadow_map_reads_texture_kept_under_a_darkening():
 def fine_grass(seed: int = 0, n: int = N) -> np.ndarray:
     """A green texture with stationary statistics at the object's scale (spectrum 1/f^0.5: no object-sized
     blotches that would act as distractors of their own)."""
-    rng = np.random.default_rng(seed)
-    f = np.fft.fftfreq(n)
-    fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
-    fr[0, 0] = 1.0
-    tex = np.real(np.fft.ifft2((rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / np.sqrt(fr)))
-    t = 0.5 + 0.12 * (tex - tex.mean()) / tex.std()
+    t = 0.5 + 0.12 * unit_1f(np.random.default_rng(seed), n, power=0.5)
     return np.clip(np.stack([0.35 * t, 0.75 * t, 0.25 * t], -1), 0, 1).astype(np.float32)
 
 
@@ -870,11 +869,7 @@ def test_core_click_lands_inside_the_identified_thing():
 def dim_floor(seed: int = 0, n: int = N) -> np.ndarray:
     """A dim wooden floor (room's): brown, coarse 1/f mottling with a large luminance spread, pixel noise."""
     rng = np.random.default_rng(seed)
-    f = np.fft.fftfreq(n)
-    fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
-    fr[0, 0] = 1.0
-    tex = np.real(np.fft.ifft2((rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) / fr))
-    t = 0.30 + 0.07 * (tex - tex.mean()) / tex.std() + 0.03 * rng.normal(size=(n, n))
+    t = 0.30 + 0.07 * unit_1f(rng, n) + 0.03 * rng.normal(size=(n, n))
     return np.clip(np.stack([t, 0.62 * t, 0.38 * t], -1), 0, 1).astype(np.float32)
 
 
