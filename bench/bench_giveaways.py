@@ -94,10 +94,20 @@ ARMS = {
     "coarse1_auto_r5_eta102": ["--coarse-grid", "1", "--clear-candidate", "1.02", "--clear-roughness", "0.5"],
     # clear glass at IOR 1.02 imposed (not a candidate): what the caustic becomes when the body bends light less
     "clear102_r5": ["--coarse-grid", "1", "--eta", "1.02", "--init", "roughness=0.5", "--init-search", "off"],
+    # the displacement kept (issue 29): the fast preset's proximal L1 step (displacement_shrink 0.5) removes every
+    # noise-driven move, so the anamorphic term ends at ~0; without it (the paper's 0, SPEC_FIELDS) can the body's
+    # shape move where the clear glass's refracted sunlight lands (the caustic streak)?
+    "coarse1_auto_r5_keepdisp": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5"],
+    # its replicate: coarse1_auto_r5 with another training seed (how far two runs of one arm differ)
+    "coarse1_auto_r5_seed1": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5",
+                              "--seed", "1"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
+#: arm -> run spec fields no `camo optimize` flag sets (``"table.field": value``), set in the spec its flags make;
+#: such an arm runs as ``camo optimize --spec RUNS/SCENE-ARM.spec.toml``
+SPEC_FIELDS = {"coarse1_auto_r5_keepdisp": {"appearance.displacement_shrink": 0.0}}
 SIZE = ["--views", "4", "--resolution", "64", "--map-resolution", "128", "--target-vertices", "3000"]
 
 
@@ -113,6 +123,27 @@ def name_of(scene: str) -> str:
     return Path(scene).stem if scene.endswith(".toml") else scene
 
 
+def spec_file(args: list[str], fields: dict, dest: Path) -> Path:
+    """Write to ``dest`` the run spec ``camo optimize ARGS`` would run, with ``fields`` (``"table.field": value``, a
+    field the method records) set, for ``camo optimize --spec dest``; SystemExit naming a field the spec lacks."""
+    import tomli_w
+
+    from camo.cli import build_parser
+    from camo.optimize_cli import spec_of
+    from optimizer.optimise.spec import RunSpec
+
+    d = spec_of(build_parser().parse_args(["optimize", *args])).to_dict()
+    for path, value in fields.items():
+        table, key = path.split(".")
+        if key not in d.get(table, {}):
+            raise SystemExit(f"bench_giveaways: the run spec has no field {path}")
+        d[table][key] = value
+    RunSpec.from_dict(d, where=str(dest)).validate()  # the edited spec is one camo optimize accepts
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_text(tomli_w.dumps(d), encoding="utf-8")
+    return dest
+
+
 def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
              iterations: dict[str, int] | None = None) -> None:
     for arm in [*arms, "mean"] if mean else arms:
@@ -123,8 +154,11 @@ def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
             camo("optimize", scene, "--method", "mean", "--out", str(run), *SIZE, "--quiet")
         else:
             own = ["--iterations", str(iterations[arm])] if iterations and arm in iterations else budget
-            camo("optimize", scene, "--out", str(run), *SIZE, "--displacement-resolution", "64", *own,
-                 *ARMS[arm], "--quiet")
+            args = [scene, "--out", str(run), *SIZE, "--displacement-resolution", "64", *own, *ARMS[arm], "--quiet"]
+            if arm in SPEC_FIELDS:
+                spec = spec_file(args, SPEC_FIELDS[arm], run.with_name(f"{run.name}.spec.toml"))
+                args = ["--spec", str(spec), "--out", str(run), "--quiet"]
+            camo("optimize", *args)
 
 
 def evaluate(out: Path, scene: str, arms, spp: int, views: int, into: str = "eval", mean: bool = True) -> None:
@@ -291,7 +325,8 @@ LABELS = {"today": "ours (today)", "coarse0": "ours, no coarse level", "large_st
           "coarse1_tint1_auto": "coarse 1 + tint 1 + clear",
           "coarse1_auto_r35": "coarse 1 + clear R0 0.35", "coarse1_auto_r5": "coarse 1 + clear R0 0.5", "coarse1_auto_r5_c0": "clear R0 0.5, no loss clamp",
           "coarse1_auto_r10": "coarse 1 + clear R0 1.0", "coarse1_auto_r7": "coarse 1 + clear R0 0.7",
-          "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
+          "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5",
+          "coarse1_auto_r5_keepdisp": "clear R0 0.5, disp. kept", "coarse1_auto_r5_seed1": "clear R0 0.5, seed 1", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 

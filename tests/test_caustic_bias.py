@@ -58,3 +58,31 @@ def test_shadow_mask_is_the_dark_ground_outside_the_object(bench_module):
     obj[0, 0] = True
     assert cb.shadow_mask(bg, op, obj, 0.6).sum() == 2
 
+
+
+def test_compare_finds_where_another_run_puts_the_light(tmp_path, capsys, bench_module):
+    """--compare: the bright shadow pixels of two clear runs (above the ground's 99th percentile) and their overlap; a
+    run evaluated into another eval*/SCENE beside --ref is found there."""
+    cb = bench_module("caustic_bias")
+    bg = np.full((8, 8, 3), 0.1)
+    mask = np.zeros((8, 8), bool)
+    mask[:2] = True
+    opaque = bg.copy()
+    opaque[4:6] = 0.02  # the shadow: rows 4-5, 16 pixels
+    a, b = bg.copy(), bg.copy()
+    a[4:6] = 0.05
+    b[4:6] = 0.05
+    a[4, :4] = 0.3  # run a lights pixels 0-3 of row 4, run b pixels 2-5: 2 shared of 6
+    b[4, 2:6] = 0.3
+    write_eval(tmp_path / "eval" / "meadow", 512, {"opaque": {"bg": bg, "obj": opaque}, "a": {"bg": bg, "obj": a}}, mask)
+    write_eval(tmp_path / "eval_later" / "meadow", 512, {"b": {"bg": bg, "obj": b}}, mask)
+    assert cb.main(["--ref", str(tmp_path / "eval" / "meadow"), "--run", "a", "--shadow-run", "opaque",
+                    "--compare", "b"]) == 0
+    row = next(r for r in capsys.readouterr().out.splitlines() if r.startswith("| **mean** | b |"))
+    _, _, bright_a, bright_b, iou, corr = [c.strip() for c in row.split("|")[1:-1]]
+    assert (float(bright_a), float(bright_b), float(iou)) == (0.25, 0.25, 0.33)
+    x, y = cb.luminance(a)[4:6].ravel(), cb.luminance(b)[4:6].ravel()
+    assert float(corr) == pytest.approx(np.corrcoef(x, y)[0, 1], abs=1e-3)
+    with pytest.raises(SystemExit, match="no renders of missing"):
+        cb.main(["--ref", str(tmp_path / "eval" / "meadow"), "--run", "a", "--shadow-run", "opaque",
+                 "--compare", "missing"])
