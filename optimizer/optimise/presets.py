@@ -51,8 +51,8 @@ PRESETS: dict[str, Preset] = {p.name: p for p in (
     Preset(
         "fast",
         "least-squares albedo warm start, transmittance start 0.75, squared-error loss, proximal L1 step on the "
-        "displacement, map gradients blurred by 2 texels, a soft-clamped loss and gradients clipped at 4x their running "
-        "norm (glints), 60 + 4 iterations, a 16-turn pose search, a two-value roughness start search and (with --init) "
+        "displacement and its rate ramped over 10 steps, map gradients blurred by 2 texels, a soft-clamped loss and "
+        "gradients clipped at 4x their running norm (glints), 60 + 4 iterations, a 16-turn pose search, a two-value roughness start search and (with --init) "
         "the start without --init tried first, a coarse level under the albedo and transmittance maps (one offset per "
         "channel), the best iterate on 4 held-out views is the result",
         # loss "mse": Eq. 9's absolute values are median-seeking, and with the decorrelated adjoint of a 4-spp render
