@@ -695,6 +695,9 @@ class Maps:
     guidance: np.ndarray  # priority G (step 3)
     verify: np.ndarray  # verification evidence V (step 5): compactness of O, max over the candidate sizes
     sky: np.ndarray | None = None  # bool: the sky (:func:`sky_map`), where no object rests
+    #: the cast-shadow evidence: the ground's own texture under a darkening (:func:`cast_shadow_map`) times ``D``,
+    #: max over centre scales, >= 0; None without an object-free view or with ``cast_shadow="none"``
+    cast: np.ndarray | None = None
 
 
 def _log_image(srgb: np.ndarray) -> np.ndarray:
@@ -843,7 +846,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         ground = ~sky
         if segments is None and log_bg is not None and cfg.surround == "ground":
             segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
-        d = d_inv = shadow = obj = cast = None
+        d = d_inv = shadow = obj = cast = cast_ev = None
         if log_bg is not None and cfg.cast_shadow == "texture":
             # the ground's own texture, darkened by a shadow's factor: ground in shadow, whatever its outline. Read at
             # the finest centre scale: being shadowed ground is a property of the place, so a coarse scale's features
@@ -867,10 +870,14 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
                 discount = disc * shadow_like
             zo = _zscore((1.0 - discount) * m_full, cfg.spread_floor, ground)
             sh = shadow_like * np.maximum(zf, 0.0)
+            if cast is not None:
+                ce = cast * np.maximum(zf, 0.0)
+                cast_ev = ce if cast_ev is None else np.maximum(cast_ev, ce)
             d, d_inv = (zf, zi) if d is None else (np.maximum(d, zf), np.maximum(d_inv, zi))
             shadow, obj = (sh, zo) if shadow is None else (np.maximum(shadow, sh), np.maximum(obj, zo))
     if cfg.saliency_model:
         sky = np.zeros(obj.shape, bool)
+        cast_ev = None
     bgm = props = None
     if regional and background is not None:
         # the object-free view's own maps: the verification's null below, and the scene's props
@@ -908,7 +915,8 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         near = ndimage.maximum_filter(own, size=max(1, int(round(max(cfg.object_deg) * ppd))), mode="nearest")
         g = g + cfg.shadow_gain * np.maximum(near - own, 0.0)  # around the shadow, not on it
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
-    return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky)
+    return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky,
+                None if cast_ev is None else f32(cast_ev))
 
 
 #: Object evidence (d', z over the ground) from which a place of the object-free view connected to a prop's
@@ -1297,9 +1305,16 @@ def make_cells(image: np.ndarray, config: ObserverConfig | None = None, maps: Ma
         body = _gauss(maps.obj.astype(np.float64), cfg.verify_sigma_deg * ppd)
         py, px = _climb(body, py, px)
         if cfg.click == "thing":
-            # on from there to where the place looks more like the object than like its shadow: the object evidence
-            # in excess of the shadow evidence, both pooled at the foveal scale
-            py, px = _climb(body - _gauss(maps.shadow.astype(np.float64), cfg.verify_sigma_deg * ppd), py, px)
+            # where the body's peak looks more like a shadow than like the object (its shadow evidence larger than
+            # its object evidence, both pooled at the foveal scale: an object's shaded side meeting its own cast
+            # shadow), on to where the object evidence most exceeds the shadow evidence -- but only onto the same
+            # thing: where the object evidence is still at least half the peak's (:data:`CLICK_HALF_PEAK`). A dark
+            # object is as shadow-like in colour as it is object-like all over (split's dark vases): left at the
+            # body's peak, as the climb would take it to its outline
+            shade = _gauss(maps.shadow.astype(np.float64), cfg.verify_sigma_deg * ppd)
+            qy, qx = _climb(body - shade, py, px)
+            same = (shade[py, px] > body[py, px]) & (body[qy, qx] >= CLICK_HALF_PEAK * body[py, px])
+            py, px = np.where(same, qy, py), np.where(same, qx, px)
         if cfg.click == "core":
             py, px = core_click(body, py, px, max(cfg.object_deg) / 2.0 * ppd)
     py, px = py.reshape(cy.shape), px.reshape(cx.shape)
@@ -1317,6 +1332,9 @@ CLICK_EVIDENCE = PROP_EVIDENCE
 #: A place of that thing is in its *core* when it lies at least this share of the thing's largest depth (distance to
 #: its outline) inside it: half, so the click keeps half the thing's half-width from its outline.
 CLICK_CORE_DEPTH = 0.5
+#: ``click="thing"``: a place belongs to the thing whose object evidence peaks at the body's peak while its evidence
+#: is at least this share of the peak's -- half, the half-maximum extent by which a blob's size is read (its FWHM).
+CLICK_HALF_PEAK = 0.5
 
 
 def core_click(evidence: np.ndarray, y: np.ndarray, x: np.ndarray, radius: float,
