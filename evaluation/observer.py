@@ -163,7 +163,7 @@ from camo_base.errors import CamoError
 #: The observer's settings that take one of a few words (the default first).
 _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
             "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background"),
-            "props": ("scene", "none"), "click": ("thing", "body", "core", "peak"),
+            "props": ("scene", "none"), "click": ("body", "thing", "core", "peak"),
             "prop_test": ("verify", "priority"), "cast_shadow": ("texture", "none")}
 
 
@@ -316,14 +316,16 @@ class ObserverConfig:
     #: takes evidence away, and only where the object-free view has a compact thing of its own. "none": the former
     #: model (props are searched and verified as candidates like any other place).
     props: str = "scene"
-    #: Where a verified candidate is clicked. "thing" (default): as "body", then on up the object evidence *in
+    #: Where a verified candidate is clicked. "thing" (an option, measured and not the default: with the two options
+    #: below it put occluded's and room's Mean and Random in the human range but panorama's Transparent out of it,
+    #: docs/results/observer.md): as "body", then on up the object evidence *in
     #: excess of the shadow evidence* (``O - S D``, both pooled at the foveal scale) -- onto the part of the candidate
     #: that looks more like the object than like its shadow. A cast shadow is evidence that an object is near, not
     #: the object (step 3): where an object's shaded side meets its own cast shadow the object evidence peaks on the
     #: shadow's side of the outline (occluded's torus with each energy's own noise: 98 % of the clicks of its Mean and
     #: Random view 2 a pixel outside the rim), and the shadow evidence there is larger (8.9 against 4.1-4.6), while on
     #: a body without a shadow under it (room's chairs: shadow evidence ~0.2) the click is the same as "body"'s.
-    #: "body" (the former default): from the peak of the verification evidence up the object evidence ``O`` (pooled
+    #: "body" (default): from the peak of the verification evidence up the object evidence ``O`` (pooled
     #: at the foveal scale ``verify_sigma_deg``) to its local maximum -- onto the thing that was identified, not the
     #: contrast peak at its outline: saccades and pointing land near the centre of gravity of a target's body
     #: (Findlay 1982, Vision Res. 22; Vishwanath & Kowler 2003, Vision Res. 43). "peak": the local peak of the verification evidence (the former rule; split's glass vase
@@ -334,7 +336,7 @@ class ObserverConfig:
     #: it (10 of 18 visible cells in the human range against 12: the evidence region of a thin or half-shaded object
     #: and of a torus whose attached shadow carries its strongest evidence is not the object's own region at the
     #: pixel scale the site scores), so it is an option, not the default.
-    click: str = "thing"
+    click: str = "body"
     #: Which places of the object-free view are a prop's core (:func:`scene_props`). "verify" (default): those whose
     #: object-sized priority reaches the verification ``criterion`` and, besides, those the verification itself would
     #: accept there (step 5's regional z of the object-free view against its own null, with the props found so far
@@ -361,20 +363,21 @@ class ObserverConfig:
     #: internal noise, it says nothing (the former analysis alone). "none": the former model.
     cast_shadow: str = "texture"
     #: Internal noise of the orientation energies, in units of the L* JND (``internal_noise``) times this gain.
-    #: Default :data:`ENERGY_GAIN` (0.52, the energy channel's RMS response to a unit L* grating at its preferred
-    #: frequency, so one L* JND *in the energy's own units*), the physically consistent value: with it room's thin
+    #: 1.0 (default, the former model): the energies get the L* JND itself. :data:`ENERGY_GAIN` (0.52, the energy
+    #: channel's RMS response to a unit L* grating at its preferred frequency, so one L* JND *in the energy's own
+    #: units*) is the physically consistent value: with it room's thin
     #: chairs (30 L* edges on a floor whose energy varies by ~0.3) stand out, Mean 55 -> 0.3 % and Transparent
     #: 88 -> 50 % confused, occluded's Transparent 26 -> 0 %; with the former click rule (``click="body"``)
     #: occluded's Mean and Random view 2 (a torus whose dark side meets its shadow) were then clicked just outside
-    #: the rim (98 % missed), which ``click="thing"`` fixes (docs/results/observer.md). 1.0: the former model (the
-    #: energies get the L* JND itself).
-    energy_gain: float = math.sqrt(2.0) / math.e  # = ENERGY_GAIN (defined with the features below)
+    #: the rim (98 % missed), which ``click="thing"`` fixes; with both, panorama's Transparent left the human range
+    #: (docs/results/observer.md), so it is an option.
+    energy_gain: float = 1.0
     #: A place of the object-free view is a prop's core (:func:`scene_props`) from ``criterion - prop_margin *
-    #: verify_noise``. 2 (default): the verification is noisy, so a thing of the scene two noise units under the
-    #: criterion is still accepted now and then (Phi(-2) = 2.3 % per look); 2 counts it as part of the scene; 0
-    #: (the former model): from the criterion itself. With ``energy_gain=ENERGY_GAIN`` and a margin of 0, room's grey box
+    #: verify_noise``. 0 (default): from the criterion itself. The verification is noisy, so a thing of the scene
+    #: two noise units under the criterion is still accepted now and then (Phi(-2) = 2.3 % per look); 2 counts it as
+    #: part of the scene. With ``energy_gain=ENERGY_GAIN`` and a margin of 0, room's grey box
     #: (verification 5.8-5.9 against 6) drew 56-65 % of the clicks on views 0 and 3; with 2, none.
-    prop_margin: float = 2.0
+    prop_margin: float = 0.0
 
     def validate(self) -> None:
         for f in dataclasses.fields(self):
@@ -695,9 +698,6 @@ class Maps:
     guidance: np.ndarray  # priority G (step 3)
     verify: np.ndarray  # verification evidence V (step 5): compactness of O, max over the candidate sizes
     sky: np.ndarray | None = None  # bool: the sky (:func:`sky_map`), where no object rests
-    #: the cast-shadow evidence: the ground's own texture under a darkening (:func:`cast_shadow_map`) times ``D``,
-    #: max over centre scales, >= 0; None without an object-free view or with ``cast_shadow="none"``
-    cast: np.ndarray | None = None
 
 
 def _log_image(srgb: np.ndarray) -> np.ndarray:
@@ -846,7 +846,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         ground = ~sky
         if segments is None and log_bg is not None and cfg.surround == "ground":
             segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
-        d = d_inv = shadow = obj = cast = cast_ev = None
+        d = d_inv = shadow = obj = cast = None
         if log_bg is not None and cfg.cast_shadow == "texture":
             # the ground's own texture, darkened by a shadow's factor: ground in shadow, whatever its outline. Read at
             # the finest centre scale: being shadowed ground is a property of the place, so a coarse scale's features
@@ -870,14 +870,10 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
                 discount = disc * shadow_like
             zo = _zscore((1.0 - discount) * m_full, cfg.spread_floor, ground)
             sh = shadow_like * np.maximum(zf, 0.0)
-            if cast is not None:
-                ce = cast * np.maximum(zf, 0.0)
-                cast_ev = ce if cast_ev is None else np.maximum(cast_ev, ce)
             d, d_inv = (zf, zi) if d is None else (np.maximum(d, zf), np.maximum(d_inv, zi))
             shadow, obj = (sh, zo) if shadow is None else (np.maximum(shadow, sh), np.maximum(obj, zo))
     if cfg.saliency_model:
         sky = np.zeros(obj.shape, bool)
-        cast_ev = None
     bgm = props = None
     if regional and background is not None:
         # the object-free view's own maps: the verification's null below, and the scene's props
@@ -915,8 +911,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         near = ndimage.maximum_filter(own, size=max(1, int(round(max(cfg.object_deg) * ppd))), mode="nearest")
         g = g + cfg.shadow_gain * np.maximum(near - own, 0.0)  # around the shadow, not on it
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
-    return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky,
-                None if cast_ev is None else f32(cast_ev))
+    return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky)
 
 
 #: Object evidence (d', z over the ground) from which a place of the object-free view connected to a prop's

@@ -675,6 +675,7 @@ def test_a_glass_box_at_the_start_of_its_shadow_is_found_fast():
     rng = np.random.default_rng(44)
     g = 0.42 + 0.06 * rng.normal(size=(N, N)) + 0.03 * np.kron(rng.normal(size=(N // 4, N // 4)), np.ones((4, 4)))
     bg = np.clip(np.stack([g, 0.9 * g, 0.75 * g], -1), 0, 1).astype(np.float32)  # fine brown gravel
+    yy, xx = np.mgrid[0:N, 0:N]
     box = (xx >= 70) & (xx < 120) & (yy >= 110) & (yy < 184)
     cast = ellipse(150, 178, 45, 9) & ~box
     img = shadowed(bg, cast, 0.45)
@@ -765,7 +766,7 @@ def test_decision_and_surround_settings_are_checked():
         ObserverConfig(decision_time_s=0).validate()
     with pytest.raises(CamoError, match=r"^observer props must be 'scene' or 'none', not 'all'$"):
         ObserverConfig(props="all").validate()
-    with pytest.raises(CamoError, match=r"^observer click must be 'thing' or 'body' or 'core' or 'peak', not 'centre'$"):
+    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'thing' or 'core' or 'peak', not 'centre'$"):
         ObserverConfig(click="centre").validate()
     with pytest.raises(CamoError, match=r"^observer prop_test must be 'verify' or 'priority', not 'all'$"):
         ObserverConfig(prop_test="all").validate()
@@ -885,22 +886,20 @@ def chair_outline(x0: int, y0: int, n: int = N, w: int = 2) -> np.ndarray:
 def test_a_thin_outlined_object_is_found_with_each_feature_s_own_noise():
     """Room's chairs: a light wooden chair drawn in 2 px lines on a dim, coarsely mottled floor -- plain to see. Its
     outline is carried by the orientation energies (30 L* edges on a floor whose energy varies by ~0.3). With each
-    energy's internal noise one L* JND in the energy's own units (``energy_gain=ENERGY_GAIN``, 0.52, the default) it
-    is found at once (measured 100 % in 1.7 s); with the former model (the L* JND itself, gain 1; props from the
-    criterion itself; the click on the body's peak) it stays under the criterion and the search ends on the floor's
-    mottles (measured found 0 %, misses 84 %) -- the failure the default fixes (``ObserverConfig.energy_gain``)."""
+    energy's internal noise one L* JND in the energy's own units (``energy_gain=ENERGY_GAIN``, 0.52) it is found at
+    once (measured 100 % in 1.7 s); with the default (the former model: the L* JND itself, gain 1) it stays under
+    the criterion and the search ends on the floor's mottles (measured found 0 %, misses 84 %) -- the failure the
+    option fixes, and why it is documented on ``ObserverConfig.energy_gain``."""
     from evaluation.observer import ENERGY_GAIN
 
     bg = dim_floor(3)
     mask = chair_outline(60, 150)
     img = bg.copy()
     img[mask] = (0.55, 0.4, 0.28)
-    cfg = ObserverConfig()
-    assert (cfg.energy_gain, cfg.prop_margin) == (ENERGY_GAIN, 2.0)
+    cfg = ObserverConfig(energy_gain=ENERGY_GAIN, prop_margin=2.0)
     p = predict_stimulus(img, mask, n=200, seed=1, config=cfg, background=bg)
     assert p.p_found >= 0.95 and 1.5 <= float(p.rt_found_s.mean()) <= 3.0, (p.p_found, p.p_miss)
-    former = predict_stimulus(img, mask, n=200, seed=1, background=bg,
-                              config=ObserverConfig(energy_gain=1.0, prop_margin=0.0, click="body"))
+    former = predict_stimulus(img, mask, n=200, seed=1, background=bg)
     assert former.p_found <= 0.2, former.p_found
 
 
@@ -917,43 +916,3 @@ def test_feature_noise_is_one_jnd_in_each_feature_s_units():
     f = _features(lab, 3.0)
     assert abs(float(np.median(f[3, 32:96, 32:96])) - ENERGY_GAIN) < 0.02  # the 0-degree channel across the bars
     np.testing.assert_allclose(_feature_noise(2.3, 7), [2.3] * 3 + [2.3 * ENERGY_GAIN] * 4)
-
-
-def gravel_ground(seed: int = 3, n: int = N) -> np.ndarray:
-    """A grey-brown gravel: fine 1/f^0.5 mottling with pixel noise (occluded's ground)."""
-    rng = np.random.default_rng(seed)
-    t = 0.45 + 0.10 * unit_1f(rng, n, 0.5) + 0.05 * rng.normal(size=(n, n))
-    return np.clip(np.stack([t, 0.92 * t, 0.8 * t], -1), 0, 1).astype(np.float32)
-
-
-@pytest.mark.parametrize("band, light", [(4, 1.2), (3, 1.3)])
-def test_an_object_with_its_cast_shadow_below_is_clicked_on_the_object(band, light):
-    """Occluded's torus: a flat body of the ground's mean colour, a little lighter, whose lower side is in its own
-    shade (a dark band ``band`` px high), with its cast shadow directly below it (30 % of the light, the direct
-    light's shading of the rough ground gone). With each energy's own noise (``energy_gain=ENERGY_GAIN``) the
-    object evidence peaks where the dark side meets the shadow, just outside the outline: ``click="body"`` (the
-    former rule: up the object evidence to its peak) lands there in every trial (measured: found 0 %, on the
-    shadow 100 %), ``click="thing"`` goes on to where the place looks more like the object than like its shadow
-    (the object evidence in excess of the shadow evidence; the default) and lands inside the object's mask (measured
-    100 %)."""
-    from scipy import ndimage
-
-    from evaluation.observer import ENERGY_GAIN
-
-    bg = gravel_ground(3)
-    obj = ellipse(128, 128, 30, 18)
-    sh = ellipse(128, 144, 34, 12) & ~obj
-    img = bg.copy()
-    img[sh] = ndimage.gaussian_filter(bg, (6, 6, 0))[sh]  # no direct light: its shading of the gravel is gone
-    img = shadowed(img, sh, 0.3)
-    col = bg[obj].mean(0)
-    img[obj] = np.clip(col * light + 0.5 * (bg[obj] - col), 0, 1)
-    img[obj & ~ellipse(128, 128 - band, 30, 18)] = col * 0.3  # the object's shaded lower side
-    out = {}
-    for click in ("body", "thing"):
-        cfg = ObserverConfig(energy_gain=ENERGY_GAIN, prop_margin=2.0, click=click)
-        res = simulate_search(img, n=200, seed=4, config=cfg, mask=obj, background=bg)
-        on_sh = sh[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)] & res.clicked
-        out[click] = (float(res.found.mean()), float(on_sh.mean()))
-    assert out["body"][0] <= 0.1 and out["body"][1] >= 0.8, out  # the failure exists with the former rule
-    assert out["thing"][0] >= 0.95 and out["thing"][1] <= 0.02, out
