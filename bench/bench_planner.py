@@ -832,9 +832,12 @@ def print_evaluate_as(results: dict) -> None:
     print("| scene | setting | k | CPU s @ equal error | speed-up | CPU s @"
           f"{a['eval_spp']} spp (full's) | extra samples @{a['eval_spp']} spp | error @{a['eval_spp']} spp (/255) | "
           "noise near the object / bg (/255) = ratio | noise ratio at the equal-error level (spp) | pilot s |")
+    # a setting measured at some levels only (@LEVELS, not the evaluation's spp): its most expensive level's seconds,
+    # error and extra samples, and where it never reached full tracing's error, its noise ratio there
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     sp: dict = {e: [] for e in sets}
     worst: dict = {e: [] for e in sets}  # the noise ratios at the equal-error level
+    extrapolated: dict = {e: 0 for e in sets}  # scenes where the setting's measured levels never reached the error
     for r in results["eval"]:
         for e in sets:
             x = (r.get("evaluate_as") or {}).get(e)
@@ -851,19 +854,29 @@ def print_evaluate_as(results: dict) -> None:
             at_s = a["eval_spp"] in x.get("levels", [a["eval_spp"]])  # measured at the evaluation's spp
             extra = (f"+{x['extra_samples']:.0%}" if at_s else
                      f"+{(x.get('extra_samples_by_spp') or {}).get(str(lv), float('nan')):.0%} ({lv} spp)")
-            nl = (x.get("noise_by_spp") or {}).get(str(lv))
-            eq_ratio = (f"{nl['object'] / max(nl['background'], 1e-9):.2f} ({lv})" if nl else "-")
+            top_s, top_err = max(x["curve"], key=lambda p: p[0])  # its most expensive level measured
+            top_lv = max(x.get("levels") or [a["eval_spp"]])
+            beyond = lv is None and top_err > r["full_error_at_spp"]  # never reached full's error: extrapolated
+            nl = (x.get("noise_by_spp") or {}).get(str(lv if lv is not None else top_lv))
+            eq_ratio = (f"{nl['object'] / max(nl['background'], 1e-9):.2f} ({lv if lv is not None else top_lv}"
+                        f"{', error above' if beyond else ''})" if nl else "-")
             if nl:
                 worst[e].append(nl["object"] / max(nl["background"], 1e-9))
-            print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''} | "
-                  f"{'>= ' if low else ''}{speed:.2f}x | "
-                  f"{x['seconds_at_spp'] if at_s else float('nan'):.2f} ({r['full_seconds_at_spp']:.2f}) | "
-                  f"{extra} | {x['error_at_spp'] * 255 if at_s else float('nan'):.3f} | {ratio if at_s else '-'} | "
+            if beyond:
+                extrapolated[e] += 1
+                extra = f"+{(x.get('extra_samples_by_spp') or {}).get(str(top_lv), float('nan')):.0%} ({top_lv} spp)"
+            err = f"{x['error_at_spp'] * 255:.3f}" if at_s else f"{top_err * 255:.3f} ({top_lv} spp)"
+            print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''}"
+                  f"{' (extrapolated)' if beyond else ''} | {'>= ' if low else '~' if beyond else ''}{speed:.2f}x | "
+                  f"{x['seconds_at_spp'] if at_s else top_s:.2f}{'' if at_s else f' ({top_lv} spp)'} "
+                  f"({r['full_seconds_at_spp']:.2f}) | {extra} | {err} | {ratio if at_s else '-'} | "
                   f"{eq_ratio} | "
                   f"{pil.get('wall_seconds', 0):.1f} |")
     for e in sets:
         print(f"\n{e}: mean speed-up {np.mean(sp[e]):.2f}x, minimum {np.min(sp[e]):.2f}x (>= where the cheapest level "
-              "is already below the target error)"
+              "is already below the target error"
+              + (f"; ~ on {extrapolated[e]} scene(s): error above full tracing's at every level measured, seconds "
+                 "extrapolated as error ~ seconds^-1/2 from the most expensive level" if extrapolated[e] else "") + ")"
               + (f"; noise ratio at the equal-error level: worst {np.max(worst[e]):.2f}, "
                  f"{sum(w <= 1.0 for w in worst[e])} of {len(worst[e])} scenes <= 1" if worst[e] else ""))
     print()
