@@ -75,6 +75,8 @@ def seconds_at(curve: list[tuple[float, float]], error: float) -> float:
     xs = np.log([p[0] for p in pts])
     ys = np.log([max(p[1], 1e-12) for p in pts])
     y = math.log(max(error, 1e-12))
+    if len(pts) == 1:  # one level measured: error as seconds^-0.5 through it
+        return float(math.exp(xs[0] + (y - ys[0]) / -0.5))
     for i in range(len(pts) - 1):
         if (ys[i] - y) * (ys[i + 1] - y) <= 0 and ys[i] != ys[i + 1]:
             t = (y - ys[i]) / (ys[i + 1] - ys[i])
@@ -210,11 +212,10 @@ def bench_evaluation(name: str, args) -> dict:
     # the evaluation's pilot chooses, its seconds listed apart)
     from evaluation.views import ViewRenderer, object_spp_pilot
 
-    as_eval: dict[str, tuple[str, int]] = {}
+    as_eval: dict[str, tuple[str, int, dict]] = {}
     as_eval_pilots: dict = {}
     for setting in args.evaluate_as:
-        d, k = setting.split(":") if ":" in setting else (setting, "1")
-        d = "" if d == "off" else d
+        d, k, opts = parse_evaluate_as(setting)
         if k == "auto":
             pl = dataclasses.replace(plan, denoise=d)
             t = time.perf_counter()
@@ -222,18 +223,20 @@ def bench_evaluation(name: str, args) -> dict:
             as_eval_pilots[setting] = {**{a: b for a, b in pilot.items()}, "wall_seconds": time.perf_counter() - t}
             say(f"{name}: object-spp pilot ({d}): {pilot['why']}")
             k = pilot["factor"]
-        as_eval[setting] = (d, int(k))
+        as_eval[setting] = (d, int(k), opts)
 
     def eval_render(spp, seed, setting):
         """``(image, seconds, background image, ObjectRenders)``: the with-object render timed, the background
         (shared by every input of a scene, its denoising too) not."""
-        d, k = as_eval[setting]
+        d, k, opts = as_eval[setting]
         r = ViewRenderer(spp, args.seed, noise_match=True, sampler_seed=seed)
         r.region_cache = _SharedCache(cache)  # the scene's compact lights: found once, as for plan_render
         bg = r.background(pack, env, cams, integ, d)
         t = clock()
         o = r.with_object(env, lambda: mesh, cams, integ, bg,
-                          plan.region_threshold if plan.region_search else None, object_spp=k)
+                          plan.region_threshold if plan.region_search else None, object_spp=k,
+                          region_min_spp=0 if opts["region"] else None, object_combine=opts["combine"],
+                          object_feature_spp=opts["feature_spp"])
         return o.image, clock() - t, bg.image, o
 
     base = render_seed(args.seed)
@@ -263,7 +266,8 @@ def bench_evaluation(name: str, args) -> dict:
             for rr in args.rr_depths:
                 plan_render(spp, base + k, rr_depth=rr)
             for e in as_eval:
-                eval_render(spp, base + k, e)
+                if measured_at(as_eval[e], spp):
+                    eval_render(spp, base + k, e)
             if dens:
                 w_img = plan_render(spp, base + k)[0]
                 fw = features(mesh, spp, base + k)
@@ -294,6 +298,8 @@ def bench_evaluation(name: str, args) -> dict:
                             at_spp[d].append(out)
                             at_spp[f"bg-{d}"].append(denoised(p_bg, bg_fe, d)[0])
             for e in as_eval:
+                if not measured_at(as_eval[e], spp):
+                    continue
                 e_img, e_s, e_bg, e_o = eval_render(spp, seed, e)
                 row[f"eval-{e}_seconds"] = e_s
                 row[f"eval-{e}_error"] = math.sqrt(max(srgb_rms(e_img, ref) ** 2 - ref_var, 0.0))
@@ -369,7 +375,7 @@ def bench_evaluation(name: str, args) -> dict:
             "features_seconds": float(np.min([r[f"{d}_features_seconds"] for r in rows if r["spp"] == s])),
             "denoise_seconds": float(np.min([r[f"{who}_denoise_seconds"] for r in rows if r["spp"] == s]))})
     eval_out = {}
-    for e, (d, k) in as_eval.items():
+    for e, (d, k, opts) in as_eval.items():
         who = f"eval-{e}"
         e_t = seconds_at(_mean_curve(rows, who), e_full)
         imgs, bgs = at_spp[who], at_spp[f"eval-bg-{e}"]
@@ -387,7 +393,13 @@ def bench_evaluation(name: str, args) -> dict:
                        "seconds_at_spp": value_at([(k_, v[0]) for k_, v in _by_spp(rows, who).items()], s),
                        "error_at_spp": math.exp(value_at([(k_, math.log(v[1])) for k_, v in
                                                           _by_spp(rows, who).items()], s)),
-                       "extra_samples": float(np.mean([r[f"{who}_extra_samples"] for r in rows if r["spp"] == s])),
+                       "extra_samples": float(np.mean([r[f"{who}_extra_samples"] for r in rows if r["spp"] == s]))
+                       if s in by_spp else float("nan"),
+                       "extra_samples_by_spp": {str(lv): float(np.mean([r[f"{who}_extra_samples"] for r in rows
+                                                                        if r["spp"] == lv and f"{who}_seconds" in r]))
+                                                for lv in by_spp},
+                       "levels": sorted(by_spp), "region_any_spp": opts["region"], "combine": opts["combine"],
+                       "feature_spp": opts["feature_spp"],
                        "noise_near_object": ({"object": noise_rms(imgs[0], imgs[1], near),
                                               "background": noise_rms(bgs[0], bgs[1], near)} if len(imgs) >= 2
                                              else {}),
@@ -415,6 +427,46 @@ def bench_evaluation(name: str, args) -> dict:
             "region_launches": float(np.mean([r["region_launches"] for r in rows])),
             "plan_curve": plan_curve, "full_curve": full_curve,
             "effects": [e.to_dict() for e in plan.effects]}
+
+
+def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
+    """``DENOISER:FACTOR[:OPTION...][@LEVEL/LEVEL...]`` (``--evaluate-as``) -> ``(denoiser or "", factor or "auto",
+    {"region": bool, "combine": str, "levels": tuple of spp or None})``. Options: ``region`` renders only the region
+    the object can change at every spp (``ViewRenderer.with_object(region_min_spp=0)``; by default whole frames
+    below :data:`optimizer.rendering.planner.REGION_MIN_SPP`); ``max``: the object's factor and noise matching's
+    combined by their larger (``object_combine="max"``; default their product); ``fN``: the with-object render's
+    denoiser features at N spp (``object_feature_spp``; see-through features: on the object's box only; default the
+    background's, min(spp, 16)). ``@LEVELS``: measure the setting at
+    these of ``--eval-levels`` only (a setting with a large factor at 64 spp costs minutes and is never read there).
+    Raises ``ValueError`` with a one-line reason."""
+    head, _, lv = setting.partition("@")
+    d, _, rest = head.partition(":")
+    k, *flags = rest.split(":") if rest else ["1"]
+    from optimizer.rendering.denoise import VARIANTS as DENOISERS
+
+    if d != "off" and d not in DENOISERS:
+        raise ValueError(f"{setting!r}: denoiser {d!r} is not off or one of {', '.join(DENOISERS)}")
+    if not (k == "auto" or (k.isdigit() and int(k) >= 1)):
+        raise ValueError(f"{setting!r}: FACTOR {k!r} is not an integer >= 1 or auto")
+    feature_spp = None
+    for f in flags:
+        if f.startswith("f") and f[1:].isdigit() and int(f[1:]) >= 1:
+            feature_spp = int(f[1:])
+        elif f not in ("region", "max"):
+            raise ValueError(f"{setting!r}: unknown option {f!r} (region, max, fN)")
+    try:
+        levels = tuple(int(x) for x in lv.split("/")) if lv else None
+    except ValueError:
+        raise ValueError(f"{setting!r}: levels {lv!r} are not spp separated by /") from None
+    return ("" if d == "off" else d, k if k == "auto" else int(k),
+            {"region": "region" in flags, "combine": "max" if "max" in flags else "product",
+             "feature_spp": feature_spp, "levels": levels})
+
+
+def measured_at(setting: tuple, spp: int) -> bool:
+    """Whether a parsed ``--evaluate-as`` setting ``(denoiser, factor, options)`` is measured at ``spp``."""
+    lv = setting[2]["levels"]
+    return lv is None or spp in lv
 
 
 def object_region(imgs: list[np.ndarray], ref: np.ndarray, ref2: np.ndarray, mask: np.ndarray) -> dict:
@@ -471,7 +523,9 @@ def _by_spp(rows, who):
     waiting for a core) and the mean error."""
     out = {}
     for spp in sorted({r["spp"] for r in rows}):
-        rs = [r for r in rows if r["spp"] == spp]
+        rs = [r for r in rows if r["spp"] == spp and f"{who}_seconds" in r]
+        if not rs:  # a setting measured at some levels only (--evaluate-as ...@LEVELS)
+            continue
         out[spp] = (float(np.min([r[f"{who}_seconds"] for r in rs])), float(np.mean([r[f"{who}_error"] for r in rs])))
     return out
 
@@ -661,8 +715,12 @@ def main() -> None:
                     "(comma list; the plan's own is 5), interleaved")
     ap.add_argument("--evaluate-as", default="", help="also the evaluation render exactly as camo evaluate makes it "
                     "(evaluation.views.ViewRenderer: region, noise matching, denoiser, the object's spp factor), "
-                    "interleaved: comma list of DENOISER:FACTOR (DENOISER 'off' or a variant; FACTOR an integer or "
-                    "'auto', the factor the evaluation's pilot chooses), e.g. off:1,oidn-through:auto")
+                    "interleaved: comma list of DENOISER:FACTOR[:OPTION...][@LEVEL/LEVEL...] (DENOISER 'off' or a "
+                    "variant; FACTOR an integer or 'auto', the factor the evaluation's pilot chooses; OPTION 'region': "
+                    "only the region the object can change at every spp, 'max': the object's factor and noise "
+                    "matching's combined by their larger, not their product; 'fN': the with-object render's denoiser "
+                    "features at N spp; LEVELS: of --eval-levels, measure the "
+                    "setting there only), e.g. off:1,oidn-through:auto,oidn-through:8:region@4/8")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
                     "(at most the colour's)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "
@@ -716,13 +774,16 @@ def main() -> None:
     if bad:
         ap.error(f"--denoisers: unknown {', '.join(bad)}; choose from {', '.join(DENOISERS)}")
     args.evaluate_as = [x for x in args.evaluate_as.split(",") if x]
-    for x in args.evaluate_as:
-        d, _, k = x.partition(":")
-        if (d != "off" and d not in DENOISERS) or not (k in ("", "auto") or (k.isdigit() and int(k) >= 1)):
-            ap.error(f"--evaluate-as: {x!r} is not DENOISER:FACTOR (DENOISER off or one of {', '.join(DENOISERS)}; "
-                     "FACTOR an integer >= 1 or auto)")
     args.rr_depths = [int(x) for x in args.rr_depths.split(",") if x]
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
+    for x in args.evaluate_as:
+        try:
+            lv = parse_evaluate_as(x)[2]["levels"]
+        except ValueError as e:
+            ap.error(f"--evaluate-as: {e}")
+        if lv is not None and not set(lv) <= set(args.eval_levels):
+            ap.error(f"--evaluate-as: {x!r}: levels {sorted(set(lv) - set(args.eval_levels))} are not in "
+                     f"--eval-levels {args.eval_levels}")
     args.train_levels = [int(x) for x in args.train_levels.split(",")]
     args.full_levels = [int(x) for x in args.full_levels.split(",")]
     global clock
@@ -771,9 +832,12 @@ def print_evaluate_as(results: dict) -> None:
     print("| scene | setting | k | CPU s @ equal error | speed-up | CPU s @"
           f"{a['eval_spp']} spp (full's) | extra samples @{a['eval_spp']} spp | error @{a['eval_spp']} spp (/255) | "
           "noise near the object / bg (/255) = ratio | noise ratio at the equal-error level (spp) | pilot s |")
+    # a setting measured at some levels only (@LEVELS, not the evaluation's spp): its most expensive level's seconds,
+    # error and extra samples, and where it never reached full tracing's error, its noise ratio there
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     sp: dict = {e: [] for e in sets}
     worst: dict = {e: [] for e in sets}  # the noise ratios at the equal-error level
+    extrapolated: dict = {e: 0 for e in sets}  # scenes where the setting's measured levels never reached the error
     for r in results["eval"]:
         for e in sets:
             x = (r.get("evaluate_as") or {}).get(e)
@@ -787,17 +851,32 @@ def print_evaluate_as(results: dict) -> None:
                      if nz else "-")
             pil = x.get("pilot") or {}
             lv = x.get("equal_error_level")
-            nl = (x.get("noise_by_spp") or {}).get(str(lv))
-            eq_ratio = (f"{nl['object'] / max(nl['background'], 1e-9):.2f} ({lv})" if nl else "-")
+            at_s = a["eval_spp"] in x.get("levels", [a["eval_spp"]])  # measured at the evaluation's spp
+            extra = (f"+{x['extra_samples']:.0%}" if at_s else
+                     f"+{(x.get('extra_samples_by_spp') or {}).get(str(lv), float('nan')):.0%} ({lv} spp)")
+            top_s, top_err = max(x["curve"], key=lambda p: p[0])  # its most expensive level measured
+            top_lv = max(x.get("levels") or [a["eval_spp"]])
+            beyond = lv is None and top_err > r["full_error_at_spp"]  # never reached full's error: extrapolated
+            nl = (x.get("noise_by_spp") or {}).get(str(lv if lv is not None else top_lv))
+            eq_ratio = (f"{nl['object'] / max(nl['background'], 1e-9):.2f} ({lv if lv is not None else top_lv}"
+                        f"{', error above' if beyond else ''})" if nl else "-")
             if nl:
                 worst[e].append(nl["object"] / max(nl["background"], 1e-9))
-            print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''} | "
-                  f"{'>= ' if low else ''}{speed:.2f}x | {x['seconds_at_spp']:.2f} ({r['full_seconds_at_spp']:.2f}) | "
-                  f"+{x['extra_samples']:.0%} | {x['error_at_spp'] * 255:.3f} | {ratio} | {eq_ratio} | "
+            if beyond:
+                extrapolated[e] += 1
+                extra = f"+{(x.get('extra_samples_by_spp') or {}).get(str(top_lv), float('nan')):.0%} ({top_lv} spp)"
+            err = f"{x['error_at_spp'] * 255:.3f}" if at_s else f"{top_err * 255:.3f} ({top_lv} spp)"
+            print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''}"
+                  f"{' (extrapolated)' if beyond else ''} | {'>= ' if low else '~' if beyond else ''}{speed:.2f}x | "
+                  f"{x['seconds_at_spp'] if at_s else top_s:.2f}{'' if at_s else f' ({top_lv} spp)'} "
+                  f"({r['full_seconds_at_spp']:.2f}) | {extra} | {err} | {ratio if at_s else '-'} | "
+                  f"{eq_ratio} | "
                   f"{pil.get('wall_seconds', 0):.1f} |")
     for e in sets:
         print(f"\n{e}: mean speed-up {np.mean(sp[e]):.2f}x, minimum {np.min(sp[e]):.2f}x (>= where the cheapest level "
-              "is already below the target error)"
+              "is already below the target error"
+              + (f"; ~ on {extrapolated[e]} scene(s): error above full tracing's at every level measured, seconds "
+                 "extrapolated as error ~ seconds^-1/2 from the most expensive level" if extrapolated[e] else "") + ")"
               + (f"; noise ratio at the equal-error level: worst {np.max(worst[e]):.2f}, "
                  f"{sum(w <= 1.0 for w in worst[e])} of {len(worst[e])} scenes <= 1" if worst[e] else ""))
     print()

@@ -334,16 +334,18 @@ class ViewRenderer:
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def _denoised(self, env, obj, cams: list[Camera], img: np.ndarray, denoise: str, scene=None,
-                  without: tuple | None = None) -> tuple[np.ndarray, float, tuple]:
+                  without: tuple | None = None, feature_spp: int | None = None) -> tuple[np.ndarray, float, tuple]:
         """``img`` denoised by ``denoise`` with the features of the same scene, cameras and seed
         (:mod:`optimizer.rendering.denoise`: the variant's albedo and normal, first-hit or see-through, at up to
         :data:`FEATURE_SPP` spp); with the seconds it took and the features. ``scene``: the scene already built;
         ``without``: the background's features (see-through features are then traced only where a ray meets the
-        object's box, :func:`optimizer.rendering.denoise.see_through_features`)."""
+        object's box, :func:`optimizer.rendering.denoise.see_through_features`); ``feature_spp``: the features' spp
+        (default min(spp, :data:`FEATURE_SPP`))."""
         from optimizer.rendering.denoise import denoise_variant, variant_features
 
         t = time.perf_counter()
-        albedo, normal = variant_features(denoise, env.build(), obj, cams, min(self.spp, FEATURE_SPP),
+        fspp = min(self.spp, FEATURE_SPP) if feature_spp is None else int(feature_spp)
+        albedo, normal = variant_features(denoise, env.build(), obj, cams, fspp,
                                           self.sampler_seed, scene=scene, without=without)
         return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t, (albedo, normal)
 
@@ -375,7 +377,8 @@ class ViewRenderer:
     def with_object(self, env, mesh_fn, cams: list[Camera], integrator: dict,
                     background: Background | None = None, region_threshold: float | None = None,
                     denoise: str | None = None, object_spp: int = 1,
-                    region_min_spp: int | None = None) -> ObjectRenders:
+                    region_min_spp: int | None = None, object_combine: str = "product",
+                    object_feature_spp: int | None = None) -> ObjectRenders:
         """The scene with the object ``mesh_fn()``. ``background``: the same cameras, spp, integrator and seed. With
         ``region_threshold`` (sRGB) and at least ``region_min_spp`` spp (default
         :data:`optimizer.rendering.planner.REGION_MIN_SPP`: below it whole frames are cheaper) only the region the
@@ -389,7 +392,15 @@ class ViewRenderer:
         --denoise``). ``object_spp`` > 1 (the plan's ``object_spp``, :func:`object_spp_pilot`): the object and a
         :data:`OBJECT_MARGIN`-pixel rim get that many times the samples (on top of noise matching's factor; the
         further samples of the same streams, merged as one render at that spp), so that after the denoiser the
-        object is no noisier than its denoised surroundings."""
+        object is no noisier than its denoised surroundings. ``object_combine`` (:data:`optimizer.rendering.noise.
+        COMBINE`): ``product`` multiplies noise matching's factor by ``object_spp`` on those pixels, ``max`` takes the
+        larger of the two. ``region_min_spp=0`` renders only the region at any spp: at a low spp (2-4) with a large
+        ``object_spp`` the object's samples are the render's cost, so the frame need not be traced again
+        (``bench/bench_planner.py --evaluate-as DENOISER:K:region``). ``object_feature_spp``: the denoiser's
+        features of this render at that spp (default the background's, min(spp, :data:`FEATURE_SPP`)); with the
+        see-through features only the pixels whose rays can meet the object's box are traced (the rest are the
+        background's), so this gives the object's features the samples its colour has got: at 4 spp with the object
+        at 8x, its denoised noise near the object fell from 0.96 to 0.79 of the background's on split."""
         from optimizer.rendering import scene as scn
         from optimizer.rendering.render import (PathRenderer, coverage_and_depth_views, render_shaded,
                                                 render_with_region)
@@ -436,7 +447,7 @@ class ViewRenderer:
 
             img, matched = match(more, img, groups,
                                  background.groups, region if region is not None else np.ones(img.shape[:3], bool),
-                                 self.spp, boost=boost)
+                                 self.spp, boost=boost, combine=object_combine)
         elif boost is not None:
             from optimizer.rendering.noise import more_samples
 
@@ -444,5 +455,6 @@ class ViewRenderer:
         d_s = 0.0
         if denoise:
             img, d_s, _ = self._denoised(env, mesh, cams, img, denoise, scene=sc,
-                                         without=background.features if background is not None else None)
+                                         without=background.features if background is not None else None,
+                                         feature_spp=object_feature_spp)
         return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched, denoise, d_s)

@@ -151,3 +151,42 @@ def test_below_the_region_spp_whole_frames_are_rendered(mi_backend):
         assert (o.region is None) == (spp < REGION_MIN_SPP), spp
         if o.region is not None:
             assert 0 < o.region.mean() < 1
+
+
+def test_a_boost_combines_with_the_matched_factor_as_product_or_max():
+    """noise.match's ``boost`` (the object's spp factor): ``product`` multiplies noise matching's factor by it,
+    ``max`` takes the larger; outside the region neither applies; the extra samples the merge asks for are exactly
+    ``factor - 1`` times the spp per pixel; an unknown rule is refused."""
+    import pytest
+
+    from optimizer.rendering.noise import match
+
+    rng = np.random.default_rng(0)
+    g, shape = 4, (1, 10, 12)
+    bg = 0.2 + 0.01 * rng.standard_normal((g, *shape, 3))
+    obj = bg.copy()
+    obj[:, :, :, 6:] = 0.2 + 0.05 * rng.standard_normal((g, 1, 10, 6, 3))  # 25x the variance: matched at 8 (capped)
+    region = np.ones(shape, bool)
+    region[0, 0] = False
+    boost = np.ones(shape, np.int64)
+    boost[0, 2:8, 3:9] = 4  # the object's pixels, half in the noisy part
+    image = obj.mean(0).astype(np.float32)
+    out = {}
+    for rule in ("product", "max", None):
+        asked = []
+
+        def more(counts, spp, first):
+            asked.append(counts.copy())
+            return np.full(image.shape, 0.5, np.float32)
+
+        _, m = match(more, image, obj, bg, region, 4, window=3, boost=None if rule is None else boost,
+                     **({"combine": rule} if rule else {}))
+        out[rule] = m.factor
+        np.testing.assert_array_equal(asked[0], m.factor - 1)
+    k = out[None]
+    assert k[0, 5, 1] == 1 and k[0, 5, 10] == 8 and (k[0, 0] == 1).all()
+    np.testing.assert_array_equal(out["product"], np.where(region, k * boost, k))
+    np.testing.assert_array_equal(out["max"], np.where(region, np.maximum(k, boost), k))
+    assert out["max"][0, 5, 4] == 4 and out["max"][0, 5, 7] == 8 and out["product"][0, 5, 7] == 32
+    with pytest.raises(ValueError, match="combine"):
+        match(lambda *a: image, image, obj, bg, region, 4, boost=boost, combine="sum")

@@ -74,12 +74,29 @@ def detail_ratio(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> t
         >>> round(float(detail_ratio(bg, bg)), 3), round(float(detail_ratio(obj, bg)), 1)
         (1.0, 303.8)
     """
+    ex, ey = detail_energies(x, y, mask)
+    return (EPS + ex) / (EPS + ey)
+
+
+def detail_energies(x: ImageLike, y: ImageLike, mask: Optional[object] = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The detail ratio's two sides: mean |Laplacian| of the luma of ``x`` and of ``y`` inside ``mask``'s interior.
+
+    Same inputs and checks as :func:`detail_ratio`; returns two ``(N,)`` tensors in sRGB units (multiply by 255 for
+    8-bit steps). Which side moves tells render noise from the material: a background's side that falls with more
+    samples was noise; an object's side that stays is the body's own texture (``bench/detail_sides.py``).
+
+    Example:
+        >>> import numpy as np
+        >>> bg = np.full((8, 8, 3), 0.5, np.float32)
+        >>> obj = bg.copy(); obj[2:6, 2:6] = np.indices((4, 4)).sum(0)[..., None] % 2
+        >>> ex, ey = detail_energies(obj, bg)
+        >>> round(float(ex) * 255, 1), float(ey)
+        (302.8, 0.0)
+    """
     x, y = prepare_pair(x, y, "detail_ratio", min_size=MIN_SIDE)
     m = interior(to_mask(mask, x, "detail_ratio"))
     n = m.sum(dim=(1, 2, 3)).to(x.dtype)
-    ex = (_laplacian_energy(x) * m).sum(dim=(1, 2, 3)) / n
-    ey = (_laplacian_energy(y) * m).sum(dim=(1, 2, 3)) / n
-    return (EPS + ex) / (EPS + ey)
+    return (_laplacian_energy(x) * m).sum(dim=(1, 2, 3)) / n, (_laplacian_energy(y) * m).sum(dim=(1, 2, 3)) / n
 
 
 METRICS = (Metric("detail_ratio", masked(detail_ratio), False, "ratio", "[0, inf), best 1",

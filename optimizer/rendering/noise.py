@@ -37,6 +37,8 @@ import numpy as np
 MAX_FACTOR = 8
 WINDOW = 5
 GROUPS = 4
+#: How :func:`match` makes a pixel's total factor from noise matching's and a boost's (the object's spp factor).
+COMBINE = ("product", "max")
 #: A noise-variance ratio up to this is left alone (its estimate is not finer than that).
 TOLERANCE = 1.1
 
@@ -100,19 +102,24 @@ def factors(obj_var: np.ndarray, bg_var: np.ndarray, region: np.ndarray, window:
 
 def match(render_more, image: np.ndarray, groups: np.ndarray, bg_groups: np.ndarray, region: np.ndarray, spp: int,
           window: int = WINDOW, max_factor: int = MAX_FACTOR,
-          boost: np.ndarray | None = None) -> tuple[np.ndarray, NoiseMatch]:
+          boost: np.ndarray | None = None, combine: str = "product") -> tuple[np.ndarray, NoiseMatch]:
     """The with-object ``image`` (``spp`` samples) with its noise matched to the background's (module doc).
     ``groups`` / ``bg_groups``: ``(G, V, H, W, 3)`` group means of the two renders (the with-object one over
     ``region``); ``render_more(counts, spp, first_sample)`` renders ``counts (V, H, W)`` x ``spp`` further samples
     per pixel (their means; :func:`more_samples`). ``boost (V, H, W)`` int: a further factor on the matched one
     (the object's spp factor before a denoiser, :func:`evaluation.views.object_spp_pilot`); it must not depend on
-    the render's samples."""
+    the render's samples. ``combine``: how a pixel's matched factor and its boost make its total (:data:`COMBINE`:
+    ``product`` multiplies them; ``max`` takes the larger: the boost already gives the object's pixels the samples
+    matching would, so they are not multiplied on top)."""
     import time
 
+    if combine not in COMBINE:
+        raise ValueError(f"combine must be one of {', '.join(COMBINE)}, got {combine!r}")
     t0 = time.perf_counter()
     k, ratio = factors(display_variance(groups), display_variance(bg_groups), region, window, max_factor)
     if boost is not None:  # a factor decided from geometry, not from any pixel's samples: stays unbiased
-        k = np.where(region, k * np.asarray(boost, np.int64), k)
+        b = np.asarray(boost, np.int64)
+        k = np.where(region, k * b if combine == "product" else np.maximum(k, b), k)
     out, extra = more_samples(render_more, image, k, spp)
     return out, NoiseMatch(k, ratio[region] if region.any() else np.zeros(0), extra,
                            time.perf_counter() - t0)

@@ -1,0 +1,42 @@
+"""bench/bench_planner.py: the ``--evaluate-as`` settings (denoiser, the object's factor, how it is rendered, at
+which levels) and the equal-error reading from a curve measured at one level."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+
+def test_evaluate_as_settings_parse_and_bad_ones_are_refused(bench_module):
+    bp = bench_module("bench_planner")
+    assert bp.parse_evaluate_as("off:1") == ("", 1, {"region": False, "combine": "product", "feature_spp": None,
+                                                     "levels": None})
+    d, k, o = bp.parse_evaluate_as("oidn-through:16:max:f16:region@4/8")
+    assert (d, k, o) == ("oidn-through", 16, {"region": True, "combine": "max", "feature_spp": 16, "levels": (4, 8)})
+    assert bp.parse_evaluate_as("oidn-through:auto")[1] == "auto"
+    assert bp.measured_at((d, k, o), 4) and not bp.measured_at((d, k, o), 64)
+    assert bp.measured_at(bp.parse_evaluate_as("off:1"), 64)
+    for bad, why in (("bm3d:1", "denoiser"), ("oidn-through:0", "FACTOR"), ("off:1:sum", "option"),
+                     ("off:1:f0", "option"), ("off:1@4/x", "levels")):
+        with pytest.raises(ValueError, match=why):
+            bp.parse_evaluate_as(bad)
+
+
+def test_cli_refuses_levels_not_measured(bench_module, monkeypatch, capsys):
+    bp = bench_module("bench_planner")
+    monkeypatch.setattr("sys.argv", ["bench_planner.py", "--eval-levels", "8,64", "--evaluate-as", "off:1@4/8"])
+    with pytest.raises(SystemExit) as exc:
+        bp.main()
+    assert exc.value.code == 2
+    assert "levels [4] are not in --eval-levels [8, 64]" in capsys.readouterr().err
+
+
+def test_seconds_at_equal_error_from_one_level_and_from_a_curve(bench_module):
+    """One level measured: the error taken as falling with seconds^-0.5 through it (4x the seconds halve it); two:
+    log-log interpolation between them."""
+    bp = bench_module("bench_planner")
+    assert math.isclose(bp.seconds_at([(2.0, 0.01)], 0.005), 8.0)
+    assert math.isclose(bp.seconds_at([(1.0, 0.04), (4.0, 0.01)], 0.02), 2.0)
+    # the cheapest level already below the target: its seconds (a lower bound on the speed-up), not extrapolated
+    assert bp.clamped_seconds([(2.0, 0.01)], 0.02, bp.seconds_at([(2.0, 0.01)], 0.02)) == (2.0, True)
