@@ -766,7 +766,7 @@ def test_decision_and_surround_settings_are_checked():
         ObserverConfig(decision_time_s=0).validate()
     with pytest.raises(CamoError, match=r"^observer props must be 'scene' or 'none', not 'all'$"):
         ObserverConfig(props="all").validate()
-    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'core' or 'peak', not 'centre'$"):
+    with pytest.raises(CamoError, match=r"^observer click must be 'body' or 'thing' or 'core' or 'peak', not 'centre'$"):
         ObserverConfig(click="centre").validate()
     with pytest.raises(CamoError, match=r"^observer prop_test must be 'verify' or 'priority', not 'all'$"):
         ObserverConfig(prop_test="all").validate()
@@ -916,3 +916,38 @@ def test_feature_noise_is_one_jnd_in_each_feature_s_units():
     f = _features(lab, 3.0)
     assert abs(float(np.median(f[3, 32:96, 32:96])) - ENERGY_GAIN) < 0.02  # the 0-degree channel across the bars
     np.testing.assert_allclose(_feature_noise(2.3, 7), [2.3] * 3 + [2.3 * ENERGY_GAIN] * 4)
+
+
+def test_click_thing_leaves_a_peak_that_is_more_shadow_than_object():
+    """``click="thing"`` on hand-made maps (feature grid 160 x 160 of a 256 px image): a body of object evidence 3
+    whose evidence peaks (6) on a rim just outside it, where the shadow evidence is 9 (an object's shaded side
+    meeting its own cast shadow): ``click="body"`` lands on the rim, ``click="thing"`` inside the body. A dark body
+    whose shadow evidence equals its object evidence everywhere (split's dark vases) is clicked at the same place by
+    both rules."""
+    from scipy import ndimage
+
+    from evaluation.observer import Maps
+
+    h = w = 160
+    yy, xx = np.mgrid[0:h, 0:w]
+    body = ((yy - 80) / 10.0) ** 2 + ((xx - 80) / 16.0) ** 2 < 1.0
+    rim = ((yy - 80) / 10.0) ** 2 + ((xx - 99) / 3.0) ** 2 < 1.0
+    obj = ndimage.gaussian_filter(np.where(body, 3.0, 0.0) + np.where(rim & ~body, 6.0, 0.0), 1.0)
+    shadow = ndimage.gaussian_filter(np.where(rim & ~body, 9.0, 0.0), 1.0)
+    img = np.full((256, 256, 3), 0.5, np.float32)
+
+    def clicks(o, s, click):
+        z = np.zeros((h, w), np.float32)
+        maps = Maps(z, z, s.astype(np.float32), o.astype(np.float32), o.astype(np.float32), o.astype(np.float32),
+                    np.zeros((h, w), bool))
+        cells = make_cells(img, ObserverConfig(click=click), maps=maps)
+        best = np.argsort(cells.v)[-5:]  # the cells nearest the evidence
+        fx, fy = cells.click_px[best, 0] * w // 256, cells.click_px[best, 1] * h // 256
+        return fy, fx
+
+    by, bx = clicks(obj, shadow, "body")
+    ty, tx = clicks(obj, shadow, "thing")
+    assert not body[by, bx].any(), (by, bx)  # the former rule: on the rim
+    assert body[ty, tx].all(), (ty, tx)
+    dark = ndimage.gaussian_filter(np.where(body, 5.0, 0.0), 2.0)
+    assert [a.tolist() for a in clicks(dark, dark, "body")] == [a.tolist() for a in clicks(dark, dark, "thing")]
