@@ -317,8 +317,8 @@ class ObserverConfig:
     #: model (props are searched and verified as candidates like any other place).
     props: str = "scene"
     #: Where a verified candidate is clicked. "thing" (an option, measured and not the default: with the two options
-    #: below it put occluded's and room's Mean and Random in the human range but panorama's Transparent out of it,
-    #: docs/results/observer.md): as "body", then on up the object evidence *in
+    #: below it put occluded's and room's Mean and Random in the human range but split's Mean and panorama's
+    #: Transparent out of it (25 % each), docs/results/observer.md): as "body", then on up the object evidence *in
     #: excess of the shadow evidence* (``O - S D``, both pooled at the foveal scale) -- onto the part of the candidate
     #: that looks more like the object than like its shadow. A cast shadow is evidence that an object is near, not
     #: the object (step 3): where an object's shaded side meets its own cast shadow the object evidence peaks on the
@@ -369,7 +369,7 @@ class ObserverConfig:
     #: chairs (30 L* edges on a floor whose energy varies by ~0.3) stand out, Mean 55 -> 0.3 % and Transparent
     #: 88 -> 50 % confused, occluded's Transparent 26 -> 0 %; with the former click rule (``click="body"``)
     #: occluded's Mean and Random view 2 (a torus whose dark side meets its shadow) were then clicked just outside
-    #: the rim (98 % missed), which ``click="thing"`` fixes; with both, panorama's Transparent left the human range
+    #: the rim (98 % missed), which ``click="thing"`` fixes; with both, split's Mean and panorama's Transparent left the human range
     #: (docs/results/observer.md), so it is an option.
     energy_gain: float = 1.0
     #: A place of the object-free view is a prop's core (:func:`scene_props`) from ``criterion - prop_margin *
