@@ -1351,9 +1351,9 @@ CLICK_HALF_PEAK = 0.5
 #: onto the object (occluded's Mean and Random view 2, split's Random view 3, panorama's Mean and Random view 1),
 #: 0.00-0.02 where it leaves a dark or glass object for the blur outside its outline (split's Mean view 3 and
 #: Transparent view 1, panorama's Mean, Random and Transparent) -- but also 0.03 on gravel's Ours view 3, a dark cast
-#: shadow with little ground texture left, whose click the gate then leaves on the shadow. A glass object shows the ground's texture through
-#: it: split's glass vase of view 1 reads 0.12 at the peak the default maps give, so ``click="thing"`` with the
-#: default maps still moves that click off it (25 % confused).
+#: shadow with little ground texture left, whose click the gate then leaves on the shadow. A glass object shows the
+#: ground's texture through it: split's glass vase of view 1 reads 0.12 at the peak the default maps give, so
+#: ``click="thing"`` with the default maps still moves that click off it (25 % confused).
 CLICK_CAST_SHADOW = 0.1
 
 
