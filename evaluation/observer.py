@@ -834,6 +834,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
     cfg = config or ObserverConfig()
     srgb = _as_srgb(image)
     ppd = cfg.feature_px_per_deg
+    cast = None  # the cast-shadow texture test's map, where it runs (needs an object-free view)
     if cfg.saliency_model:
         d = learned_map(srgb, cfg).astype(np.float64)
         d_inv, shadow, obj = d.copy(), np.zeros_like(d), d.copy()
@@ -853,7 +854,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         ground = ~sky
         if segments is None and log_bg is not None and cfg.surround == "ground":
             segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
-        d = d_inv = shadow = obj = cast = None
+        d = d_inv = shadow = obj = None
         if log_bg is not None and cfg.cast_shadow == "texture":
             # the ground's own texture, darkened by a shadow's factor: ground in shadow, whatever its outline. Read at
             # the finest centre scale: being shadowed ground is a property of the place, so a coarse scale's features
@@ -919,7 +920,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
         g = g + cfg.shadow_gain * np.maximum(near - own, 0.0)  # around the shadow, not on it
     f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
     return Maps(f32(d), f32(d_inv), f32(shadow), f32(obj), f32(g), f32(verify), sky,
-                None if cfg.saliency_model or cast is None else f32(cast))
+                None if cast is None else f32(cast))
 
 
 #: Object evidence (d', z over the ground) from which a place of the object-free view connected to a prop's
