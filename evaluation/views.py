@@ -134,7 +134,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 
 
 def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
-                    denoise: str = "", noise_match: bool = True, object_spp: bool = True):
+                    denoise: str = "", noise_match: bool = True, object_spp: bool = True, setting: str = ""):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -148,7 +148,11 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     the measured plan denoises with it where the noise at ``spp`` is above its measured bias
     (:data:`optimizer.rendering.planner.DENOISER_BIASES`; ``plan.denoise``); then, with ``object_spp``,
     :func:`object_spp_pilot` measures how many times the spp the object needs to be no noisier than its
-    surroundings after the denoiser (``plan.object_spp``; ``noise_match``: as the evaluation renders)."""
+    surroundings after the denoiser (``plan.object_spp``; ``noise_match``: as the evaluation renders). ``setting``
+    "auto" (``camo evaluate --setting auto``): instead, :func:`evaluation_setting_pilot` chooses the whole setting of
+    the render with the object (denoiser ``denoise`` or ``oidn-through``); its figures and choice are in
+    ``plan.pilot["setting"]`` (``"chosen"``: :meth:`EvaluationSetting.to_dict`, or None: the plan as without it), and
+    ``plan.denoise`` / ``plan.object_spp`` are the chosen ones."""
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
@@ -162,6 +166,15 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     planner = Planner(PlannerSettings(denoise=denoise))
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
     out = planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
+    if setting:
+        if setting != "auto":
+            raise SettingError.of("setting", f" {setting!r}: must be auto or absent")
+        figs = evaluation_setting_pilot(pack, env, cams, out, spp, seed, denoise or "oidn-through")
+        ch = figs.pop("setting")
+        out.pilot = {**(out.pilot or {}), "setting": {**figs, "chosen": ch.to_dict() if ch else None}}
+        out.denoise, out.object_spp = (ch.denoise, ch.object_spp) if ch else ("", 1)
+        out.reasons.append(("evaluation setting", figs["why"]))
+        return out
     if out.denoise and object_spp:
         obj = object_spp_pilot(pack, env, cams, out, spp, seed, noise_match)
         out.object_spp = obj["factor"]
@@ -617,3 +630,10 @@ class ViewRenderer:
                                          without=background.features if background is not None else None,
                                          feature_spp=object_feature_spp)
         return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched, denoise, d_s)
+
+
+def chosen_setting(plan) -> EvaluationSetting | None:
+    """The setting :func:`evaluation_plan` ``(setting="auto")`` chose for ``plan``'s scene, or None (none chosen or
+    no pilot run)."""
+    ch = ((plan.pilot or {}).get("setting") or {}).get("chosen")
+    return None if not ch else EvaluationSetting(**{k: v for k, v in ch.items() if k != "label"})
