@@ -102,6 +102,11 @@ ARMS = {
     "coarse1_auto_r5_seed1": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5",
                               "--seed", "1"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
+    # against the cast shadow (issue 29, seventh session): the loss domain's pixels outside the object weigh 4x
+    # (``--shadow-weight``: the transmittance and the pose are pulled harder towards a lighter shadow), and the same
+    # with the transmittance started at 0.95 as given (light through the body where the shadow falls)
+    "shadow4": ["--shadow-weight", "4"],
+    "shadow4_t95": ["--shadow-weight", "4", "--init", "transmittance=0.95", "--init-search", "off"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
