@@ -113,9 +113,11 @@ ARMS = {
 #: baseline arms -> their `camo optimize` flags (no Stage 1 flags: nothing is optimised). Transparent (transmittance 1
 #: everywhere, smooth) is as much light as any transmittance pattern can let through the body into its shadow: the
 #: bound of what the maps can do against the cast shadow at the paper's IOR 1.5 (``transparent``) and at 1.05
-#: (``transparent_eta105``: clear glass, ``--clear-candidate``'s IOR)
+#: (``transparent_eta105``: clear glass, ``--clear-candidate``'s IOR; ``transparent_eta105_white`` colourless too)
 BASELINE_ARMS = {"transparent": ["--method", "transparent"],
-                 "transparent_eta105": ["--method", "transparent", "--eta", "1.05"]}
+                 "transparent_eta105": ["--method", "transparent", "--eta", "1.05"],
+                 # and colourless (albedo 1: the principled BSDF tints what it transmits by the albedo)
+                 "transparent_eta105_white": ["--method", "transparent", "--eta", "1.05", "--init", "albedo=1"]}
 #: arm -> run spec fields no `camo optimize` flag sets (``"table.field": value``), set in the spec its flags make;
 #: such an arm runs as ``camo optimize --spec RUNS/SCENE-ARM.spec.toml``
 SPEC_FIELDS = {"coarse1_auto_r5_keepdisp": {"appearance.displacement_shrink": 0.0}}
@@ -328,7 +330,8 @@ def shadow_table(out: Path, scenes, arms) -> str:
 
 
 LABELS = {"today": "ours (today)", "shadow4": "ours, shadow x4", "shadow4_t95": "shadow x4, T0=0.95",
-          "transparent": "transparent", "transparent_eta105": "transparent 1.05", "coarse0": "ours, no coarse level", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
+          "transparent": "transparent", "transparent_eta105": "transparent 1.05", "transparent_eta105_white": "clear white 1.05",
+          "coarse0": "ours, no coarse level", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
