@@ -418,6 +418,8 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-dir", default="eval", help="evaluate into OUT/EVAL_DIR/SCENE (arms added later: "
                     "eval_NAME; the table and the contact sheets read every eval*/SCENE)")
     ap.add_argument("--sheet-arms", help="the arms of the contact sheets (comma-separated; default: --arms)")
+    ap.add_argument("--shadow-table", action="store_true", help="write the shadow's cost per scene and arm "
+                    "(shadow_table; what section 'shadow' writes) between this --section's markers; no sheets")
     ap.add_argument("--sheet-format", choices=("png", "jpg"), default="png", help="the contact sheets' format "
                     "(jpg: quality 85, small)")
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
@@ -440,11 +442,12 @@ def main(argv=None) -> int:
             evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
         names = [name_of(s) for s in scenes]
-        text = shadow_table(out, names, arms) if a.section == "shadow" else table(out, names, arms)
+        shadow = a.section == "shadow" or a.shadow_table
+        text = shadow_table(out, names, arms) if shadow else table(out, names, arms)
         print(text)
         if a.docs:
             docs = Path(a.docs)
-            for scene in names:
+            for scene in names if not shadow else []:
                 dest = sheet_path(docs, a.section, scene, bool(a.sheet_arms))
                 if dest is not None:
                     dest = dest.with_suffix("." + a.sheet_format)
