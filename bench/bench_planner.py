@@ -216,6 +216,25 @@ def bench_evaluation(name: str, args) -> dict:
     as_eval_pilots: dict = {}
     for setting in args.evaluate_as:
         d, k, opts = parse_evaluate_as(setting)
+        if k == "setting":  # "auto": the whole setting chosen by the evaluation's setting pilot
+            from evaluation.views import evaluation_setting_pilot
+
+            pilot = evaluation_setting_pilot(pack, env, cams, plan, args.eval_spp, args.seed, d, mesh_fn)
+            ch = pilot.pop("setting")
+            as_eval_pilots[setting] = {**pilot, "chosen": ch.to_dict() if ch else None,
+                                       "wall_seconds": pilot["seconds"]}
+            say(f"{name}: setting pilot: {pilot['why']}")
+            if ch is None:  # the default: noise matching at the evaluation's spp, no denoiser
+                as_eval[setting] = ("", 1, {**opts, "levels": (args.eval_spp,)})
+            else:
+                if ch.spp not in args.eval_levels:
+                    raise SystemExit(f"--evaluate-as {setting}: the pilot chose {ch.spp} spp, not in --eval-levels "
+                                     f"{args.eval_levels}")
+                as_eval[setting] = (ch.denoise, ch.object_spp, {**opts, "combine": ch.combine,
+                                                                "feature_spp": ch.feature_spp,
+                                                                "bg_feature_spp": ch.background_feature_spp,
+                                                                "levels": (ch.spp,)})
+            continue
         if k == "auto":
             pl = dataclasses.replace(plan, denoise=d)
             t = time.perf_counter()
@@ -229,7 +248,7 @@ def bench_evaluation(name: str, args) -> dict:
         """``(image, seconds, background image, ObjectRenders)``: the with-object render timed, the background
         (shared by every input of a scene, its denoising too) not."""
         d, k, opts = as_eval[setting]
-        r = ViewRenderer(spp, args.seed, noise_match=True, sampler_seed=seed)
+        r = ViewRenderer(spp, args.seed, noise_match=True, sampler_seed=seed, feature_spp=opts.get("bg_feature_spp"))
         r.region_cache = _SharedCache(cache)  # the scene's compact lights: found once, as for plan_render
         bg = r.background(pack, env, cams, integ, d)
         t = clock()
@@ -399,7 +418,7 @@ def bench_evaluation(name: str, args) -> dict:
                                                                         if r["spp"] == lv and f"{who}_seconds" in r]))
                                                 for lv in by_spp},
                        "levels": sorted(by_spp), "region_any_spp": opts["region"], "combine": opts["combine"],
-                       "feature_spp": opts["feature_spp"],
+                       "feature_spp": opts["feature_spp"], "bg_feature_spp": opts.get("bg_feature_spp"),
                        "noise_near_object": ({"object": noise_rms(imgs[0], imgs[1], near),
                                               "background": noise_rms(bgs[0], bgs[1], near)} if len(imgs) >= 2
                                              else {}),
@@ -430,15 +449,28 @@ def bench_evaluation(name: str, args) -> dict:
 
 
 def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
-    """``DENOISER:FACTOR[:OPTION...][@LEVEL/LEVEL...]`` (``--evaluate-as``) -> ``(denoiser or "", factor or "auto",
+    """``DENOISER:FACTOR[:OPTION...][@LEVEL/LEVEL...]`` or ``auto[:DENOISER]`` (``--evaluate-as``) -> ``(denoiser or
+    "", factor or "auto",
     {"region": bool, "combine": str, "levels": tuple of spp or None})``. Options: ``region`` renders only the region
     the object can change at every spp (``ViewRenderer.with_object(region_min_spp=0)``; by default whole frames
     below :data:`optimizer.rendering.planner.REGION_MIN_SPP`); ``max``: the object's factor and noise matching's
     combined by their larger (``object_combine="max"``; default their product); ``fN``: the with-object render's
     denoiser features at N spp (``object_feature_spp``; see-through features: on the object's box only; default the
-    background's, min(spp, 16)). ``@LEVELS``: measure the setting at
-    these of ``--eval-levels`` only (a setting with a large factor at 64 spp costs minutes and is never read there).
-    Raises ``ValueError`` with a one-line reason."""
+    background's, min(spp, 16)); ``bN``: the background's denoiser features at N spp (``ViewRenderer(feature_spp=N)``;
+    the with-object render's too unless ``fN``; the background is shared by every input of a scene, so not timed).
+    ``@LEVELS``: measure the setting at these of ``--eval-levels`` only (a setting with a large factor at 64 spp costs
+    minutes and is never read there).
+    ``auto[:DENOISER]`` (denoiser default ``oidn-through``): the whole setting (factor, rule, feature spp, spp level)
+    chosen per scene by :func:`evaluation.views.evaluation_setting_pilot`, returned as ``(denoiser, "setting",
+    options)``. Raises ``ValueError`` with a one-line reason."""
+    if setting == "auto" or setting.startswith("auto:"):
+        d = setting.partition(":")[2] or "oidn-through"
+        from optimizer.rendering.denoise import VARIANTS as DENOISERS
+
+        if d not in DENOISERS:
+            raise ValueError(f"{setting!r}: denoiser {d!r} is not one of {', '.join(DENOISERS)}")
+        return d, "setting", {"region": False, "combine": "product", "feature_spp": None, "bg_feature_spp": None,
+                              "levels": None}
     head, _, lv = setting.partition("@")
     d, _, rest = head.partition(":")
     k, *flags = rest.split(":") if rest else ["1"]
@@ -448,19 +480,21 @@ def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
         raise ValueError(f"{setting!r}: denoiser {d!r} is not off or one of {', '.join(DENOISERS)}")
     if not (k == "auto" or (k.isdigit() and int(k) >= 1)):
         raise ValueError(f"{setting!r}: FACTOR {k!r} is not an integer >= 1 or auto")
-    feature_spp = None
+    feature_spp = bg_feature_spp = None
     for f in flags:
         if f.startswith("f") and f[1:].isdigit() and int(f[1:]) >= 1:
             feature_spp = int(f[1:])
+        elif f.startswith("b") and f[1:].isdigit() and int(f[1:]) >= 1:
+            bg_feature_spp = int(f[1:])
         elif f not in ("region", "max"):
-            raise ValueError(f"{setting!r}: unknown option {f!r} (region, max, fN)")
+            raise ValueError(f"{setting!r}: unknown option {f!r} (region, max, fN, bN)")
     try:
         levels = tuple(int(x) for x in lv.split("/")) if lv else None
     except ValueError:
         raise ValueError(f"{setting!r}: levels {lv!r} are not spp separated by /") from None
     return ("" if d == "off" else d, k if k == "auto" else int(k),
             {"region": "region" in flags, "combine": "max" if "max" in flags else "product",
-             "feature_spp": feature_spp, "levels": levels})
+             "feature_spp": feature_spp, "bg_feature_spp": bg_feature_spp, "levels": levels})
 
 
 def measured_at(setting: tuple, spp: int) -> bool:
@@ -866,7 +900,9 @@ def print_evaluate_as(results: dict) -> None:
                 extrapolated[e] += 1
                 extra = f"+{(x.get('extra_samples_by_spp') or {}).get(str(top_lv), float('nan')):.0%} ({top_lv} spp)"
             err = f"{x['error_at_spp'] * 255:.3f}" if at_s else f"{top_err * 255:.3f} ({top_lv} spp)"
-            print(f"| {r['scene']} | {e} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''}"
+            lab = e + (f" -> {pil['chosen']['label']}" if pil.get("chosen") else " -> default" if "chosen" in pil
+                       else "")
+            print(f"| {r['scene']} | {lab} | {x['object_spp']} | {t_eq:.2f}{' (lowest level)' if low else ''}"
                   f"{' (extrapolated)' if beyond else ''} | {'>= ' if low else '~' if beyond else ''}{speed:.2f}x | "
                   f"{x['seconds_at_spp'] if at_s else top_s:.2f}{'' if at_s else f' ({top_lv} spp)'} "
                   f"({r['full_seconds_at_spp']:.2f}) | {extra} | {err} | {ratio if at_s else '-'} | "

@@ -85,6 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--purpose evaluate: the plan with this denoiser (as camo evaluate --denoise; the flag alone: "
                    f"{DENOISER}), and the object's spp factor its pilot measures (the object no noisier than its "
                    "denoised surroundings)")
+    p.add_argument("--setting", choices=("auto",), default="", help="--purpose evaluate: also the setting of the "
+                   "render with the object a pilot chooses (as camo evaluate --setting auto): its spp level, the "
+                   "object's samples, the features' spp, with every candidate's measured seconds, error and noise "
+                   "ratio")
     p.set_defaults(func=_plan, setting_names=lambda name, args: f"--{name}")
 
     from camo import grid, optimize_cli, video_cli
@@ -167,6 +171,8 @@ def _plan(args) -> int:
     print(f"purpose: {args.purpose}; optimised parameters: {', '.join(sorted(params)) if args.purpose == 'optimize' else '-'}")
     if args.denoise and args.purpose != "evaluate":
         raise CamoError(f"--denoise {args.denoise}: only with --purpose evaluate (the evaluation's denoiser)")
+    if args.setting and (args.purpose != "evaluate" or args.no_pilot):
+        raise CamoError(f"--setting {args.setting}: only with --purpose evaluate and its pilot (drop --no-pilot)")
     if args.no_pilot:
         pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
     elif args.purpose == "optimize":
@@ -182,7 +188,7 @@ def _plan(args) -> int:
 
         cams = evaluation_cameras(pack, seed=args.seed).cams if args.purpose == "evaluate" else cameras(pack)
         pl = evaluation_plan(pack, env, cams, args.spp or 64, args.seed,
-                             denoise=args.denoise if args.purpose == "evaluate" else "")
+                             denoise=args.denoise if args.purpose == "evaluate" else "", setting=args.setting)
     if pl.pilot:
         p = pl.pilot
         print(f"pilot: {p['views']} views at {p['width']}x{p['height']}, {p['spp']} spp, full depth {p['max_depth']}, "

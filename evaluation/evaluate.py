@@ -45,7 +45,8 @@ from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SEC
                                 renders_json, write_renders)
 from evaluation.inputs import Entry, InputSpec, resolve
 from evaluation.settings import EvalSettings, parse_metrics  # noqa: F401 (re-exported)
-from evaluation.views import EvalCameras, ViewRenderer, evaluation_cameras, evaluation_plan, render_seed
+from evaluation.views import (EvalCameras, ViewRenderer, chosen_setting, evaluation_cameras, evaluation_plan,
+                              render_seed)
 
 
 
@@ -271,12 +272,14 @@ def _plan_jobs(jobs: list[_Job], settings: EvalSettings, say: Callable[[str], No
         if key not in plans:
             plans[key] = evaluation_plan(j.entry.pack, j.env, j.cams.cams, settings.spp, settings.seed,
                                          settings.planner, denoise=settings.denoise,
-                                         noise_match=settings.noise_match)
+                                         noise_match=settings.noise_match, setting=settings.setting)
             p = plans[key]
             if p.measured:
                 say(f"plan for {j.entry.scene}: max_depth {p.max_depth}, Russian roulette from {p.rr_depth}, "
                     f"denoiser {p.denoise or 'off'}" + (f" (object x{p.object_spp} spp)" if p.denoise else "")
                     + f", pilot {p.pilot['seconds']:.1f} s")
+                if settings.setting:
+                    say(f"evaluation setting for {j.entry.scene}: {p.pilot['setting']['why']}")
         j.plan = plans[key]
 
 
@@ -321,6 +324,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
 
     _plan_jobs(jobs, settings, say)
     renderer = ViewRenderer(settings.spp, settings.seed, noise_match=settings.noise_match)
+    renderers = {(settings.spp, None): renderer}  # per (spp, features' spp): --setting auto's choices per scene
     rows: list[dict[str, Any]] = []
     entries: list[dict[str, Any]] = []
     scenes: dict[str, dict[str, Any]] = {}
@@ -358,13 +362,21 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
                 say(f"warning: {wmsg}")
             continue
         ec = j.cams
+        st = chosen_setting(j.plan)
+        spp = st.spp if st else settings.spp
+        key_r = (spp, st.background_feature_spp if st else None)
+        if key_r not in renderers:
+            renderers[key_r] = ViewRenderer(spp, settings.seed, noise_match=settings.noise_match,
+                                            feature_spp=key_r[1])
+        rr = renderers[key_r]
         say(f"evaluating {e.name} ({e.kind}, {e.scene}, {e.method}, ablation {e.ablation}): {len(ec.cams)} views, "
-            f"{ec.cams[0].width}x{ec.cams[0].height} px, {settings.spp} spp")
-        bg = renderer.background(e.pack, j.env, ec.cams, j.plan.integrator, j.plan.denoise)
+            f"{ec.cams[0].width}x{ec.cams[0].height} px, {spp} spp" + (f" ({st.label})" if st else ""))
+        bg = rr.background(e.pack, j.env, ec.cams, j.plan.integrator, j.plan.denoise)
         bg_users[bg.key] = bg_users.get(bg.key, 0) + 1
-        objr = renderer.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator, bg,
-                                    j.plan.region_threshold if j.plan.region_search else None,
-                                    object_spp=j.plan.object_spp)
+        objr = rr.with_object(j.env, e.asset.mesh, ec.cams, j.plan.integrator, bg,
+                              j.plan.region_threshold if j.plan.region_search else None,
+                              object_spp=j.plan.object_spp, object_combine=st.combine if st else "product",
+                              object_feature_spp=st.feature_spp if st else None)
         cam_key = ec.key()
         scenes.setdefault(bg.key, {
             "scene": e.scene, "camera_set": cam_key, "background_key": bg.key, "integrator": dict(j.plan.integrator),
@@ -376,7 +388,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
             "base_views": ec.base, "background_seconds": bg.seconds,
             "denoise": bg.denoise or "off", "background_denoise_seconds": bg.denoise_seconds,
         })
-        base = {**ident, "seed": settings.seed, "spp": settings.spp, "width": ec.cams[0].width,
+        base = {**ident, "seed": settings.seed, "spp": spp, "width": ec.cams[0].width,
                 "height": ec.cams[0].height, "jitter": float(settings.jitter), "camera_set": cam_key,
                 "source": e.kind, **method_cols}
         for v in range(len(ec.cams)):
@@ -394,6 +406,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
                         "noise_match": None if objr.noise is None else objr.noise.to_dict(),
                         "denoise": objr.denoise or "off", "denoise_seconds": objr.denoise_seconds,
                         "object_spp": int(j.plan.object_spp),
+                        "evaluation_setting": st.to_dict() if st else None,
                         "seconds": _plain_seconds(secs), "warnings": warnings, **e.placement})
         for wmsg in warnings:
             say(f"warning: {wmsg}")
@@ -411,13 +424,14 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     with atomic.atomic_path(out / "metrics.csv") as tmp:
         table.to_csv(tmp, index=False)
     write_renders(out, entries)
+    n_bg = sum(r.background_renders for r in renderers.values())
     write_eval_config(out / "eval_config.toml", settings, names, skipped, weights, per_run, list(scenes.values()),
-                      renderer, time.perf_counter() - t_all)
+                      n_bg, time.perf_counter() - t_all)
     if settings.write_report:
         from evaluation.report import write_report
 
         write_report([out], out)
-    say(f"{len(jobs)} input(s), {renderer.background_renders} background render(s), {len(table)} rows")
+    say(f"{len(jobs)} input(s), {n_bg} background render(s), {len(table)} rows")
     return table
 
 
@@ -427,7 +441,7 @@ def _plain_seconds(secs: dict[str, float]) -> dict[str, float]:
 
 def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], skipped: dict[str, str],
                       weights: dict[str, str], runs: list[dict[str, Any]], scenes: list[dict[str, Any]],
-                      renderer: ViewRenderer, seconds: float) -> None:
+                      background_renders: int, seconds: float) -> None:
     import tomli_w
 
     from evaluation.metrics import METRICS, weights_sha256
@@ -449,13 +463,16 @@ def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], 
             "denoise": settings.denoise or "off",
             "denoise_meaning": "--denoise: the denoiser the plan applies where its pilot's noise at spp is above the "
                                "denoiser's bias (each scene's and run's denoise: where it did), or off",
+            "setting": settings.setting or "as the options say",
+            "setting_meaning": "--setting auto: each scene's render setting chosen by a pilot (each run's "
+                               "evaluation_setting, each scene's pilot.setting; spp per row)",
             "regions": list(REGIONS),
             "image_encoding": IMAGE_ENCODING,
             "mask": "object coverage >= 0.5 (ray-cast, 4x4 rays per pixel, occlusion aware)",
             "crop": "GANmouflage: square of side 32*ceil(d/32)+32 around the mask's bounding box (d its larger "
                     "side), clamped to the image; no crop rows' scores when the object is not visible",
             "seconds": seconds,
-            "background_renders": renderer.background_renders,
+            "background_renders": int(background_renders),
         },
         "hardware": hardware(),
         "skipped": dict(skipped),

@@ -56,6 +56,8 @@ class EvalSettings:
     denoise: str = ""  # opt-in: the denoiser (optimizer.rendering.planner.DENOISERS) the plan applies where the noise
     # at spp is above its bias (after noise matching), or "": off by default, as it smooths the ground seen through a
     # see-through object (docs/evaluation.md)
+    setting: str = ""  # "auto": the render's setting (denoiser factor, rule, features' spp, spp level) chosen per scene by
+    # a pilot against full tracing's error at spp (evaluation.views.evaluation_setting_pilot); "": as the other options
 
     def validate(self) -> "EvalSettings":
         """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
@@ -67,6 +69,11 @@ class EvalSettings:
                 RANGES[name].check(v, name)
         if self.denoise:
             OPTIONS["denoise"].convert(self.denoise)
+        if self.setting:
+            OPTIONS["setting"].convert(self.setting)
+            if not self.planner or not self.noise_match:
+                raise SettingError(f"{{0}} {self.setting}: needs the planner and noise matching (drop {{1}})",
+                                   "setting", "no_planner" if not self.planner else "no_noise_match")
         return self
 
     @classmethod
@@ -164,6 +171,11 @@ def _options() -> tuple[EvalOption, ...]:
           f"{DENOISER} (first-hit albedo and normal, the flag alone) or oidn-through (see-through features: keeps "
           "more of the ground seen through a see-through object); default: off, as it smooths that ground "
           "(docs/evaluation.md)", metavar="VARIANT", choices=DENOISERS, const=DENOISER),
+        o("setting", str, "setting", "auto: a pilot per scene (two views, seconds) chooses how the render with the "
+          "object is made -- its spp level, the object's extra samples and how they combine with noise matching's, "
+          "the denoiser features' spp (denoiser: --denoise, or oidn-through) -- as the cheapest render as accurate "
+          "as full path tracing at --spp whose object is no noisier than the background; none qualifying: as without "
+          "it (evaluation/views.py evaluation_setting_pilot)", metavar="auto", choices=("auto",)),
         o("quiet", bool, "progress", "no progress messages", default=False),
     )
 

@@ -134,7 +134,7 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 
 
 def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
-                    denoise: str = "", noise_match: bool = True, object_spp: bool = True):
+                    denoise: str = "", noise_match: bool = True, object_spp: bool = True, setting: str = ""):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -148,7 +148,11 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     the measured plan denoises with it where the noise at ``spp`` is above its measured bias
     (:data:`optimizer.rendering.planner.DENOISER_BIASES`; ``plan.denoise``); then, with ``object_spp``,
     :func:`object_spp_pilot` measures how many times the spp the object needs to be no noisier than its
-    surroundings after the denoiser (``plan.object_spp``; ``noise_match``: as the evaluation renders)."""
+    surroundings after the denoiser (``plan.object_spp``; ``noise_match``: as the evaluation renders). ``setting``
+    "auto" (``camo evaluate --setting auto``): instead, :func:`evaluation_setting_pilot` chooses the whole setting of
+    the render with the object (denoiser ``denoise`` or ``oidn-through``); its figures and choice are in
+    ``plan.pilot["setting"]`` (``"chosen"``: :meth:`EvaluationSetting.to_dict`, or None: the plan as without it), and
+    ``plan.denoise`` / ``plan.object_spp`` are the chosen ones."""
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
@@ -162,6 +166,15 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     planner = Planner(PlannerSettings(denoise=denoise))
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
     out = planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
+    if setting:
+        if setting != "auto":
+            raise SettingError.of("setting", f" {setting!r}: must be auto or absent")
+        figs = evaluation_setting_pilot(pack, env, cams, out, spp, seed, denoise or "oidn-through")
+        ch = figs.pop("setting")
+        out.pilot = {**(out.pilot or {}), "setting": {**figs, "chosen": ch.to_dict() if ch else None}}
+        out.denoise, out.object_spp = (ch.denoise, ch.object_spp) if ch else ("", 1)
+        out.reasons.append(("evaluation setting", figs["why"]))
+        return out
     if out.denoise and object_spp:
         obj = object_spp_pilot(pack, env, cams, out, spp, seed, noise_match)
         out.object_spp = obj["factor"]
@@ -253,6 +266,158 @@ def object_spp_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 
             "views": len(sub), "spp": int(spp), "seconds": float(secs), "why": why}
 
 
+# --------------------------------------------------------------------------------------------------------------
+# the evaluation setting chosen per scene from a pilot (denoiser factor, combine rule, feature spp, spp level)
+# --------------------------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class EvaluationSetting:
+    """How the with-object evaluation render is made (:meth:`ViewRenderer.with_object`): rendered at ``spp`` spp
+    with noise matching, denoised by ``denoise`` ("" none), the object and its rim at ``object_spp`` x the spp
+    combined with noise matching's factor by ``combine`` (:data:`optimizer.rendering.noise.COMBINE`), the
+    with-object render's denoiser features at ``feature_spp`` on the object's box (None: the background's), the
+    background's features at ``background_feature_spp`` (None: min(spp, :data:`FEATURE_SPP`); the background is
+    rendered once per scene and shared by every input)."""
+
+    denoise: str
+    object_spp: int
+    combine: str
+    feature_spp: int | None
+    spp: int
+    background_feature_spp: int | None = None
+
+    @property
+    def label(self) -> str:
+        """As ``bench/bench_planner.py --evaluate-as`` spells it, e.g. ``oidn-through:16:max:f16@4``."""
+        return (f"{self.denoise or 'off'}:{self.object_spp}" + (":max" if self.combine == "max" else "")
+                + (f":f{self.feature_spp}" if self.feature_spp else "")
+                + (f":b{self.background_feature_spp}" if self.background_feature_spp else "") + f"@{self.spp}")
+
+    def to_dict(self) -> dict:
+        return {**dataclasses.asdict(self), "label": self.label}
+
+
+#: The candidates of the setting pilot: per spp level (a divisor of the evaluation's spp: 64 -> 4, then 8; the
+#: cheapest level first), the with-object variants ``(object_spp, combine, feature_spp, background_feature_spp)``
+#: measured there. At a quarter of the features' spp the denoised frame is above full tracing's 64-spp error on four
+#: of six scenes (docs/results/planner.md), so the 4-spp level gives the background's features 16 spp (the frame's
+#: error falls by a quarter: 2.61 -> 1.95/255 on room, 2.71 -> 2.01 on gravel, 2 pilot views), which makes the
+#: background smoother and so asks more of the object's samples (32x with its features at 32 spp); the product rule
+#: at 8x and the larger-factor rule at 16x without them were noise-safe at 4-8 spp on all six scenes.
+SETTING_CANDIDATES = (
+    (16, ((8, "max", 16, 16), (16, "max", 16, 16), (32, "max", 32, 16), (8, "product", None, 16),
+          (16, "max", 16, None))),
+    (8, ((8, "max", 16, None), (16, "max", 16, None), (8, "product", None, None))),
+)
+#: Evaluation cameras the setting pilot renders (evenly spaced).
+SETTING_PILOT_VIEWS = 2
+#: The largest noise ratio (denoised object and rim / denoised background, :func:`denoised_noise_ratio`'s measure)
+#: a chosen setting may show in the pilot.
+SETTING_RATIO_MAX = 1.0
+
+
+def _srgb_mse(a: np.ndarray, b: np.ndarray) -> float:
+    from camo_base.imaging import linear_to_srgb
+
+    d = linear_to_srgb(np.clip(a, 0, None)).astype(np.float64) - linear_to_srgb(np.clip(b, 0, None))
+    return float(np.mean(d ** 2))
+
+
+def choose_setting(candidates: list[dict], target_error: float, ratio_max: float = SETTING_RATIO_MAX) -> dict | None:
+    """The candidate (a dict with ``seconds``, ``error``, ``ratio``; sRGB /1 errors) the evaluation uses: of those
+    whose noise ratio is at most ``ratio_max`` and whose error is at most ``target_error``, the one with the least
+    seconds (ties: the lower error). None when no candidate meets both."""
+    ok = [c for c in candidates if c["ratio"] <= ratio_max and c["error"] <= target_error]
+    return min(ok, key=lambda c: (c["seconds"], c["error"])) if ok else None
+
+
+def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 0, denoise: str = "oidn-through",
+                             mesh_fn=None, views: int = SETTING_PILOT_VIEWS,
+                             candidates=SETTING_CANDIDATES) -> dict[str, Any]:
+    """The evaluation setting of this scene, chosen from measurements (no per-scene table): the cheapest render that
+    is as accurate as full path tracing at ``spp`` and leaves the object no noisier than the background.
+
+    On ``views`` evenly spaced evaluation cameras and the pack's object at its starting material (``mesh_fn`` to
+    choose another), it renders:
+
+    * **the target**: full path tracing (:func:`optimizer.rendering.planner.full_plan`, depth 12, Russian roulette
+      from 5) at ``spp``, two independent seeds (stream ``denoise_pilot``, pairs 2 and 3). Full tracing is unbiased,
+      so its error at ``spp`` is its noise: ``target = |a - b| / sqrt 2`` (sRGB RMS over the frames), and the pair's
+      mean ``(a + b) / 2`` is the reference the candidates are measured against;
+    * **each candidate** (:class:`EvaluationSetting`: ``denoise`` with each variant of ``candidates`` at its level
+      ``spp // d``, :data:`SETTING_CANDIDATES`) exactly as the evaluation renders it
+      (:meth:`ViewRenderer.with_object`, ``plan``'s integrator, noise matching), two seeds (pairs 0 and 1, with their
+      denoised backgrounds): its CPU seconds (the faster seed; the background, shared by every input of a scene,
+      not counted), its error ``sqrt(mean |c_i - ref|^2 - target^2 / 2)`` (the reference's own noise subtracted) and
+      its noise ratio (:func:`denoised_noise_ratio`'s measure: the object and a 2-pixel rim against the background).
+
+    The choice (:func:`choose_setting`): of the candidates with noise ratio <= :data:`SETTING_RATIO_MAX` and error
+    <= the target, the least seconds; a level is measured only when no candidate of the cheaper levels qualified.
+    None qualifies: ``setting`` None (the evaluation keeps its default: noise matching at ``spp``, no denoiser).
+    Returns ``{"setting": EvaluationSetting | None, "candidates": [...], "target_error", "full_seconds",
+    "seconds", "why"}`` (errors sRGB /1; seconds CPU)."""
+    from optimizer.rendering.noise import noise_rms
+    from optimizer.rendering.placement import prepare_object, static_object_fn
+    from optimizer.rendering.planner import full_plan
+    from optimizer.rendering.region import dilate_px
+    from optimizer.rendering.render import render_shaded
+    from optimizer.scenes.cameras import evenly_spaced
+
+    t_all = time.perf_counter()
+    sub = [cams[i] for i in evenly_spaced(len(cams), min(int(views), len(cams)))]
+    if mesh_fn is None:
+        mesh_fn = static_object_fn(pack, prepare_object(pack, target_vertices=pack.object.target_vertices))
+    mesh = mesh_fn()
+    full = dict(full_plan("evaluate").integrator, rr_depth=5)
+    t = time.process_time()
+    refs = [render_shaded(env.build(), mesh, sub, full, int(spp), seeds.seed("denoise_pilot", seed, pair=p))
+            for p in (2, 3)]
+    full_seconds = (time.process_time() - t) / 2
+    target_var = _srgb_mse(refs[0], refs[1]) / 2.0
+    ref = (refs[0] + refs[1]) / 2.0
+    thr = plan.region_threshold if plan.region_search else None
+    cands: list[dict] = []
+    chosen = None
+    for d, variants in candidates:
+        lv = max(1, int(spp) // int(d))
+        renderers: dict = {}  # per background feature spp: the two seeds' renderers and backgrounds
+        for k, combine, fspp, bfspp in variants:
+            if bfspp not in renderers:
+                rs = [ViewRenderer(lv, seed, noise_match=True, sampler_seed=seeds.seed("denoise_pilot", seed, pair=p),
+                                   feature_spp=bfspp) for p in (0, 1)]
+                renderers[bfspp] = rs, [r.background(pack, env, sub, plan.integrator, denoise) for r in rs]
+            rs, bgs = renderers[bfspp]
+            s = EvaluationSetting(denoise, int(k), combine, fspp, lv, bfspp)
+            imgs, secs = [], []
+            for r, bg in zip(rs, bgs):
+                t = time.process_time()
+                o = r.with_object(env, lambda: mesh, sub, plan.integrator, bg, thr, object_spp=s.object_spp,
+                                  object_combine=s.combine, object_feature_spp=s.feature_spp)
+                secs.append(time.process_time() - t)
+                imgs.append(o)
+            near = np.stack([dilate_px(m, 2) for m in imgs[0].mask])
+            on = noise_rms(imgs[0].image, imgs[1].image, near)
+            bn = noise_rms(bgs[0].image, bgs[1].image, near)
+            err2 = float(np.mean([_srgb_mse(o.image, ref) for o in imgs])) - target_var / 2.0
+            cands.append({"setting": s.to_dict(), "seconds": float(min(secs)), "error": math.sqrt(max(err2, 0.0)),
+                          "ratio": on / max(bn, 1e-9), "object_noise": on, "background_noise": bn})
+        best = choose_setting([c for c in cands if c["setting"]["spp"] == lv], math.sqrt(target_var))
+        if best is not None:
+            chosen = EvaluationSetting(**{k: v for k, v in best["setting"].items() if k != "label"})
+            break
+    secs_all = time.perf_counter() - t_all
+    tgt = math.sqrt(target_var)
+    figs = "; ".join(f"{c['setting']['label']} {c['seconds']:.2f} s, error {c['error'] * 255:.2f}, "
+                     f"noise ratio {c['ratio']:.2f}" for c in cands)
+    why = ((f"{chosen.label}: the least CPU seconds of the candidates with error <= full tracing's at {spp} spp "
+            f"({tgt * 255:.2f}/255, {full_seconds:.2f} s) and noise ratio <= {SETTING_RATIO_MAX:g}" if chosen else
+            f"no candidate reached full tracing's error at {spp} spp ({tgt * 255:.2f}/255) with noise ratio <= "
+            f"{SETTING_RATIO_MAX:g}: the default (noise matching at {spp} spp, no denoiser)")
+           + f" ({len(sub)} views; {figs}; pilot {secs_all:.1f} s)")
+    return {"setting": chosen, "candidates": cands, "target_error": tgt, "full_seconds": full_seconds,
+            "views": len(sub), "spp": int(spp), "seconds": secs_all, "why": why}
+
+
 #: Pixels around the object's silhouette that get its spp factor (:func:`object_pixels`): the denoiser's
 #: footprint spreads the object's noise over a few pixels beyond its silhouette.
 OBJECT_MARGIN = 3
@@ -314,13 +479,18 @@ class ViewRenderer:
     """Evaluation renders with a background cache (one entry per scene, camera set, spp, integrator, seed)."""
 
     def __init__(self, spp: int, seed: int = 0, ss: int = 4, noise_match: bool = False,
-                 sampler_seed: int | None = None):
+                 sampler_seed: int | None = None, feature_spp: int | None = None):
         """``noise_match``: renders with an object get more samples where they are noisier than the background
         (:mod:`optimizer.rendering.noise`; needs a ``path`` integrator and the background of the same seed).
         ``sampler_seed``: the renders' sampler seed (default :func:`render_seed` of ``seed``; the pilot of
-        :func:`object_spp_pilot` uses its own stream)."""
+        :func:`object_spp_pilot` uses its own stream). ``feature_spp``: the spp of the denoiser's features of the
+        background and (unless ``with_object`` is given its own) of the renders with the object (default
+        min(spp, :data:`FEATURE_SPP`))."""
         self.spp, self.seed, self.ss, self.noise_match = int(spp), int(seed), int(ss), bool(noise_match)
         self.sampler_seed = render_seed(self.seed) if sampler_seed is None else int(sampler_seed)
+        if feature_spp is not None and int(feature_spp) < 1:
+            raise ValueError(f"feature_spp must be >= 1, got {feature_spp}")
+        self.feature_spp = min(self.spp, FEATURE_SPP) if feature_spp is None else int(feature_spp)
         self.cache: dict[str, Background] = {}
         self.background_renders = 0  # how many times a background was actually rendered
         self.region_cache: dict[str, dict] = {}  # per background: the region pass' renders without the object
@@ -330,7 +500,9 @@ class ViewRenderer:
                            "spp": self.spp, "integrator": integrator, "seed": self.seed,
                            **({"sampler_seed": self.sampler_seed} if self.sampler_seed != render_seed(self.seed)
                               else {}),
-                           **({"denoise": denoise} if denoise else {})}, sort_keys=True, default=str)
+                           **({"denoise": denoise} if denoise else {}),
+                           **({"feature_spp": self.feature_spp} if denoise and self.feature_spp != min(
+                               self.spp, FEATURE_SPP) else {})}, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def _denoised(self, env, obj, cams: list[Camera], img: np.ndarray, denoise: str, scene=None,
@@ -340,11 +512,11 @@ class ViewRenderer:
         :data:`FEATURE_SPP` spp); with the seconds it took and the features. ``scene``: the scene already built;
         ``without``: the background's features (see-through features are then traced only where a ray meets the
         object's box, :func:`optimizer.rendering.denoise.see_through_features`); ``feature_spp``: the features' spp
-        (default min(spp, :data:`FEATURE_SPP`))."""
+        (default the renderer's ``feature_spp``)."""
         from optimizer.rendering.denoise import denoise_variant, variant_features
 
         t = time.perf_counter()
-        fspp = min(self.spp, FEATURE_SPP) if feature_spp is None else int(feature_spp)
+        fspp = self.feature_spp if feature_spp is None else int(feature_spp)
         albedo, normal = variant_features(denoise, env.build(), obj, cams, fspp,
                                           self.sampler_seed, scene=scene, without=without)
         return denoise_variant(img, albedo, normal, denoise), time.perf_counter() - t, (albedo, normal)
@@ -458,3 +630,10 @@ class ViewRenderer:
                                          without=background.features if background is not None else None,
                                          feature_spp=object_feature_spp)
         return ObjectRenders(img, cov, cov >= 0.5, time.perf_counter() - t, region, t_region, matched, denoise, d_s)
+
+
+def chosen_setting(plan) -> EvaluationSetting | None:
+    """The setting :func:`evaluation_plan` ``(setting="auto")`` chose for ``plan``'s scene, or None (none chosen or
+    no pilot run)."""
+    ch = ((plan.pilot or {}).get("setting") or {}).get("chosen")
+    return None if not ch else EvaluationSetting(**{k: v for k, v in ch.items() if k != "label"})

@@ -11,14 +11,20 @@ import pytest
 def test_evaluate_as_settings_parse_and_bad_ones_are_refused(bench_module):
     bp = bench_module("bench_planner")
     assert bp.parse_evaluate_as("off:1") == ("", 1, {"region": False, "combine": "product", "feature_spp": None,
-                                                     "levels": None})
+                                                     "bg_feature_spp": None, "levels": None})
     d, k, o = bp.parse_evaluate_as("oidn-through:16:max:f16:region@4/8")
-    assert (d, k, o) == ("oidn-through", 16, {"region": True, "combine": "max", "feature_spp": 16, "levels": (4, 8)})
+    assert (d, k, o) == ("oidn-through", 16, {"region": True, "combine": "max", "feature_spp": 16,
+                                              "bg_feature_spp": None, "levels": (4, 8)})
+    assert bp.parse_evaluate_as("oidn-through:32:max:f32:b16@4")[2]["bg_feature_spp"] == 16
+    # the whole setting chosen per scene by the evaluation's setting pilot
+    assert bp.parse_evaluate_as("auto")[:2] == ("oidn-through", "setting")
+    assert bp.parse_evaluate_as("auto:oidn-raw")[:2] == ("oidn-raw", "setting")
     assert bp.parse_evaluate_as("oidn-through:auto")[1] == "auto"
     assert bp.measured_at((d, k, o), 4) and not bp.measured_at((d, k, o), 64)
     assert bp.measured_at(bp.parse_evaluate_as("off:1"), 64)
     for bad, why in (("bm3d:1", "denoiser"), ("oidn-through:0", "FACTOR"), ("off:1:sum", "option"),
-                     ("off:1:f0", "option"), ("off:1@4/x", "levels")):
+                     ("off:1:f0", "option"), ("off:1:b0", "option"), ("off:1@4/x", "levels"),
+                     ("auto:bm3d", "denoiser")):
         with pytest.raises(ValueError, match=why):
             bp.parse_evaluate_as(bad)
 
@@ -40,3 +46,15 @@ def test_seconds_at_equal_error_from_one_level_and_from_a_curve(bench_module):
     assert math.isclose(bp.seconds_at([(1.0, 0.04), (4.0, 0.01)], 0.02), 2.0)
     # the cheapest level already below the target: its seconds (a lower bound on the speed-up), not extrapolated
     assert bp.clamped_seconds([(2.0, 0.01)], 0.02, bp.seconds_at([(2.0, 0.01)], 0.02)) == (2.0, True)
+
+
+def test_a_setting_label_reads_back_as_the_same_setting(bench_module):
+    """What the setting pilot records (``EvaluationSetting.label``) is what ``--evaluate-as`` measures."""
+    from evaluation.views import EvaluationSetting
+
+    bp = bench_module("bench_planner")
+    for s in (EvaluationSetting("oidn-through", 32, "max", 32, 4, 16), EvaluationSetting("oidn-through", 8, "product",
+                                                                                        None, 8)):
+        d, k, o = bp.parse_evaluate_as(s.label)
+        assert (d, k, o["combine"], o["feature_spp"], o["bg_feature_spp"], o["levels"]) == (
+            s.denoise, s.object_spp, s.combine, s.feature_spp, s.background_feature_spp, (s.spp,))

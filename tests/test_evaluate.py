@@ -594,3 +594,27 @@ def test_an_unknown_denoiser_is_a_one_line_error(runs, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("camo: error: evaluate: argument --denoise: invalid choice: 'bm3d'")
     assert "oidn-through" in err[0]
+
+
+@pytest.mark.slow
+def test_setting_auto_records_the_pilots_choice_and_renders_with_it(runs, tmp_path):
+    """``camo evaluate --setting auto``: per scene, the setting pilot's candidates (seconds, error, noise ratio) and
+    its choice are recorded with the plan's reason; each run records the setting it was rendered with, and its rows
+    the spp they were rendered at (the chosen level, or --spp where none qualified)."""
+    out = tmp_path / "auto"
+    assert main(["evaluate", str(runs[0]), "--out", str(out), "--resolution", "32", "--spp", "32", "--views", "2",
+                 "--quiet", "--setting", "auto", "--metrics", "psnr"]) == 0
+    cfg = tomllib.loads((out / "eval_config.toml").read_text())
+    assert cfg["evaluate"]["setting"] == "auto"
+    (scene,) = cfg["scenes"]
+    st = scene["pilot"]["setting"]
+    assert st["target_error"] > 0 and len(st["candidates"]) >= 5
+    assert all(c["seconds"] > 0 and c["ratio"] > 0 for c in st["candidates"])
+    assert any(r.startswith("evaluation setting: ") for r in scene["plan_reasons"])
+    (run,) = cfg["runs"]
+    chosen = st.get("chosen")
+    assert run.get("evaluation_setting") == chosen
+    table = pd.read_csv(out / "metrics.csv")
+    assert set(table["spp"]) == {chosen["spp"] if chosen else 32}
+    if chosen:
+        assert run["denoise"] == chosen["denoise"] and run["object_spp"] == chosen["object_spp"]

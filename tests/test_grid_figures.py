@@ -55,7 +55,7 @@ def test_stage2_table_and_figures(tmp_path, bench_module, write_eval_renders):
     table = gf.stage2_table(grid, runs)
     assert "| gravel | Stage 1 only | 21.00 | 0.5000 | 0.3000 | 0.0100 | 100.00 | 0.0 |" in table
     assert "| gravel | Stage 1 + 2 | 31.00 | 0.5000 | 0.3000 | 0.0100 | 0.00 | 5.0 |" in table
-    assert "PSNR 1, SSIM 0, LPIPS-proxy 0, SIFID-proxy 0, sparkle % 1" in table
+    assert "Scenes (of 1) where Stage 1 + 2 is better than Stage 1 only: PSNR 1, SSIM 0, LPIPS-proxy 0, SIFID-proxy 0, sparkle % 1; the same figures (Stage 1's iterate kept) in 0." in table
     gf.montage(runs, "gravel", [("Stage 1 only", ("ours", "inpainting")), ("Stage 1 + 2", ("ours", "none"))], [0, 1, 7],
                tmp_path / "f.png", 40)
     im = np.asarray(Image.open(tmp_path / "f.png"))
