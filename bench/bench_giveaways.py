@@ -102,9 +102,22 @@ ARMS = {
     "coarse1_auto_r5_seed1": ["--coarse-grid", "1", "--clear-candidate", "1.05", "--clear-roughness", "0.5",
                               "--seed", "1"],
     # the control: the maps' own rate doubled, no level (do faster per-texel steps do what the level does?)
+    # against the cast shadow (issue 29, seventh session): the loss domain's pixels outside the object weigh 4x
+    # (``--shadow-weight``: the transmittance and the pose are pulled harder towards a lighter shadow), and the same
+    # with the transmittance started at 0.95 as given (light through the body where the shadow falls)
+    "shadow4": ["--shadow-weight", "4"],
+    "shadow4_t95": ["--shadow-weight", "4", "--init", "transmittance=0.95", "--init-search", "off"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
+#: baseline arms -> their `camo optimize` flags (no Stage 1 flags: nothing is optimised). Transparent (transmittance 1
+#: everywhere, smooth) is as much light as any transmittance pattern can let through the body into its shadow: the
+#: bound of what the maps can do against the cast shadow at the paper's IOR 1.5 (``transparent``) and at 1.05
+#: (``transparent_eta105``: clear glass, ``--clear-candidate``'s IOR; ``transparent_eta105_white`` colourless too)
+BASELINE_ARMS = {"transparent": ["--method", "transparent"],
+                 "transparent_eta105": ["--method", "transparent", "--eta", "1.05"],
+                 # and colourless (albedo 1: the principled BSDF tints what it transmits by the albedo)
+                 "transparent_eta105_white": ["--method", "transparent", "--eta", "1.05", "--init", "albedo=1"]}
 #: arm -> run spec fields no `camo optimize` flag sets (``"table.field": value``), set in the spec its flags make;
 #: such an arm runs as ``camo optimize --spec RUNS/SCENE-ARM.spec.toml``
 SPEC_FIELDS = {"coarse1_auto_r5_keepdisp": {"appearance.displacement_shrink": 0.0}}
@@ -152,6 +165,8 @@ def optimise(out: Path, scene: str, arms, budget: list[str], mean: bool = True,
             continue
         if arm == "mean":
             camo("optimize", scene, "--method", "mean", "--out", str(run), *SIZE, "--quiet")
+        elif arm in BASELINE_ARMS:
+            camo("optimize", scene, *BASELINE_ARMS[arm], "--out", str(run), *SIZE, "--quiet")
         else:
             own = ["--iterations", str(iterations[arm])] if iterations and arm in iterations else budget
             args = [scene, "--out", str(run), *SIZE, "--displacement-resolution", "64", *own, *ARMS[arm], "--quiet"]
@@ -189,7 +204,8 @@ def _ior(run: Path) -> float:
     if summary.get("clear_search"):
         return float(summary["clear_search"]["chosen_eta"])
     config = tomllib.loads((run / "config.toml").read_text()) if (run / "config.toml").is_file() else {}
-    return float(config["appearance"]["eta"]) if config.get("method") == "ours" and "appearance" in config \
+    return float(config["appearance"]["eta"]) if config.get("method") in ("ours", "transparent") \
+        and "appearance" in config \
         else float("nan")
 
 
@@ -313,7 +329,9 @@ def shadow_table(out: Path, scenes, arms) -> str:
     return "\n".join(lines)
 
 
-LABELS = {"today": "ours (today)", "coarse0": "ours, no coarse level", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
+LABELS = {"today": "ours (today)", "shadow4": "ours, shadow x4", "shadow4_t95": "shadow x4, T0=0.95",
+          "transparent": "transparent", "transparent_eta105": "transparent 1.05", "transparent_eta105_white": "clear white 1.05",
+          "coarse0": "ours, no coarse level", "large_steps": "ours, large steps", "large_steps_t0.3": "large steps, T0=0.3",
           "today_t0.3": "ours, T0=0.3", "lpips": "ours + LPIPS", "eta1.2": "ours, IOR 1.2",
           "detail8": "ours + detail 8", "detail32": "ours + detail 32", "blur0": "ours, no grad blur",
           "map256": "ours, map 256", "map256_detail8": "map 256 + detail 8",
@@ -376,7 +394,10 @@ def contact_sheet(ev: Path, scene: str, arms, dest: Path, zoom: int = 3) -> Path
             tile = Image.fromarray(img).resize((tw, th), Image.NEAREST)
             sheet.paste(tile, (pad + c * (tw + pad), top + pad + r * (th + pad)))
     dest.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(dest, optimize=True)
+    if dest.suffix.lower() in (".jpg", ".jpeg"):
+        sheet.save(dest, quality=85, optimize=True)  # JPEG: the sheets of the newer sections (a tenth of the PNG's bytes)
+    else:
+        sheet.save(dest, optimize=True)
     return dest
 
 
@@ -397,6 +418,10 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-dir", default="eval", help="evaluate into OUT/EVAL_DIR/SCENE (arms added later: "
                     "eval_NAME; the table and the contact sheets read every eval*/SCENE)")
     ap.add_argument("--sheet-arms", help="the arms of the contact sheets (comma-separated; default: --arms)")
+    ap.add_argument("--shadow-table", action="store_true", help="write the shadow's cost per scene and arm "
+                    "(shadow_table; what section 'shadow' writes) between this --section's markers; no sheets")
+    ap.add_argument("--sheet-format", choices=("png", "jpg"), default="png", help="the contact sheets' format "
+                    "(jpg: quality 85, small)")
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
@@ -417,13 +442,15 @@ def main(argv=None) -> int:
             evaluate(out, scene, arms, a.eval_spp, a.eval_views, a.eval_dir, mean=not a.no_mean)
     if a.phase in ("all", "evaluate", "table"):
         names = [name_of(s) for s in scenes]
-        text = shadow_table(out, names, arms) if a.section == "shadow" else table(out, names, arms)
+        shadow = a.section == "shadow" or a.shadow_table
+        text = shadow_table(out, names, arms) if shadow else table(out, names, arms)
         print(text)
         if a.docs:
             docs = Path(a.docs)
-            for scene in names:
+            for scene in names if not shadow else []:
                 dest = sheet_path(docs, a.section, scene, bool(a.sheet_arms))
                 if dest is not None:
+                    dest = dest.with_suffix("." + a.sheet_format)
                     print(contact_sheet(out / "eval" / scene, scene,
                                         a.sheet_arms.split(",") if a.sheet_arms else arms, dest))
             doc = docs / "giveaways.md"

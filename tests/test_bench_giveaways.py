@@ -51,3 +51,25 @@ def test_spec_field_arm_runs_its_edited_spec(tmp_path, bench_module, monkeypatch
 
     with pytest.raises(SystemExit, match="no field appearance.nonexistent"):
         bg_.spec_file(["meadow", "--out", str(run)], {"appearance.nonexistent": 1.0}, tmp_path / "x.toml")
+
+
+def test_baseline_arms_run_their_method_and_sheets_can_be_jpeg(tmp_path, bench_module, monkeypatch):
+    """bench_giveaways: a baseline arm (``transparent_eta105``) runs ``camo optimize --method transparent --eta 1.05``
+    with the bench's sizes and no Stage 1 flags; a ``.jpg`` contact sheet is a JPEG of the same size as the PNG."""
+    bg_ = bench_module("bench_giveaways")
+    calls = []
+    monkeypatch.setattr(bg_, "camo", lambda *a: calls.append(a))
+    bg_.optimise(tmp_path, "meadow", ["transparent_eta105"], ["--iterations", "2"], mean=False)
+    run = str(tmp_path / "runs" / "meadow-transparent_eta105")
+    assert calls == [("optimize", "meadow", "--method", "transparent", "--eta", "1.05", "--out", run, *bg_.SIZE,
+                      "--quiet")]
+    img = np.zeros((8, 10, 3), np.uint8)
+    for run_ in ("today", "mean"):
+        d = tmp_path / "eval" / "meadow" / "renders" / f"meadow-{run_}"
+        d.mkdir(parents=True)
+        for kind in ("bg", "obj"):
+            Image.fromarray(img).save(d / f"view_00_{kind}.png")
+    png = bg_.contact_sheet(tmp_path / "eval" / "meadow", "meadow", ["today"], tmp_path / "s.png")
+    jpg = bg_.contact_sheet(tmp_path / "eval" / "meadow", "meadow", ["today"], tmp_path / "s.jpg")
+    assert Image.open(jpg).format == "JPEG" and Image.open(png).format == "PNG"
+    assert Image.open(jpg).size == Image.open(png).size == (3 * (30 + 4) + 4, 22 + (24 + 4) + 4)

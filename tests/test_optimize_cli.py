@@ -520,7 +520,7 @@ def test_every_flag_lands_in_its_spec_field():
             "--pose-search", "5", "--average", "0.8", "--roughness-search", "0.4,0.6", "--loss-clamp", "4",
             "--grad-clip", "2", "--init-search", "on", "--perceptual", "0.002", "--perceptual-net", "vgg",
             "--eta", "1.3", "--detail-match", "6", "--tint-match", "3", "--tint-scale", "1.5", "--clear-candidate", "1.1",
-            "--clear-roughness", "0.4", "--coarse-grid", "2", "--coarse-lr", "0.02"]
+            "--clear-roughness", "0.4", "--shadow-weight", "2.5", "--coarse-grid", "2", "--coarse-lr", "0.02"]
     assert {a[2:].replace("-", "_") for a in argv if a.startswith("--")} - {"out"} == set(OPTIONS) - {"scene"}
     d = spec_of(*argv).to_dict()
     assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
@@ -534,7 +534,7 @@ def test_every_flag_lands_in_its_spec_field():
                            "roughness_search": [0.4, 0.6], "loss_clamp": 4.0, "grad_clip": 2.0, "init_search": True,
                            "perceptual": 0.002, "perceptual_net": "vgg", "detail_match": 6.0,
                            "tint_match": 3.0, "tint_scale": 1.5, "clear_candidate": 1.1, "clear_roughness": 0.4,
-                           "coarse_grid": 2, "coarse_lr": 0.02}
+                           "coarse_grid": 2, "coarse_lr": 0.02, "shadow_weight": 2.5}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]

@@ -39,6 +39,7 @@ RANGES: dict[str, Range] = {
     "stage1.coarse_grid": Range(int, 0, 64), "stage1.coarse_lr": Range(float, 0.0, 1.0),
     "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
     "stage1.clear_roughness": Range(float, 0.0, 1.0),
+    "stage1.shadow_weight": Range(float, 0.0, 1e3),
     "stage2.strength": Range(float, 0.0, 1.0, lo_open=True),
     "checkpoint_every": Range(int, 1, UNCAPPED), "snapshot_every": Range(int, 0, UNCAPPED),
     "time_budget": Range(float, 0.0, None, lo_open=True),
@@ -171,6 +172,11 @@ def _options() -> tuple[Option, ...]:
           "the starting roughness of --clear-candidate's clear glass (rougher glass spreads the sunlight it focuses "
           "into its shadow and blurs the ground seen through it)" + _p("stage1.clear_roughness") + "; 0: 0.2",
           metavar="R"),
+        o("shadow_weight", "stage1.shadow_weight", float,
+          "weigh the loss domain's pixels outside the object (its cast shadow and reflections on the ground) this "
+          "many times the object's pixels in Stage 1's loss, so the transmittance and pose are pulled harder "
+          "towards a lighter shadow (optimizer/optimise/stage1.py shadow_weighted)" + _p("stage1.shadow_weight")
+          + "; 1: the plain domain, 0: the object alone", metavar="W"),
         o("coarse_grid", "stage1.coarse_grid", int,
           "give the albedo and transmittance maps a coarse level of this many cells a side (1: one offset per channel "
           "for the whole body), added before rendering and stepped by Adam at its own rate, so the body's colour "

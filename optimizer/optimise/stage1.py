@@ -111,6 +111,10 @@ class Stage1Settings:
     # the body's colour moved as a whole, issue 29); 0: off
     coarse_grid: int = 0
     coarse_lr: float = 0.0  # the coarse level's learning rate; 0: the maps' (appearance.lr_maps)
+    # the Stage 1 loss weight of the loss domain's pixels outside the object and its 1-px ring (its cast shadow, its
+    # reflections on the ground, the rest of the dilated domain) against the object's pixels' 1 (shadow_weighted,
+    # issue 29: the cast shadow gives the object away); 1: the plain domain, 0: the object alone
+    shadow_weight: float = 1.0
 
 
 @dataclasses.dataclass
@@ -151,6 +155,17 @@ def influence_domain(bg: np.ndarray, obj: np.ndarray, coverage: np.ndarray, thre
 
     changed &= uniform_filter(changed.astype(np.float32), 3) > 0.5
     return dilate((coverage > 0) | changed, dilate_px).astype(np.float32)
+
+
+def shadow_weighted(domain: np.ndarray, coverage: np.ndarray, weight: float) -> np.ndarray:
+    """The loss weights ``(H, W)`` float32 of a view's domain ``(H, W)`` with its pixels outside the object
+    (``coverage`` ``(H, W)`` in [0, 1], 0 = not covered) and outside the object's 1-px ring scaled by ``weight``:
+    the cast shadow, reflections on the ground and the rest of the dilated domain weigh ``weight``, the object and
+    the partly covered edge pixels next to it (coloured by its silhouette) 1. ``weight`` 1 returns the domain."""
+    near = dilate(np.asarray(coverage) > 0, 1)
+    out = np.asarray(domain, np.float32).copy()
+    out[(out > 0) & ~near] *= np.float32(weight)
+    return out
 
 
 def target_seed(seed: int) -> int:
@@ -338,6 +353,11 @@ class Stage1:
         self._keys = self._param_keys()
         self._w = [self.window(v, self.targets.domain[v]) for v in range(len(self.cams))] \
             if self.cfg.domain != "frame" else [None] * len(self.cams)
+        sw = float(getattr(self.cfg, "shadow_weight", 1.0))
+        if sw != 1.0 and self.STAGE == 1:  # the shadow's pixels weigh sw in the loss (Stage 2's loss is its own)
+            cov = [self.window(v, self.targets.coverage[v]) for v in range(len(self.cams))]
+            self._w = [shadow_weighted(np.ones(c.shape[:2], np.float32) if w is None else w, c, sw)
+                       for w, c in zip(self._w, cov)]  # (the frame: every pixel outside the object)
         self.white = white_point(self.targets.background, self.targets.domain if self.cfg.domain != "frame" else None,
                                  self.cfg.loss_clamp) if self.cfg.loss_clamp > 0 and self.STAGE == 1 else None
         # (Stage 2's loss is its own, on gamma-encoded renders clipped at 1: no clamp there)
