@@ -632,6 +632,47 @@ def test_lying_shape_reads_the_region_s_outline():
         assert abs(k[80, 80]) <= 0.15 and abs(k[80, 76]) <= 0.05, (k[80, 80], k[80, 76])
 
 
+def test_lying_shape_does_not_take_the_frame_for_an_outline():
+    """The image's frame is not a region's outline. The tip of a flat cast shadow (40 x 12 px lying ellipse) that
+    runs out of the right side of the frame shows a stub taller than wide (9 x 15 px): read with zeros beyond the
+    frame it was fully upright (-1, the former rule); continued across the frame it lies (measured 1.0). An upright
+    region the frame cuts through its axis is neither (measured 0.0: no longer upright, but not taken for a lying
+    shadow either), and regions that stop short of the frame read as they did (upright 2 px from it, lying 4 px
+    from it)."""
+    from evaluation.observer import lying_shape
+
+    n = 160
+    tip = ellipse(190, 80, 40, 12, n)
+    ys, xs = np.nonzero(tip)
+    assert xs.max() - xs.min() + 1 < ys.max() - ys.min() + 1  # the stub in the frame is taller than wide
+    assert lying_shape(tip.astype(np.float64), 10.0)[80, 157] > 0.9
+    tall = ellipse(159.5, 80, 8, 20, n)
+    assert abs(lying_shape(tall.astype(np.float64), 10.0)[80, 157]) < 0.05
+    for region, at, want in ((ellipse(150, 80, 8, 20, n), (80, 150), -1.0), (ellipse(80, 150, 40, 6, n), (150, 80), 1.0)):
+        assert lying_shape(region.astype(np.float64), 10.0)[at] == pytest.approx(want, abs=0.02)
+
+
+def test_a_shadow_cut_by_the_frame_is_not_clicked_as_the_object():
+    """A flat cast shadow (20 % of the light) whose tip alone is in the frame, at its right side (panorama's Ours
+    view 1: the box's shadow leaving the frame), with the shape cue alone (``cast_shadow="none"``: the texture
+    test cannot read a shadow whose render noise is its own, as there -- its map 0.09 at the frame's edge) carries
+    no more object evidence than the same shadow inside the frame, and is not clicked as the object. With zeros
+    beyond the frame (the former rule) the stub read upright: object evidence 2.11 on it (0.55 inside),
+    verification 6.15 (the criterion is 6; 4.73 inside) and 82 % of the trials clicked it."""
+    bg = grass(51)
+    cfg = ObserverConfig(cast_shadow="none")
+    out = {}
+    for name, region in (("inside", ellipse(128, 160, 40, 12)), ("cut", ellipse(276, 160, 40, 12))):
+        m = evidence_maps(shadowed(bg, region, 0.2), cfg, bg)
+        f = _feature_mask(region, m.obj.shape)
+        out[name] = (float(m.obj[f].mean()), float(m.verify[f].max()))
+    # measured: inside O 0.54, V 4.63; cut O -0.25, V -0.79
+    assert out["cut"][0] <= out["inside"][0] + 0.2 and out["cut"][1] <= out["inside"][1] + 0.5, out
+    cut = ellipse(276, 160, 40, 12)
+    res = simulate_search(shadowed(bg, cut, 0.2), n=300, seed=2, config=cfg, mask=cut, background=bg)
+    assert res.found.mean() <= max(0.05, 3 * cut.mean()), res.found.mean()  # measured 0.0 (0.82 before)
+
+
 def test_shadow_shape_tells_a_cast_shadow_from_an_object_of_the_same_colour():
     """A pasted cast shadow (the grass texture darkened to 35 % of its light: its grain goes on) lying flat on the
     ground, and an upright object patch painted the shadow's mean colour (same mean luminance and chromaticity, so
