@@ -875,13 +875,15 @@ def test_a_flat_prop_that_only_verification_would_take_is_known():
         mu, scale = _regional_null(_null_evidence(bgm, props, cfg), bgm.sky, None, cfg)
         return float(((_null_evidence(bgm, props, cfg) - mu) / scale)[ground & ~props].max())
 
-    assert self_verification(ObserverConfig(prop_test="priority")) >= 6.0  # a place the verification would take
+    # Before the frame fix (lying_shape reading the frame as an outline) the priority test alone also left one
+    # place at the criterion (6.67, 7 map px below the top edge); with the frame continued both tests leave at most
+    # 5.80 (at the top edge), so only the default's bound is asserted here and the clicks below carry the contrast.
     assert self_verification(ObserverConfig()) < 6.0
     clicks = {}
     for test in ("priority", "verify"):
         r = simulate_search(bg, n=300, seed=6, mask=box, background=bg, config=ObserverConfig(prop_test=test))
         clicks[test] = float(r.found.mean())
-    assert clicks["priority"] >= 0.8 and clicks["verify"] <= 0.5, clicks  # measured 0.94 and 0.31
+    assert clicks["priority"] >= 0.75 and clicks["verify"] <= 0.5, clicks  # measured 0.81 and 0.18 (0.94, 0.31 before the frame fix)
     obj = disc(70, 180, 14)
     assert predict_stimulus(with_object(bg, obj, 0.75), obj, n=200, seed=6, background=bg).p_found >= 0.95
 
