@@ -323,8 +323,8 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
     check_metrics_load(names, weights)  # last input check: nothing has been written so far
 
     _plan_jobs(jobs, settings, say)
-    renderer = ViewRenderer(settings.spp, settings.seed, noise_match=settings.noise_match)
-    renderers = {(settings.spp, None): renderer}  # per (spp, features' spp): --setting auto's choices per scene
+    renderers: dict[tuple[int, int | None], ViewRenderer] = {}  # per (spp, background features' spp): one
+    # without --setting auto; its choices per scene may add others
     rows: list[dict[str, Any]] = []
     entries: list[dict[str, Any]] = []
     scenes: dict[str, dict[str, Any]] = {}
