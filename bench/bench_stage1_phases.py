@@ -13,6 +13,9 @@ one-off cost); the syncs cost a little pipelining, so the phases sum to slightly
 ``bench_planner.py``.
 
     python bench/bench_stage1_phases.py --scenes meadow,room [--views 4] [--resolution 64] [--spp 4] [--reps 3]
+
+``--sequence N`` instead times the plan's (``--sequence-of full-lt``: full-lt's) first ``N`` steps at ``--spp`` in order, with no warm-up, each with the view
+its silhouette term ran on: what the JIT costs a run the first time each view has its silhouette pass.
 """
 
 from __future__ import annotations
@@ -75,8 +78,30 @@ def step_phases(s1, iteration: int, silhouette: bool = True) -> dict[str, float]
     return out
 
 
-def bench_scene(name: str, args) -> dict:
-    from bench_planner import load_pack, warmup_iterations
+def sequence(name: str, args) -> list[dict]:
+    """The first ``args.sequence`` Stage 1 steps of the plan (or of ``full-lt``) in order (module doc)."""
+    import dataclasses
+
+    from optimizer.optimise.stage1 import Stage1
+
+    st, plan, base, (pack, env, prepared, cams, app) = _setup(name, args)
+    if args.sequence_of == "full-lt":
+        deep = {"type": plan.integrator["type"], "max_depth": 12, "rr_depth": 5, "sppi": 0}
+        full_lt = dataclasses.replace(plan, integrator={**plan.integrator, **deep}, max_depth=12, region=False)
+        st = Stage1(pack, env, prepared, cams, full_lt, base, app, initial=st.current_values()).prepare(
+            targets=st.targets)
+    out = []
+    for k in range(args.sequence):
+        p = step_phases(st, 40_000 + k)
+        views = st.scene.integrator().silhouette_views
+        out.append({"step": k, "seconds": p["step"], "silhouette_views": sorted(views) if views else "all"})
+        print(f"{name} step {k}: {p['step']:.2f} CPU s, silhouette on {out[-1]['silhouette_views']}", flush=True)
+    return out
+
+
+def _setup(name: str, args):
+    """The plan's Stage 1 at ``args.spp`` and what the other settings are built from."""
+    from bench_planner import load_pack
 
     from optimizer.optimise.planning import measure_plan
     from optimizer.optimise.stage1 import Stage1, Stage1Config
@@ -93,6 +118,15 @@ def bench_scene(name: str, args) -> dict:
     plan = measure_plan(pack, env, prepared, cams, app, args.seed, {"training": args.spp, "targets": 32})
     base = Stage1Config(spp=args.spp, target_spp=32, seed=args.seed)
     first = Stage1(pack, env, prepared, cams, plan, base, app).prepare()
+    return first, plan, base, (pack, env, prepared, cams, app)
+
+
+def bench_scene(name: str, args) -> dict:
+    from bench_planner import warmup_iterations
+
+    from optimizer.optimise.stage1 import Stage1
+
+    first, plan, base, (pack, env, prepared, cams, app) = _setup(name, args)
     targets, values = first.targets, first.current_values()
     deep = {"type": plan.integrator["type"], "max_depth": 12, "rr_depth": 5, "sppi": 0}
     full_lt = dataclasses.replace(plan, integrator={**plan.integrator, **deep}, max_depth=12, region=False)
@@ -131,6 +165,8 @@ def main() -> None:
     ap.add_argument("--levels", default="1,4", help="the plan's spp levels")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sequence", type=int, default=0, help="time the plan's first N steps in order instead")
+    ap.add_argument("--sequence-of", choices=("plan", "full-lt"), default="plan")
     ap.add_argument("--out", default="bench_out/stage1_phases.json")
     args = ap.parse_args()
     args.levels = [int(x) for x in args.levels.split(",") if x]
@@ -142,6 +178,9 @@ def main() -> None:
     backend.init()
     out = []
     for name in [s for s in args.scenes.split(",") if s]:
+        if args.sequence > 0:
+            out.append({"scene": name, "sequence": sequence(name, args)})
+            continue
         r = bench_scene(name, args)
         out.append(r)
         print(f"\n{name}: plan {r['integrator']} depth {r['max_depth']}, window {r['window']:.0%} of the frame "
