@@ -383,7 +383,9 @@ class ObserverConfig:
     #: object evidence too: tests/test_observer.py's shadow-reference and shape-cue tests fail (verification 1.5-1.8
     #: on a shadow against their bounds 1.0-1.2; over 21 places of a lying shadow the whole model's median rises
     #: 0.78 -> 1.98), and on meadow's set the plainly visible optimised boxes are clicked on their cast shadows
-    #: (Ours 6.9 -> 62.5 % confused), so it is an option (docs/results/observer.md).
+    #: (Ours 6.9 -> 62.5 % confused), so it is an option (docs/results/observer.md). All of this was measured on the
+    #: former 10 px/deg grid; on the display's grid (``feature_px_per_deg=16``) room's wooden chairs are found without
+    #: it, and with it and ``prop_margin=2`` the synthetic thin chair of tests/test_observer.py is missed (0 %).
     energy_gain: float = 1.0
     #: A place of the object-free view is a prop's core (:func:`scene_props`) from ``criterion - prop_margin *
     #: verify_noise``. 0 (default): from the criterion itself. The verification is noisy, so a thing of the scene
