@@ -399,6 +399,13 @@ def modelled_seconds(model: dict, spp: int, rendered_pixels: int, extra_share: f
             + model["features"][int(feature_spp)] + model["fixed"])
 
 
+def level_may_be_cheaper(model: dict, pixels: int, spp: int, best_seconds: float) -> bool:
+    """Whether a with-object render at ``spp`` can cost less than ``best_seconds`` by ``model`` (the cost model of a
+    cheaper level, :func:`setting_cost_model`): its least possible cost is every one of ``pixels`` traced once at
+    ``spp`` at the model's per-sample rate, plus the fixed costs (no further samples, no features)."""
+    return model["frame"] * int(pixels) * int(spp) + model["fixed"] < float(best_seconds)
+
+
 def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 0, denoise: str = "oidn-through",
                              mesh_fn=None, views: int = SETTING_PILOT_VIEWS,
                              candidates=SETTING_CANDIDATES, cost: str = "model") -> dict[str, Any]:
@@ -465,7 +472,7 @@ def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed
     for level, variants in candidates:
         lv = max(1, int(round(int(level) * int(spp) / 64)))
         if best is not None and (cost == "measured" or model is None
-                                 or model["frame"] * n_px * lv + model["fixed"] >= best["seconds"]):
+                                 or not level_may_be_cheaper(model, n_px, lv, best["seconds"])):
             break  # no candidate of this level can be cheaper than the one found
         renderers: dict = {}  # per background feature spp: the two seeds' renderers and backgrounds
         level_cands = []
