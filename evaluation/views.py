@@ -354,7 +354,8 @@ def setting_cost_model(env, mesh, cams: list[Camera], integrator: dict, spp: int
     seconds varied 1.6-2.7 s between repetitions) on ``cams``: ``frame``, CPU seconds per path sample of a
     full-frame render with the object (``integrator``); ``object``, per path sample of further samples on the object
     and its rim (:func:`object_pixels`: where the extra samples go); ``features``, seconds of the denoiser's features
-    at each of ``feature_spps`` (``without``: the background's, as the evaluation traces only the object's box);
+    at each of ``feature_spps`` (keyed by the spp as a string: the model is written to TOML; ``without``: the
+    background's, as the evaluation traces only the object's box);
     ``fixed``, seconds of the scene build, the coverage pass and the denoiser itself (the same for every
     candidate)."""
     from optimizer.rendering.denoise import denoise_variant, variant_features
@@ -385,7 +386,7 @@ def setting_cost_model(env, mesh, cams: list[Camera], integrator: dict, spp: int
             timed("denoise", lambda: denoise_variant(img, feats[0], feats[1], denoise))
     best = {k: min(v) for k, v in times.items()}
     return {"frame": best["frame"] / (n * spp), "object": best["object"] / max(obj_n * spp, 1),
-            "features": {int(f): best[f"features{f}"] for f in feature_spps},
+            "features": {str(int(f)): best[f"features{f}"] for f in feature_spps},
             "fixed": best["build"] + best["coverage"] + best.get("denoise", 0.0), "pixels": n,
             "object_pixels": obj_n, "spp": int(spp), "reps": int(reps)}
 
@@ -396,7 +397,7 @@ def modelled_seconds(model: dict, spp: int, rendered_pixels: int, extra_share: f
     and the object's factor; the object's per-sample cost), the features at ``feature_spp``, and the fixed costs."""
     n = model["pixels"]
     return (model["frame"] * rendered_pixels * spp + model["object"] * extra_share * n * spp
-            + model["features"][int(feature_spp)] + model["fixed"])
+            + model["features"][str(int(feature_spp))] + model["fixed"])
 
 
 def level_may_be_cheaper(model: dict, pixels: int, spp: int, best_seconds: float) -> bool:

@@ -46,8 +46,8 @@ ROOM_MODEL = [_c("oidn-through:8:max:f16@4", 0.95, 2.70, 1.08), _c("oidn-through
               _c("oidn-through:8:max:f16@8", 1.47, 2.03, 1.17), _c("oidn-through:16:max:f16@8", 2.14, 1.93, 0.94),
               _c("oidn-through:8@8", 4.49, 1.87, 0.63)]
 #: room's cost model at 4 spp (CPU s per path sample of the frame / of the object's further samples, features, fixed)
-ROOM_MODEL_4 = {"frame": 2.28e-6, "object": 4.55e-6, "features": {4: 0.196, 16: 0.135, 32: 0.324}, "fixed": 0.177,
-                "pixels": 18432}
+ROOM_MODEL_4 = {"frame": 2.28e-6, "object": 4.55e-6, "features": {"4": 0.196, "16": 0.135, "32": 0.324},
+                "fixed": 0.177, "pixels": 18432}
 
 
 def test_with_the_cost_model_a_later_level_is_measured_while_it_can_be_cheaper():
@@ -101,7 +101,7 @@ def test_the_pilot_measures_each_candidate_against_full_tracing_and_chooses_by_t
     by = {c["setting"]["background_feature_spp"]: c for c in first}
     assert by[32]["error"] < by[None]["error"], (by[32]["error"], by[None]["error"])
     model = p["cost_models"]["4"]
-    assert model["frame"] > 0 and model["object"] > 0 and model["fixed"] > 0 and set(model["features"]) == {8}
+    assert model["frame"] > 0 and model["object"] > 0 and model["fixed"] > 0 and set(model["features"]) == {"8"}
     # the background's features do not change what the with-object render traces (noise matching reads the raw
     # background's groups, the object's features are at 8 spp in both): the same samples, the same modelled price
     assert by[32]["seconds"] == pytest.approx(by[None]["seconds"], rel=0.05)
