@@ -219,7 +219,8 @@ def bench_evaluation(name: str, args) -> dict:
         if k == "setting":  # "auto": the whole setting chosen by the evaluation's setting pilot
             from evaluation.views import evaluation_setting_pilot
 
-            pilot = evaluation_setting_pilot(pack, env, cams, plan, args.eval_spp, args.seed, d, mesh_fn)
+            pilot = evaluation_setting_pilot(pack, env, cams, plan, args.eval_spp, args.seed, d, mesh_fn,
+                                             candidates=opts["candidates"], cost=opts["cost"])
             ch = pilot.pop("setting")
             as_eval_pilots[setting] = {**pilot, "chosen": ch.to_dict() if ch else None,
                                        "wall_seconds": pilot["seconds"]}
@@ -460,17 +461,23 @@ def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
     the with-object render's too unless ``fN``; the background is shared by every input of a scene, so not timed).
     ``@LEVELS``: measure the setting at these of ``--eval-levels`` only (a setting with a large factor at 64 spp costs
     minutes and is never read there).
-    ``auto[:DENOISER]`` (denoiser default ``oidn-through``): the whole setting (factor, rule, feature spp, spp level)
-    chosen per scene by :func:`evaluation.views.evaluation_setting_pilot`, returned as ``(denoiser, "setting",
-    options)``. Raises ``ValueError`` with a one-line reason."""
+    ``auto[:DENOISER[:SET]]`` (denoiser default ``oidn-through``): the whole setting (factor, rule, feature spp, spp
+    level) chosen per scene by :func:`evaluation.views.evaluation_setting_pilot`, returned as ``(denoiser, "setting",
+    options)``; ``SET`` ``coarse``: the pilot as it was before the 6-spp level and the cost model (levels 4 and 8,
+    :data:`evaluation.views.SETTING_CANDIDATES_COARSE`, candidates ranked by their measured CPU seconds).
+    Raises ``ValueError`` with a one-line reason."""
     if setting == "auto" or setting.startswith("auto:"):
-        d = setting.partition(":")[2] or "oidn-through"
+        d, _, cset = setting.partition(":")[2].partition(":")
+        d = d or "oidn-through"
         from optimizer.rendering.denoise import VARIANTS as DENOISERS
 
         if d not in DENOISERS:
             raise ValueError(f"{setting!r}: denoiser {d!r} is not one of {', '.join(DENOISERS)}")
+        if cset not in ("", "coarse"):
+            raise ValueError(f"{setting!r}: candidate set {cset!r} is not coarse (or absent)")
         return d, "setting", {"region": False, "combine": "product", "feature_spp": None, "bg_feature_spp": None,
-                              "levels": None}
+                              "levels": None, "candidates": cset or "default",
+                              "cost": "measured" if cset == "coarse" else "model"}
     head, _, lv = setting.partition("@")
     d, _, rest = head.partition(":")
     k, *flags = rest.split(":") if rest else ["1"]

@@ -174,9 +174,14 @@ class ObserverConfig:
     #: Height of the displayed image in visual degrees. The site shows it at 72 % of the viewport height: 576 CSS
     #: px of an 800 px window, ~150 mm on a laptop at ~60 cm is ~14 deg; 680 px on a 24" desktop ~18 deg.
     display_deg: float = 16.0
-    #: Resolution of the feature maps (pixels per degree). 10 px/deg resolves 5 cycles/deg: the band that
-    #: matters for finding a 1.5-5 deg object in peripheral vision; finer detail is only seen at the fovea.
-    feature_px_per_deg: float = 10.0
+    #: Resolution of the feature maps (pixels per degree): 16, the study's own display -- its 256 px stimuli shown
+    #: at 16 deg -- so the maps keep every detail the image has (8 cycles/deg, well within foveal acuity of ~30-60
+    #: c/deg; each candidate is verified with the fovea, step 5). The coarser band a 1.5-5 deg object is found by in
+    #: peripheral vision is the centre and surround scales' (in degrees, whatever the grid). The former 10 px/deg
+    #: (5 cycles/deg) resampled the stimuli first, and its anti-aliasing blurred a thin outline -- room's chairs,
+    #: legs and rails 1-2 image px wide, plain to see -- into the floor's texture: measured on the built-in scenes'
+    #: stimuli, docs/results/observer.md ("Thin outlines: the feature grid").
+    feature_px_per_deg: float = 16.0
     #: Centre scales (Gaussian sigma, degrees): from texture-element size to a fifth of the smallest object the
     #: study shows (10 % of the frame width = 1.6 deg).
     centre_sigmas_deg: tuple[float, ...] = (0.15, 0.3, 0.6)
@@ -378,7 +383,9 @@ class ObserverConfig:
     #: object evidence too: tests/test_observer.py's shadow-reference and shape-cue tests fail (verification 1.5-1.8
     #: on a shadow against their bounds 1.0-1.2; over 21 places of a lying shadow the whole model's median rises
     #: 0.78 -> 1.98), and on meadow's set the plainly visible optimised boxes are clicked on their cast shadows
-    #: (Ours 6.9 -> 62.5 % confused), so it is an option (docs/results/observer.md).
+    #: (Ours 6.9 -> 62.5 % confused), so it is an option (docs/results/observer.md). All of this was measured on the
+    #: former 10 px/deg grid; on the display's grid (``feature_px_per_deg=16``) room's wooden chairs are found without
+    #: it, and with it and ``prop_margin=2`` the synthetic thin chair of tests/test_observer.py is missed (0 %).
     energy_gain: float = 1.0
     #: A place of the object-free view is a prop's core (:func:`scene_props`) from ``criterion - prop_margin *
     #: verify_noise``. 0 (default): from the criterion itself. The verification is noisy, so a thing of the scene

@@ -48,7 +48,7 @@ from optimizer.scenes.cameras import Camera
 from camo_base import seeds
 from camo_base.errors import SettingError
 from optimizer.assets.rundir import RunDir, open_run
-from optimizer.rendering.noise import GROUPS
+from optimizer.rendering.noise import groups_for
 from evaluation.settings import DEFAULT_JITTER
 
 #: Vertices of the object the evaluation's pilot renders (at the pilot's ~48 pixels).
@@ -297,18 +297,30 @@ class EvaluationSetting:
         return {**dataclasses.asdict(self), "label": self.label}
 
 
-#: The candidates of the setting pilot: per spp level (a divisor of the evaluation's spp: 64 -> 4, then 8; the
-#: cheapest level first), the with-object variants ``(object_spp, combine, feature_spp, background_feature_spp)``
-#: measured there. At a quarter of the features' spp the denoised frame is above full tracing's 64-spp error on four
-#: of six scenes (docs/results/planner.md), so the 4-spp level gives the background's features 16 spp (the frame's
-#: error falls by a quarter: 2.61 -> 1.95/255 on room, 2.71 -> 2.01 on gravel, 2 pilot views), which makes the
-#: background smoother and so asks more of the object's samples (32x with its features at 32 spp); the product rule
-#: at 8x and the larger-factor rule at 16x without them were noise-safe at 4-8 spp on all six scenes.
+#: The candidates of the setting pilot: per spp level (its spp at an evaluation spp of 64, scaled with the
+#: evaluation's spp; the cheapest level first), the with-object variants ``(object_spp, combine, feature_spp,
+#: background_feature_spp)`` measured there. At a quarter of the features' spp the denoised frame is above full
+#: tracing's 64-spp error on four of six scenes (docs/results/planner.md), so at 4 spp the background's features get 8
+#: or 16 spp (the frame's error falls by a quarter at 16: 2.61 -> 1.95/255 on room), which makes the background
+#: smoother and so asks more of the object's samples (32x with its features at 32 spp). Without them 16x on the object
+#: left it 0.55-0.92 as noisy as the background on five of six scenes (pilot figures, 2 views), so 8x is tried first.
+#: 6 spp (groups of one sample for noise matching, :func:`optimizer.rendering.noise.groups_for`) lies between 4 and 8,
+#: where meadow's error is reached only at 8 spp without the background's extra features.
 SETTING_CANDIDATES = (
-    (16, ((8, "max", 16, 16), (16, "max", 16, 16), (32, "max", 32, 16), (8, "product", None, 16),
-          (16, "max", 16, None))),
+    (4, ((8, "max", 16, None), (16, "max", 16, None), (16, "max", 16, 8), (16, "max", 16, 16), (32, "max", 32, 16),
+         (8, "product", None, 16))),
+    (6, ((8, "max", 16, None), (16, "max", 16, None))),
     (8, ((8, "max", 16, None), (16, "max", 16, None), (8, "product", None, None))),
 )
+#: The candidates of the setting pilot before the 6-spp level and the cost model (levels 4 and 8 only): kept to
+#: measure the choice against (``bench/bench_planner.py --evaluate-as auto:oidn-through:coarse``).
+SETTING_CANDIDATES_COARSE = (
+    (4, ((8, "max", 16, 16), (16, "max", 16, 16), (32, "max", 32, 16), (8, "product", None, 16),
+         (16, "max", 16, None))),
+    (8, ((8, "max", 16, None), (16, "max", 16, None), (8, "product", None, None))),
+)
+#: Named candidate sets (``evaluation_setting_pilot(candidates=NAME)``).
+SETTING_CANDIDATE_SETS = {"default": SETTING_CANDIDATES, "coarse": SETTING_CANDIDATES_COARSE}
 #: Evaluation cameras the setting pilot renders (evenly spaced).
 SETTING_PILOT_VIEWS = 2
 #: The largest noise ratio (denoised object and rim / denoised background, :func:`denoised_noise_ratio`'s measure)
@@ -331,9 +343,73 @@ def choose_setting(candidates: list[dict], target_error: float, ratio_max: float
     return min(ok, key=lambda c: (c["seconds"], c["error"])) if ok else None
 
 
+#: Repetitions of each timing of the setting pilot's cost model (the least CPU seconds is kept: load only adds).
+COST_REPS = 3
+
+
+def setting_cost_model(env, mesh, cams: list[Camera], integrator: dict, spp: int, seed: int, denoise: str,
+                       feature_spps, without: tuple | None, reps: int = COST_REPS) -> dict[str, Any]:
+    """The CPU costs a with-object evaluation render at ``spp`` is made of, each timed ``reps`` times interleaved (the
+    least kept: a machine's load only adds to a CPU time; measured under load 6-10, one with-object render's CPU
+    seconds varied 1.6-2.7 s between repetitions) on ``cams``: ``frame``, CPU seconds per path sample of a
+    full-frame render with the object (``integrator``); ``object``, per path sample of further samples on the object
+    and its rim (:func:`object_pixels`: where the extra samples go); ``features``, seconds of the denoiser's features
+    at each of ``feature_spps`` (keyed by the spp as a string: the model is written to TOML; ``without``: the
+    background's, as the evaluation traces only the object's box);
+    ``fixed``, seconds of the scene build, the coverage pass and the denoiser itself (the same for every
+    candidate)."""
+    from optimizer.rendering.denoise import denoise_variant, variant_features
+    from optimizer.rendering.render import PathRenderer, object_coverage_views
+
+    n = sum(c.width * c.height for c in cams)
+    times: dict[str, list[float]] = {}
+
+    def timed(name, fn):
+        t = time.process_time()
+        out = fn()
+        times.setdefault(name, []).append(time.process_time() - t)
+        return out
+
+    obj_n = 0
+    for _ in range(max(1, int(reps))):
+        pr = timed("build", lambda: PathRenderer(env.build(), mesh, cams, integrator, spp, seed))
+        cov = timed("coverage", lambda: object_coverage_views(pr.scene, cams, mesh, 4))
+        img = timed("frame", lambda: pr())
+        counts = object_pixels(cov).astype(np.int64)
+        obj_n = int(counts.sum())
+        timed("object", lambda: pr(None, None, spp, spp, counts=counts))
+        feats = None
+        for f in feature_spps:
+            feats = timed(f"features{f}", lambda: variant_features(denoise, env.build(), mesh, cams, int(f), seed,
+                                                                   scene=pr.scene, without=without))
+        if denoise and feats is not None:
+            timed("denoise", lambda: denoise_variant(img, feats[0], feats[1], denoise))
+    best = {k: min(v) for k, v in times.items()}
+    return {"frame": best["frame"] / (n * spp), "object": best["object"] / max(obj_n * spp, 1),
+            "features": {str(int(f)): best[f"features{f}"] for f in feature_spps},
+            "fixed": best["build"] + best["coverage"] + best.get("denoise", 0.0), "pixels": n,
+            "object_pixels": obj_n, "spp": int(spp), "reps": int(reps)}
+
+
+def modelled_seconds(model: dict, spp: int, rendered_pixels: int, extra_share: float, feature_spp: int) -> float:
+    """CPU seconds of a with-object render by :func:`setting_cost_model`'s ``model``: ``rendered_pixels`` traced at
+    ``spp`` (the frame's per-sample cost), ``extra_share`` x one full frame at ``spp`` further samples (noise matching's
+    and the object's factor; the object's per-sample cost), the features at ``feature_spp``, and the fixed costs."""
+    n = model["pixels"]
+    return (model["frame"] * rendered_pixels * spp + model["object"] * extra_share * n * spp
+            + model["features"][str(int(feature_spp))] + model["fixed"])
+
+
+def level_may_be_cheaper(model: dict, pixels: int, spp: int, best_seconds: float) -> bool:
+    """Whether a with-object render at ``spp`` can cost less than ``best_seconds`` by ``model`` (the cost model of a
+    cheaper level, :func:`setting_cost_model`): its least possible cost is every one of ``pixels`` traced once at
+    ``spp`` at the model's per-sample rate, plus the fixed costs (no further samples, no features)."""
+    return model["frame"] * int(pixels) * int(spp) + model["fixed"] < float(best_seconds)
+
+
 def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed: int = 0, denoise: str = "oidn-through",
                              mesh_fn=None, views: int = SETTING_PILOT_VIEWS,
-                             candidates=SETTING_CANDIDATES) -> dict[str, Any]:
+                             candidates=SETTING_CANDIDATES, cost: str = "model") -> dict[str, Any]:
     """The evaluation setting of this scene, chosen from measurements (no per-scene table): the cheapest render that
     is as accurate as full path tracing at ``spp`` and leaves the object no noisier than the background.
 
@@ -344,18 +420,24 @@ def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed
       from 5) at ``spp``, two independent seeds (stream ``denoise_pilot``, pairs 2 and 3). Full tracing is unbiased,
       so its error at ``spp`` is its noise: ``target = |a - b| / sqrt 2`` (sRGB RMS over the frames), and the pair's
       mean ``(a + b) / 2`` is the reference the candidates are measured against;
-    * **each candidate** (:class:`EvaluationSetting`: ``denoise`` with each variant of ``candidates`` at its level
-      ``spp // d``, :data:`SETTING_CANDIDATES`) exactly as the evaluation renders it
-      (:meth:`ViewRenderer.with_object`, ``plan``'s integrator, noise matching), two seeds (pairs 0 and 1, with their
-      denoised backgrounds): its CPU seconds (the faster seed; the background, shared by every input of a scene,
-      not counted), its error ``sqrt(mean |c_i - ref|^2 - target^2 / 2)`` (the reference's own noise subtracted) and
-      its noise ratio (:func:`denoised_noise_ratio`'s measure: the object and a 2-pixel rim against the background).
+    * **each candidate** (:class:`EvaluationSetting`: ``denoise`` with each variant of ``candidates`` -- or the name
+      of a set of :data:`SETTING_CANDIDATE_SETS` -- at its level, the level's spp at 64 scaled by ``spp / 64``,
+      :data:`SETTING_CANDIDATES`) exactly as the evaluation renders it (:meth:`ViewRenderer.with_object`, ``plan``'s
+      integrator, noise matching), two seeds (pairs 0 and 1, with their denoised backgrounds): its error
+      ``sqrt(mean |c_i - ref|^2 - target^2 / 2)`` (the reference's own noise subtracted), its noise ratio
+      (:func:`denoised_noise_ratio`'s measure: the object and a 2-pixel rim against the background) and its cost in
+      CPU seconds (the background, shared by every input of a scene, not counted): with ``cost="model"`` the
+      samples it traced (rendered pixels, noise matching's and the object's further samples, the two seeds' mean)
+      priced by :func:`setting_cost_model` of its level (each part timed 3 times interleaved, the least kept), so
+      that a busy machine does not reorder the candidates; ``cost="measured"``: the faster seed's CPU seconds.
 
     The choice (:func:`choose_setting`): of the candidates with noise ratio <= :data:`SETTING_RATIO_MAX` and error
-    <= the target, the least seconds; a level is measured only when no candidate of the cheaper levels qualified.
-    None qualifies: ``setting`` None (the evaluation keeps its default: noise matching at ``spp``, no denoiser).
-    Returns ``{"setting": EvaluationSetting | None, "candidates": [...], "target_error", "full_seconds",
-    "seconds", "why"}`` (errors sRGB /1; seconds CPU)."""
+    <= the target, the least seconds. Levels are measured cheapest first; with the cost model a later level is
+    measured only while its least possible cost (its full frame and the fixed costs, priced at the last level's
+    rates) is below the best qualifying candidate's (``cost="measured"``: only when no candidate of the cheaper levels
+    qualified). None qualifies: ``setting`` None (the evaluation keeps its default: noise matching at ``spp``, no
+    denoiser). Returns ``{"setting": EvaluationSetting | None, "candidates": [...], "target_error", "full_seconds",
+    "cost_models", "seconds", "why"}`` (errors sRGB /1; seconds CPU, ``seconds`` of the pilot wall)."""
     from optimizer.rendering.noise import noise_rms
     from optimizer.rendering.placement import prepare_object, static_object_fn
     from optimizer.rendering.planner import full_plan
@@ -363,8 +445,15 @@ def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed
     from optimizer.rendering.render import render_shaded
     from optimizer.scenes.cameras import evenly_spaced
 
+    if isinstance(candidates, str):
+        if candidates not in SETTING_CANDIDATE_SETS:
+            raise SettingError.of("candidates", f" {candidates!r}: must be one of {', '.join(SETTING_CANDIDATE_SETS)}")
+        candidates = SETTING_CANDIDATE_SETS[candidates]
+    if cost not in ("model", "measured"):
+        raise ValueError(f"cost must be model or measured, got {cost!r}")
     t_all = time.perf_counter()
     sub = [cams[i] for i in evenly_spaced(len(cams), min(int(views), len(cams)))]
+    n_px = sum(c.width * c.height for c in sub)
     if mesh_fn is None:
         mesh_fn = static_object_fn(pack, prepare_object(pack, target_vertices=pack.object.target_vertices))
     mesh = mesh_fn()
@@ -374,47 +463,72 @@ def evaluation_setting_pilot(pack, env, cams: list[Camera], plan, spp: int, seed
             for p in (2, 3)]
     full_seconds = (time.process_time() - t) / 2
     target_var = _srgb_mse(refs[0], refs[1]) / 2.0
+    tgt = math.sqrt(target_var)
     ref = (refs[0] + refs[1]) / 2.0
     thr = plan.region_threshold if plan.region_search else None
     cands: list[dict] = []
-    chosen = None
-    for d, variants in candidates:
-        lv = max(1, int(spp) // int(d))
+    models: dict[int, dict] = {}
+    best = None
+    model = None
+    for level, variants in candidates:
+        lv = max(1, int(round(int(level) * int(spp) / 64)))
+        if best is not None and (cost == "measured" or model is None
+                                 or not level_may_be_cheaper(model, n_px, lv, best["seconds"])):
+            break  # no candidate of this level can be cheaper than the one found
         renderers: dict = {}  # per background feature spp: the two seeds' renderers and backgrounds
+        level_cands = []
         for k, combine, fspp, bfspp in variants:
             if bfspp not in renderers:
                 rs = [ViewRenderer(lv, seed, noise_match=True, sampler_seed=seeds.seed("denoise_pilot", seed, pair=p),
                                    feature_spp=bfspp) for p in (0, 1)]
                 renderers[bfspp] = rs, [r.background(pack, env, sub, plan.integrator, denoise) for r in rs]
             rs, bgs = renderers[bfspp]
+            if cost == "model" and lv not in models:
+                fs = sorted({int(f or b or min(lv, FEATURE_SPP)) for _, _, f, b in variants} if denoise else set())
+                models[lv] = model = setting_cost_model(env, mesh, sub, plan.integrator, lv,
+                                                        seeds.seed("denoise_pilot", seed, pair=4), denoise, fs,
+                                                        bgs[0].features)
             s = EvaluationSetting(denoise, int(k), combine, fspp, lv, bfspp)
-            imgs, secs = [], []
+            imgs, secs, modelled = [], [], []
             for r, bg in zip(rs, bgs):
                 t = time.process_time()
                 o = r.with_object(env, lambda: mesh, sub, plan.integrator, bg, thr, object_spp=s.object_spp,
                                   object_combine=s.combine, object_feature_spp=s.feature_spp)
                 secs.append(time.process_time() - t)
                 imgs.append(o)
+                if cost == "model":
+                    rendered = int(o.region.sum()) if o.region is not None else n_px
+                    extra = o.noise.extra_samples if o.noise is not None else 0.0
+                    modelled.append(modelled_seconds(model, lv, rendered, extra,
+                                                     fspp or bfspp or min(lv, FEATURE_SPP)) if denoise else
+                                    model["frame"] * rendered * lv + model["object"] * extra * n_px * lv
+                                    + model["fixed"])
             near = np.stack([dilate_px(m, 2) for m in imgs[0].mask])
             on = noise_rms(imgs[0].image, imgs[1].image, near)
             bn = noise_rms(bgs[0].image, bgs[1].image, near)
             err2 = float(np.mean([_srgb_mse(o.image, ref) for o in imgs])) - target_var / 2.0
-            cands.append({"setting": s.to_dict(), "seconds": float(min(secs)), "error": math.sqrt(max(err2, 0.0)),
-                          "ratio": on / max(bn, 1e-9), "object_noise": on, "background_noise": bn})
-        best = choose_setting([c for c in cands if c["setting"]["spp"] == lv], math.sqrt(target_var))
-        if best is not None:
-            chosen = EvaluationSetting(**{k: v for k, v in best["setting"].items() if k != "label"})
-            break
+            c = {"setting": s.to_dict(), "seconds": float(np.mean(modelled)) if cost == "model" else float(min(secs)),
+                 "measured_seconds": float(min(secs)), "error": math.sqrt(max(err2, 0.0)),
+                 "ratio": on / max(bn, 1e-9), "object_noise": on, "background_noise": bn,
+                 "extra_samples": float(np.mean([o.noise.extra_samples if o.noise is not None else 0.0
+                                                 for o in imgs]))}
+            cands.append(c)
+            level_cands.append(c)
+        lb = choose_setting(level_cands, tgt)
+        if lb is not None and (best is None or lb["seconds"] < best["seconds"]):
+            best = lb
+    chosen = EvaluationSetting(**{k: v for k, v in best["setting"].items() if k != "label"}) if best else None
     secs_all = time.perf_counter() - t_all
-    tgt = math.sqrt(target_var)
     figs = "; ".join(f"{c['setting']['label']} {c['seconds']:.2f} s, error {c['error'] * 255:.2f}, "
                      f"noise ratio {c['ratio']:.2f}" for c in cands)
-    why = ((f"{chosen.label}: the least CPU seconds of the candidates with error <= full tracing's at {spp} spp "
+    how = "modelled" if cost == "model" else "measured"
+    why = ((f"{chosen.label}: the least {how} CPU seconds of the candidates with error <= full tracing's at {spp} spp "
             f"({tgt * 255:.2f}/255, {full_seconds:.2f} s) and noise ratio <= {SETTING_RATIO_MAX:g}" if chosen else
             f"no candidate reached full tracing's error at {spp} spp ({tgt * 255:.2f}/255) with noise ratio <= "
             f"{SETTING_RATIO_MAX:g}: the default (noise matching at {spp} spp, no denoiser)")
            + f" ({len(sub)} views; {figs}; pilot {secs_all:.1f} s)")
     return {"setting": chosen, "candidates": cands, "target_error": tgt, "full_seconds": full_seconds,
+            "cost": cost, "cost_models": {str(k): v for k, v in models.items()},
             "views": len(sub), "spp": int(spp), "seconds": secs_all, "why": why}
 
 
@@ -530,11 +644,11 @@ class ViewRenderer:
         if key not in self.cache:
             t = time.perf_counter()
             groups = None
-            if self.noise_match and integrator.get("type") == "path" and self.spp % GROUPS == 0:
+            if self.noise_match and integrator.get("type") == "path" and groups_for(self.spp):
                 from optimizer.rendering.render import PathRenderer
 
                 img, groups = PathRenderer(env.build(), None, cams, integrator, self.spp,
-                                           self.sampler_seed)(groups=GROUPS)
+                                           self.sampler_seed)(groups=groups_for(self.spp))
             else:
                 img = render_shaded(env.build(), None, cams, integrator, self.spp, self.sampler_seed)
             raw, d_s, feats = None, 0.0, None
@@ -574,8 +688,7 @@ class ViewRenderer:
         background's), so this gives the object's features the samples its colour has got: at 4 spp with the object
         at 8x, its denoised noise near the object fell from 0.96 to 0.79 of the background's on split."""
         from optimizer.rendering import scene as scn
-        from optimizer.rendering.render import (PathRenderer, coverage_and_depth_views, render_shaded,
-                                                render_with_region)
+        from optimizer.rendering.render import PathRenderer, object_coverage_views, render_shaded, render_with_region
         from optimizer.rendering.planner import REGION_MIN_SPP
 
         t = time.perf_counter()
@@ -585,14 +698,14 @@ class ViewRenderer:
         # one scene for every pass of a path render (coverage, region, further samples): a build costs 20-50 ms
         pr = PathRenderer(env.build(), mesh, cams, integrator, self.spp, seed) if path else None
         sc = pr.scene if pr is not None else scn.build_scene(env.build(), mesh)
-        cov = coverage_and_depth_views(sc, cams, mesh, self.ss)[0]
+        cov = object_coverage_views(sc, cams, mesh, self.ss)
         if denoise is None:
             denoise = background.denoise if background is not None else ""
         if background is not None and denoise != background.denoise:
             raise ValueError(f"the render with the object must be denoised as its background ({background.denoise!r}),"
                              f" not {denoise!r}")
         match_noise = self.noise_match and path and background is not None and background.groups is not None
-        g = GROUPS if match_noise else 1
+        g = groups_for(self.spp) if match_noise else 1
         region, t_region, groups = None, 0.0, None
         if self.spp < (REGION_MIN_SPP if region_min_spp is None else region_min_spp):  # the search would not pay
             region_threshold = None

@@ -19,12 +19,17 @@ def test_evaluate_as_settings_parse_and_bad_ones_are_refused(bench_module):
     # the whole setting chosen per scene by the evaluation's setting pilot
     assert bp.parse_evaluate_as("auto")[:2] == ("oidn-through", "setting")
     assert bp.parse_evaluate_as("auto:oidn-raw")[:2] == ("oidn-raw", "setting")
+    # today's pilot (cost model, 6-spp level) and the previous one kept to measure against
+    assert {k: bp.parse_evaluate_as("auto")[2][k] for k in ("candidates", "cost")} == {"candidates": "default",
+                                                                                      "cost": "model"}
+    assert {k: bp.parse_evaluate_as("auto:oidn-through:coarse")[2][k] for k in ("candidates", "cost")} == {
+        "candidates": "coarse", "cost": "measured"}
     assert bp.parse_evaluate_as("oidn-through:auto")[1] == "auto"
     assert bp.measured_at((d, k, o), 4) and not bp.measured_at((d, k, o), 64)
     assert bp.measured_at(bp.parse_evaluate_as("off:1"), 64)
     for bad, why in (("bm3d:1", "denoiser"), ("oidn-through:0", "FACTOR"), ("off:1:sum", "option"),
                      ("off:1:f0", "option"), ("off:1:b0", "option"), ("off:1@4/x", "levels"),
-                     ("auto:bm3d", "denoiser")):
+                     ("auto:bm3d", "denoiser"), ("auto:oidn-through:fine", "candidate set")):
         with pytest.raises(ValueError, match=why):
             bp.parse_evaluate_as(bad)
 

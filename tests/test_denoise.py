@@ -151,7 +151,8 @@ def test_see_through_features_traced_only_where_a_ray_meets_the_object_equal_the
     a sphere out of sight leaves the object-free features as they are."""
     mi, _ = mi_backend
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.denoise import _box_pixels, see_through_features
+    from optimizer.rendering.denoise import see_through_features
+    from optimizer.rendering.region import box_pixels as _box_pixels
     from optimizer.scenes.cameras import Camera
 
     elements, sphere = _sunlit(mi, (0.2, 0.3, 0.2), 40)
@@ -439,7 +440,7 @@ def test_the_objects_features_at_more_spp_are_less_noisy_and_the_rest_the_backgr
     that at 4 spp (1/sqrt 4 = 0.5 for independent strata; measured 0.49)."""
     mi, _ = mi_backend
     from evaluation.views import ViewRenderer
-    from optimizer.rendering.denoise import _box_pixels
+    from optimizer.rendering.region import box_pixels as _box_pixels
     env, mesh, cams, integ, pack = _glass_sphere_in_sun(mi)
     feats = {}
     for seed in (0, 1):

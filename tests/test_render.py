@@ -125,3 +125,25 @@ def test_a_views_coverage_does_not_depend_on_the_other_views_in_its_launch(mi_ba
                 np.testing.assert_array_equal(cov[v], cv)
                 np.testing.assert_allclose(depth[v], d, rtol=1e-6, atol=1e-6)
         assert (cov.max() > 0.5) == (target is not None)
+
+
+def test_the_objects_coverage_traced_on_its_box_only_is_the_full_pass(mi_backend):
+    """object_coverage_views (the evaluation's with-object renders) traces only the pixels whose rays can meet the
+    object's box: its coverage is bit for bit the full pass's, the object covers some pixels and not all, and a
+    camera with the box behind it (no bound) traces every pixel and still agrees."""
+    from optimizer.rendering.region import box_pixels
+    from optimizer.rendering.render import coverage_and_depth_views, object_coverage_views
+
+    build = ENVIRONMENTS["meadow"][1]
+    obj = _obj_fn(_box_obj(), scn.principled({"albedo": (0.5, 0.5, 0.5), "metallic": 0.0, "roughness": 0.5,
+                                               "transmittance": 0.0}))()
+    inside = Camera((0.0, 0.0, 0.4), (1.0, 0.0, 0.4), 60.0, 40, 32)  # in the box: corners behind it
+    cams = CAMS + [Camera((2.0, 3.0, 1.0), (0.0, 0.0, 0.4), 40.0, 40, 32), inside]
+    sc = scn.build_scene(build(), obj)
+    full = coverage_and_depth_views(sc, cams, obj, ss=3)[0]
+    box = object_coverage_views(sc, cams, obj, ss=3)
+    for v in range(len(cams)):
+        np.testing.assert_array_equal(box[v], full[v])
+    assert 0 < (full[0] > 0).mean() < 1
+    px = box_pixels(obj, cams)
+    assert px[-1] is None and all(p.size < c.width * c.height for p, c in zip(px[:-1], cams[:-1]))

@@ -140,6 +140,7 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
 
     from optimizer.rendering import scene as scn
     from optimizer.rendering.render import camera_rays, stack_rays
+    from optimizer.rendering.region import box_pixels
 
     ss = max(1, int(round(float(spp) ** 0.5)))
     sc = scene if scene is not None else scn.build_scene(elements, obj)
@@ -152,7 +153,7 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
     gen = np.random.default_rng(int(seed))
     # the pixels traced: all, or (with ``without``) those whose rays can meet the object's box
     sel = [None] * len(cams) if without is None or obj is None else [
-        np.arange(c.width * c.height) if p is None else p for c, p in zip(cams, _box_pixels(obj, cams))]
+        np.arange(c.width * c.height) if p is None else p for c, p in zip(cams, box_pixels(obj, cams))]
     rays = [camera_rays(cam, ss, gen if jitter else None, p) for cam, p in zip(cams, sel)]  # one wavefront
     sizes = [(cam.width * cam.height if p is None else p.size) * ss * ss for cam, p in zip(cams, sel)]
     lanes = None  # the rays traced, as lanes of the full pass (None: all)
@@ -219,31 +220,6 @@ def see_through_features(elements: dict, obj, cams: Sequence, spp: int = 16, see
             start += n
         out.append(np.stack(views))
     return np.clip(out[0], 0.0, 1.0).astype(np.float32), np.clip(out[1], -1.0, 1.0).astype(np.float32)
-
-
-def _box_pixels(obj, cams: Sequence) -> list[np.ndarray | None]:
-    """Per view, the pixels (flat row-major indices, ascending) whose rays can meet ``obj``'s bounding box: the
-    bounding rectangle of its 8 projected corners (it holds the box's projection when every corner is in front of
-    the camera; else None: every pixel), grown by a pixel against rounding."""
-    from optimizer.rendering.projection import project
-    from optimizer.rendering.region import box_points, mesh_bounds
-
-    lo, hi = mesh_bounds(obj)
-    pad = 1e-3 * float(np.max(hi - lo))
-    corners = box_points(lo - pad, hi + pad, 2)
-    out: list[np.ndarray | None] = []
-    for cam in cams:
-        x, y, z = project(corners, cam)
-        if (z <= 0.02).any():  # a corner behind the camera (or before its near clip): no bound
-            out.append(None)
-            continue
-        x0, x1 = max(int(np.floor(x.min())) - 1, 0), min(int(np.ceil(x.max())) + 1, cam.width)
-        y0, y1 = max(int(np.floor(y.min())) - 1, 0), min(int(np.ceil(y.max())) + 1, cam.height)
-        m = np.zeros((cam.height, cam.width), bool)
-        if x0 < x1 and y0 < y1:
-            m[y0:y1, x0:x1] = True
-        out.append(np.flatnonzero(m))
-    return out
 
 
 def _run(images: dict[str, np.ndarray], hdr: bool, clean_aux: bool, quality: str) -> np.ndarray:

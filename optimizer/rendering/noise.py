@@ -7,9 +7,10 @@ on the demo's result on meadow: RMS noise on the object 4.2/255 against 2.7/255 
 1000 off by more than 20/255 against none). A uniform spp cannot fix that (both noises fall alike), so the noise is
 matched per pixel:
 
-1. each render (with the object: its region; the background: every pixel) keeps the means of ``GROUPS`` groups of
-   its samples (:func:`optimizer.rendering.tracer.render_pixels`, no extra cost): the variance of their 8-bit sRGB
-   values over the groups, divided by ``GROUPS``, estimates the noise the saved image shows -- in the encoding that
+1. each render (with the object: its region; the background: every pixel) keeps the means of ``G`` equal groups of
+   its samples (:func:`groups_for`: 4 at multiples of 4 spp, one sample each at 5-7 spp;
+   :func:`optimizer.rendering.tracer.render_pixels`, no extra cost): the variance of their 8-bit sRGB values over the
+   groups, divided by ``G``, estimates the noise the saved image shows -- in the encoding that
    is seen, clipping included (a per-sample variance in linear units misjudges fireflies both ways: it misses the
    rare ones and overrates the clipped ones);
 2. both are pooled over the ``window x window`` pixels around each pixel, **leaving the pixel itself out**: a pixel's
@@ -37,6 +38,20 @@ import numpy as np
 MAX_FACTOR = 8
 WINDOW = 5
 GROUPS = 4
+
+
+def groups_for(spp: int) -> int:
+    """How many groups of its samples a render at ``spp`` keeps for noise matching: the fewest equal groups, at least
+    :data:`GROUPS` (so the variance over them has at least 3 degrees of freedom), that divide ``spp`` -- 4 at any
+    multiple of 4, ``spp`` itself at 5, 6, 7 (groups of one sample), 5 at 10 -- or 0 below :data:`GROUPS` spp (no
+    matching). The groups must be equal: :func:`display_variance` divides their variance by their count, which
+    estimates the noise of their mean only when every group has the same number of samples. A background and a
+    render with the object at the same spp get the same count, so their noise estimates (of 8-bit sRGB group means,
+    clipping included) are alike and their ratio is what matching compares."""
+    spp = int(spp)
+    if spp < GROUPS:
+        return 0
+    return next(g for g in range(GROUPS, spp + 1) if spp % g == 0)
 #: How :func:`match` makes a pixel's total factor from noise matching's and a boost's (the object's spp factor).
 COMBINE = ("product", "max")
 #: A noise-variance ratio up to this is left alone (its estimate is not finer than that).

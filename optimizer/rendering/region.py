@@ -319,3 +319,27 @@ def render_region(render, background: np.ndarray, scene_bg, mesh, cams: Sequence
             todo = np.stack([dilate_px(h, ring << (steps - 1)) for h in hot]) & ~rendered  # rings double
     return image, Regions(rendered, [float((c > 0).mean()) for c in coverage], bound_share, steps,
                           [list(map(float, d)) for d in lights], time.perf_counter() - t0)
+
+
+def box_pixels(obj, cams: Sequence) -> list[np.ndarray | None]:
+    """Per view, the pixels (flat row-major indices, ascending) whose rays can meet ``obj``'s bounding box: the
+    bounding rectangle of its 8 projected corners (it holds the box's projection when every corner is in front of
+    the camera; else None: every pixel), grown by a pixel against rounding."""
+    from optimizer.rendering.projection import project
+
+    lo, hi = mesh_bounds(obj)
+    pad = 1e-3 * float(np.max(hi - lo))
+    corners = box_points(lo - pad, hi + pad, 2)
+    out: list[np.ndarray | None] = []
+    for cam in cams:
+        x, y, z = project(corners, cam)
+        if (z <= 0.02).any():  # a corner behind the camera (or before its near clip): no bound
+            out.append(None)
+            continue
+        x0, x1 = max(int(np.floor(x.min())) - 1, 0), min(int(np.ceil(x.max())) + 1, cam.width)
+        y0, y1 = max(int(np.floor(y.min())) - 1, 0), min(int(np.ceil(y.max())) + 1, cam.height)
+        m = np.zeros((cam.height, cam.width), bool)
+        if x0 < x1 and y0 < y1:
+            m[y0:y1, x0:x1] = True
+        out.append(np.flatnonzero(m))
+    return out

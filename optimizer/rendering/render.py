@@ -206,6 +206,34 @@ def coverage_and_depth_views(sc, cams: Sequence[Camera], target_shape=None,
     return np.stack(covs), np.stack(depths)
 
 
+def object_coverage_views(sc, cams: Sequence[Camera], target_shape, ss: int = 4) -> np.ndarray:
+    """The coverage of :func:`coverage_and_depth_views` ``(V, H, W)`` float32, exactly, tracing only the pixels whose
+    rays can meet ``target_shape``'s bounding box (:func:`optimizer.rendering.region.box_pixels`; a ray that misses
+    the box cannot hit the object, so the other pixels' coverage is 0) and no depth: at 96 px the full pass was 0.10
+    of the ~1.6-1.9 CPU seconds of a with-object evaluation render at 4 spp (room, 4 views; measured)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from optimizer.rendering.region import box_pixels
+
+    pix = box_pixels(target_shape, cams)
+    pix = [np.arange(c.width * c.height) if p is None else p for c, p in zip(cams, pix)]
+    out = [np.zeros((c.height, c.width), np.float32) for c in cams]
+    if sum(p.size for p in pix) == 0:
+        return np.stack(out)
+    si = sc.ray_intersect(stack_rays([camera_rays(c, ss, None, p) for c, p in zip(cams, pix) if p.size]))
+    on = si.is_valid() & (si.shape == mi.ShapePtr(target_shape))
+    dr.eval(on)
+    on_np = np.asarray(on, dtype=bool)
+    start = 0
+    for o, p in zip(out, pix):
+        n = p.size * ss * ss
+        if n:
+            o.reshape(-1)[p] = on_np[start:start + n].reshape(p.size, ss * ss).mean(-1)
+            start += n
+    return np.stack(out)
+
+
 def render_views(elements_fn, obj_fn, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,
                  ss: int = 4) -> ViewRenders:
     """All per-view products for one scene.
