@@ -643,13 +643,19 @@ def bench_gradient(name: str, args) -> dict:
     kinds = {"plan": plan, "full-lt": full_lt, "full": full}
     rows = []
     stages = {}
+    warm = {}
     for spp in args.train_levels:
         for who, pl in kinds.items():
             if who == "full" and spp not in args.full_levels:
                 continue
             stages[(who, spp)] = st = stage(pl, spp)
-            for k in range(args.warmup):  # compile: every view's kernels (the silhouette term runs on a random
-                probe(st, 30_000 + k)     # subset of views per step; a run's 60 steps amortise the compiles)
+            # untimed: the JIT compiles of every view's kernels, including each view's silhouette pass (it runs
+            # on a random 1/4 of the views per step, and a windowed view's costs ~8 CPU s the first time)
+            t = clock()
+            its = warmup_iterations(st, args.warmup, 30_000)
+            for k in its:
+                probe(st, k)
+            warm[f"{who}@{spp}"] = {"probes": len(its), "seconds": clock() - t}
     for spp in args.train_levels:
         for rep in range(args.reps):
             for who in kinds:
@@ -661,8 +667,36 @@ def bench_gradient(name: str, args) -> dict:
     out = {"scene": name, "pilot_seconds": pilot_seconds, "max_depth": plan.max_depth, "ref_loss": ref_loss,
            "window_share": float(np.mean([(b[2] - b[0]) * (b[3] - b[1]) / (args.resolution ** 2)
                                           for b in first.windows])) if first.windows else 1.0,
-           "rows": rows}
+           "rows": rows, "warmup": warm}
     return summarise_gradient(out, args.train_spp, list(kinds))
+
+
+def warmup_iterations(s1, n: int, start: int) -> list[int]:
+    """The untimed warm-up probes' iteration numbers for Stage 1 ``s1``: ``n`` of them from ``start``, more until
+    every view has had its primary-silhouette pass (:func:`optimizer.rendering.projective.silhouette_view_weights`
+    picks a random ``1 / silhouette_every`` of the views per iteration). Timing before that times the JIT: a step
+    whose silhouette view is new costs ~8 CPU s more where each view renders its own window (a kernel per crop
+    window), once per view and run (meadow, 4 views at 64 px, 4 spp: 9-10 against 1.3-1.5 CPU s)."""
+    from optimizer.rendering.projective import silhouette_view_weights
+
+    its = list(range(start, start + max(int(n), 0)))
+    integ = s1.scene.integrator()
+    if not hasattr(integ, "silhouette_views"):
+        return its
+    ids = [s.id() for s in s1.scene.sensors()]
+    views = s1.views_for_step()
+    seen = set()
+    for k in its:
+        w = silhouette_view_weights([ids[v] for v in views], s1.cfg.silhouette_every, k, s1.cfg.seed)
+        seen |= set(w) if w is not None else set(ids)
+    k = start + len(its)
+    while not {ids[v] for v in views} <= seen and k < start + 64 * len(views):
+        w = silhouette_view_weights([ids[v] for v in views], s1.cfg.silhouette_every, k, s1.cfg.seed)
+        if w is None or not set(w) <= seen:
+            its.append(k)
+            seen |= set(w) if w is not None else set(ids)
+        k += 1
+    return its
 
 
 def summarise_gradient(out: dict, train_spp: int, kinds=("plan", "full-lt", "full")) -> dict:
@@ -781,7 +815,8 @@ def main() -> None:
                     "before the cosine, as the fast preset's Adam sees them (0: raw)")
     ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--warmup", type=int, default=1, help="untimed Stage 1 probes per setting before timing (JIT "
-                    "compiles of every view's kernels; a run amortises them over its steps: raise it for steadier timings)")
+                    "compiles of every view's kernels; more are added until every view has had its silhouette pass; "
+                    "a run amortises them over its steps)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--clock", choices=tuple(CLOCK), default="cpu", help="seconds of the timed renders: the "
                     "process's CPU seconds (default: fair on a shared machine) or wall seconds")

@@ -63,3 +63,37 @@ def test_a_setting_label_reads_back_as_the_same_setting(bench_module):
         d, k, o = bp.parse_evaluate_as(s.label)
         assert (d, k, o["combine"], o["feature_spp"], o["bg_feature_spp"], o["levels"]) == (
             s.denoise, s.object_spp, s.combine, s.feature_spp, s.background_feature_spp, (s.spp,))
+
+
+def test_gradient_warmup_gives_every_view_its_silhouette_pass(bench_module):
+    """The Stage 1 probes are timed only once every view has had its primary-silhouette pass (a windowed view's first
+    one costs a JIT compile of ~8 CPU s): the warm-up runs the asked probes, then exactly the iterations that bring a
+    new view, in order, until all have had one; without a budgeted projective integrator, only the asked probes."""
+    import types
+
+    from optimizer.rendering.projective import silhouette_view_weights
+
+    bp = bench_module("bench_planner")
+
+    def stage(views: int, every: int, projective: bool = True):
+        sensors = [types.SimpleNamespace(id=(lambda i=i: f"sensor_{i:03d}")) for i in range(views)]
+        integ = types.SimpleNamespace(silhouette_views=None) if projective else types.SimpleNamespace()
+        scene = types.SimpleNamespace(integrator=lambda: integ, sensors=lambda: sensors)
+        return types.SimpleNamespace(scene=scene, views_for_step=lambda: list(range(views)),
+                                     cfg=types.SimpleNamespace(silhouette_every=every, seed=0))
+
+    ids = [f"sensor_{i:03d}" for i in range(8)]
+    its = bp.warmup_iterations(stage(8, 4), 1, 30_000)
+    assert its[0] == 30_000 and its == sorted(its) and len(its) >= 4  # 2 views a step: at least 4 steps for 8
+    chosen = [set(silhouette_view_weights(ids, 4, k, 0)) for k in its]
+    assert set().union(*chosen) == set(ids)
+    seen = set(chosen[0])
+    for k, c in zip(its[1:], chosen[1:]):  # each extra probe brings a view not seen before ...
+        assert not c <= seen
+        seen |= c
+    skipped = [k for k in range(its[0], its[-1]) if k not in its]  # ... and the iterations left out bring none
+    for k in skipped:
+        assert set(silhouette_view_weights(ids, 4, k, 0)) <= set().union(
+            *[set(silhouette_view_weights(ids, 4, j, 0)) for j in its if j < k])
+    assert bp.warmup_iterations(stage(4, 1), 2, 100) == [100, 101]  # every view each step
+    assert bp.warmup_iterations(stage(4, 4, projective=False), 1, 7) == [7]
