@@ -675,8 +675,9 @@ def warmup_iterations(s1, n: int, start: int) -> list[int]:
     """The untimed warm-up probes' iteration numbers for Stage 1 ``s1``: ``n`` of them from ``start``, more until
     every view has had its primary-silhouette pass (:func:`optimizer.rendering.projective.silhouette_view_weights`
     picks a random ``1 / silhouette_every`` of the views per iteration). Timing before that times the JIT: a step
-    whose silhouette view is new costs ~8 CPU s more where each view renders its own window (a kernel per crop
-    window), once per view and run (meadow, 4 views at 64 px, 4 spp: 9-10 against 1.3-1.5 CPU s)."""
+    whose silhouette view is new cost ~8 CPU s more when each view rendered its own window (a kernel per crop
+    window), once per view and run (meadow, 4 views at 64 px, 4 spp: 9-10 against 1.3-1.5 CPU s); the views now
+    share one window and its kernels, and a new silhouette view compiles only a few small kernels (0.2-0.7 s)."""
     from optimizer.rendering.projective import silhouette_view_weights
 
     its = list(range(start, start + max(int(n), 0)))

@@ -16,6 +16,8 @@ one-off cost); the syncs cost a little pipelining, so the phases sum to slightly
 
 ``--sequence N`` instead times the plan's (``--sequence-of full-lt``: full-lt's) first ``N`` steps at ``--spp`` in order, with no warm-up, each with the view
 its silhouette term ran on: what the JIT costs a run the first time each view has its silhouette pass.
+``--windows per-view`` gives each view its own training window (before issue 28: every window compiled its own
+kernels); run it with a fresh Dr.Jit kernel cache (``HOME=$(mktemp -d)``) to see a first run's compiles.
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ def sequence(name: str, args) -> list[dict]:
         full_lt = dataclasses.replace(plan, integrator={**plan.integrator, **deep}, max_depth=12, region=False)
         st = Stage1(pack, env, prepared, cams, full_lt, base, app, initial=st.current_values()).prepare(
             targets=st.targets)
+    print(f"{name}: training windows {st.windows}", flush=True)
     out = []
     for k in range(args.sequence):
         p = step_phases(st, 40_000 + k)
@@ -167,6 +170,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sequence", type=int, default=0, help="time the plan's first N steps in order instead")
     ap.add_argument("--sequence-of", choices=("plan", "full-lt"), default="plan")
+    ap.add_argument("--windows", choices=("shared", "per-view"), default="shared",
+                    help="one training window for all views (the default) or one per view (before issue 28)")
     ap.add_argument("--out", default="bench_out/stage1_phases.json")
     args = ap.parse_args()
     args.levels = [int(x) for x in args.levels.split(",") if x]
@@ -174,8 +179,10 @@ def main() -> None:
         ap.error("--views, --spp, --reps >= 1, --resolution >= 8, --levels not empty")
 
     from optimizer import backend
+    from optimizer.optimise.stage1 import Stage1
 
     backend.init()
+    Stage1.shared_window = args.windows == "shared"
     out = []
     for name in [s for s in args.scenes.split(",") if s]:
         if args.sequence > 0:

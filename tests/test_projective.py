@@ -192,3 +192,67 @@ def test_silhouette_view_subset_is_the_weighted_sum_of_the_chosen_views(mi_backe
     np.testing.assert_allclose(counts / 400, 1.0, atol=0.12)
     assert silhouette_view_weights(ids, 1, 0, 0) is None
     assert silhouette_view_weights(ids, 2, 5, 7) == silhouette_view_weights(ids, 2, 5, 7)
+
+
+def test_views_sharing_a_crop_window_share_their_kernels(mi_backend, tmp_path):
+    """Mitsuba bakes a film's crop window into its kernels as literals: two views with one window (Stage 1's
+    shared training window, optimizer.optimise.stage1.training_windows) run the second view's render and silhouette
+    pass on the first's kernels, while a view with another window compiles its own (issue 28: ~5 CPU s per view on
+    meadow). Kernels are told apart by hash, so the test does not depend on what earlier tests left in the cache."""
+    mi, dr = mi_backend
+    from optimizer.rendering.projective import NAMES
+
+    obj = _square_obj(tmp_path)
+    crops = ((6, 5, 26, 27), (6, 5, 26, 27), (4, 9, 22, 30))
+    origins = ([0.2, -0.1, 2.5], [-0.6, 0.3, 2.4], [0.5, 0.5, 2.2])
+    sensors = {}
+    for i, (o, (x0, y0, x1, y1)) in enumerate(zip(origins, crops)):
+        sensors[f"cam{i}"] = {"type": "perspective", "fov": 45,
+                              "to_world": mi.ScalarTransform4f().look_at(o, [0, 0, 0], [0, 1, 0]),
+                              "film": {"type": "hdrfilm", "width": RES, "height": RES, "sample_border": True,
+                                       "rfilter": {"type": "box"}, "crop_offset_x": x0, "crop_offset_y": y0,
+                                       "crop_width": x1 - x0, "crop_height": y1 - y0},
+                              "sampler": {"type": "independent", "sample_count": 4}}
+    scene = mi.load_dict({"type": "scene", **sensors,
+                          "integrator": {"type": NAMES["prb_projective"], "max_depth": 2, "sppc": 4, "sppp": 1,
+                                         "sppi": 0, "silhouette_samples": 256},
+                          "square": {"type": "obj", "filename": str(obj), "face_normals": True,
+                                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 0.8, 0.6]}}}})
+    params = mi.traverse(scene)
+    key = "square.vertex_positions"
+    base = dr.detach(params[key])
+    shift = mi.Float(np.tile(np.float32([1.0, 0.0, 0.0]), dr.width(base) // 3))
+
+    def step(view: int) -> tuple[dict, float]:
+        """({hash: operation count} of the JIT kernels launched, x-gradient) of one render and backward pass of
+        ``view``."""
+        tx = mi.Float(0.0)
+        dr.enable_grad(tx)
+        params[key] = base + shift * tx
+        params.update()
+        dr.eval()
+        dr.sync_thread()
+        dr.kernel_history_clear()
+        img = mi.render(scene, params, sensor=view, spp=0, seed=10 + view, seed_grad=100 + view)
+        w = dr.width(img.array) // 3
+        dr.backward(dr.sum(img.array * mi.Float(np.linspace(0, 1, w * 3, dtype=np.float32))))
+        g = float(dr.grad(tx)[0])
+        dr.sync_thread()
+        return {k["hash"]: k["operation_count"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}, g
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        step(0)  # (whatever earlier work is still pending runs here)
+        first, g0 = step(0)
+        same, g1 = step(1)
+        other, _ = step(2)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    new_same = {h: n for h, n in same.items() if h not in first}
+    new_other = {h: n for h, n in other.items() if h not in first}
+    assert g0 != 0.0 and g1 != 0.0 and g0 != g1  # both views see the square, from different poses
+    assert max(first.values()) >= 1000  # the render and silhouette kernels (1,000-4,000 operations)
+    # the second view of the window reuses them; what it adds is small: Mitsuba's silhouette precomputation
+    # (``precompute_silhouette(ScalarPoint3f viewpoint)``) bakes the viewpoint into a ~150-operation kernel
+    assert new_same and max(new_same.values()) < 500
+    assert max(new_other.values()) >= 1000  # another window: its own render and silhouette kernels

@@ -4,6 +4,7 @@ line on the CLI. The terms themselves are tested in ``test_detail_term.py``, ``t
 ``test_coarse_level.py``."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from camo_base.errors import CamoError
@@ -39,3 +40,18 @@ def test_cli_rejects_a_negative_weight_in_one_line(field, value, capsys):
     assert rc not in (0, None)
     err = capsys.readouterr().err.strip().splitlines()
     assert err and flag in err[-1]
+
+
+def test_training_windows_are_one_window_bounding_every_views_domain():
+    """Stage 1's training windows: by default every view gets the bounding box of all views' loss domains (one crop
+    window, so one set of kernels: tests/test_projective.py); per view, each domain's own box; full frames for
+    ``domain = "frame"``; an empty domain keeps a 1 x 1 window."""
+    from optimizer.optimise.stage1 import training_windows
+
+    dom = np.zeros((3, 10, 12), np.float32)
+    dom[0, 2:5, 3:7] = 1.0
+    dom[1, 6:9, 1:4] = 0.5
+    assert training_windows(dom, "object+shadow") == [(1, 2, 7, 9)] * 3  # (x0, y0, x1, y1), end exclusive
+    assert training_windows(dom, "object+shadow", shared=False) == [(3, 2, 7, 5), (1, 6, 4, 9), (0, 0, 1, 1)]
+    assert training_windows(dom, "frame") is None
+    assert training_windows(np.zeros((2, 4, 4)), "object+shadow") == [(0, 0, 1, 1)] * 2

@@ -204,15 +204,25 @@ def render_targets(env: Environment, cams: list[Camera], obj_mesh, integrator: d
     return Targets(bg, coverage, np.stack(dom), np.stack(depth)), init
 
 
-def training_windows(domain: np.ndarray, mode: str) -> list[tuple[int, int, int, int]] | None:
+def training_windows(domain: np.ndarray, mode: str, shared: bool = True) -> list[tuple[int, int, int, int]] | None:
     """Per view, the window ``(x0, y0, x1, y1)`` of the training render: the bounding box of the loss domain
     ``(V, H, W)`` (pixels outside it weigh 0 in the loss, so the loss and its gradient are those of the full frame;
     the silhouette pass is splatted into the window, :func:`optimizer.rendering.projective.silhouette_pass`).
-    None (full frames) for ``mode == "frame"``; a view with an empty domain keeps a 1 x 1 window."""
+    None (full frames) for ``mode == "frame"``; a view with an empty domain keeps a 1 x 1 window.
+
+    ``shared`` (the default): every view gets the one window bounding all views' domains. Mitsuba bakes a film's
+    crop (its size and offset: the sensor's sample-to-camera transform, the image block's size and offset, the
+    wavefront's width) into each kernel as literals, so a window per view compiles every render and silhouette
+    kernel once per view (measured on meadow, 4 views at 64 px: ~5-6 CPU s per view's first silhouette pass,
+    docs/results/planner.md); one window for all views compiles them once. Still exact: a larger window renders
+    more pixels the loss weighs 0."""
     from optimizer.rendering.region import bbox
 
     if mode == "frame":
         return None
+    if shared:
+        b = bbox(np.any(np.asarray(domain) > 0, axis=0))
+        return [b if b is not None else (0, 0, 1, 1)] * len(domain)
     out = []
     for d in domain:
         b = bbox(np.asarray(d) > 0)
@@ -241,6 +251,8 @@ class Stage1:
     """
 
     STAGE = 1
+    #: One training window for every view (:func:`training_windows`); False: a window per view (the bench's "before").
+    shared_window = True
 
     def __init__(self, pack: ScenePack, env: Environment, prepared, cams: list[Camera], plan: Plan,
                  cfg: Stage1Config, app: AppearanceConfig, log: Callable[[str], None] = lambda s: None,
@@ -345,7 +357,7 @@ class Stage1:
             raise RuntimeError("Stage 1 is built after its targets (render_targets first)")
         self._make_optimiser()
         # the window of each view the loss reads (its domain's bounding box): training renders only it
-        self.windows = training_windows(self.targets.domain, self.cfg.domain) \
+        self.windows = training_windows(self.targets.domain, self.cfg.domain, self.shared_window) \
             if getattr(self.plan, "region", False) else None
         self._batched = uses_batch(self.plan.integrator) and self.windows is None
         self.scene = self._training_scene()
