@@ -417,7 +417,9 @@ def test_the_object_region_at_a_low_spp_gets_the_stated_samples_and_agrees_with_
     prod = r.with_object(env, mesh, cams, integ, bg, 0.5 / 255, object_spp=k)
     assert o.noise.extra_samples < prod.noise.extra_samples  # the larger, not the product
     same = (o.noise.factor == 1) & (prod.noise.factor == 1)
-    np.testing.assert_array_equal(o.image[same], prod.image[same])
+    # the same samples where both factors are 1; equal up to the LLVM backend's multi-threaded film accumulation,
+    # whose summation order moved 9 of 11,097 values by <= 1.5e-8 inside the full test run (2026-11-28)
+    np.testing.assert_allclose(o.image[same], prod.image[same], rtol=1e-6, atol=1e-7)
     with pytest.raises(ValueError, match="combine"):
         r.with_object(env, mesh, cams, integ, bg, 0.5 / 255, object_spp=k, object_combine="sum")
     # only the region, at this low spp: the same image as the whole frame's, within the noise
