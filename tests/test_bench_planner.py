@@ -106,7 +106,7 @@ def test_gradient_probe_table_lists_every_probe_in_run_order(bench_module, capsy
     rows = [{"who": "plan", "spp": 4, "rep": k, "seconds": s, "cosine": c, "loss_error": 0.0}
             for k, (s, c) in enumerate([(21.5, 0.80), (3.2, 0.84), (3.4, 0.88)])]
     rows.append({"who": "full-lt", "spp": 4, "rep": 0, "seconds": 4.1, "cosine": 0.7, "loss_error": 0.0})
-    bp.print_gradient_probes([{"scene": "meadow", "rows": rows, "warmup": {"plan@4": {"probes": 4, "seconds": 10.0}}}])
+    bp.print_gradient_probes([{"scene": "meadow", "rows": rows, "warmup": {"plan@4": {"probes": 4, "seconds": 10.0, "settle": 3.0}}}])
     out = capsys.readouterr().out
-    assert "| meadow | plan | 4 | 21.50, 3.20, 3.40 | 2.50 (4) | 0.840 +- 0.040 |" in out
+    assert "| meadow | plan | 4 | 21.50, 3.20, 3.40 | 2.50 (4); 3.00 | 0.840 +- 0.040 |" in out
     assert "| meadow | full-lt | 4 | 4.10 | - | 0.700 +- - |" in out
