@@ -13,7 +13,8 @@ of their boundary) where the ``s2`` gradient is at least 0.15 (a 14 % light step
 whatever the scale (a one-pixel step sampled on the grid: 0.82); for an edge blurred over much more than ``s2`` -- a
 penumbra -- it is ``s1 / s2`` = 0.29 (the blur-scale logic of Elder & Zucker 1998, IEEE PAMI 20, and Lindeberg
 1998, IJCV 30). Median over the rim pixels, ``-`` where fewer than 6; ``--by-scene``: per scene and method, the
-range and median of the stimuli's medians.
+range and median of the stimuli's medians; ``--regions``: per connected region in shadow (at least 20 px), its own
+rim's sharpness, pooled per scene into regions mostly on the object (> 70 % of their pixels), mixed, and off it.
 
 ``--probe SET --stimuli METHOD:VIEW,...``: for the named stimuli, the object's largest discriminability D, object
 evidence O and verification V, and the share of 100 simulated trials (seed 0) that find it, under (a) the default
@@ -104,6 +105,49 @@ def outline_table(dirs: list[Path], by_scene: bool = False) -> str:
     return "\n".join(out)
 
 
+def region_table(dirs: list[Path], min_px: int = 20) -> str:
+    """Per connected region of ground in shadow by the texture test (map > 0.5, at least ``min_px`` px): its share
+    on the object and the median sharpness of its own rim (as :func:`outline_table`); pooled per scene into the
+    regions mostly on the object (> 50 % of their pixels) and mostly off it."""
+    from scipy import ndimage
+
+    from evaluation import observer as ob
+    from study_site.stimuli import StimulusSet
+
+    cfg = ob.ObserverConfig()
+    s2 = cfg.centre_sigmas_deg[0] * cfg.feature_px_per_deg
+    out = ["| scene | regions mostly on the object: n, sharpness range (median) | mixed (30-70 % on it): n "
+           "| mostly off it: n, sharpness range (median), above 0.5 |", "|---|---|---|---|"]
+    for d in dirs:
+        sset = StimulusSet(d)
+        on_v, off_v, mixed = [], [], 0
+        for s in [s for s in sset.stimuli if not s.practice]:
+            img, mask, bg = _load(sset, s)
+            li, lb = ob._log_image(img), ob._log_image(bg)
+            r = (lb[..., 0] - li[..., 0]) / ob.LOG_UNITS
+            ratio = scale_gradient(r, FINE_PX) / np.maximum(scale_gradient(r, s2), 1e-9)
+            strong = scale_gradient(r, s2) > 0.15
+            lab, n = ndimage.label(ob.cast_shadow_map(li, lb, s2, cfg) > 0.5)
+            for k in range(1, n + 1):
+                reg = lab == k
+                if reg.sum() < min_px:
+                    continue
+                rim = ndimage.binary_dilation(reg, iterations=3) & ~ndimage.binary_erosion(reg, iterations=3) & strong
+                if rim.sum() < 6:
+                    continue
+                share, v = float(mask[reg].mean()), float(np.median(ratio[rim]))
+                if share > 0.7:
+                    on_v.append(v)
+                elif share < 0.3:
+                    off_v.append(v)
+                else:
+                    mixed += 1
+        rng = lambda v: f"{len(v)}, {min(v):.2f}-{max(v):.2f} ({np.median(v):.2f})" if v else "0"  # noqa: E731
+        out.append(f"| {sset.stimuli[0].scene} | {rng(on_v)} | {mixed} | {rng(off_v)}, "
+                   f"{sum(x > 0.5 for x in off_v)} |")
+    return "\n".join(out)
+
+
 def edge_segments(lab: np.ndarray, sky: np.ndarray, cfg, edge: float) -> np.ndarray:
     """The probe's grounds: connected places of the object-free view not on an edge (see the module docstring);
     pieces under ``SEGMENT_MIN_SHARE`` of the frame and the edges join the nearest piece; the sky its own."""
@@ -165,6 +209,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--outline", nargs="+", type=Path, default=[], help="stimulus sets: the outline table")
     ap.add_argument("--by-scene", action="store_true", help="--outline: one row per scene and method")
+    ap.add_argument("--regions", action="store_true", help="--outline: per connected region in shadow, per scene")
     ap.add_argument("--probe", type=Path, help="a stimulus set: the probe table")
     ap.add_argument("--stimuli", default="transparent:0,transparent:1,transparent:3",
                     help="METHOD:VIEW,... of --probe")
@@ -176,7 +221,7 @@ def main(argv=None) -> None:
         if not (d / "manifest.json").is_file():
             ap.error(f"{d}: not a stimulus set (no manifest.json)")
     if a.outline:
-        print(outline_table(a.outline, a.by_scene))
+        print(region_table(a.outline) if a.regions else outline_table(a.outline, a.by_scene))
     if a.probe:
         print(probe_table(a.probe, a.stimuli.split(","), a.edge))
 
