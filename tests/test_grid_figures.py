@@ -60,3 +60,22 @@ def test_stage2_table_and_figures(tmp_path, bench_module, write_eval_renders):
                tmp_path / "f.png", 40)
     im = np.asarray(Image.open(tmp_path / "f.png"))
     assert im.shape == (18 + 2 * 40, 3 * 40, 3)  # view 7 does not exist: two rows
+
+
+def test_stage2_table_shows_lpips_and_the_give_away_measures_when_computed(tmp_path, bench_module,
+                                                                          write_eval_renders):
+    gf = bench_module("grid_figures")
+    grid = tmp_path / "grid"
+    a = make_cell(write_eval_renders, grid, "a" * 16, "none", 150, 30.0)
+    b = make_cell(write_eval_renders, grid, "b" * 16, "inpainting", 255, 20.0)
+    a = a.assign(lpips=[0.20, 0.30], detail_ratio=[1.5, 1.7], tint=[2.0, 4.0])  # Stage 1 + 2: detail 1.6, 0.6 off
+    b = b.assign(lpips=[0.30, 0.30], detail_ratio=[0.7, 0.7], tint=[1.0, 1.0])  # Stage 1 only: 0.7, 0.3 off
+    pd.concat([a, b]).to_parquet(grid / "metrics.parquet")
+    table = gf.stage2_table(grid, gf.load_runs(grid))
+    assert table.startswith("| scene | variant | LPIPS↓ | PSNR↑ | SSIM↑ | LPIPS-proxy↓ | SIFID-proxy↓ | Detail→1 | "
+                            "Tint↓ | sparkle % | Stage 2 s |")
+    assert "| gravel | Stage 1 only | 0.3000 | 21.00 | 0.5000 | 0.3000 | 0.0100 | 0.70 | 1.00 | 100.00 | 0.0 |" in table
+    assert "| gravel | Stage 1 + 2 | 0.2500 | 31.00 | 0.5000 | 0.3000 | 0.0100 | 1.60 | 3.00 | 0.00 | 5.0 |" in table
+    # the detail ratio is best at 1: Stage 1 only's 0.70 beats 1.60
+    assert ("Stage 1 + 2 is better than Stage 1 only: LPIPS 1, PSNR 1, SSIM 0, LPIPS-proxy 0, SIFID-proxy 0, "
+            "Detail 0, Tint 0, sparkle % 1;") in table
