@@ -3,6 +3,7 @@
 * ``stage2_<scene>.png``: the paper's Fig. 14 comparison per scene -- background | Stage 1 only (the
   ``inpainting`` ablation) | Stage 1 + 2, on evaluation (novel, jittered) views, cropped around the object.
 * ``methods_<scene>.png``: one column per method (and ablation) on one scene.
+* ``per_scene.md``: per scene and method, LPIPS / PSNR / detail ratio / tint on the object crop (those computed).
 * ``stage2.md``: per scene, Stage 1 only vs Stage 1 + 2 on the object crop (LPIPS and the give-away measures
   detail ratio and tint when the grid computed them, PSNR, SSIM, LPIPS-proxy, SIFID-proxy; mean over the
   evaluation views) and the share of object pixels brighter than the brightest
@@ -145,6 +146,44 @@ def stage2_table(grid: Path, runs) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Per-scene table cells: (column, decimals), shown when computed; the first shown is the one whose best is bold.
+PER_SCENE = (("lpips", 3), ("psnr", 2), ("detail_ratio", 2), ("tint", 1))
+
+
+def per_scene_table(grid: Path) -> str:
+    """Per scene (rows) and method label (columns, Table II order): ``LPIPS / PSNR / detail ratio / tint`` on the
+    object crop, each the mean over a run's views then over the label's runs (the report's per-scene values); bold:
+    the best LPIPS of the scene (PSNR when no LPIPS was computed)."""
+    from evaluation.report import label_order, method_label
+
+    m = pd.read_parquet(grid / "metrics.parquet")
+    m = m[m["region"] == "crop"].copy()
+    cols = [(c, d) for c, d in PER_SCENE if c in m.columns and m[c].notna().any()]
+    if not cols:
+        raise SystemExit(f"grid_figures: {grid}/metrics.parquet has none of {', '.join(c for c, _ in PER_SCENE)}")
+    m["label"] = [method_label(a, b) for a, b in zip(m["method"], m["ablation"])]
+    order = {lab: label_order(a, b) for lab, a, b in zip(m["label"], m["method"], m["ablation"])}
+    names = [c for c, _ in cols]
+    t = m.groupby(["scene", "label", "run"])[names].mean().groupby(level=["scene", "label"]).mean()
+    labels = sorted(t.index.get_level_values("label").unique(), key=lambda lab: order[lab])
+    key, sign = cols[0][0], (1 if cols[0][0] == "psnr" else -1)
+    head = ["scene"] + labels
+    lines = [" / ".join({"lpips": "LPIPS↓", "psnr": "PSNR↑", "detail_ratio": "detail ratio→1", "tint": "tint↓"}[c]
+                        for c in names), "", "| " + " | ".join(head) + " |", "|---|" + "---:|" * len(labels)]
+    for scene in sorted(t.index.get_level_values("scene").unique()):
+        sub = t.xs(scene, level="scene")
+        best = max((sign * sub.loc[lab, key] for lab in sub.index if pd.notna(sub.loc[lab, key])), default=None)
+        cells = []
+        for lab in labels:
+            if lab not in sub.index:
+                cells.append("—")
+                continue
+            text = " / ".join(f"{sub.loc[lab, c]:.{d}f}" for c, d in cols)
+            cells.append(f"**{text}**" if best is not None and sign * sub.loc[lab, key] == best else text)
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("grid_out", type=Path)
@@ -169,6 +208,9 @@ def main() -> None:
     table = stage2_table(args.grid_out, runs)
     (args.out / "stage2.md").write_text(table)
     print(table)
+    scenes_md = per_scene_table(args.grid_out)
+    (args.out / "per_scene.md").write_text(scenes_md)
+    print(scenes_md)
 
 
 if __name__ == "__main__":
