@@ -160,7 +160,8 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
         if c not in df.columns:
             df[c] = "run" if c == "source" else np.nan  # tables written before the column existed
     df["source"] = df["source"].fillna("run")
-    for c in (*SECONDS_COLUMNS, *(m for m, _ in TABLE_METRICS), "spp", "width", "height", "jitter"):
+    for c in (*SECONDS_COLUMNS, *(m for m, _ in TABLE_METRICS), *(f"sqerr_{p}" for p in SPLIT_PARTS), "spp", "width",
+              "height", "jitter"):
         df[c] = pd.to_numeric(df[c], errors="coerce")  # "" in hand-made tables -> NaN
     ident = [c for c in df.columns if not str(c).startswith("seconds_") and c != "_eval_dir"]
     df = df.loc[~df[ident].astype(str).duplicated()].reset_index(drop=True)
