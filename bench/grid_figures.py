@@ -3,8 +3,10 @@
 * ``stage2_<scene>.png``: the paper's Fig. 14 comparison per scene -- background | Stage 1 only (the
   ``inpainting`` ablation) | Stage 1 + 2, on evaluation (novel, jittered) views, cropped around the object.
 * ``methods_<scene>.png``: one column per method (and ablation) on one scene.
-* ``stage2.md``: per scene, Stage 1 only vs Stage 1 + 2 on the object crop (PSNR, SSIM, LPIPS-proxy,
-  SIFID-proxy; mean over the evaluation views) and the share of object pixels brighter than the brightest
+* ``per_scene.md``: per scene and method, LPIPS / PSNR / detail ratio / tint on the object crop (those computed).
+* ``stage2.md``: per scene, Stage 1 only vs Stage 1 + 2 on the object crop (LPIPS and the give-away measures
+  detail ratio and tint when the grid computed them, PSNR, SSIM, LPIPS-proxy, SIFID-proxy; mean over the
+  evaluation views) and the share of object pixels brighter than the brightest
   0.5 % of the background ("sparkle %": isolated specular highlights), plus the Stage 2 seconds.
 
     python bench/grid_figures.py GRID_OUT --out figures [--views 0,2,5] [--methods-scene gravel]
@@ -96,9 +98,24 @@ def file_stem(scene: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "scene"
 
 
+#: Stage 2 table columns: (metrics.parquet column, header, decimals, direction: +1 higher is better, -1 lower, 0 best
+#: at 1). LPIPS and the give-away measures are shown when the grid computed them (``[evaluate] metrics``).
+STAGE2_METRICS = (("lpips", "LPIPS↓", 4, -1), ("psnr", "PSNR↑", 2, 1), ("ssim", "SSIM↑", 4, 1),
+                  ("lpips_proxy", "LPIPS-proxy↓", 4, -1), ("sifid_proxy", "SIFID-proxy↓", 4, -1),
+                  ("detail_ratio", "Detail→1", 2, 0), ("tint", "Tint↓", 2, -1))
+OPTIONAL = {"lpips", "detail_ratio", "tint"}
+
+
+def _better(a: float, b: float, direction: int) -> bool:
+    """Whether ``a`` is better than ``b`` (direction 0: closer to 1)."""
+    return a > b if direction > 0 else a < b if direction < 0 else abs(a - 1) < abs(b - 1)
+
+
 def stage2_table(grid: Path, runs) -> str:
     metrics = pd.read_parquet(grid / "metrics.parquet")
     metrics = metrics[metrics["region"] == "crop"]
+    cols = [c for c in STAGE2_METRICS if c[0] not in OPTIONAL or (c[0] in metrics and metrics[c[0]].notna().any())]
+    cols += [("sparkle", "sparkle %", 2, -1)]
     rows = []
     for (scene, method, ablation), (cell, evdir, recs) in sorted(runs.items()):
         if method != "ours" or ablation not in ("none", "inpainting"):
@@ -106,25 +123,64 @@ def stage2_table(grid: Path, runs) -> str:
         m = metrics[metrics["run"] == cell["name"]]
         log_path = next((grid / "cells" / cell["key"] / "run").glob("*/log.jsonl"))
         stage2 = [r for r in map(json.loads, log_path.read_text().splitlines()) if r.get("stage") == 2]
-        rows.append((scene, "Stage 1 only" if ablation == "inpainting" else "Stage 1 + 2", m["psnr"].mean(),
-                     m["ssim"].mean(), m["lpips_proxy"].mean(), m["sifid_proxy"].mean(),
-                     100 * sparkle_share(evdir, recs), sum(r.get("seconds_total", r["seconds"]) for r in stage2)))
+        values = {c[0]: float(m[c[0]].mean()) for c in cols[:-1]}
+        values["sparkle"] = 100 * sparkle_share(evdir, recs)
+        rows.append((scene, "Stage 1 only" if ablation == "inpainting" else "Stage 1 + 2", values,
+                     sum(r.get("seconds_total", r["seconds"]) for r in stage2)))
     rows.sort(key=lambda r: (r[0], r[1] != "Stage 1 only"))
-    head = ["scene", "variant", "PSNR↑", "SSIM↑", "LPIPS-proxy↓", "SIFID-proxy↓", "sparkle %", "Stage 2 s"]
+    head = ["scene", "variant"] + [c[1] for c in cols] + ["Stage 2 s"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        lines.append(f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.4f} | {r[4]:.4f} | {r[5]:.4f} | {r[6]:.2f} | {r[7]:.1f} |")
+    for scene, variant, values, seconds in rows:
+        cells = [f"{values[c[0]]:.{c[2]}f}" for c in cols]
+        lines.append(f"| {scene} | {variant} | " + " | ".join(cells) + f" | {seconds:.1f} |")
     by = {}
     for r in rows:
-        by.setdefault(r[0], {})[r[1]] = r
+        by.setdefault(r[0], {})[r[1]] = r[2]
     both = [v for v in by.values() if len(v) == 2]
     if both:
-        wins = [sum(v["Stage 1 + 2"][k] > v["Stage 1 only"][k] if k < 4 else v["Stage 1 + 2"][k] < v["Stage 1 only"][k]
-                    for v in both) for k in range(2, 7)]
-        same = sum(all(v["Stage 1 + 2"][k] == v["Stage 1 only"][k] for k in range(2, 7)) for v in both)
-        lines += ["", f"Scenes (of {len(both)}) where Stage 1 + 2 is better than Stage 1 only: PSNR {wins[0]}, "
-                      f"SSIM {wins[1]}, LPIPS-proxy {wins[2]}, SIFID-proxy {wins[3]}, sparkle % {wins[4]}; "
-                      f"the same figures (Stage 1's iterate kept) in {same}."]
+        wins = [sum(_better(v["Stage 1 + 2"][c[0]], v["Stage 1 only"][c[0]], c[3]) for v in both) for c in cols]
+        same = sum(all(v["Stage 1 + 2"][c[0]] == v["Stage 1 only"][c[0]] for c in cols) for v in both)
+        lines += ["", f"Scenes (of {len(both)}) where Stage 1 + 2 is better than Stage 1 only: "
+                      + ", ".join(f"{c[1].rstrip('↑↓').replace('→1', '')} {w}" for c, w in zip(cols, wins))
+                      + f"; the same figures (Stage 1's iterate kept) in {same}."]
+    return "\n".join(lines) + "\n"
+
+
+#: Per-scene table cells: (column, decimals), shown when computed; the first shown is the one whose best is bold.
+PER_SCENE = (("lpips", 3), ("psnr", 2), ("detail_ratio", 2), ("tint", 1))
+
+
+def per_scene_table(grid: Path) -> str:
+    """Per scene (rows) and method label (columns, Table II order): ``LPIPS / PSNR / detail ratio / tint`` on the
+    object crop, each the mean over a run's views then over the label's runs (the report's per-scene values); bold:
+    the best LPIPS of the scene (PSNR when no LPIPS was computed)."""
+    from evaluation.report import label_order, method_label
+
+    m = pd.read_parquet(grid / "metrics.parquet")
+    m = m[m["region"] == "crop"].copy()
+    cols = [(c, d) for c, d in PER_SCENE if c in m.columns and m[c].notna().any()]
+    if not cols:
+        raise SystemExit(f"grid_figures: {grid}/metrics.parquet has none of {', '.join(c for c, _ in PER_SCENE)}")
+    m["label"] = [method_label(a, b) for a, b in zip(m["method"], m["ablation"])]
+    order = {lab: label_order(a, b) for lab, a, b in zip(m["label"], m["method"], m["ablation"])}
+    names = [c for c, _ in cols]
+    t = m.groupby(["scene", "label", "run"])[names].mean().groupby(level=["scene", "label"]).mean()
+    labels = sorted(t.index.get_level_values("label").unique(), key=lambda lab: order[lab])
+    key, sign = cols[0][0], (1 if cols[0][0] == "psnr" else -1)
+    head = ["scene"] + labels
+    lines = [" / ".join({"lpips": "LPIPS↓", "psnr": "PSNR↑", "detail_ratio": "detail ratio→1", "tint": "tint↓"}[c]
+                        for c in names), "", "| " + " | ".join(head) + " |", "|---|" + "---:|" * len(labels)]
+    for scene in sorted(t.index.get_level_values("scene").unique()):
+        sub = t.xs(scene, level="scene")
+        best = max((sign * sub.loc[lab, key] for lab in sub.index if pd.notna(sub.loc[lab, key])), default=None)
+        cells = []
+        for lab in labels:
+            if lab not in sub.index:
+                cells.append("—")
+                continue
+            text = " / ".join(f"{sub.loc[lab, c]:.{d}f}" for c, d in cols)
+            cells.append(f"**{text}**" if best is not None and sign * sub.loc[lab, key] == best else text)
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -152,6 +208,9 @@ def main() -> None:
     table = stage2_table(args.grid_out, runs)
     (args.out / "stage2.md").write_text(table)
     print(table)
+    scenes_md = per_scene_table(args.grid_out)
+    (args.out / "per_scene.md").write_text(scenes_md)
+    print(scenes_md)
 
 
 if __name__ == "__main__":

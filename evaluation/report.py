@@ -38,7 +38,7 @@ import numpy as np
 
 from camo_base.errors import CamoError, SettingError
 
-from evaluation.evaldir import SECONDS_COLUMNS
+from evaluation.evaldir import SECONDS_COLUMNS, SPLIT_PARTS
 from evaluation.metrics.registry import METRICS, table_metrics
 from optimizer.assets.conditions import condition
 
@@ -47,6 +47,13 @@ from optimizer.assets.conditions import condition
 #: column is shown when its metric was computed in some evaluation.
 TABLE_METRICS = tuple((m.name, m.header + (" (cross-check)" if m.cross_check else "")) for m in table_metrics())
 HIGHER_IS_BETTER = {n for n, m in METRICS.items() if m.higher_is_better}
+#: The third give-away measure of Table II, after the metric columns (issue #29): the cast shadow's share of the crop's
+#: squared error, from the object / shadow / rest split every evaluation records (:mod:`evaluation.giveaway`). Per
+#: scene it is the scene's mean ``sqerr_shadow`` over its mean MSE (the value of the "Where the object gives itself
+#: away" section), then mean ± std over scenes like the metrics. Never bold: a small share is not better in itself
+#: (an object that is plain to see has a small shadow share too); read it beside the PSNR.
+SHADOW_SHARE = "shadow_share"
+SHADOW_SHARE_HEADER = "Shadow share"
 
 
 def inline_html(text: str) -> str:
@@ -60,7 +67,7 @@ def inline_html(text: str) -> str:
 
 def table_header(metrics) -> str:
     """The Markdown header line of a Table II over the metric columns ``metrics`` (names, in table order)."""
-    names = dict(TABLE_METRICS)
+    names = dict(TABLE_METRICS, **{SHADOW_SHARE: SHADOW_SHARE_HEADER})
     return "| Model | " + " | ".join(names[m] for m in metrics) + " | Scenes |"
 
 
@@ -72,6 +79,25 @@ def metric_name(metric: str) -> str:
 def shown_metrics(df) -> list[str]:
     """The table's metric columns computed somewhere in ``df`` (in table order)."""
     return [m for m, _ in TABLE_METRICS if m in df.columns and df[m].notna().any()]
+
+
+def has_split(df) -> bool:
+    """Whether some row of ``df`` has the object / shadow / rest squared-error split (Table II's shadow share)."""
+    return all(f"sqerr_{p}" in df.columns for p in SPLIT_PARTS) and df["sqerr_shadow"].notna().any()
+
+
+def _split_columns(d) -> list[str]:
+    return [f"sqerr_{p}" for p in SPLIT_PARTS] if has_split(d) else []
+
+
+def _with_shadow_share(t):
+    """``t`` (rows already averaged, with the ``sqerr_*`` columns) with :data:`SHADOW_SHARE`: the shadow's part of
+    the summed parts, NaN where there is no split or no error at all."""
+    cols = [f"sqerr_{p}" for p in SPLIT_PARTS]
+    if not all(c in t.columns for c in cols):
+        return t.assign(**{SHADOW_SHARE: np.nan})
+    total = t[cols].sum(axis=1, min_count=len(cols))
+    return t.assign(**{SHADOW_SHARE: (t["sqerr_shadow"] / total).where(total > 0)})
 #: Seconds columns of Table II after the metric columns: (column, header). Method seconds are per run (a run
 #: directory's setup and Stage 1 / Stage 2 from its summary.json and log.jsonl; ``Method s`` their sum, or the
 #: user's ``--seconds`` for an asset or triplets), evaluation rendering per view, each metric per image pair.
@@ -134,7 +160,8 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
         if c not in df.columns:
             df[c] = "run" if c == "source" else np.nan  # tables written before the column existed
     df["source"] = df["source"].fillna("run")
-    for c in (*SECONDS_COLUMNS, *(m for m, _ in TABLE_METRICS), "spp", "width", "height", "jitter"):
+    for c in (*SECONDS_COLUMNS, *(m for m, _ in TABLE_METRICS), *(f"sqerr_{p}" for p in SPLIT_PARTS), "spp", "width",
+              "height", "jitter"):
         df[c] = pd.to_numeric(df[c], errors="coerce")  # "" in hand-made tables -> NaN
     ident = [c for c in df.columns if not str(c).startswith("seconds_") and c != "_eval_dir"]
     df = df.loc[~df[ident].astype(str).duplicated()].reset_index(drop=True)
@@ -191,17 +218,17 @@ def summary(df, region: str = "crop"):
     """
     import pandas as pd
 
-    metrics = [m for m, _ in TABLE_METRICS]
+    metrics = [m for m, _ in TABLE_METRICS] + [SHADOW_SHARE]
     d = _with_metric_columns(df.loc[df["region"] == region])
     if d.empty:
         return pd.DataFrame(columns=metrics + [f"{m}_std" for m in metrics] + ["scenes"])
-    metrics = metrics + [c for c in SECONDS_COLUMNS if c in d.columns]
-    per_run = d.groupby(["label", "scene", "run"], sort=False)[metrics].mean()
-    per_scene = per_run.groupby(level=["label", "scene"], sort=False).mean()
+    cols = metrics[:-1] + _split_columns(d) + [c for c in SECONDS_COLUMNS if c in d.columns]
+    per_run = d.groupby(["label", "scene", "run"], sort=False)[cols].mean()
+    per_scene = _with_shadow_share(per_run.groupby(level=["label", "scene"], sort=False).mean())
     g = per_scene.groupby(level="label", sort=False)
     mean, std = g.mean(), g.std(ddof=1)
     out = mean.copy()
-    for m, _ in TABLE_METRICS:
+    for m in metrics:
         out[f"{m}_std"] = std[m]
     out["scenes"] = g.size()
     order = d.drop_duplicates("label").set_index("label")["_order"]
@@ -216,8 +243,9 @@ def _with_metric_columns(d):
 
 def per_scene(df, scene: str, region: str):
     d = _with_metric_columns(df.loc[(df["region"] == region) & (df["scene"] == scene)])
-    metrics = [m for m, _ in TABLE_METRICS] + [c for c in SECONDS_COLUMNS if c in d.columns]
+    metrics = [m for m, _ in TABLE_METRICS] + _split_columns(d) + [c for c in SECONDS_COLUMNS if c in d.columns]
     t = d.groupby(["label", "run"], sort=False)[metrics].mean().groupby(level="label", sort=False).mean()
+    t = _with_shadow_share(t)
     t["views"] = d.groupby("label", sort=False)["view"].nunique()
     order = d.drop_duplicates("label").set_index("label")["_order"]
     return t.loc[sorted(t.index, key=lambda lab: order[lab])]
@@ -233,12 +261,14 @@ def _fmt(metric: str, v: float) -> str:
         return "—"
     if math.isinf(v):
         return "inf"
+    if metric == SHADOW_SHARE:
+        return f"{100 * v + 0.0:.1f}%"
     return f"{v:.{METRICS[metric].decimals if metric in METRICS else 4}f}"
 
 
 def _best(values: dict[str, float], metric: str) -> set[str]:
     finite = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
-    if len(finite) < 2:
+    if len(finite) < 2 or metric == SHADOW_SHARE:
         return set()
     if metric in METRICS:  # directed metrics and those best at a target value (the detail ratio: 1)
         bad = {k: METRICS[metric].badness(v) for k, v in finite.items()}
@@ -258,7 +288,7 @@ def table_cells(t, with_std: bool, count_col: str, times: Sequence[tuple[str, st
     """Header and rows of ``(text, is_best)`` cells for a summary / per-scene table; ``metrics``: the metric
     columns (default: every one of :data:`TABLE_METRICS`); ``times``: seconds columns ``(column, header)`` after
     the count ("-" where unknown)."""
-    names = dict(TABLE_METRICS)
+    names = dict(TABLE_METRICS, **{SHADOW_SHARE: SHADOW_SHARE_HEADER})
     metrics = [m for m, _ in TABLE_METRICS] if metrics is None else list(metrics)
     header = ["Model"] + [names[m] for m in metrics] + ["Scenes" if count_col == "scenes" else "Views"]
     header += [h for _, h in times]
@@ -937,6 +967,10 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
             method += (f" Rendered at {', '.join(map(str, low))} spp, below {GIVEAWAY_SPP}: Monte Carlo noise of the "
                        "object's paths still counts as detail (speckle); evaluate with a higher --spp to measure the "
                        "material alone.")
+    if has_split(df):
+        method += (f" `{SHADOW_SHARE_HEADER}`: the cast shadow's part of the squared error (per scene its mean over the "
+                   "mean MSE, as in \"Where the object gives itself away\"; then over scenes), never bold: a small "
+                   "share is not better in itself, read it beside the PSNR.")
     hidden = df.loc[(df["region"] == "crop") & (df["mask_pixels"] == 0)]
     if len(hidden):
         method += (f" In {len(hidden)} view(s) the object is not visible at all (empty mask): their crop rows have "
@@ -951,6 +985,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
                                                    for m, line in zip(skipped, lines)] + ["</ul>"]
 
     protos = protocols(df)
+    columns = shown + ([SHADOW_SHARE] if has_split(df) else [])
     times = _time_columns(df)
     plots: list[tuple[str, Path]] = []
     if times:
@@ -967,7 +1002,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
             t = summary(sub, region)
             if t.empty:
                 continue
-            header, rows = table_cells(t, True, "scenes", times, shown)
+            header, rows = table_cells(t, True, "scenes", times, columns)
             title = f"Table II — {REGION_TITLES[region]}{suffix}"
             md += [f"## {title}", "", markdown_table(header, rows), ""]
             ht += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows)]
@@ -978,7 +1013,7 @@ def write_report(eval_dirs: Sequence[str | Path], out: str | Path, sections=None
                 t = per_scene(sub, scene, region)
                 if t.empty:
                     continue
-                header, rows = table_cells(t, False, "views", times, shown)
+                header, rows = table_cells(t, False, "views", times, columns)
                 md += [f"### {scene} — {REGION_TITLES[region]}", "", markdown_table(header, rows), ""]
                 ht += [f"<h3>{html.escape(scene)} — {html.escape(REGION_TITLES[region])}</h3>", html_table(header, rows)]
         made = quality_vs_seconds(sub, out, f"_{k}" if len(protos) > 1 else "")

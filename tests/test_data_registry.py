@@ -496,6 +496,24 @@ def test_real_grid_parses_into_eight_pairs(tmp_path):
                                            "ganmouflage"}
 
 
+def test_real_quick_grid_is_a_part_of_the_real_grid_with_the_same_cell_keys(tmp_path):
+    """grids/real_quick.toml's 24 cells are grids/real.toml's cells (same keys, so one --out folder serves both:
+    running real.toml after it reuses them); and real.toml keeps today's optimiser default (no iterations set)."""
+    from camo.doctor import real_packs
+    from camo.grid.spec import load_grid
+    from fixture_real_data import tree_with_fake_real_data
+
+    root = REPO if all(ok for _, ok, _ in real_packs()) else tree_with_fake_real_data(tmp_path)
+    full = {c.key: c.name for c in load_grid(root / "grids" / "real.toml").cells}
+    quick = {c.key: c.name for c in load_grid(root / "grids" / "real_quick.toml").cells}
+    assert len(quick) == 2 * 6 and all(full.get(k) == n for k, n in quick.items())
+    assert {n.split("__")[1] for n in quick.values()} == {"ours", "ours-wo-inpainting", "transparent", "mean",
+                                                          "random", "ganmouflage"}
+    doc = tomllib.loads((REPO / "grids" / "real.toml").read_text())
+    assert not {"iterations", "stage2-iterations", "preset"} & set(doc["optimize"])
+    assert {"lpips", "detail_ratio", "tint"} <= set(doc["evaluate"]["metrics"])
+
+
 def test_real_grid_file_lists_existing_pair_packs():
     doc = tomllib.loads((REPO / "grids" / "real.toml").read_text())
     assert len(doc["scenes"]) == 8

@@ -271,7 +271,8 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert len(merged) == 16 + 4  # the repeated evaluation is de-duplicated
     md = (out / "report.md").read_text()
     # only computed metrics get a column (no weights here: no LPIPS, SIFID, DreamSim), the proxies as cross-checks
-    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy", "detail_ratio", "tint"]) in md
+    assert table_header(["ssim", "psnr", "lpips_proxy", "sifid_proxy", "detail_ratio", "tint", "shadow_share"]) in md
+    assert "`Shadow share`: the cast shadow's part of the squared error" in md
     assert "SIFID-proxy↓ (cross-check)" in md and "| LPIPS↓ |" not in md and "**LPIPS was not computed**" in md
     assert "- `lpips`: " in md and "camo data fetch data_manifests/lpips_weights.toml" in md  # what it needs
     assert "| Ours |" in md and "| w/o Pose + Displacement |" in md
@@ -295,6 +296,43 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert "| Ours | " in md and f"{ours:.2f}" in md and "| Ours | — |" not in md
     assert method_label("ours", "none") == "Ours" and method_label("ours", "bsdf") == "w/o BSDF (Only Albedo)"
     assert method_label("ganmouflage", "none") == "GANmouflage [7]"
+
+
+def test_table_ii_shadow_share_is_the_give_away_sections_value_per_scene(tmp_path):
+    """Table II's shadow share: per scene the mean shadow squared error over the mean MSE (the "Where the object
+    gives itself away" section's value, not the mean of per-view shares), then mean ± std over scenes; never bold;
+    "—" for a label whose rows have no split."""
+    from evaluation.giveaway_report import split_table
+    from evaluation.report import (SHADOW_SHARE, load_metrics, markdown_table, per_scene, summary, table_cells,
+                                   table_header)
+
+    rows = []
+    def add(scene, method, view, parts):
+        for region in ("crop", "full"):
+            rows.append({"run": f"{scene}_{method}", "scene": scene, "method": method, "ablation": "none",
+                         "view": view, "region": region, "psnr": 30.0, "spp": 32, "width": 64, "height": 64,
+                         "jitter": 0.0, "mask_pixels": 10,
+                         **({f"sqerr_{p}": v for p, v in zip(("object", "shadow", "rest"), parts)} if parts else {})})
+    add("a", "ours", 0, (0.3, 0.1, 0.0))   # share 0.25
+    add("a", "ours", 1, (0.0, 0.1, 0.1))   # share 0.5; the scene's means (0.15, 0.1, 0.05): 1/3, not 0.375
+    add("b", "ours", 0, (0.1, 0.3, 0.0))   # 0.75
+    add("a", "mean", 0, (0.2, 0.0, 0.0))   # 0: the smallest share, still not bold
+    add("a", "random", 0, None)            # no split (an older table): "—"
+    d = tmp_path / "ev"
+    d.mkdir()
+    pd.DataFrame(rows).to_parquet(d / "metrics.parquet")
+    df = load_metrics([d])
+    t = summary(df, "crop")
+    assert t.loc["Ours", SHADOW_SHARE] == pytest.approx((1 / 3 + 0.75) / 2)
+    assert t.loc["Ours", f"{SHADOW_SHARE}_std"] == pytest.approx((0.75 - 1 / 3) / 2 ** 0.5)
+    assert t.loc["Mean [6]", SHADOW_SHARE] == 0.0 and np.isnan(t.loc["Random [6]", SHADOW_SHARE])
+    assert per_scene(df, "a", "crop").loc["Ours", SHADOW_SHARE] == pytest.approx(1 / 3)
+    assert [r["se_shadow"] for r in split_table(df, "a") if r["label"] == "Ours"] == [pytest.approx(1 / 3)]
+    header, cells = table_cells(t, True, "scenes", (), ["psnr", SHADOW_SHARE])
+    md = markdown_table(header, cells)
+    assert md.startswith(table_header(["psnr", SHADOW_SHARE]))
+    assert "| Ours | **30.00 ± 0.00** | 54.2% ± 29.5% | 2 |" in md
+    assert "| Mean [6] | **30.00** | 0.0% | 1 |" in md and "| Random [6] | **30.00** | — | 1 |" in md
 
 
 def test_report_order_follows_table_ii():

@@ -60,3 +60,40 @@ def test_stage2_table_and_figures(tmp_path, bench_module, write_eval_renders):
                tmp_path / "f.png", 40)
     im = np.asarray(Image.open(tmp_path / "f.png"))
     assert im.shape == (18 + 2 * 40, 3 * 40, 3)  # view 7 does not exist: two rows
+
+
+def test_stage2_table_shows_lpips_and_the_give_away_measures_when_computed(tmp_path, bench_module,
+                                                                          write_eval_renders):
+    gf = bench_module("grid_figures")
+    grid = tmp_path / "grid"
+    a = make_cell(write_eval_renders, grid, "a" * 16, "none", 150, 30.0)
+    b = make_cell(write_eval_renders, grid, "b" * 16, "inpainting", 255, 20.0)
+    a = a.assign(lpips=[0.20, 0.30], detail_ratio=[1.5, 1.7], tint=[2.0, 4.0])  # Stage 1 + 2: detail 1.6, 0.6 off
+    b = b.assign(lpips=[0.30, 0.30], detail_ratio=[0.7, 0.7], tint=[1.0, 1.0])  # Stage 1 only: 0.7, 0.3 off
+    pd.concat([a, b]).to_parquet(grid / "metrics.parquet")
+    table = gf.stage2_table(grid, gf.load_runs(grid))
+    assert table.startswith("| scene | variant | LPIPS↓ | PSNR↑ | SSIM↑ | LPIPS-proxy↓ | SIFID-proxy↓ | Detail→1 | "
+                            "Tint↓ | sparkle % | Stage 2 s |")
+    assert "| gravel | Stage 1 only | 0.3000 | 21.00 | 0.5000 | 0.3000 | 0.0100 | 0.70 | 1.00 | 100.00 | 0.0 |" in table
+    assert "| gravel | Stage 1 + 2 | 0.2500 | 31.00 | 0.5000 | 0.3000 | 0.0100 | 1.60 | 3.00 | 0.00 | 5.0 |" in table
+    # the detail ratio is best at 1: Stage 1 only's 0.70 beats 1.60
+    assert ("Stage 1 + 2 is better than Stage 1 only: LPIPS 1, PSNR 1, SSIM 0, LPIPS-proxy 0, SIFID-proxy 0, "
+            "Detail 0, Tint 0, sparkle % 1;") in table
+
+
+def test_per_scene_table_means_over_views_and_bolds_the_best_lpips(tmp_path, bench_module):
+    gf = bench_module("grid_figures")
+    rows = []
+    for run, method, abl, lp, ps in (("s__ours", "ours", "none", (0.1, 0.3), (30, 32)),
+                                     ("s__ours-wo", "ours", "inpainting", (0.25, 0.25), (29, 29)),
+                                     ("s__mean", "mean", "none", (0.4, 0.5), (25, 26))):
+        for v in (0, 1):
+            for region in ("crop", "full"):
+                rows.append({"run": run, "scene": "real-s", "method": method, "ablation": abl, "view": v,
+                             "region": region, "lpips": lp[v] + (region == "full"), "psnr": float(ps[v]),
+                             "detail_ratio": 1.5, "tint": 2.0})
+    (tmp_path / "g").mkdir()
+    pd.DataFrame(rows).to_parquet(tmp_path / "g" / "metrics.parquet")
+    md = gf.per_scene_table(tmp_path / "g")
+    assert "| scene | Mean [6] | w/o Inpainting | Ours |" in md  # Table II order
+    assert "| real-s | 0.450 / 25.50 / 1.50 / 2.0 | 0.250 / 29.00 / 1.50 / 2.0 | **0.200 / 31.00 / 1.50 / 2.0** |" in md

@@ -413,7 +413,9 @@ def test_cli_build_and_report(tmp_path, capsys):
     ev = tmp_path / "ev"
     make_fake_eval_dir(ev, scenes=("s1", "s2"), methods=("m1", "m2"), views=1, size=(40, 30))
     p = _parser()
-    args = p.parse_args(["study", "build-stimuli", str(ev), "--out", str(tmp_path / "stim"), "--copy"])
+    # --observer-trials 0: the site and the report are under test; the predictions: tests/test_power.py
+    args = p.parse_args(["study", "build-stimuli", str(ev), "--out", str(tmp_path / "stim"), "--copy",
+                         "--observer-trials", "0"])
     assert args.func(args) == 0
     assert "2 scenes x 2 methods" in capsys.readouterr().out
     app = _app(tmp_path / "stim", tmp_path, PRACTICE_TRIALS=1)

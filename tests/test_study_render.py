@@ -30,7 +30,7 @@ def built(tmp_path_factory):
     assert main(["evaluate", str(run), "--out", str(ev), "--views", "2", "--spp", "2", "--resolution", "32",
                  "--metrics", "psnr", "--quiet", "--threads", "1"]) == 0
     assert main(["study", "build-stimuli", str(ev), "--out", str(stim), "--size", "64", "--views", "6", "--spp", "4",
-                 "--synthetic-practice", "3", "--threads", "1"]) == 0
+                 "--synthetic-practice", "3", "--threads", "1", "--observer-trials", "0"]) == 0
     return root, ev, stim, json.loads((stim / "manifest.json").read_text())
 
 
@@ -91,7 +91,7 @@ def test_an_asset_is_rendered_again_on_the_runs_framings(built, tmp_path):
     # --no-noise-match: noise matching gives a pixel extra samples from its neighbours' noise at 4 spp, which two
     # results one 8-bit albedo level apart may estimate either side of a step (a few pixels then differ by noise)
     assert main(["study", "build-stimuli", str(ev), "--out", str(st), "--size", "64", "--views", "3", "--spp", "4",
-                 "--synthetic-practice", "0", "--threads", "1", "--no-noise-match"]) == 0
+                 "--synthetic-practice", "0", "--threads", "1", "--no-noise-match", "--observer-trials", "0"]) == 0
     man = json.loads((st / "manifest.json").read_text())
     assert man["mode"] == "render" and {s["method"] for s in man["stimuli"]} == {"mean", "theirs"}
     theirs = [s for s in man["stimuli"] if s["method"] == "theirs"]
