@@ -656,6 +656,13 @@ def bench_gradient(name: str, args) -> dict:
             for k in its:
                 probe(st, k)
             warm[f"{who}@{spp}"] = {"probes": len(its), "seconds": clock() - t}
+    # untimed again, once per setting in the timed order: a setting's first probe after the other settings' warm-up
+    # compiled its kernels again (meadow, 4 views at 64 px: 21-24 CPU s against 3.2-4.5, kernel history shows the
+    # codegen; the cause is not found), and after that switching between settings compiled nothing
+    for (who, spp), st in stages.items():
+        t = clock()
+        probe(st, 35_000)
+        warm[f"{who}@{spp}"]["settle"] = clock() - t
     for spp in args.train_levels:
         for rep in range(args.reps):
             for who in kinds:
@@ -961,6 +968,29 @@ def print_evaluate_as(results: dict) -> None:
     print()
 
 
+def print_gradient_probes(grads: list[dict]) -> None:
+    """The check behind the gradient table: every timed probe's CPU seconds in run order per level (a compile or a
+    load spike shows as one probe far above the others; the table keeps the least), the untimed warm-up's seconds
+    per probe, and the spread of the probes' cosines (sample sd; the mean's standard error is sd / sqrt(reps))."""
+    print("\nProbes per level: step seconds of each repetition in run order; warm-up seconds per probe (probes; "
+          "then the settling probe's just before the timed ones); cosine mean +- sd over the repetitions:\n")
+    print("| scene | setting | spp | step s | warm-up s / probe | cosine mean +- sd |")
+    print("|---|---|---|---|---|---|")
+    for r in grads:
+        for who in ("plan", "full-lt", "full"):
+            for spp in sorted({x["spp"] for x in r["rows"] if x["who"] == who}):
+                xs = [x for x in r["rows"] if x["who"] == who and x["spp"] == spp]
+                c = np.array([x["cosine"] for x in xs])
+                w = r.get("warmup", {}).get(f"{who}@{spp}")
+                warm = f"{w['seconds'] / max(w['probes'], 1):.2f} ({w['probes']})" if w else "-"
+                if w and "settle" in w:  # the untimed probe just before the timed ones
+                    warm += f"; {w['settle']:.2f}"
+                sd = f"{c.std(ddof=1):.3f}" if len(c) > 1 else "-"
+                secs = ", ".join(f"{x['seconds']:.2f}" for x in xs)
+                print(f"| {r['scene']} | {who} | {spp} | {secs} | {warm} | "
+                      f"{c.mean():.3f} +- {sd} |")
+
+
 def print_tables(results: dict) -> None:
     a = results["args"]
     print(f"\nbackend {results['backend']}; {a['views']} views at {a['resolution']}^2; seconds = {a.get('clock', 'wall')} seconds; "
@@ -1123,6 +1153,7 @@ def print_tables(results: dict) -> None:
                     ts = float(np.median([c["plan"][k][0] / c[who][k][0] for k in common]))
                     print(f"- {r['scene']} vs {who}: cosine {cp / cf:.2f} of full's, step seconds {ts:.2f} of full's "
                           f"({', '.join(common)} spp)")
+        print_gradient_probes(results["grad"])
         for who in ("full", "full-lt"):
             sp = [r[who]["speedup"] for r in results["grad"] if who in r]
             cr = [r[who]["cosine_ratio"] for r in results["grad"] if who in r]

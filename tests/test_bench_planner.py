@@ -97,3 +97,16 @@ def test_gradient_warmup_gives_every_view_its_silhouette_pass(bench_module):
             *[set(silhouette_view_weights(ids, 4, j, 0)) for j in its if j < k])
     assert bp.warmup_iterations(stage(4, 1), 2, 100) == [100, 101]  # every view each step
     assert bp.warmup_iterations(stage(4, 4, projective=False), 1, 7) == [7]
+
+
+def test_gradient_probe_table_lists_every_probe_in_run_order(bench_module, capsys):
+    """The timing check under the gradient table: each repetition's seconds in run order (a compile spike stays
+    visible though the table keeps the least), the warm-up's seconds per probe, the cosines' mean and sample sd."""
+    bp = bench_module("bench_planner")
+    rows = [{"who": "plan", "spp": 4, "rep": k, "seconds": s, "cosine": c, "loss_error": 0.0}
+            for k, (s, c) in enumerate([(21.5, 0.80), (3.2, 0.84), (3.4, 0.88)])]
+    rows.append({"who": "full-lt", "spp": 4, "rep": 0, "seconds": 4.1, "cosine": 0.7, "loss_error": 0.0})
+    bp.print_gradient_probes([{"scene": "meadow", "rows": rows, "warmup": {"plan@4": {"probes": 4, "seconds": 10.0, "settle": 3.0}}}])
+    out = capsys.readouterr().out
+    assert "| meadow | plan | 4 | 21.50, 3.20, 3.40 | 2.50 (4); 3.00 | 0.840 +- 0.040 |" in out
+    assert "| meadow | full-lt | 4 | 4.10 | - | 0.700 +- - |" in out
