@@ -64,7 +64,7 @@ readme-media: demo
 
 test: install weights viewer-js
 	bash .ci/system-deps chromium postgresql
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-slow: install weights viewer-js
 	bash .ci/system-deps chromium postgresql

@@ -14,8 +14,10 @@ import pytest
 # where camo itself looks (evaluation.metrics.weights.weights_dir), taken before CAMO_CACHE is changed below. They
 # are hidden from the tests by default, so that a test sees the same metrics on every machine; the tests of the
 # real LPIPS ask for them with the `installed_lpips` fixture (skipped, with the fix, where they are missing).
-INSTALLED_WEIGHTS = Path(os.environ.get("CAMO_WEIGHTS") or (
+# Kept in CAMO_TEST_INSTALLED_WEIGHTS for pytest-xdist's workers, which inherit the environment changed below.
+INSTALLED_WEIGHTS = Path(os.environ.get("CAMO_TEST_INSTALLED_WEIGHTS") or os.environ.get("CAMO_WEIGHTS") or (
     Path(os.environ["CAMO_CACHE"]) if os.environ.get("CAMO_CACHE") else Path.home() / ".cache" / "camo") / "weights")
+os.environ["CAMO_TEST_INSTALLED_WEIGHTS"] = str(INSTALLED_WEIGHTS)
 
 # Keep generated caches (prepared meshes, panoramas) inside the repo's ignored .cache
 # folder so tests never depend on a user's home directory state.

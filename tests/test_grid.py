@@ -575,7 +575,9 @@ def test_sigint_in_a_subprocess_then_resume(tmp_path, executor):
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "camo.cli", "grid", "run", str(grid), "--out", str(out), "--quiet",
            "--executor", executor]
-    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    # SIGINT's default disposition, as from a terminal (a background test run ignores it, and children inherit that)
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     while not list(out.glob("cells/*/DONE")):
         assert proc.poll() is None, proc.stdout.read().decode()

@@ -1046,21 +1046,25 @@ def test_background_maps_are_cached_by_content_and_configuration():
     """The object-free view's own maps are kept by content hash (``_background_maps``): a second image on the same
     background gives exactly what it gives with an empty cache; another configuration or another background is
     not served the first one's maps; the cached arrays are read-only."""
+    import dataclasses
+
     import evaluation.observer as ob
 
     bg, mask = grass(21), disc(120, 120, 15)
     img = with_object(bg, mask, 0.8)
-    other_cfg = ObserverConfig(shadow_reference="background")
+    # an 8-degree display: a quarter of the default's map pixels (the cache's logic does not depend on the size)
+    cfg = ObserverConfig(display_deg=8.0)
+    other_cfg = dataclasses.replace(cfg, shadow_reference="background")
     ob._BACKGROUND_CACHE.clear()
-    fresh = [evidence_maps(img, c, bg).verify for c in (ObserverConfig(), other_cfg)]
+    fresh = [evidence_maps(img, c, bg).verify for c in (cfg, other_cfg)]
     assert len(ob._BACKGROUND_CACHE) == 2 and not np.array_equal(fresh[0], fresh[1])
-    cached = [evidence_maps(img, c, bg).verify for c in (ObserverConfig(), other_cfg)]
+    cached = [evidence_maps(img, c, bg).verify for c in (cfg, other_cfg)]
     assert len(ob._BACKGROUND_CACHE) == 2
     for a, b in zip(fresh, cached):
         np.testing.assert_array_equal(a, b)
     bg2 = bg.copy()
     bg2[0, 0, 0] += 0.01  # one value of one pixel: another background
-    evidence_maps(with_object(bg2, mask, 0.8), background=bg2)
+    evidence_maps(with_object(bg2, mask, 0.8), cfg, bg2)
     assert len(ob._BACKGROUND_CACHE) == 3
     bgm, _ = next(iter(ob._BACKGROUND_CACHE.values()))
     with pytest.raises(ValueError):

@@ -296,7 +296,11 @@ def test_interrupted_video_continues_from_its_cached_frames(runs, tmp_path):
     def finished_frames():  # pathlib's glob also matches the dot-named half-written frame, which an interrupt removes
         return [p for p in cache.glob("*/*.png") if not p.name.startswith(".")]
 
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT as a terminal leaves it: a test run started in the background (`nohup ... &`, a CI runner) ignores
+    # SIGINT, an ignored signal is inherited, and Python then installs no KeyboardInterrupt handler -- the command
+    # rendered on and exited 0 (seen in a pytest-xdist worker, which had not imported anything that resets it)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 240
         # interrupt early (4 of 96 panel frames) and poll often: under load the render once finished all 48 of
