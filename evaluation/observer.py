@@ -946,9 +946,14 @@ def _background_maps(background: np.ndarray, cfg: ObserverConfig,
     maps are half of :func:`evidence_maps`' time (a 256-px stimulus at 16 px/deg, 300 trials: 6.0 CPU s for a
     prediction without the cache, 3.3 with it). The cached arrays are read-only, so a caller cannot change a later
     caller's null."""
-    from evaluation.turntable import _digest  # content hash of arrays (dtype, shape, bytes) and JSON-able values
+    import hashlib
 
-    key = _digest(background, segments, dataclasses.asdict(cfg))
+    h = hashlib.blake2b(repr(cfg).encode(), digest_size=16)  # (evaluation.turntable's hash would be an import cycle)
+    for a in (background, segments):
+        a = np.zeros(0, bool) if a is None else np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    key = h.hexdigest()
     hit = _BACKGROUND_CACHE.pop(key, None)
     if hit is None:
         same = background if cfg.shadow_reference == "background" else None
