@@ -112,6 +112,9 @@ ARMS = {
     # from each texel's best training view minus the warm start's multi-view mean (which leaves the body too smooth)
     "grain": ["--grain", "1"],
     "grain05": ["--grain", "0.5"],
+    # the same projected from the targets sharpened (unsharp mask, amount 2, 0.7 px): resampling the target at each
+    # texel's projection and the render's pixel box blur the projected grain twice (bench/grain_ceiling.py)
+    "grain_s2": ["--grain", "1", "--grain-sharpen", "2"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
@@ -350,7 +353,7 @@ LABELS = {"today": "ours (today)", "shadow4": "ours, shadow x4", "shadow4_t95": 
           "coarse1_auto_r10": "coarse 1 + clear R0 1.0", "coarse1_auto_r7": "coarse 1 + clear R0 0.7",
           "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5",
           "coarse1_auto_r5_keepdisp": "clear R0 0.5, disp. kept", "coarse1_auto_r5_seed1": "clear R0 0.5, seed 1", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
-          "grain": "ours + grain 1", "grain05": "ours + grain 0.5",
+          "grain": "ours + grain 1", "grain05": "ours + grain 0.5", "grain_s2": "grain 1, sharpened 2",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 

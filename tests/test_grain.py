@@ -81,7 +81,7 @@ def test_stage1_grain_layer_is_rendered_and_folded(mi_backend):
     threads = dr.thread_count()
     dr.set_thread_count(1)
     try:
-        s1 = tiny_gravel_stage1(False, views=4, warm_start=True, grain=0.8)
+        s1 = tiny_gravel_stage1(False, views=4, warm_start=True, grain=0.8, grain_sharpen=2.0)
         g, g_dr = s1._grain
         assert g.shape == s1.values["albedo"].shape
         seen = np.abs(g).sum(-1) > 0

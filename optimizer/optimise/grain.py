@@ -57,6 +57,27 @@ def best_view_weights(weight: np.ndarray) -> np.ndarray:
     return out
 
 
+#: the unsharp mask's Gaussian (pixels) of ``--grain-sharpen``
+SHARPEN_SIGMA = 0.7
+
+
+def sharpen(images: np.ndarray, amount: float, sigma: float = SHARPEN_SIGMA) -> np.ndarray:
+    """Unsharp mask ``B + amount (B - G_sigma B)`` of ``images (V, H, W, 3)`` (linear radiance; per view and channel,
+    scipy's Gaussian, reflected edges), float32, not clipped (the least-squares solve clips the albedo).
+
+    >>> x = np.zeros((1, 5, 5, 3)); x[0, 2, 2] = 1.0
+    >>> float(sharpen(x, 0.0)[0, 2, 2, 0]), bool(sharpen(x, 2.0)[0, 2, 2, 0] > 1.5), bool(sharpen(x, 2.0)[0, 2, 1, 0] < 0)
+    (1.0, True, True)
+    """
+    from scipy.ndimage import gaussian_filter
+
+    b = np.asarray(images, np.float64)
+    if amount == 0:
+        return b.astype(np.float32)
+    blur = np.stack([gaussian_filter(v, (sigma, sigma, 0), mode="reflect") for v in b])
+    return (b + amount * (b - blur)).astype(np.float32)
+
+
 def grain_map(surface, grain: np.ndarray, assigned: np.ndarray) -> np.ndarray:
     """An ``(R, R, 3)`` float32 map of per-texel ``grain (N, 3)`` on ``surface``
     (:class:`optimizer.rendering.projection.TexelSurface`) where ``assigned``; 0 elsewhere (unseen and off-chart

@@ -115,6 +115,10 @@ class Stage1Settings:
     # training view, minus the warm start's multi-view mean (optimizer/optimise/grain.py, issue 29: the body is too
     # smooth); needs the warm start; 0: off
     grain: float = 0.0
+    # > 0: the grain layer's best view reads the background targets sharpened by an unsharp mask of this amount
+    # (B + A (B - Gauss_0.7px B)): it undoes the blur of resampling the target at the texel's projection and of the
+    # render's pixel box (optimizer/optimise/grain.py); 0: the targets as they are
+    grain_sharpen: float = 0.0
     # the Stage 1 loss weight of the loss domain's pixels outside the object and its 1-px ring (its cast shadow, its
     # reflections on the ground, the rest of the dilated domain) against the object's pixels' 1 (shadow_weighted,
     # issue 29: the cast shadow gives the object away); 1: the plain domain, 0: the object alone
@@ -450,7 +454,7 @@ class Stage1:
                 values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
                 self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False),
-                grain=self._grain_gain() > 0)
+                grain=self._grain_gain() > 0, grain_sharpen=float(getattr(self.cfg, "grain_sharpen", 0.0) or 0.0))
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info
