@@ -103,3 +103,22 @@ def test_stage1_grain_layer_is_rendered_and_folded(mi_backend):
         assert s0._grain is None and s0.warm_start_info.grain is None
     finally:
         dr.set_thread_count(threads)
+
+
+def test_sharpen_is_an_unsharp_mask_against_scipy():
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(1)
+    x = rng.random((2, 9, 7, 3))
+    want = x + 2.0 * (x - np.stack([gaussian_filter(v, (0.7, 0.7, 0), mode="reflect") for v in x]))
+    np.testing.assert_allclose(grain.sharpen(x, 2.0), want, atol=1e-6)
+    np.testing.assert_allclose(grain.sharpen(np.full((1, 4, 4, 3), 0.3), 2.0), 0.3, atol=1e-6)  # flat stays flat
+    assert np.std(grain.sharpen(x, 2.0)) > 1.5 * np.std(x - x.mean())  # the pixel-scale grain is amplified
+
+
+def test_best_view_reads_the_sharpened_observations():
+    B = np.array([[[0.2] * 3], [[0.6] * 3]])  # (V=2, N=1, 3), L0 = 0, L1 = 1: albedo = the observation
+    Bs = np.array([[[0.1] * 3], [[0.7] * 3]])
+    w = np.array([[0.5], [1.0]])
+    g, ok = grain_residual(B, np.zeros_like(B), np.ones_like(B), w, best_background=Bs)
+    np.testing.assert_allclose(g[0], 0.7 - (0.5 * 0.2 + 1.0 * 0.6) / 1.5, atol=1e-6)  # best (sharpened) - mean (not)
