@@ -2,7 +2,9 @@
 layer projected from the ground").
 
 Prepares Stage 1 as a run at the give-away settings does (4 training views at 64 px, map 128 texels, displacement 64,
-3,000 vertices, targets at 64 spp, the warm start; no pose or start search: today's start as the preset gives it) and
+3,000 vertices, targets at 64 spp, the turn search, the warm start; no roughness or start search and the static
+planner's plan, not a run's measured one; the object from ``prepare_object(pack, target_vertices=3000)``, which on
+meadow solves far more texels than a run's set-up: ``bench/warmstart_visibility.py``) and
 renders the training views at 256 spp with four albedo maps that differ only on the texels the warm start solved:
 
 * ``mean``: the warm start's multi-view least-squares albedo (what every run starts from);
@@ -55,10 +57,10 @@ def main(argv=None) -> int:
     seen_obs: dict = {}
     solve = ws.grain_residual
 
-    def capture(B, L0, L1, w):  # the warm start's observations of the solved texels
+    def capture(B, L0, L1, w, **kw):  # the warm start's observations of the solved texels
         seen_obs.update(B=np.asarray(B, np.float64), L0=np.asarray(L0, np.float64), L1=np.asarray(L1, np.float64),
                         w=np.asarray(w, np.float64))
-        return solve(B, L0, L1, w)
+        return solve(B, L0, L1, w, **kw)
 
     ws.grain_residual = capture
     pack = builtin_scenes.get(a.scene)
