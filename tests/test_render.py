@@ -165,7 +165,10 @@ def test_surface_normals_are_the_room_s_planes_facing_the_camera(mi_backend):
     np.testing.assert_allclose(n[-1, 24], (0.0, 0.0, 1.0), atol=1e-4)  # floor
     np.testing.assert_allclose(n[20, 24], (0.0, -1.0, 0.0), atol=1e-4)  # north wall, towards the camera
     np.testing.assert_allclose(n[0, 24], (0.0, 0.0, -1.0), atol=1e-4)  # ceiling
-    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+    hit = depth[0] > 0  # (the built-in room's east and west walls leave gaps by its corners: no surface there)
+    assert 0.9 < hit.mean() < 1.0
+    np.testing.assert_allclose(np.linalg.norm(n[hit], axis=-1), 1.0, atol=1e-5)
+    assert (n[~hit] == 0).all()
     assert depth[0, 20, 24] == pytest.approx(6.5, abs=0.05)  # the wall at y = 6.5, straight ahead
     np.testing.assert_allclose(depth[0], coverage_and_depth_views(sc, cams[:1], None, ss=1)[1][0], rtol=1e-5)
     down = normals[1][10:, :]  # the second view looks down at the floor

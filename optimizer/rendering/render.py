@@ -214,14 +214,18 @@ def surface_normals_views(sc, cams: Sequence[Camera]) -> tuple[np.ndarray, np.nd
     nothing is hit). What the simulated observer's surfaces are read from (:func:`evaluation.observer.
     surface_labels`): a floor and a wall of one colour are two surfaces by their normals."""
     import drjit as dr
+    import mitsuba as mi
 
     rays = stack_rays([camera_rays(c, 1) for c in cams])
     si = sc.ray_intersect(rays)
     hit = si.is_valid()
     n = si.sh_frame.n
-    dr.eval(n, hit, si.t)
+    centre = mi.Point3f(np.concatenate([np.repeat(np.asarray(c.origin, np.float32)[:, None], c.width * c.height, 1)
+                                        for c in cams], 1))  # (the rays start on the near plane)
+    t = dr.select(hit, dr.norm(si.p - centre), 0.0)  # from the camera centre, as coverage_and_depth_views'
+    dr.eval(n, hit, t)
     n_np = np.asarray(n, dtype=np.float32).reshape(3, -1).T
-    t_np = np.asarray(si.t, dtype=np.float32).ravel()
+    t_np = np.asarray(t, dtype=np.float32).ravel()
     hit_np = np.asarray(hit, dtype=bool).ravel()
     d_np = np.asarray(rays.d, dtype=np.float32).reshape(3, -1).T
     flip = np.where((n_np * d_np).sum(1) > 0, -1.0, 1.0).astype(np.float32)  # towards the camera
