@@ -28,6 +28,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from camo_base.tables import read_parquet
+
 SCENES = ("meadow", "gravel", "split", "room", "occluded", "panorama")
 #: The default (the ``fast`` preset) has had the coarse level since issue 29's third session (``--coarse-grid 1``);
 #: ``today`` is the default of the code that runs, ``coarse0`` the default before (no level). The arms measured before
@@ -239,7 +241,7 @@ def table(out: Path, scenes, arms) -> str:
         evals = [d for d in sorted(out.glob(f"eval*/{scene}")) if (d / "metrics.parquet").is_file()]
         if not evals:
             continue
-        t = pd.concat([pd.read_parquet(d / "metrics.parquet") for d in evals])
+        t = pd.concat([read_parquet(d / "metrics.parquet") for d in evals])
         t = t[t.region == "crop"]
         # the shadow's share of the crop's squared error: the object / shadow / rest split (evaluation.giveaway),
         # recomputed from the saved renders so that evaluations made before the split had columns count too

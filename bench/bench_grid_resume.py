@@ -37,6 +37,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from camo_base.tables import read_parquet  # noqa: E402
 
 
 def done_cells(out: Path) -> list[Path]:
@@ -146,7 +147,7 @@ def execute_table2(out: Path) -> dict:
         (o.get("text", "") if o.get("output_type") == "stream" else
          "".join(o.get("data", {}).get("text/markdown", "") or o.get("data", {}).get("text/html", "")))
         for c in nb.cells for o in c.get("outputs", []))
-    m = pd.read_parquet(out / "metrics.parquet")
+    m = read_parquet(out / "metrics.parquet")
     missing = sorted(s for s in set(m["scene"].str.split(":").str[0]) if s not in shown)
     images = sum(1 for c in nb.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {}))
     if missing or images == 0 or "Table II" not in shown:

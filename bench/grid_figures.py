@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from PIL import Image, ImageDraw
+from camo_base.tables import read_parquet
 
 METHOD_ORDER = ["transparent", "mean", "random", "greedy", "diffusion2d", "ganmouflage", "ours"]
 REC709 = np.array([0.2126, 0.7152, 0.0722])
@@ -112,7 +113,7 @@ def _better(a: float, b: float, direction: int) -> bool:
 
 
 def stage2_table(grid: Path, runs) -> str:
-    metrics = pd.read_parquet(grid / "metrics.parquet")
+    metrics = read_parquet(grid / "metrics.parquet")
     metrics = metrics[metrics["region"] == "crop"]
     cols = [c for c in STAGE2_METRICS if c[0] not in OPTIONAL or (c[0] in metrics and metrics[c[0]].notna().any())]
     cols += [("sparkle", "sparkle %", 2, -1)]
@@ -156,7 +157,7 @@ def per_scene_table(grid: Path) -> str:
     the best LPIPS of the scene (PSNR when no LPIPS was computed)."""
     from evaluation.report import label_order, method_label
 
-    m = pd.read_parquet(grid / "metrics.parquet")
+    m = read_parquet(grid / "metrics.parquet")
     m = m[m["region"] == "crop"].copy()
     cols = [(c, d) for c, d in PER_SCENE if c in m.columns and m[c].notna().any()]
     if not cols:

@@ -39,6 +39,7 @@ import numpy as np
 
 from camo_base.errors import CamoError, SettingError, literal
 
+from camo_base.tables import write_parquet
 from evaluation.evaldir import (COLUMNS, IMAGE_ENCODING, KEY_COLUMNS, METHOD_SECONDS_COLUMNS,  # noqa: F401 (re-exported)
                                 METRIC_COLUMNS, METRIC_SECONDS_COLUMNS, REGIONS, SECONDS_COLUMNS, SHA_COLUMNS,
                                 SPLIT_COLUMNS, VARIANT_COLUMNS, hardware, hardware_text, read_eval_config,
@@ -420,7 +421,7 @@ def evaluate(inputs: Sequence[str | Path | InputSpec], out: str | Path, settings
                                                 "region_height", "region_width", "mask_pixels")})
 
     with atomic.atomic_path(out / "metrics.parquet") as tmp:
-        table.to_parquet(tmp, index=False)
+        write_parquet(table, tmp)
     with atomic.atomic_path(out / "metrics.csv") as tmp:
         table.to_csv(tmp, index=False)
     write_renders(out, entries)

@@ -51,6 +51,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from camo_base.tables import read_parquet
 from evaluation.evaldir import SPLIT_COLUMNS, SPLIT_PARTS as PARTS
 
 #: Noise multiples of the darkening a shadow pixel must exceed (see the module docstring).
@@ -204,7 +205,7 @@ def split_eval_dir(eval_dir, lpips_fn: Callable[[np.ndarray, np.ndarray], Sequen
     from evaluation.evaldir import renders_json
 
     eval_dir = Path(eval_dir)
-    rows = pd.read_parquet(eval_dir / "metrics.parquet")
+    rows = read_parquet(eval_dir / "metrics.parquet")
     files = {(str(e["run"]), int(e["view"])): e for e in renders_json(eval_dir)}
 
     def png(rel: str) -> np.ndarray:  # 8-bit values, as the metrics saw them

@@ -38,6 +38,7 @@ import numpy as np
 
 from camo_base.errors import CamoError, SettingError
 
+from camo_base.tables import read_parquet
 from evaluation.evaldir import SECONDS_COLUMNS, SPLIT_PARTS
 from evaluation.metrics.registry import METRICS, table_metrics
 from optimizer.assets.conditions import condition
@@ -146,7 +147,7 @@ def load_metrics(eval_dirs: Sequence[str | Path]):
         if not p.is_file():
             raise CamoError(f"{d}: no metrics.parquet (is this an evaluation directory from `camo evaluate`?)")
         try:
-            df = pd.read_parquet(p)
+            df = read_parquet(p)
         except Exception as exc:  # pyarrow raises several types for a corrupt file
             raise CamoError(f"{p}: cannot read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
         missing = [c for c in ("run", "scene", "method", "ablation", "view", "region") if c not in df.columns]
@@ -675,7 +676,7 @@ def load_simulated(stimuli_dirs: Sequence[str | Path]):
         if not p.is_file() or not q.is_file():
             raise SettingError.of("stimuli", f" {d}: no observer predictions (run `camo study predict {d}`)")
         try:
-            v, t = pd.read_parquet(p), pd.read_parquet(q)
+            v, t = read_parquet(p), read_parquet(q)
             c = d / "predicted_config.json"
             cfg = cfg or (json.loads(c.read_text(encoding="utf-8")) if c.is_file() else {})
         except Exception as exc:  # pyarrow raises several types for a corrupt file

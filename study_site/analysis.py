@@ -60,6 +60,7 @@ import pandas as pd
 
 from camo_base.atomic import atomic_path, write_text
 from camo_base.errors import CamoError, SettingError
+from camo_base.tables import write_parquet
 
 Z95 = 1.959963984540054
 
@@ -583,6 +584,6 @@ def write_report(
             df.to_csv(tmp, index=False)
     for name, df in (("trials", trials), ("participants", participants)):
         with atomic_path(out / f"{name}.parquet") as tmp:
-            df.to_parquet(tmp, index=False)
+            write_parquet(df, tmp)
     plot_km(formal, out / "km.png", miss_censor=miss_censor)
     return {"table": table, "pairwise": pairs, "trials": trials, "participants": participants, "baselines": baselines}

@@ -43,6 +43,7 @@ import numpy as np
 
 from camo_base import atomic, seeds
 from camo_base.errors import CamoError
+from camo_base.tables import read_parquet, write_parquet
 
 #: The simulated participants' window (CSS px) and the visual angle of the image height the site gives a square
 #: image in it (576 px at the default 72 %).
@@ -129,11 +130,11 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
     per_trial = pd.concat(trials, ignore_index=True)
     root = sset.root
     with atomic.atomic_path(root / "predicted.parquet") as tmp:
-        views.to_parquet(tmp, index=False)
+        write_parquet(views, tmp)
     with atomic.atomic_path(root / "predicted.csv") as tmp:
         views.to_csv(tmp, index=False)
     with atomic.atomic_path(root / "predicted_trials.parquet") as tmp:
-        per_trial.to_parquet(tmp, index=False)
+        write_parquet(per_trial, tmp)
     atomic.write_json(root / "predicted_config.json", {
         "observer": base.to_dict(), "reference_display_deg": base.display_deg, "viewport_css": list(VIEWPORT_CSS),
         "trials_per_stimulus": n, "seed": seed, "stimuli_with_background": n_bg,
@@ -156,7 +157,7 @@ def read_predicted(stim_dir: str | Path):
                 " (run `camo study predict STIMULI_DIR`, or build it with `camo study build-stimuli`)")
         raise CamoError(f"{d}: no observer predictions{hint}")
     try:
-        views, trials = pd.read_parquet(p), pd.read_parquet(q)
+        views, trials = read_parquet(p), read_parquet(q)
         cfg = json.loads((d / "predicted_config.json").read_text(encoding="utf-8")) \
             if (d / "predicted_config.json").is_file() else {}
     except Exception as exc:  # pyarrow raises several types for a corrupt file

@@ -20,6 +20,7 @@ import pytest
 from PIL import Image
 
 from camo.cli import main
+from camo_base.tables import read_parquet, write_parquet
 
 TINY = ["--iterations", "2", "--views", "4", "--resolution", "32", "--map-resolution", "32",
         "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "8", "--quiet",
@@ -104,7 +105,7 @@ def test_evaluation_cameras_are_novel_bounded_and_shared(runs, eval_dir):
 def test_metrics_table_schema_and_rows(eval_dir):
     from evaluation.evaluate import COLUMNS
 
-    df = pd.read_parquet(eval_dir / "metrics.parquet")
+    df = read_parquet(eval_dir / "metrics.parquet")
     csv = pd.read_csv(eval_dir / "metrics.csv", keep_default_na=False, na_values=[""])
     assert list(df.columns) == list(COLUMNS) and list(csv.columns) == list(COLUMNS)
     assert len(df) == 2 * 4 * 2  # runs x views x regions
@@ -139,7 +140,7 @@ def test_metrics_table_schema_and_rows(eval_dir):
 def test_psnr_ssim_equal_skimage_on_saved_renders(eval_dir):
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-    df = pd.read_parquet(eval_dir / "metrics.parquet")
+    df = read_parquet(eval_dir / "metrics.parquet")
     row = df[(df["run"] == "ours_full") & (df["view"] == 1) & (df["region"] == "full")].iloc[0]
     d = eval_dir / "renders" / "ours_full"
     obj, bg = png(d / "view_01_obj.png"), png(d / "view_01_bg.png")
@@ -156,7 +157,7 @@ def test_psnr_ssim_equal_skimage_on_saved_renders(eval_dir):
 def test_crop_region_follows_the_formula_on_the_saved_mask(eval_dir_big):
     from skimage.metrics import peak_signal_noise_ratio
 
-    df = pd.read_parquet(eval_dir_big / "metrics.parquet")
+    df = read_parquet(eval_dir_big / "metrics.parquet")
     assert len(df) == 1 * 2 * 2 and (df["seed"] == 3).all() and (df["width"] == 160).all()
     crops = df[df["region"] == "crop"]
     for row in crops.itertuples():
@@ -291,7 +292,7 @@ def test_report_merges_evaluations(eval_dir, eval_dir_big, tmp_path, capsys):
     assert page.count("<model-viewer ") == 2 and page.count('class="camo-still"') == 4 + 4
     assert "## Interactive 3D viewer" in md and (out / "viewer" / "model-viewer-umd.min.js").is_file()
     # the Table II value of "Ours" is the mean over views of its rows (one scene)
-    df = pd.read_parquet(eval_dir / "metrics.parquet")
+    df = read_parquet(eval_dir / "metrics.parquet")
     ours = df[(df["run"] == "ours_full") & (df["region"] == "crop")]["psnr"].mean()
     assert "| Ours | " in md and f"{ours:.2f}" in md and "| Ours | — |" not in md
     assert method_label("ours", "none") == "Ours" and method_label("ours", "bsdf") == "w/o BSDF (Only Albedo)"
@@ -320,7 +321,7 @@ def test_table_ii_shadow_share_is_the_give_away_sections_value_per_scene(tmp_pat
     add("a", "random", 0, None)            # no split (an older table): "—"
     d = tmp_path / "ev"
     d.mkdir()
-    pd.DataFrame(rows).to_parquet(d / "metrics.parquet")
+    write_parquet(pd.DataFrame(rows), d / "metrics.parquet")
     df = load_metrics([d])
     t = summary(df, "crop")
     assert t.loc["Ours", SHADOW_SHARE] == pytest.approx((1 / 3 + 0.75) / 2)
@@ -411,7 +412,7 @@ def test_learned_metrics_with_given_weights(runs, tmp_path, tiny_metric_weights)
     out = tmp_path / "learned"
     assert main(["evaluate", str(runs[0]), "--out", str(out), "--spp", "2", "--views", "1", "--quiet",
                  "--lpips-weights", str(lp), "--inception-weights", str(inc)]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     assert len(df) == 2 and np.isfinite(df[["lpips", "sifid"]]).all().all() and df["dreamsim"].isna().all()
     assert (df["lpips_variant"] == "alex-v0.1").all() and (df["sifid_variant"] == "singan").all()
     sha = f"trunk:{weights_sha256(lp / 'alexnet-test.pth')};lin:{weights_sha256(lp / 'alex.pth')}"
@@ -447,7 +448,7 @@ def test_installed_lpips_leads_the_report(runs, tmp_path, installed_lpips):
     out = tmp_path / "ev"
     assert main(["evaluate", str(runs[0]), str(runs[1]), "--out", str(out), "--spp", "4", "--views", "2",
                  "--resolution", "64", "--quiet"]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     assert np.isfinite(df["lpips"]).all() and (df["lpips_variant"] == "alex-v0.1").all()
     assert df["lpips_vgg"].isna().all()  # only on request
     row = df[(df["region"] == "crop") & (df["run"] == "ours_full")].iloc[0]
@@ -572,7 +573,7 @@ def test_giveaway_measures_recomputed_from_the_saved_png_and_mask(eval_dir):
 
     from evaluation.metrics.detail_ratio import detail_ratio
 
-    df = pd.read_parquet(eval_dir / "metrics.parquet")
+    df = read_parquet(eval_dir / "metrics.parquet")
     assert np.isfinite(df["tint"]).all() and (df["tint"] >= 0).all()
     d = eval_dir / "renders" / "ours_full"
     x, y = png(d / "view_02_obj.png") / 255.0, png(d / "view_02_bg.png") / 255.0

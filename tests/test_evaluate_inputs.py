@@ -24,6 +24,7 @@ from PIL import Image
 
 from camo.cli import main
 from camo_base.errors import CamoError
+from camo_base.tables import read_parquet, write_parquet
 
 TINY = ["--iterations", "2", "--views", "4", "--resolution", "32", "--map-resolution", "32",
         "--displacement-resolution", "16", "--target-vertices", "1500", "--spp", "2", "--target-spp", "8", "--quiet",
@@ -138,7 +139,7 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
                    f'[[asset]]\npath = "{run}/result.obj"\nscene = "{run}"\nmethod = "ours via obj"\nname = "obj"\n')
     out = tmp_path / "ev"
     assert main(["evaluate", str(run), str(quant), "--inputs", str(lst), "--out", str(out), *EVAL]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     assert set(df["source"]) == {"run", "asset"} and df["camera_set"].nunique() == 1
     cfg = (out / "eval_config.toml").read_text()
     assert "background_renders = 1" in cfg  # the assets share the run's background (same scene, cameras, seed)
@@ -288,7 +289,7 @@ def test_triplet_folder_is_scored_like_renders_and_usable_as_stimuli(tmp_path):
     out = tmp_path / "ev"
     assert main(["evaluate", "--triplets", str(tmp_path / "twod"), "--method", "2D inpainting", "--scene", "gravel",
                  "--seconds", "3.5", "--out", str(out), "--quiet"]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     assert len(df) == 3 * 2 and (df["source"] == "triplets").all() and (df["spp"] == 0).all()
     assert (df["scene"] == "gravel").all() and (df["method"] == "2D inpainting").all()
     assert df["camera_set"].str.startswith("images:").all() and df["seconds_render"].isna().all()
@@ -347,7 +348,7 @@ def test_mixed_report_with_time_columns_from_summary_json(run, tmp_path):
                    '[[triplets]]\npath = "twod"\nscene = "gravel"\nmethod = "2D method"\nseconds = 2.5\n')
     out = tmp_path / "mixed"
     assert main(["evaluate", str(run), "--inputs", str(lst), "--out", str(out), *EVAL]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     assert set(df["source"]) == {"run", "asset", "triplets"} and set(df["scene"]) == {"gravel"}
     import tomllib
 
@@ -517,7 +518,7 @@ def test_baseline_runs_get_their_method_seconds(run, tmp_path):
     assert "seconds_stage1" not in summary and summary["seconds_method"] > 0
     out = tmp_path / "ev"
     assert main(["evaluate", str(run), str(base), "--out", str(out), *EVAL]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     row = df[df["run"] == base.name].iloc[0]
     method_s = summary["seconds_setup"] + summary["seconds_method"]
     assert row["seconds_method"] == pytest.approx(method_s, rel=1e-12) and math.isnan(row["seconds_stage1"])
@@ -587,10 +588,10 @@ def test_report_reads_evaluations_written_before_the_seconds_columns(run, tmp_pa
     """An older metrics table (no source / seconds_* columns) still reports: its seconds show '-'."""
     out = tmp_path / "ev"
     assert main(["evaluate", str(run), "--out", str(out), "--metrics", "psnr", *EVAL]) == 0
-    df = pd.read_parquet(out / "metrics.parquet")
+    df = read_parquet(out / "metrics.parquet")
     old = df.drop(columns=[c for c in df.columns if c.startswith("seconds_") and c not in
                            ("seconds_render", "seconds_metrics")] + ["source"])
-    old.to_parquet(out / "metrics.parquet", index=False)
+    write_parquet(old, out / "metrics.parquet")
     assert main(["report", str(out), "--out", str(tmp_path / "rep")]) == 0
     md = (tmp_path / "rep" / "report.md").read_text()
     line = next(ln for ln in md.splitlines() if ln.startswith("| Ours |"))

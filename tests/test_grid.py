@@ -22,6 +22,7 @@ from camo import cli
 from camo.grid.cell import read_attempts
 from camo.grid.executors import available_cores
 from camo.grid.spec import load_grid
+from camo_base.tables import read_parquet
 
 TINY_OPTIMIZE = """
 [optimize]
@@ -440,12 +441,12 @@ def test_run_interrupt_resume_merge_and_report(tmp_path, monkeypatch, capsys):
     assert starts(d2)[-1]["threads"] == starts(d3)[-1]["threads"] == max(1, available_cores() // 2)
     assert f"--threads {max(1, available_cores() // 2)}" in (d3 / "log.txt").read_text()
 
-    table = pd.read_parquet(out / "metrics.parquet")
+    table = read_parquet(out / "metrics.parquet")
     assert list(table.columns[: len(COLUMNS)]) == list(COLUMNS)
     assert {"cell", "run_seed", "label"} <= set(table.columns)
     assert set(table["run"]) == {c.name for c in cells} and len(table) == 3 * 4 * 2
     assert set(table["label"]) == {"Ours", "w/o Pose", "Mean [6]"}
-    per_cell = pd.concat([pd.read_parquet(c.eval_dir(out / "cells" / c.key) / "metrics.parquet") for c in cells])
+    per_cell = pd.concat([read_parquet(c.eval_dir(out / "cells" / c.key) / "metrics.parquet") for c in cells])
     pd.testing.assert_series_equal(table["psnr"].reset_index(drop=True), per_cell["psnr"].reset_index(drop=True))
     assert len(pd.read_csv(out / "metrics.csv")) == len(table)
     report = (out / "report" / "report.md").read_text()
@@ -497,7 +498,7 @@ def test_failed_and_crashed_cells_are_recorded_and_do_not_stop_the_others(tmp_pa
         assert not (cd[n] / "DONE").exists()
     crash = (cd["gravel__mean__s1"] / "ERROR").read_text()
     assert "worker process died twice" in crash and crash.count("\n") == 1
-    table = pd.read_parquet(out / "metrics.parquet")
+    table = read_parquet(out / "metrics.parquet")
     assert set(table["run"]) == {"gravel__mean__s0"}
     assert (out / "report" / "report.md").is_file()
     assert camo("grid", "status", out) == 0
@@ -534,7 +535,7 @@ def test_ray_executor_on_a_local_loopback_ray(tmp_path, capsys):
         assert (d / "DONE").is_file()
         st = starts(d)
         assert len(st) == 1 and st[0]["pid"] != os.getpid() and st[0]["threads"] == available_cores()
-        assert set(pd.read_parquet(out / "metrics.parquet")["run"]) == {cell.name}
+        assert set(read_parquet(out / "metrics.parquet")["run"]) == {cell.name}
     finally:
         ex.close()
     assert not ray.is_initialized()

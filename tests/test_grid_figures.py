@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from PIL import Image
+from camo_base.tables import write_parquet
 
 
 def test_crop_box_is_square_inside_and_around_the_mask(bench_module):
@@ -49,7 +50,7 @@ def test_stage2_table_and_figures(tmp_path, bench_module, write_eval_renders):
     grid = tmp_path / "grid"
     m = pd.concat([make_cell(write_eval_renders, grid, "a" * 16, "none", 150, 30.0),  # no pixel above 200: sparkle 0 %
                    make_cell(write_eval_renders, grid, "b" * 16, "inpainting", 255, 20.0)])  # all above: 100 %
-    m.to_parquet(grid / "metrics.parquet")
+    write_parquet(m, grid / "metrics.parquet")
     runs = gf.load_runs(grid)
     assert set(runs) == {("gravel", "ours", "none"), ("gravel", "ours", "inpainting")}
     table = gf.stage2_table(grid, runs)
@@ -70,7 +71,7 @@ def test_stage2_table_shows_lpips_and_the_give_away_measures_when_computed(tmp_p
     b = make_cell(write_eval_renders, grid, "b" * 16, "inpainting", 255, 20.0)
     a = a.assign(lpips=[0.20, 0.30], detail_ratio=[1.5, 1.7], tint=[2.0, 4.0])  # Stage 1 + 2: detail 1.6, 0.6 off
     b = b.assign(lpips=[0.30, 0.30], detail_ratio=[0.7, 0.7], tint=[1.0, 1.0])  # Stage 1 only: 0.7, 0.3 off
-    pd.concat([a, b]).to_parquet(grid / "metrics.parquet")
+    write_parquet(pd.concat([a, b]), grid / "metrics.parquet")
     table = gf.stage2_table(grid, gf.load_runs(grid))
     assert table.startswith("| scene | variant | LPIPS↓ | PSNR↑ | SSIM↑ | LPIPS-proxy↓ | SIFID-proxy↓ | Detail→1 | "
                             "Tint↓ | sparkle % | Stage 2 s |")
@@ -93,7 +94,7 @@ def test_per_scene_table_means_over_views_and_bolds_the_best_lpips(tmp_path, ben
                              "region": region, "lpips": lp[v] + (region == "full"), "psnr": float(ps[v]),
                              "detail_ratio": 1.5, "tint": 2.0})
     (tmp_path / "g").mkdir()
-    pd.DataFrame(rows).to_parquet(tmp_path / "g" / "metrics.parquet")
+    write_parquet(pd.DataFrame(rows), tmp_path / "g" / "metrics.parquet")
     md = gf.per_scene_table(tmp_path / "g")
     assert "| scene | Mean [6] | w/o Inpainting | Ours |" in md  # Table II order
     assert "| real-s | 0.450 / 25.50 / 1.50 / 2.0 | 0.250 / 29.00 / 1.50 / 2.0 | **0.200 / 31.00 / 1.50 / 2.0** |" in md

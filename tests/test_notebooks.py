@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from camo_base.tables import write_parquet
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
@@ -120,7 +121,7 @@ def tiny_metrics(path: Path) -> pd.DataFrame:
                         row["run_seed"] = seed
                         rows.append(row)
     df = pd.DataFrame(rows)
-    df.to_parquet(path, index=False)
+    write_parquet(df, path)
     return df
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from camo_base.tables import write_parquet
 from evaluation.observer import (Cells, ObserverConfig, diffusion_decision, diffusion_parameters, evidence_maps,
                                  ground_segments, make_cells, predict_stimulus, predicted_table, simulate_search,
                                  sky_map, srgb_to_lab)
@@ -461,8 +462,8 @@ def test_simulated_section_of_the_report_reads_the_stimulus_predictions(tmp_path
         for k in range(10):
             found = k < 10 * pf
             trials.append({"id": sid, "trial": k, "found": found, "rt_s": med if found else 40.0})
-    pd.DataFrame(rows).to_parquet(stim / "predicted.parquet")
-    pd.DataFrame(trials).to_parquet(stim / "predicted_trials.parquet")
+    write_parquet(pd.DataFrame(rows), stim / "predicted.parquet")
+    write_parquet(pd.DataFrame(trials), stim / "predicted_trials.parquet")
     (stim / "predicted_config.json").write_text(json.dumps({"observer": {"display_deg": 16.0, "time_limit_s": 40.0},
                                                             "trials_per_stimulus": 10}))
     from PIL import Image

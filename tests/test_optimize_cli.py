@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from camo.cli import main
+from camo_base.tables import read_parquet
 
 TINY = ["--views", "4", "--resolution", "32", "--map-resolution", "64", "--displacement-resolution", "32",
         "--target-vertices", "1500", "--spp", "4", "--target-spp", "32", "--quiet", "--stages", "1",
@@ -487,8 +488,8 @@ def test_run_directory_written_before_run_specs_still_evaluates(run_dir, tmp_pat
     flags = ["--views", "2", "--spp", "4", "--metrics", "psnr,ssim", "--quiet", "--threads", "1"]
     assert main(["evaluate", str(old), "--out", str(tmp_path / "e_old"), *flags]) == 0
     assert main(["evaluate", str(run_dir), "--out", str(tmp_path / "e_new"), *flags]) == 0
-    m_old = pd.read_parquet(tmp_path / "e_old" / "metrics.parquet")
-    m_new = pd.read_parquet(tmp_path / "e_new" / "metrics.parquet")
+    m_old = read_parquet(tmp_path / "e_old" / "metrics.parquet")
+    m_new = read_parquet(tmp_path / "e_new" / "metrics.parquet")
     assert len(m_old) == len(m_new) == 2 * 2
     # same result, same cameras, same seeds, one render thread: the same numbers. (With 2 threads the LLVM render's
     # float order varies under load and a 4-spp sample path can branch differently: 0.02 dB apart was seen; a

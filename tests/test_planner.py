@@ -204,11 +204,12 @@ def _measured(name, ablate=(), spp=None, cams_res=48):
 
 def _check_depth_rule(p):
     """The chosen depth is the shallowest whose dropped light is below 0.3 x the noise at the largest spp (or the
-    transmissive floor), as the plan's own figures say."""
-    bounce = {e.name: e for e in p.effects if e.name.startswith("bounce ")}
-    assert all(e.kept == (int(e.name.split()[1]) <= p.max_depth) for e in bounce.values())
-    rest = [e for e in p.effects if e.name.startswith("bounces ")]
-    assert all(not e.kept for e in rest)
+    transmissive floor), or every bounce where that cut would save under 10 % of the path vertices, as the plan's
+    own figures say."""
+    rows = [e for e in p.effects if e.name.startswith("bounce")]  # "bounce M (depth M)", "bounces A-B"
+    assert rows and all(e.kept == (int(e.name.split()[1].split("-")[-1]) <= p.max_depth) for e in rows)
+    cut = [e for e in p.effects if e.name.startswith("depth cut to ")]
+    assert not cut or p.max_depth == 12  # a cut not taken keeps every bounce
     assert p.integrator.get("max_depth", 2) == p.max_depth and p.rr_depth == 5
     assert "rr_depth = max_depth would turn it off" in dict(p.reasons)["rr_depth"]
 
@@ -224,7 +225,10 @@ def test_measured_plans_follow_the_light_transport(mi_backend):
         _check_depth_rule(p)
         assert p.measured and p.region and p.pilot["seconds"] > 0 and p.curve["rows"]
         assert {"training", "targets"} <= set(p.spp) and p.spp["training"]["noise"] > p.spp["targets"]["noise"]
-    assert transmissive.max_depth >= 4 > opaque.max_depth
+    # open meadow: Russian roulette leaves little beyond depth 4 to save (3-4 % of the vertices), so every bounce
+    # is kept; the enclosed room's walls make deep paths cost, so its cut (depth 3, opaque) is taken
+    assert transmissive.max_depth == 12 and any(e.name.startswith("depth cut to 4") for e in transmissive.effects)
+    assert room.max_depth < 12
     chains = next(e for e in transmissive.effects if "transmissive chains" in e.name)
     assert chains.kept and chains.contribution > 0
     assert next(e for e in opaque.effects if "transmissive chains" in e.name).contribution == 0.0
@@ -369,3 +373,67 @@ def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_abov
     assert dict(low.reasons)["denoise"].startswith("oidn-raw (Open Image Denoise with first-hit albedo")
     # a training plan never denoises (the loss needs unbiased renders)
     assert planner.plan(pack, env, {"albedo"}, "optimize", pilot, {"targets": 64}).denoise == ""
+
+
+def _synthetic_pilot(deep_vertices: float):
+    """A :class:`~optimizer.rendering.pilot.Pilot` from made-up records (no rendering): 2 views of 6 x 6 pixels, one
+    emitter, the object brightening every pixel; light needing depth M falls off by 4x a bounce, so stopping at 4
+    drops ~0.1 % of it. ``deep_vertices``: the path vertices per sample at each step from the 5th on (Russian
+    roulette's survivors): small when roulette makes the deep paths cheap, near 1 in an enclosure."""
+    from optimizer.rendering.pilot import Pilot, PilotSettings
+    from optimizer.rendering.tracer import record_names
+
+    K, V, h, w = 12, 2, 6, 6
+    names = record_names(K, 1)
+    idx = {n: i for i, n in enumerate(names)}
+
+    def records(scale):
+        r = np.zeros((2, V, h, w, len(names)))
+        m = scale * 0.3 * 0.25 ** np.arange(K)  # light needing exactly depth 1..K (m1: the emitter seen directly)
+        m[0] = 0.0
+        partial = np.cumsum(m)
+        for i in range(K):
+            r[..., idx[f"m{i + 1}"]] = m[i]
+            r[..., idx[f"q{i + 1}"]] = partial[i] ** 2 + 0.02 * (i + 1)  # per-sample variance grows with depth
+            r[..., idx[f"n{i}"]] = 1.0 if i < 4 else deep_vertices
+        r[..., idx["e0"]] = partial[-1]
+        return r
+
+    cov = np.zeros((V, h, w))
+    cov[:, 2:4, 2:4] = 1.0
+    return Pilot(PilotSettings(views=V, resolution=h, spp=32), names, records(1.0), records(0.5), cov, ["sun (Directional)"],
+                 1.0, 1e4, None, w, h)
+
+
+@pytest.mark.parametrize("deep_vertices, kept_cut", [(0.01, False), (0.9, True)])
+def test_a_training_depth_cut_is_taken_only_where_it_saves_path_vertices(deep_vertices, kept_cut):
+    """Issue 28's Stage 1 table: a depth cut whose dropped light is below the noise is still not taken where Russian
+    roulette already makes the deeper paths cheap (it would save 2 % of the vertices: a bias for no seconds);
+    where the deep paths cost (an enclosure: 64 % of the vertices beyond depth 4) it is. The rule before it
+    (``min_cut_saving=0``) cut to 4 in both."""
+    from optimizer.rendering.planner import Planner, PlannerSettings
+
+    pack, env = builtin_scenes.get("meadow"), env_of("meadow")
+    spp = {"training": 4, "targets": 64}
+    pilot = _synthetic_pilot(deep_vertices)
+    p = Planner().plan(pack, env, ALL, "optimize", pilot, spp)
+    before = Planner(PlannerSettings(min_cut_saving=0.0)).plan(pack, env, ALL, "optimize", pilot, spp)
+    assert before.max_depth == 4
+    assert p.max_depth == (4 if kept_cut else 12)
+    assert p.integrator["type"] == "prb_projective" and p.integrator["max_depth"] == p.max_depth
+    assert p.rr_depth == 5 and p.integrator["rr_depth"] == 5
+    why = dict(p.reasons)["max_depth"]
+    cut = [e for e in p.effects if e.name.startswith("depth cut to 4")]
+    if kept_cut:
+        assert not cut and "saves 64%" in why
+    else:
+        assert cut and not cut[0].kept and "(saves 2.0% of the path vertices)" in cut[0].name
+        assert why.startswith("12 (every bounce)") and "2.0%" in why
+    # the bounce rows agree with the depth: listed to one past the cut, the rest in one row, kept with the depth
+    rows = {e.name.split(" (")[0]: e.kept for e in p.effects if e.name.startswith("bounce")}
+    assert rows == {"bounce 2": True, "bounce 3": True, "bounce 4": True, "bounce 5": not kept_cut,
+                    "bounces 6-12": not kept_cut}
+    # an evaluation plan is not affected (the rule is the training stage's)
+    ev = Planner().plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})
+    assert ev.max_depth == Planner(PlannerSettings(min_cut_saving=0.0)).plan(pack, env, set(), "evaluate", pilot,
+                                                                               {"evaluation": 64}).max_depth < 12

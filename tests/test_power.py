@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from camo_base.errors import CamoError
+from camo_base.tables import read_parquet, write_parquet
 from study_site.power import parse_participants, participants_needed, power_curve, simulate_study, write_power
 
 
@@ -120,8 +121,8 @@ def _stimulus_set_with_predictions(root, n=50):
     c = cells({"ours": 0.7, "mean": 0.2}, n=n)
     t = c.assign(id=[f"id{i // n}" for i in range(len(c))], view="0", practice=False, trial=np.arange(len(c)) % n)
     root.mkdir(parents=True, exist_ok=True)
-    t.to_parquet(root / "predicted_trials.parquet")
-    pd.DataFrame({"id": t["id"].unique()}).to_parquet(root / "predicted.parquet")
+    write_parquet(t, root / "predicted_trials.parquet")
+    write_parquet(pd.DataFrame({"id": t["id"].unique()}), root / "predicted.parquet")
     return root
 
 
@@ -165,8 +166,8 @@ def test_end_to_end_build_stimuli_to_power(tmp_path, capsys):
                          "0", "--observer-trials", "20"])
     assert args.func(args) == 0
     assert "predicted mean: confusion" in capsys.readouterr().out
-    views = pd.read_parquet(stim / "predicted.parquet")
-    trials = pd.read_parquet(stim / "predicted_trials.parquet")
+    views = read_parquet(stim / "predicted.parquet")
+    trials = read_parquet(stim / "predicted_trials.parquet")
     manifest = json.loads((stim / "manifest.json").read_text())
     assert sorted(views["id"]) == sorted(s["id"] for s in manifest["stimuli"])  # every stimulus it built
     assert len(trials) == 20 * len(views)

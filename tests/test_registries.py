@@ -177,9 +177,9 @@ def test_worked_example_a_new_metric_is_one_module(tmp_path):
     (folder / "mad.py").write_text(METRIC_MODULE)
     run, ev = tmp_path / "run", tmp_path / "eval"
     out = _run(tmp_path, _in_package("evaluation.metrics", folder), f'''
-        import pandas as pd
         from camo.cli import main
         from camo.docs import metrics_table
+        from camo_base.tables import read_parquet
         from evaluation.metrics import METRICS, WEIGHT_FREE, compute_metrics
         import numpy as np
 
@@ -191,7 +191,7 @@ def test_worked_example_a_new_metric_is_one_module(tmp_path):
         out["optimize"] = main(["optimize", "gravel", "--method", "transparent", "--out", {str(run)!r}, *{TINY!r}])
         out["evaluate"] = main(["evaluate", {str(run)!r}, "--out", {str(ev)!r}, "--spp", "4", "--views", "2",
                                 "--resolution", "64", "--quiet"])  # (the default metrics)
-        df = pd.read_parquet({str(ev / "metrics.parquet")!r})
+        df = read_parquet({str(ev / "metrics.parquet")!r})
         out["columns"] = list(df.columns)
         out["mad"] = float(df.loc[df["region"] == "crop", "mad"].mean())
     ''')

@@ -14,6 +14,7 @@ import pytest
 from PIL import Image
 
 from camo_base.errors import CamoError
+from camo_base.tables import read_parquet
 from study_site import create_app
 from study_site.cli import register
 from study_site.stimuli import StimulusSet, build_stimuli, outline_overlay
@@ -431,7 +432,7 @@ def test_cli_build_and_report(tmp_path, capsys):
         assert (tmp_path / "rep" / f).stat().st_size > 0, f
     import pandas as pd
 
-    t = pd.read_parquet(tmp_path / "rep" / "trials.parquet")
+    t = read_parquet(tmp_path / "rep" / "trials.parquet")
     assert len(t) == 3 * 3 and t["practice"].sum() == 3
     assert set(t.loc[t.practice, "scene"]) <= {f"practice_synthetic_{i:02d}" for i in range(8)}
 

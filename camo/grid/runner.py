@@ -26,6 +26,7 @@ from camo_base.errors import CamoError
 from camo.grid.cell import CELL_JSON, cell_state
 from camo.grid.executors import Job, LocalExecutor, RayExecutor
 from camo.grid.spec import Cell, Grid, load_grid
+from camo_base.tables import read_parquet, write_parquet
 
 GRID_JSON = "grid.json"
 LOCK = ".lock"
@@ -207,7 +208,7 @@ def merge_results(grid: Grid, out: Path, st: dict[str, tuple[str, str]] | None =
             print(f"warning: finished cell {c.name} ({c.key}) has no {p}; left out of the merged table",
                   file=sys.stderr)
             continue
-        df = pd.read_parquet(p)
+        df = read_parquet(p)
         df["cell"] = c.key
         df["run_seed"] = c.seed
         frames.append(df)
@@ -217,7 +218,7 @@ def merge_results(grid: Grid, out: Path, st: dict[str, tuple[str, str]] | None =
     table = pd.concat(frames, ignore_index=True, sort=False)
     table["label"] = [method_label(m, a) for m, a in zip(table["method"], table["ablation"])]
     with atomic.atomic_path(out / "metrics.parquet") as tmp:
-        table.to_parquet(tmp, index=False)
+        write_parquet(table, tmp)
     with atomic.atomic_path(out / "metrics.csv") as tmp:
         table.to_csv(tmp, index=False)
     write_report(eval_dirs, out / "report")

@@ -26,7 +26,9 @@ shown whole), in sRGB units:
 
 ``max_depth`` is the smallest depth whose dropped light (RMS over the pixels that matter) stays below
 ``bias_fraction`` (0.3) of the noise at the stage's spp (the largest spp the plan's depth serves: a squared error at
-most 9 % above the noise alone). Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
+most 9 % above the noise alone). Training keeps every bounce instead where that cut would save less than
+``min_cut_saving`` (:data:`MIN_CUT_SAVING`, 10 %) of the path vertices over the object's region: a bias that buys
+no seconds is not taken. Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
 ``rr_depth = max_depth`` would turn it off). An emitter whose light is below the same bound is dropped. The plan
 states the noise each stage's spp gives and the spp a stated accuracy (``accuracy``, sRGB RMS; 1/255) needs, and
 the accuracy-vs-seconds curve of the plan and of full path tracing for the stage's render (:meth:`Plan.curve`).
@@ -79,6 +81,15 @@ REGION_MIN_SPP = 16
 #: participant looks. ``oidn-raw`` (first-hit features): 1.26-1.83/255 (meadow the largest; whole frame
 #: 0.77-1.97); ``oidn-through`` (see-through features): 1.31-1.69/255 (split; whole frame 0.79-1.92).
 DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
+#: A training plan cuts the path depth only where the cut saves at least this share of the path vertices over the
+#: object's region (the pilot's vertices per sample at the cut against at full depth, with Russian roulette from
+#: vertex 5 in both); below it every bounce is kept, since the cut's bias buys no seconds. Measured (issue 28,
+#: docs/results/planner.md "(b) A Stage 1 gradient", 4 views at 64 px, 4 spp): at depth 4 the pilot's saving is
+#: 3-7 % on meadow, gravel, split, panorama and occluded and 27 % in the enclosed room, while a Stage 1 step's CPU
+#: seconds moved by 0-17 % (median over spp 1-8: -9 % to +1 %), within the run-to-run spread of ~10 %; and the
+#: cut's gradient cosine against full tracing at equal spp was 0.92 (panorama), 0.95 (occluded), 0.97 (room),
+#: 1.14 (meadow): the cut buys no measurable seconds and its bias may cost gradient accuracy.
+MIN_CUT_SAVING = 0.10
 #: The denoisers an evaluation plan may apply (``PlannerSettings.denoise``, ``--denoise [VARIANT]``): the variants of
 #: :data:`optimizer.rendering.denoise.VARIANTS` whose bias on the object is measured (:data:`DENOISER_BIASES`).
 DENOISERS = tuple(DENOISER_BIASES)
@@ -267,6 +278,8 @@ class PlannerSettings:
     bias_fraction: float = 0.3  # an effect is dropped when its RMS is below this fraction of the stage's noise
     accuracy: float = 1.0 / 255  # the stated accuracy (sRGB RMS noise) the spp table is computed for
     rr_depth: int = RR_DEPTH
+    min_cut_saving: float = MIN_CUT_SAVING  # training: a depth cut is taken only where it saves this share of the
+    # path vertices over the object's region (0: always, the rule before issue 28's Stage 1 table)
     region: bool = True  # restrict renders to what the object can change
     denoise: str = ""  # evaluation renders, opt-in: the denoiser (one of DENOISERS) applied where the noise at the
     # stage's spp is above its bias, or "" (off, the default: it smooths what a see-through object shows of the ground)
@@ -313,18 +326,31 @@ class Planner:
         depth = next((M for M in range(floor, K + 1) if f.bias[M - 1] <= limit), K)
         rr = min(st.rr_depth, FULL_DEPTH)
         effects: list[Effect] = []
+        # a training depth cut trades a bias for the path vertices it saves; where Russian roulette already makes
+        # the deeper paths cheap it saves next to nothing and every bounce is kept (module doc, MIN_CUT_SAVING)
+        saving = 1.0 - float(f.cost[depth - 1]) / max(float(f.cost[K - 1]), 1e-12)
+        cut = depth if optimise and depth < K and saving < st.min_cut_saving else None
+        if cut is not None:
+            depth = K
+            effects.append(Effect(f"depth cut to {cut} (saves {saving:.1%} of the path vertices)",
+                                  float(f.bias[cut - 1]), math.sqrt(f.variance[cut - 1] / s_max), False,
+                                  f"not taken: below {st.min_cut_saving:.0%} of the vertices, not worth its bias "
+                                  "(Russian roulette already makes the deeper paths cheap)"))
         noise_at = math.sqrt(f.variance[depth - 1] / s_max)
-        for M in range(2, min(K, depth + 1) + 1):
+        last = min(K, (depth if cut is None else cut) + 1)  # bounces listed one by one; the deeper ones in one row
+        for M in range(2, last + 1):
             kept = M <= depth
             why = "kept" if kept else f"dropped: it and every deeper bounce {f.bias[depth - 1] * 255:.3f}/255 RMS"
-            if kept and M == depth and depth > floor:
+            if cut is not None and M > cut:
+                why = f"kept: every bounce (a cut at {cut} saves {saving:.1%} of the path vertices)"
+            elif kept and M == depth and depth > floor:
                 why = f"kept: stopping before it would leave {f.bias[M - 2] * 255:.3f}/255 > {limit * 255:.3f}/255"
             elif kept and M == floor and floor > 2 and f.bias[M - 2] <= limit:
                 why = "kept: an optimised transmittance may open transmissive chains (they need depth 4)"
             effects.append(Effect(f"bounce {M} (depth {M})", float(f.bounce[M - 1]), noise_at, kept, why))
-        if depth + 1 < K:
-            effects.append(Effect(f"bounces {depth + 2}-{K}", float(f.bias[depth]), noise_at, False,
-                                  "dropped with the one above"))
+        if last < K:
+            effects.append(Effect(f"bounces {last + 1}-{K}", float(f.bias[last - 1]), noise_at, cut is not None,
+                                  "kept with the one above" if cut is not None else "dropped with the one above"))
         for name, label in (("via_t", "light through the object onto its surroundings (transmissive chains)"),
                             ("seen_t", "light seen through the object"),
                             ("via", "light the object reflects or lets through onto its surroundings")):
@@ -349,12 +375,22 @@ class Planner:
                                   "dropped: below the noise" if dropped else
                                   ("kept" if len(shares) > 1 else "kept: the only emitter")))
         deeper = "changes the object's effect (with minus without it) by" if optimise else "is"
+        if cut is None:
+            why_depth = (f"{depth}: the light of deeper paths {deeper} {f.bias[depth - 1] * 255:.3f}/255 RMS over "
+                         f"{where}, below {st.bias_fraction:g} x the noise at {s_max} spp ({noise_full * 255:.3f}/255)"
+                         + (f"; at least {floor}: an optimised transmittance may open transmissive chains"
+                            if floor > 2 else ""))
+            if optimise and depth < K:
+                why_depth += (f"; the cut saves {saving:.0%} of the path vertices over {where} "
+                              f"(at least {st.min_cut_saving:.0%} pays for its bias)")
+        else:
+            why_depth = (f"{depth} (every bounce): stopping at {cut} would change the object's effect by only "
+                         f"{f.bias[cut - 1] * 255:.3f}/255 RMS over {where} (below {st.bias_fraction:g} x the noise at "
+                         f"{s_max} spp, {noise_full * 255:.3f}/255) but save only {saving:.1%} of the path vertices "
+                         f"(below {st.min_cut_saving:.0%}): Russian roulette from vertex {rr} already makes the "
+                         "deeper paths cheap, so the cut's bias would buy no seconds")
         reasons: list[tuple[str, str]] = [
-            ("max_depth", f"{depth}: the light of deeper paths {deeper} {f.bias[depth - 1] * 255:.3f}/255 RMS over "
-                          f"{where}, "
-                          f"below {st.bias_fraction:g} x the noise at {s_max} spp ({noise_full * 255:.3f}/255)"
-                          + (f"; at least {floor}: an optimised transmittance may open transmissive chains"
-                             if floor > 2 else "")),
+            ("max_depth", why_depth),
             ("rr_depth", f"{rr}: Russian roulette from vertex {rr} as in full path tracing (unbiased; "
                          "rr_depth = max_depth would turn it off)" + (f"; paths stop at depth {depth} before it"
                                                                        if depth <= rr else "")),
