@@ -35,7 +35,9 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    feature. The surround is taken on the place's *own ground* (``surround="ground"``, :func:`ground_segments`:
    the object-free view's grounds and sky, k-means on colour; one ground -> the whole surround): on split's
    marble-and-asphalt floor a place on the asphalt is compared with asphalt, not with the mixture of both that a
-   pooled surround gives at their border (the same rule for steps 2 and 5). Each scale is z-scored against the
+   pooled surround gives at their border (the same rule for steps 2 and 5). With the object-free view's normals
+   and ``surfaces="geometry"`` (an option; :func:`surface_labels`) each ground is split into its surfaces: room's
+   floor and its walls, of one colour, are two grounds, so a chair on the floor is compared with the floor. Each scale is z-scored against the
    median and MAD over the ground (Itti, Koch & Niebur 1998's normalisation in spirit): ``D`` in d' units, "how
    unusual for this scene's ground".
 2. **Object, not shadow.** Out of direct light the ground is lit by the sky alone: darker, bluer (less red, more
@@ -164,7 +166,8 @@ from camo_base.errors import CamoError
 _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
             "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background"),
             "props": ("scene", "none"), "click": ("body", "thing", "core", "peak"),
-            "prop_test": ("verify", "priority"), "cast_shadow": ("texture", "none")}
+            "prop_test": ("verify", "priority"), "cast_shadow": ("texture", "none"),
+            "surfaces": ("colour", "geometry")}
 
 
 @dataclass(frozen=True)
@@ -194,6 +197,18 @@ class ObserverConfig:
     #: surround (the former default; it mixes two grounds where they meet, e.g. split's marble and asphalt, so
     #: that every place near their border was unusual in image and background alike).
     surround: str = "ground"
+    #: What tells one ground from another with ``surround="ground"``. "colour" (default): the object-free view's
+    #: colour grounds (:func:`ground_segments`). "geometry": those grounds split further into the view's surfaces
+    #: (:func:`surface_labels`: floor, walls, ceiling by their normals) where the stimulus set has the object-free
+    #: view's normals (``camo study build-stimuli`` renders them; ``camo study surfaces`` adds them to an older
+    #: set); without normals the same as "colour". Room's floor, brick walls and ceiling are one colour ground (92 %
+    #: of its view 0), so a chair on the floor is compared with the dark walls. Not the default: measured on room's
+    #: set, the floor-only surround raises the chairs' D (Transparent view 3: 1.7 -> 4.6) but reads the chairs as
+    #: darker than the floor by a shadow's factor, so their object evidence and verification fall (Mean view 3:
+    #: verification 6.6 -> 3.6, found 78.5 -> 0 %; room Mean 13.0 -> 33.6 % confused, out of the human range;
+    #: Transparent 74.8 -> 74.9 %); meadow's, gravel's and split's grounds are the same either way
+    #: (docs/results/observer.md, "Surfaces").
+    surfaces: str = "colour"
     #: Internal noise, standard deviation per feature in CIE L*a*b* units: one just-noticeable difference,
     #: Delta E*ab ~ 2.3 (Mahy, Van Eycken & Oosterlinck 1994; Sharma 2003).
     internal_noise: float = 2.3
@@ -839,9 +854,12 @@ def _scale_maps(lab: np.ndarray, logimg: np.ndarray, sigma_c: float, cfg: Observ
 
 def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
                   background: np.ndarray | None = None, regional: bool = True,
-                  segments: np.ndarray | None = None) -> Maps:
+                  segments: np.ndarray | None = None, normals: np.ndarray | None = None) -> Maps:
     """Steps 1-3 and the verification evidence of step 5 for ``image`` (sRGB ``(H, W, 3)``); see the module
-    docstring. With ``saliency_model`` the learned network's z-scored map replaces ``D`` (no shadow analysis)."""
+    docstring. With ``saliency_model`` the learned network's z-scored map replaces ``D`` (no shadow analysis).
+    ``normals``: the object-free view's world-space surface normals ``(H, W, 3)`` (zeros where no surface is
+    seen; :func:`optimizer.rendering.render.surface_normals_views`), which split the grounds into surfaces
+    (``ObserverConfig.surfaces``); ignored when ``segments`` is given."""
     cfg = config or ObserverConfig()
     srgb = _as_srgb(image)
     ppd = cfg.feature_px_per_deg
@@ -863,8 +881,12 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
             lab_bg, log_bg = srgb_to_lab(small_bg), _log_image(small_bg)
         sky = sky_map(logimg if log_bg is None else log_bg)
         ground = ~sky
-        if segments is None and log_bg is not None and cfg.surround == "ground":
-            segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
+        if segments is None and cfg.surround == "ground":
+            if log_bg is not None:
+                segments = ground_segments(lab_bg, sky, cfg)  # from the object-free view only
+            if normals is not None and cfg.surfaces == "geometry":
+                surf = surface_labels(_nearest(_check_normals(normals, srgb.shape), sky.shape))
+                segments = combine_segments(segments, surf, sky)
         d = d_inv = shadow = obj = None
         if log_bg is not None and cfg.cast_shadow == "texture":
             # the ground's own texture, darkened by a shadow's factor: ground in shadow, whatever its outline. Read at
@@ -1111,6 +1133,109 @@ def ground_segments(lab: np.ndarray, sky: np.ndarray, config: ObserverConfig | N
     return labels
 
 
+#: Two places of the object-free view are on one surface when their normals are less than this angle apart
+#: (:func:`surface_labels`): 45 deg, halfway between parallel and perpendicular, so a floor and a wall (90 deg
+#: apart) split at their bisector while a terrain's slopes (under 45 deg on the built-in outdoor scenes) stay one
+#: ground with its floor.
+SURFACE_ANGLE_DEG = 45.0
+#: Most surfaces told apart in one view (orientation groups; a room seen from inside shows at most a floor, a
+#: ceiling and three walls; smaller groups join the nearest one).
+SURFACE_MAX = 6
+
+
+def _check_normals(normals: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    n = np.asarray(normals, np.float64)
+    if n.ndim != 3 or n.shape[2] != 3 or n.shape[:2] != tuple(shape[:2]):
+        raise CamoError(f"observer: normals are {'x'.join(map(str, n.shape))} but the image is "
+                        f"{shape[1]}x{shape[0]} (need H x W x 3)")
+    return n
+
+
+def _nearest(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``a`` ``(H, W, ...)`` sampled at the centres of an ``(h, w)`` grid over the same frame (nearest pixel): a
+    normal or a label is not averaged across a surface's edge."""
+    H, W = a.shape[:2]
+    h, w = shape
+    r = np.minimum(((np.arange(h) + 0.5) * H / h).astype(int), H - 1)
+    c = np.minimum(((np.arange(w) + 0.5) * W / w).astype(int), W - 1)
+    return a[r][:, c]
+
+
+def surface_labels(normals: np.ndarray) -> np.ndarray:
+    """``(h, w)`` int labels of the surfaces of an *object-free* view from its world-space normals ``(h, w, 3)``
+    (zeros where no surface is seen: label -1): 0 .. K-1 for up to :data:`SURFACE_MAX` orientation groups.
+
+    Mode seeking on the sphere of directions: the group's direction is the normal with the most places within
+    :data:`SURFACE_ANGLE_DEG` of it (candidates: a regular subsample), refined as the mean normal of its members
+    (three rounds); its members leave and the next group is sought, while a group holds at least
+    :data:`SEGMENT_MIN_SHARE` of the frame (a smaller patch is no ground). Places left over join the group whose
+    direction is nearest. Weight-free: the angle is half a right angle; no position or colour is read, so a
+    floor, the walls and a ceiling of one material are told apart exactly where a person sees them meet
+    (Gibson 1950, *The Perception of the Visual World*: surfaces and their layout, not colours, are what a
+    scene's ground is made of)."""
+    n = np.asarray(normals, np.float64)
+    h, w = n.shape[:2]
+    flat = n.reshape(-1, 3)
+    seen = np.linalg.norm(flat, axis=1) > 0.5
+    labels = np.full(h * w, -1, int)
+    if not seen.any():
+        return labels.reshape(h, w)
+    flat = flat / np.maximum(np.linalg.norm(flat, axis=1, keepdims=True), 1e-12)
+    cos = math.cos(math.radians(SURFACE_ANGLE_DEG))
+    bar = SEGMENT_MIN_SHARE * h * w
+    remaining = seen.copy()
+    modes: list[np.ndarray] = []
+    while len(modes) < SURFACE_MAX and remaining.sum() >= bar:
+        idx = np.flatnonzero(remaining)
+        cand = flat[idx[:: max(1, idx.size // 256)]]
+        votes = flat[idx[:: max(1, idx.size // 4096)]]
+        mode = cand[int(np.argmax((votes @ cand.T >= cos).sum(0)))]
+        for _ in range(3):
+            members = remaining & (flat @ mode >= cos)
+            m = flat[members].sum(0)
+            mode = m / max(float(np.linalg.norm(m)), 1e-12)
+        members = remaining & (flat @ mode >= cos)
+        if members.sum() < bar:
+            break
+        labels[members] = len(modes)
+        remaining &= ~members
+        modes.append(mode)
+    left = seen & (labels < 0)
+    if modes and left.any():
+        labels[left] = np.argmax(flat[left] @ np.stack(modes).T, axis=1)
+    return labels.reshape(h, w)
+
+
+def combine_segments(grounds: np.ndarray | None, surfaces: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    """The grounds a place's surround is taken on (``surround="ground"``) with surfaces: each colour ground of
+    :func:`ground_segments` (``grounds``; None = one ground) split by the :func:`surface_labels` ``surfaces``
+    it lies on (-1, no surface: a group of its own); the sky stays one label, the last (as in
+    :func:`ground_segments`). A part smaller than :data:`SEGMENT_MIN_SHARE` of the frame joins the largest part of
+    the same surface (else of the same colour ground): too few places for a surround's statistics."""
+    h, w = sky.shape
+    g = np.zeros((h, w), int) if grounds is None else np.asarray(grounds, int)
+    ground = ~sky
+    ns = int(surfaces.max()) + 2
+    pair = np.where(ground, g * ns + (surfaces + 1), -1)
+    keys, counts = np.unique(pair[ground], return_counts=True)
+    bar = SEGMENT_MIN_SHARE * h * w
+    big = {int(k) for k, c in zip(keys, counts) if c >= bar}
+    size = dict(zip(keys.tolist(), counts.tolist()))
+    for k in keys.tolist():
+        if k in big:
+            continue
+        same_surf = [b for b in big if b % ns == k % ns]
+        same_ground = [b for b in big if b // ns == k // ns]
+        into = max(same_surf or same_ground or [k], key=lambda b: size[b])
+        pair[pair == k] = into
+    out = np.zeros((h, w), int)
+    for i, k in enumerate(np.unique(pair[ground]).tolist()):
+        out[pair == k] = i
+    if sky.any():
+        out[sky] = out[ground].max() + 1 if ground.any() else 0
+    return out
+
+
 #: Window of the shape cue with ``shadow_shape="lying"`` (Gaussian sigma, degrees): the region read around a place
 #: spans ~2.4 deg (its FWHM), the middle of the object sizes the study shows (1.6-4.8 deg) -- about a cast shadow's
 #: length and an object's height. The default ``"scales"`` reads one window per object size (:func:`shape_over_sizes`).
@@ -1323,16 +1448,17 @@ class Cells:
 
 
 def make_cells(image: np.ndarray, config: ObserverConfig | None = None, maps: Maps | None = None,
-               background: np.ndarray | None = None) -> Cells:
+               background: np.ndarray | None = None, normals: np.ndarray | None = None) -> Cells:
     """The search grid of ``image`` (sRGB ``(H, W, 3)``): cells of ``cell_deg``; per cell the priority (max of
     ``G`` in the cell), the verification evidence (max of the foveal evidence within ``verify_radius_deg`` of the
-    cell centre) and the image pixel of that maximum (the click)."""
+    cell centre) and the image pixel of that maximum (the click). ``background``, ``normals``: the object-free
+    view and its surface normals (:func:`evidence_maps`)."""
     from scipy import ndimage
 
     cfg = config or ObserverConfig()
     srgb = _as_srgb(image)
     H, W = srgb.shape[:2]
-    maps = maps if maps is not None else evidence_maps(srgb, cfg, background)
+    maps = maps if maps is not None else evidence_maps(srgb, cfg, background, normals=normals)
     h, w = maps.guidance.shape
     ppd = cfg.feature_px_per_deg
     n = max(1, int(round(cfg.cell_deg * ppd)))
@@ -1675,12 +1801,12 @@ class StimulusPrediction:
 
 def predict_stimulus(image: np.ndarray, mask: np.ndarray, n: int = 200, seed: int = 0,
                      config: ObserverConfig | None = None, cells: Cells | None = None,
-                     background: np.ndarray | None = None) -> StimulusPrediction:
+                     background: np.ndarray | None = None, normals: np.ndarray | None = None) -> StimulusPrediction:
     """Probability found and the search-time distribution of one stimulus (``n`` simulated trials);
-    ``background``: as in :func:`simulate_search`."""
+    ``background``: as in :func:`simulate_search`; ``normals``: as in :func:`evidence_maps`."""
     cfg = config or ObserverConfig()
     cfg.validate()
-    cells = cells if cells is not None else make_cells(image, cfg, background=background)
+    cells = cells if cells is not None else make_cells(image, cfg, background=background, normals=normals)
     res = simulate_search(image, n, seed, cfg, mask, cells)
     m = np.asarray(mask).astype(bool)
     on = m[cells.click_px[:, 1], cells.click_px[:, 0]]

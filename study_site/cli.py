@@ -186,6 +186,18 @@ def register(subparsers) -> argparse.ArgumentParser:
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=cmd_predict)
 
+    u = sub.add_parser(
+        "surfaces",
+        help="add the object-free views' surface normals to a rendered stimulus set built without them",
+        description="Render the world-space normals of every object-free view of a rendered stimulus set (one ray a "
+        "pixel, from the manifest's cameras) into backgrounds/*_normals.npz: the simulated observer's surfaces (floor, "
+        "walls), which `camo study build-stimuli` writes for new sets. Run `camo study predict` afterwards.",
+    )
+    u.add_argument("stimuli", metavar="STIMULI_DIR")
+    u.add_argument("--force", action="store_true", help="render them again where they exist")
+    u.add_argument("--threads", type=Range(int, 1, 4096).arg_type(), default=None, help="render threads (default: CAMO_THREADS or all cores)")
+    u.set_defaults(func=cmd_surfaces)
+
     m = sub.add_parser(
         "simulate",
         help="drive simulated participants (the simulated observer) through a live study site over HTTP",
@@ -275,6 +287,14 @@ def cmd_predict(args) -> int:
 
     write_predicted_power(args.stimuli, seed=args.seed, progress=not args.quiet)
     print(f"wrote {args.stimuli}/predicted.parquet, predicted_trials.parquet, predicted_power/")
+    return 0
+
+
+def cmd_surfaces(args) -> int:
+    from study_site.render_stimuli import add_surfaces
+
+    n = add_surfaces(args.stimuli, threads=args.threads, force=args.force)
+    print(f"{args.stimuli}: {n} surface-normal files written")
     return 0
 
 

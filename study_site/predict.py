@@ -4,8 +4,11 @@ The observer (:mod:`evaluation.observer`) searches every stimulus of a set exact
 file served to participants (the WebP when the set has one, else the PNG; object at its drawn, off-centre place),
 at the site's display size, with the site's time limit, and its click scored against the set's mask. A rendered
 set's object-free render of the same framing (``backgrounds/``, :func:`study_site.stimuli.background_path`)
-gives the observer the background statistics of each region (its knowledge of the scene's ground); sets without
-one (``--copy``) use the image's own. The predictions are what ``camo study power --predicted``
+gives the observer the background statistics of each region (its knowledge of the scene's ground), and, with
+``--observer surfaces=geometry``, that render's surface normals (``backgrounds/*_normals.npz``,
+:func:`study_site.stimuli.surface_path`) its surfaces -- floor, walls -- on which a place's surround is taken; sets
+without a background (``--copy``) use the image's own statistics, sets without normals (built before them;
+``camo study surfaces`` adds them) the colour grounds only. The predictions are what ``camo study power --predicted``
 and the report's predicted Table I (``camo report EVAL_DIR --stimuli STIMULI_DIR``) read; the centred evaluation
 renders are never used for them.
 
@@ -74,7 +77,7 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
 
     from evaluation.observer import ObserverConfig, make_cells, predict_stimulus
     from study_site.config import DEFAULTS
-    from study_site.stimuli import StimulusSet, _load_rgb, background_path
+    from study_site.stimuli import StimulusSet, _load_rgb, background_path, load_normals, surface_path
 
     say = log or (lambda s: print(s, file=sys.stderr))
     if not 1 <= n <= 100_000:
@@ -85,7 +88,7 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
     base = dataclasses.replace(base, time_limit_s=limit)
     base.validate()
     rows, trials = [], []
-    n_bg = 0
+    n_bg = n_surf = 0
     t0 = time.perf_counter()
     bar = None
     if progress:
@@ -104,9 +107,12 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
         bg = _load_rgb(bgp) if bgp.is_file() and not s.practice else None
         if bg is not None and bg.shape != img.shape:
             bg = None  # a background of another size is not this framing's
-        cells = make_cells(img, cfg, background=bg)
+        use = bg is not None and cfg.surround == "ground" and cfg.surfaces == "geometry"
+        normals = load_normals(surface_path(sset.root, s.scene, s.view), img.shape[:2]) if use else None
+        cells = make_cells(img, cfg, background=bg, normals=normals)
         p = predict_stimulus(img, mask, n, seeds.seed("observer", seed, stimulus=k), cfg, cells=cells)
         n_bg += bg is not None
+        n_surf += normals is not None
         ident = {"id": s.id, "run": s.run, "scene": s.scene, "object": s.object, "method": s.method,
                  "ablation": s.ablation or "", "condition": s.condition, "view": str(s.view), "practice": s.practice,
                  "width": s.width, "height": s.height, "centroid_x": s.centroid_x, "centroid_y": s.centroid_y,
@@ -131,10 +137,11 @@ def predict_stimulus_set(stim_dir: str | Path, n: int = 200, seed: int = 0, conf
         write_parquet(per_trial, tmp)
     atomic.write_json(root / "predicted_config.json", {
         "observer": base.to_dict(), "reference_display_deg": base.display_deg, "viewport_css": list(VIEWPORT_CSS),
-        "trials_per_stimulus": n, "seed": seed, "stimuli_with_background": n_bg, "manifest_created": sset.data.get("created"),
+        "trials_per_stimulus": n, "seed": seed, "stimuli_with_background": n_bg,
+        "stimuli_with_surfaces": n_surf, "manifest_created": sset.data.get("created"),
         "seconds": round(time.perf_counter() - t0, 1)})
     say(f"observer: {len(views)} stimuli x {n} simulated trials in {time.perf_counter() - t0:.1f} s "
-        f"({n_bg} with their object-free background's statistics)")
+        f"({n_bg} with their object-free background's statistics, {n_surf} with its surfaces' normals used)")
     return views, per_trial
 
 

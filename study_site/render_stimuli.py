@@ -269,6 +269,12 @@ def render_stimuli(
 
     backend.init(threads=threads)
     renderer = ViewRenderer(spp, seed, noise_match=noise_match)
+    normals_by_scene: dict[str, np.ndarray] = {}
+
+    def normals_of(scene: str, env: Any, cams: list[Any]) -> np.ndarray:  # one geometry pass per scene's framings
+        if scene not in normals_by_scene:
+            normals_by_scene[scene] = background_normals(env, cams)
+        return normals_by_scene[scene]
     skipped = 0
     plans: dict[str, Any] = {}  # one evaluation plan per scene (its pilot on the scene's first placed cameras)
     for e, practice, ev in jobs:
@@ -298,8 +304,10 @@ def render_stimuli(
             meta["denoise"] = objr.denoise or "off"
             meta["object_spp"] = int(plan.object_spp)
             writer.add(srgb8(objr.image[v]), mask, meta, practice)
-            # the background of the same camera and seed is kept next to the set (not served)
+            # the background of the same camera and seed is kept next to the set (not served), with its
+            # surfaces' normals (the simulated observer's floor and walls)
             _save_background(writer.out, e.scene, v, srgb8(bg.image[v]))
+            _save_normals(writer.out, e.scene, v, lambda: normals_of(e.scene, env, cams))
     if not any(s["practice"] for s in writer.stimuli) and synthetic_practice_n > 0:
         for rgb, mask, meta in synthetic_practice(synthetic_practice_n, (size, size), seed):
             writer.add(rgb, mask, meta, True)
@@ -344,6 +352,80 @@ def check_same_framing(framings: list[tuple[str, str, list[dict[str, Any]]]], to
         if len(ref) != len(draws):
             raise CamoError(f"scene {scene}: {name} has {len(draws)} views and {other} {len(ref)}; build their stimuli "
                             f"in separate sets")
+
+
+def background_normals(env: Any, cams: list[Any]) -> np.ndarray:
+    """World-space normals ``(V, H, W, 3)`` of the object-free scene ``env`` seen by ``cams`` (one ray a pixel
+    centre, :func:`optimizer.rendering.render.surface_normals_views`): ~0.1 s a 256 px view, against seconds for
+    the background's path-traced render."""
+    from optimizer.rendering import scene as scn
+    from optimizer.rendering.render import surface_normals_views
+
+    return surface_normals_views(scn.build_scene(env.build()), cams)[0]
+
+
+def _save_normals(out: Path, scene: str, view: int, normals: Callable[[], np.ndarray]) -> None:
+    from study_site.stimuli import save_normals, surface_path
+
+    path = surface_path(out, scene, view)
+    if not path.exists():
+        save_normals(path, normals()[view])
+
+
+def add_surfaces(stim_dir: str | Path, threads: int | None = None, force: bool = False,
+                 log: Callable[[str], None] | None = None) -> int:
+    """Render the surface normals of every object-free view of a rendered stimulus set built before
+    ``build-stimuli`` wrote them (``camo study surfaces``): the cameras are the manifest's (``origin``,
+    ``target``, ``fov`` and size per stimulus), the scene that of the stimulus's source run (or its built-in
+    scene). Returns how many files were written; existing ones are kept unless ``force``. Nothing else of the
+    set changes; predictions made before stay as they were until ``camo study predict`` runs again."""
+    from optimizer import backend
+    from optimizer.scenes.cameras import Camera
+    from optimizer.scenes.environments import get_environment
+    from study_site.stimuli import StimulusSet, background_path, save_normals, surface_path
+
+    log = log or (lambda msg: print(msg, file=sys.stderr))
+    sset = StimulusSet(stim_dir)
+    if sset.data.get("mode") != "render":
+        raise CamoError(f"{stim_dir}: not a rendered set (mode {sset.data.get('mode')!r}): a --copy set has no "
+                        f"object-free render and no cameras")
+    todo: dict[str, dict[str, dict[str, Any]]] = {}  # scene -> {view: the manifest's stimulus record}
+    for r in sset.data["stimuli"]:
+        if r.get("practice") or not background_path(sset.root, r["scene"], r["view"]).is_file():
+            continue
+        if not force and surface_path(sset.root, r["scene"], r["view"]).exists():
+            continue
+        todo.setdefault(r["scene"], {}).setdefault(str(r["view"]), r)
+    if not todo:
+        log(f"{stim_dir}: every object-free view has its surface normals")
+        return 0
+    backend.init(threads=threads)
+    written = 0
+    for scene, by_view in todo.items():
+        recs = list(by_view.values())
+        for r in recs:
+            if not all(k in r for k in ("origin", "target", "fov")):
+                raise CamoError(f"{stim_dir}: stimulus {r['id']} has no recorded camera (origin, target, fov)")
+        pack = _pack_of(recs[0], scene)
+        cams = [Camera(tuple(r["origin"]), tuple(r["target"]), float(r["fov"]), int(r["width"]), int(r["height"]))
+                for r in recs]
+        normals = background_normals(get_environment(pack.environment), cams)
+        for r, n in zip(recs, normals):
+            save_normals(surface_path(sset.root, scene, r["view"]), n)
+            written += 1
+        log(f"{scene}: surface normals of {len(recs)} views")
+    return written
+
+
+def _pack_of(rec: dict[str, Any], scene: str):
+    """The scene pack a stimulus was rendered in: its source run's, else the built-in or registered scene."""
+    from evaluation.inputs import scene_pack
+    from optimizer.assets.rundir import open_run
+
+    src = rec.get("source_run")
+    if rec.get("source_kind") == "run" and src and Path(src).is_dir():
+        return open_run(src).pack
+    return scene_pack(scene, f"stimulus {rec['id']}")
 
 
 def _save_background(out: Path, scene: str, view: int, rgb: np.ndarray) -> None:

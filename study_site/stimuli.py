@@ -232,6 +232,35 @@ def background_path(root: str | Path, scene: str, view: str | int) -> Path:
     return Path(root) / "backgrounds" / f"{hashlib.sha256(f'{scene}:{view}'.encode()).hexdigest()[:16]}.png"
 
 
+def surface_path(root: str | Path, scene: str, view: str | int) -> Path:
+    """Where a rendered set keeps the world-space surface normals of the object-free render of ``scene``'s view
+    ``view`` (beside :func:`background_path`; ``normals`` ``(H, W, 3)`` float16, zeros where no surface is seen):
+    the simulated observer's surfaces (:func:`evaluation.observer.surface_labels`). Absent in sets built before
+    it (``camo study surfaces`` adds it) and in ``--copy`` sets."""
+    p = background_path(root, scene, view)
+    return p.with_name(p.stem + "_normals.npz")
+
+
+def save_normals(path: Path, normals: np.ndarray) -> None:
+    """Write ``normals`` ``(H, W, 3)`` to ``path`` (:func:`surface_path`), atomically."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, normals=np.asarray(normals, np.float16))
+
+
+def load_normals(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    """The normals of :func:`surface_path` as float32 ``(H, W, 3)``, or None when the file is absent or of another
+    size than ``shape`` (``(H, W)``: not this framing's)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            n = np.asarray(z["normals"], np.float32)
+    except (OSError, KeyError, ValueError) as e:
+        raise CamoError(f"{path}: unreadable surface normals ({e})") from None
+    return n if n.shape == (*shape, 3) else None
+
+
 def phash(rgb: np.ndarray) -> str:
     """64-bit DCT perceptual hash (``imagehash.phash``: 32 x 32 greyscale, 8 x 8 lowest frequencies against their
     median) of an ``(H, W, 3)`` uint8 sRGB image, as 16 hex digits."""

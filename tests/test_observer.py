@@ -1070,3 +1070,79 @@ def test_background_maps_are_cached_by_content_and_configuration():
     bgm, _ = next(iter(ob._BACKGROUND_CACHE.values()))
     with pytest.raises(ValueError):
         bgm.obj[0, 0] = 1.0
+
+
+def floor_and_wall(seed: int = 0, n: int = N, wall_share: float = 0.45) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """room's case: a wall over the top ``wall_share`` of the frame and a floor below it, of one mean colour (so
+    :func:`ground_segments` finds one ground), the floor finely textured, the wall in large dark and light blotches
+    (room's bricks and black corners). Returns the sRGB scene, the same floor continued over the whole frame (the
+    reference: an object compared with its own surface only) and the object-free view's normals (wall facing
+    the camera, floor up)."""
+    rng = np.random.default_rng(seed)
+    top = int(wall_share * n)
+    floor = 0.42 + 0.03 * unit_1f(rng, n) + 0.015 * rng.normal(size=(n, n))
+    wall = 0.42 + 0.16 * np.kron(unit_1f(rng, n // 8, 0.5), np.ones((8, 8))) + 0.015 * rng.normal(size=(n, n))
+    brown = lambda g: np.clip(np.stack([g, 0.72 * g, 0.48 * g], -1), 0, 1).astype(np.float32)  # noqa: E731
+    scene = brown(np.where(np.arange(n)[:, None] < top, wall, floor))
+    normals = np.zeros((n, n, 3), np.float32)
+    normals[:top] = (0.0, -1.0, 0.0)
+    normals[top:] = (0.0, 0.0, 1.0)
+    return scene, brown(floor), normals
+
+
+def test_surface_labels_split_a_floor_from_walls_by_their_normals():
+    """Exact labels: a floor (up, tilted 20 deg: a slope stays floor), two walls at right angles and a ceiling
+    are four surfaces; where no surface is seen (-1) stays apart; a strip under the minimum share joins the
+    nearest surface. One colour ground split by them keeps the sky last."""
+    from evaluation.observer import SEGMENT_MIN_SHARE, combine_segments, surface_labels
+
+    n = 100
+    nr = np.zeros((n, n, 3))
+    t = math.radians(20)
+    nr[60:] = (0.0, math.sin(t), math.cos(t))  # floor, 40 %
+    nr[20:60, :50] = (1.0, 0.0, 0.0)  # left wall, 20 %
+    nr[20:60, 50:] = (0.0, -1.0, 0.0)  # back wall, 20 %
+    nr[10:20] = (0.0, 0.0, -1.0)  # ceiling, 10 %
+    nr[8:10] = (0.0, 0.2, -0.98)  # a 2 % strip of a near-ceiling direction: joins the ceiling
+    lab = surface_labels(nr)
+    assert lab[:8].tolist() == np.full((8, n), -1).tolist()
+    groups = [lab[60:], lab[20:60, :50], lab[20:60, 50:], lab[8:20]]
+    assert all(len(np.unique(g)) == 1 for g in groups)
+    assert len({int(g[0, 0]) for g in groups}) == 4 and lab.max() == 3
+    sky = np.zeros((n, n), bool)
+    sky[:8] = True  # the sky: where no surface is seen
+    seg = combine_segments(None, lab, sky)
+    assert seg.max() == 4 and (seg[:8] == 4).all()
+    assert sorted(np.bincount(seg[8:].ravel()).tolist()) == [1200, 2000, 2000, 4000]
+    assert 0.02 < SEGMENT_MIN_SHARE  # the strip is under the minimum share
+
+
+def test_an_object_on_the_floor_is_compared_with_the_floor_not_the_wall():
+    """A floor and a wall of one colour are one colour ground; with the object-free view's normals the
+    surround of a place on the floor is the floor only: the object's discriminability D is what it is on a frame
+    of floor alone (within 15 %), where the wall's blotches in its surround took ~half of it, and the faint
+    object is found. Without normals (sets built before them), or with the default ``surfaces="colour"``, the
+    observer is the former one, exactly."""
+    cfg = ObserverConfig(surfaces="geometry")
+    bg, floor, normals = floor_and_wall()
+    mask = disc(128, 170, 14)  # on the floor, 55 px below the wall
+    img, ref = bg.copy(), floor.copy()
+    img[mask] = ref[mask] = 0.85 * bg[mask]
+    import evaluation.observer as ob
+
+    assert ground_segments(srgb_to_lab(bg), sky_map(ob._log_image(bg)), cfg).max() == 0  # one colour ground
+    d_ref = evidence_maps(ref, cfg, floor).d[mask].max()
+    ob._BACKGROUND_CACHE.clear()
+    d_col = evidence_maps(img, cfg, bg).d[mask].max()
+    d_surf = evidence_maps(img, cfg, bg, normals=normals).d[mask].max()
+    assert len(ob._BACKGROUND_CACHE) == 2  # the object-free view's maps are keyed by its surfaces too
+    assert abs(d_surf - d_ref) < 0.15 * d_ref, (d_surf, d_ref)
+    assert d_col < 0.6 * d_ref, (d_col, d_ref)  # (measured: D 1.37 one ground, 2.46 floor, 2.75 floor only)
+    found = predict_stimulus(img, mask, n=200, seed=0, config=cfg, background=bg, normals=normals).p_found
+    former = predict_stimulus(img, mask, n=200, seed=0, config=cfg, background=bg).p_found
+    assert found >= 0.95 and former <= 0.5, (found, former)
+    off = predict_stimulus(img, mask, n=200, seed=0, config=ObserverConfig(), background=bg,
+                           normals=normals).p_found
+    assert ObserverConfig().surfaces == "colour" and off == former
+    with pytest.raises(CamoError, match="normals"):
+        evidence_maps(img, cfg, bg, normals=normals[:, :100])

@@ -147,3 +147,29 @@ def test_the_objects_coverage_traced_on_its_box_only_is_the_full_pass(mi_backend
     assert 0 < (full[0] > 0).mean() < 1
     px = box_pixels(obj, cams)
     assert px[-1] is None and all(p.size < c.width * c.height for p, c in zip(px[:-1], cams[:-1]))
+
+
+def test_surface_normals_are_the_room_s_planes_facing_the_camera(mi_backend):
+    """surface_normals_views (the observer's surfaces): inside the built-in room, looking at its north wall from
+    1.2 m up, the lowest rows see the floor (normal +z), the middle rows the north wall (its normal, -y, towards
+    the camera), the top row the ceiling (-z: each rectangle is turned towards the camera whatever its own
+    orientation); the depth is the ray's hit distance, as coverage_and_depth_views' at one ray a pixel."""
+    from optimizer.rendering.render import coverage_and_depth_views, surface_normals_views
+
+    sc = scn.build_scene(ENVIRONMENTS["room"][1]())
+    cams = [Camera((0.0, 0.0, 1.2), (0.0, 6.5, 1.2), 100.0, 48, 40),
+            Camera((0.0, -3.0, 2.0), (0.0, 0.0, 0.0), 50.0, 48, 40)]
+    normals, depth = surface_normals_views(sc, cams)
+    assert normals.shape == (2, 40, 48, 3) and depth.shape == (2, 40, 48) and normals.dtype == np.float32
+    n = normals[0]
+    np.testing.assert_allclose(n[-1, 24], (0.0, 0.0, 1.0), atol=1e-4)  # floor
+    np.testing.assert_allclose(n[20, 24], (0.0, -1.0, 0.0), atol=1e-4)  # north wall, towards the camera
+    np.testing.assert_allclose(n[0, 24], (0.0, 0.0, -1.0), atol=1e-4)  # ceiling
+    hit = depth[0] > 0  # (the built-in room's east and west walls leave gaps by its corners: no surface there)
+    assert 0.9 < hit.mean() < 1.0
+    np.testing.assert_allclose(np.linalg.norm(n[hit], axis=-1), 1.0, atol=1e-5)
+    assert (n[~hit] == 0).all()
+    assert depth[0, 20, 24] == pytest.approx(6.5, abs=0.05)  # the wall at y = 6.5, straight ahead
+    np.testing.assert_allclose(depth[0], coverage_and_depth_views(sc, cams[:1], None, ss=1)[1][0], rtol=1e-5)
+    down = normals[1][10:, :]  # the second view looks down at the floor
+    assert (down[..., 2] > 0.9999).all()

@@ -152,3 +152,34 @@ def test_inputs_framed_differently_are_refused_with_one_line():
         assert "\n" not in str(e.value)
     with pytest.raises(CamoError, match=r"^scene gravel: mean has 1 views and ours 2"):
         check_same_framing([("gravel", "ours", a), ("gravel", "mean", a[:1])])
+
+
+def test_backgrounds_carry_their_surfaces_and_old_sets_get_them_back(built, tmp_path):
+    """build-stimuli writes the object-free view's normals beside each formal background (the observer's
+    surfaces: gravel's ground faces up); `camo study surfaces` renders them again from the manifest's cameras --
+    for a set built before they were written -- to the same values (float16); the observer's prediction records
+    how many stimuli's normals it used (``surfaces=geometry``; none by default)."""
+    import shutil
+
+    from study_site.stimuli import background_path, load_normals, surface_path
+
+    _, _, stim, man = built
+    formal = [s for s in man["stimuli"] if not s["practice"]]
+    old = tmp_path / "old"
+    shutil.copytree(stim, old)
+    for s in formal:
+        n = load_normals(surface_path(stim, s["scene"], s["view"]), (64, 64))
+        assert n is not None and background_path(stim, s["scene"], s["view"]).is_file()
+        seen = np.linalg.norm(n, axis=-1) > 0.5
+        assert seen[-1].all() and (n[seen][:, 2] > 0.9).mean() > 0.99  # the ground faces up
+        surface_path(old, s["scene"], s["view"]).unlink(missing_ok=True)
+    assert main(["study", "surfaces", str(old), "--threads", "1"]) == 0
+    for s in formal:
+        a = load_normals(surface_path(stim, s["scene"], s["view"]), (64, 64))
+        b = load_normals(surface_path(old, s["scene"], s["view"]), (64, 64))
+        np.testing.assert_allclose(b, a, atol=2e-3)
+    assert main(["study", "predict", str(old), "--trials", "5", "--quiet", "--observer", "surfaces=geometry"]) == 0
+    cfg = json.loads((old / "predicted_config.json").read_text())
+    assert cfg["stimuli_with_surfaces"] == cfg["stimuli_with_background"] == len(formal)
+    assert main(["study", "predict", str(old), "--trials", "5", "--quiet"]) == 0  # the default reads no normals
+    assert json.loads((old / "predicted_config.json").read_text())["stimuli_with_surfaces"] == 0

@@ -206,6 +206,42 @@ def coverage_and_depth_views(sc, cams: Sequence[Camera], target_shape=None,
     return np.stack(covs), np.stack(depths)
 
 
+def surface_normals_views(sc, cams: Sequence[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """World-space shading normals and hit distances of the first surface seen through each pixel's centre, every
+    view's rays in one launch (the geometry of :func:`coverage_and_depth_views`, one ray a pixel). Returns
+    ``normals (V, H, W, 3)`` float32, unit length and turned towards the camera (a two-sided plane seen from its
+    back reads as seen from its front), zeros where the ray meets nothing, and ``depth (V, H, W)`` float32 (0 where
+    nothing is hit). What the simulated observer's surfaces are read from (:func:`evaluation.observer.
+    surface_labels`): a floor and a wall of one colour are two surfaces by their normals."""
+    import drjit as dr
+    import mitsuba as mi
+
+    rays = stack_rays([camera_rays(c, 1) for c in cams])
+    si = sc.ray_intersect(rays)
+    hit = si.is_valid()
+    n = si.sh_frame.n
+    centre = mi.Point3f(np.concatenate([np.repeat(np.asarray(c.origin, np.float32)[:, None], c.width * c.height, 1)
+                                        for c in cams], 1))  # (the rays start on the near plane)
+    t = dr.select(hit, dr.norm(si.p - centre), 0.0)  # from the camera centre, as coverage_and_depth_views'
+    dr.eval(n, hit, t)
+    n_np = np.asarray(n, dtype=np.float32).reshape(3, -1).T
+    t_np = np.asarray(t, dtype=np.float32).ravel()
+    hit_np = np.asarray(hit, dtype=bool).ravel()
+    d_np = np.asarray(rays.d, dtype=np.float32).reshape(3, -1).T
+    flip = np.where((n_np * d_np).sum(1) > 0, -1.0, 1.0).astype(np.float32)  # towards the camera
+    n_np = n_np * flip[:, None]
+    n_np /= np.maximum(np.linalg.norm(n_np, axis=1, keepdims=True), 1e-12)
+    n_np[~hit_np] = 0.0
+    t_np = np.where(hit_np, t_np, 0.0)
+    normals, depths, start = [], [], 0
+    for c in cams:
+        k = c.width * c.height
+        normals.append(n_np[start:start + k].reshape(c.height, c.width, 3))
+        depths.append(t_np[start:start + k].reshape(c.height, c.width))
+        start += k
+    return np.stack(normals).astype(np.float32), np.stack(depths).astype(np.float32)
+
+
 def object_coverage_views(sc, cams: Sequence[Camera], target_shape, ss: int = 4) -> np.ndarray:
     """The coverage of :func:`coverage_and_depth_views` ``(V, H, W)`` float32, exactly, tracing only the pixels whose
     rays can meet ``target_shape``'s bounding box (:func:`optimizer.rendering.region.box_pixels`; a ray that misses
