@@ -3,7 +3,8 @@ built-in scenes: the detail term (``detail8``: ``--detail-match 8``), the map re
 blur (``blur0``), clear glass (``clear``: IOR 1.05, smooth start; ``auto``: clear glass as a start the held-out
 views keep or reject per scene, ``--clear-candidate 1.05``), the mean-colour term (``tint4``, ``tint16``:
 ``--tint-match W``; ``tint16_auto`` with ``--clear-candidate 1.05``), the perceptual term (``lpips``), a lower shared IOR
-(``eta1.2``), a lower transmittance start (``today_t0.3``) and the "large steps" map update;
+(``eta1.2``), a lower transmittance start (``today_t0.3``), the "large steps" map update and the grain layer
+(``grain``: ``--grain 1``, the ground's texture projected from each texel's best view onto the albedo);
 docs/results/giveaways.md.
 
     python bench/bench_giveaways.py --out /tmp/giveaways --scenes meadow,gravel,split \
@@ -109,6 +110,13 @@ ARMS = {
     # with the transmittance started at 0.95 as given (light through the body where the shadow falls)
     "shadow4": ["--shadow-weight", "4"],
     "shadow4_t95": ["--shadow-weight", "4", "--init", "transmittance=0.95", "--init-search", "off"],
+    # the grain layer (optimizer/optimise/grain.py, issue 29): a fixed albedo residual, the ground's texture projected
+    # from each texel's best training view minus the warm start's multi-view mean (which leaves the body too smooth)
+    "grain": ["--grain", "1"],
+    "grain05": ["--grain", "0.5"],
+    # the same projected from the targets sharpened (unsharp mask, amount 2, 0.7 px): resampling the target at each
+    # texel's projection and the render's pixel box blur the projected grain twice (bench/grain_ceiling.py)
+    "grain_s2": ["--grain", "1", "--grain-sharpen", "2"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
@@ -347,6 +355,7 @@ LABELS = {"today": "ours (today)", "shadow4": "ours, shadow x4", "shadow4_t95": 
           "coarse1_auto_r10": "coarse 1 + clear R0 1.0", "coarse1_auto_r7": "coarse 1 + clear R0 0.7",
           "coarse1_auto_r5_eta102": "clear IOR 1.02, R0 0.5",
           "coarse1_auto_r5_keepdisp": "clear R0 0.5, disp. kept", "coarse1_auto_r5_seed1": "clear R0 0.5, seed 1", "clear102_r5": "IOR 1.02 imposed, R0 0.5", "coarse1_lr3": "ours + coarse 1 (lr 3e-2)",
+          "grain": "ours + grain 1", "grain05": "ours + grain 0.5", "grain_s2": "grain 1, sharpened 2",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "mean": "Mean"}
 

@@ -10,8 +10,9 @@ from __future__ import annotations
 import dataclasses
 
 
-def tiny_gravel_stage1(batched: bool, **config):
-    """A prepared ``Stage1`` on gravel at test size; ``config`` adds ``Stage1Config`` fields (e.g. ``detail_match``)."""
+def tiny_gravel_stage1(batched: bool, views: int = 2, **config):
+    """A prepared ``Stage1`` on gravel at test size; ``views`` training views (2 unless a test needs texels seen
+    twice); ``config`` adds ``Stage1Config`` fields (e.g. ``detail_match``)."""
     from optimizer.optimise.stage1 import Stage1, Stage1Config
     from optimizer.rendering.appearance import AppearanceConfig
     from optimizer.rendering.placement import prepare_object
@@ -21,7 +22,7 @@ def tiny_gravel_stage1(batched: bool, **config):
     from optimizer.scenes.environments import get_environment
 
     pack = builtin_scenes.get("gravel")
-    pack.cameras = dataclasses.replace(pack.cameras, views=2)
+    pack.cameras = dataclasses.replace(pack.cameras, views=views)
     pack.render = dataclasses.replace(pack.render, resolution=(24, 24))
     app = dataclasses.replace(AppearanceConfig(), map_resolution=32, displacement_resolution=16)
     if batched:

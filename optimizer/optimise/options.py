@@ -37,6 +37,7 @@ RANGES: dict[str, Range] = {
     "stage1.perceptual": Range(float, 0.0, 1e3), "stage1.detail_match": Range(float, 0.0, 1e3),
     "stage1.tint_match": Range(float, 0.0, 1e3), "stage1.tint_scale": Range(float, 0.0, 1e3),
     "stage1.coarse_grid": Range(int, 0, 64), "stage1.coarse_lr": Range(float, 0.0, 1.0),
+    "stage1.grain": Range(float, 0.0, 2.0), "stage1.grain_sharpen": Range(float, 0.0, 8.0),
     "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
     "stage1.clear_roughness": Range(float, 0.0, 1.0),
     "stage1.shadow_weight": Range(float, 0.0, 1e3),
@@ -184,6 +185,15 @@ def _options() -> tuple[Option, ...]:
         o("coarse_lr", "stage1.coarse_lr", float,
           "the learning rate of --coarse-grid's level" + _p("stage1.coarse_lr") + "; 0: the maps' rate",
           metavar="LR"),
+        o("grain", "stage1.grain", float,
+          "add this gain times a fixed grain layer to the albedo in Stage 1: the ground's own texture, projected from "
+          "each texel's best training view, minus the warm start's multi-view mean that leaves the body smoother than "
+          "the ground (optimizer/optimise/grain.py; needs the warm start)" + _p("stage1.grain") + "; 0: off",
+          metavar="GAIN"),
+        o("grain_sharpen", "stage1.grain_sharpen", float,
+          "--grain's best view reads the background targets sharpened by an unsharp mask of this amount (B + A (B - "
+          "Gauss 0.7 px B)), undoing the blur of resampling the target at each texel and of the render's pixel"
+          + _p("stage1.grain_sharpen") + "; 0: the targets as they are", metavar="A"),
         o("roughness_search", "stage1.roughness_search", str,
           "before Stage 1, warm-start each of these uniform starting roughness values and start from the one that "
           "scores best on the held-out views" + _p("stage1.roughness_search") + "; off with 'off' or --init "

@@ -360,6 +360,11 @@ class RunSpec:
         if m.reads_path("stage1.coarse_grid") and self.stage1.coarse_grid > self.appearance.map_resolution:
             raise SettingError(f"{{0}} must be at most {{1}} ({self.appearance.map_resolution}), got "
                                f"{literal(self.stage1.coarse_grid)}", "stage1.coarse_grid", "appearance.map_resolution")
+        if m.reads_path("stage1.grain") and self.stage1.grain and not self.stage1.warm_start:
+            raise SettingError("{0} is projected by the warm start: turn {1} on (a given --init albedo turns it off)",
+                               "stage1.grain", "stage1.warm_start")
+        if m.reads_path("stage1.grain_sharpen") and self.stage1.grain_sharpen and not self.stage1.grain:
+            raise SettingError("{0} sharpens what {1} projects: set {1} > 0 too", "stage1.grain_sharpen", "stage1.grain")
         if m.reads_path("stage1.coarse_lr") and self.stage1.coarse_lr and not self.stage1.coarse_grid:
             raise SettingError("{0} is the rate of {1}: set {1} > 0 too", "stage1.coarse_lr", "stage1.coarse_grid")
         if m.reads_path("stage1.clear_roughness") and self.stage1.clear_roughness and not self.stage1.clear_candidate:

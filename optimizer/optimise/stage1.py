@@ -111,6 +111,14 @@ class Stage1Settings:
     # the body's colour moved as a whole, issue 29); 0: off
     coarse_grid: int = 0
     coarse_lr: float = 0.0  # the coarse level's learning rate; 0: the maps' (appearance.lr_maps)
+    # > 0: add this gain x a fixed grain layer to the albedo: the ground's own texture projected from each texel's best
+    # training view, minus the warm start's multi-view mean (optimizer/optimise/grain.py, issue 29: the body is too
+    # smooth); needs the warm start; 0: off
+    grain: float = 0.0
+    # > 0: the grain layer's best view reads the background targets sharpened by an unsharp mask of this amount
+    # (B + A (B - Gauss_0.7px B)): it undoes the blur of resampling the target at the texel's projection and of the
+    # render's pixel box (optimizer/optimise/grain.py); 0: the targets as they are
+    grain_sharpen: float = 0.0
     # the Stage 1 loss weight of the loss domain's pixels outside the object and its 1-px ring (its cast shadow, its
     # reflections on the ground, the rest of the dilated domain) against the object's pixels' 1 (shadow_weighted,
     # issue 29: the cast shadow gives the object away); 1: the plain domain, 0: the object alone
@@ -289,6 +297,7 @@ class Stage1:
         self._detail = None  # the detail term (build; optimizer/optimise/detail.py)
         self._tint = None  # the mean-colour term (build; optimizer/optimise/tint.py)
         self._coarse = None  # the maps' coarse level (_make_optimiser; optimizer/optimise/coarse.py)
+        self._grain = None  # the albedo's grain layer, (R, R, 3) NumPy and Dr.Jit (_make_optimiser; grain.py)
 
     # --- preparation: the named steps ------------------------------------------------
     def prepare(self, pose_search_info=None, start_search_info=None, targets: Targets | None = None) -> "Stage1":
@@ -444,7 +453,8 @@ class Stage1:
             values, info = warm_start_albedo(
                 values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
-                self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False))
+                self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False),
+                grain=self._grain_gain() > 0, grain_sharpen=float(getattr(self.cfg, "grain_sharpen", 0.0) or 0.0))
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info
@@ -456,6 +466,7 @@ class Stage1:
         uniform = tuple(n for n in MAPS if self.app.map_update == "large_steps")
         lrs = self.app.learning_rates()
         self._coarse = self._coarse_level()
+        self._grain = self._grain_layer()
         if self._coarse is not None:
             from optimizer.optimise.coarse import OFFSET_BOUND, coarse_key
 
@@ -471,6 +482,23 @@ class Stage1:
         if self._coarse is not None:
             for name in self._coarse.channels:
                 self.opt.add(coarse_key(name), mi.TensorXf(self._coarse.initial(name)))
+
+    def _grain_gain(self) -> float:
+        """The grain layer's gain (``cfg.grain``) in Stage 1 when the albedo is optimised, else 0."""
+        if self.STAGE != 1 or "albedo" not in self.app.trainable():
+            return 0.0
+        return float(getattr(self.cfg, "grain", 0.0) or 0.0)
+
+    def _grain_layer(self):
+        """The albedo's grain layer (:mod:`optimizer.optimise.grain`): ``(map (R, R, 3) NumPy, the same times the
+        gain as a Dr.Jit tensor)`` from the chosen start's warm start, or None (off, or no warm start ran)."""
+        gain = self._grain_gain()
+        g = getattr(self.warm_start_info, "grain", None)
+        if gain <= 0 or g is None:
+            return None
+        import mitsuba as mi
+
+        return g, mi.TensorXf(np.ascontiguousarray(gain * g, np.float32))
 
     def _coarse_level(self):
         """The coarse level of the albedo and transmittance maps (:mod:`optimizer.optimise.coarse`) when
@@ -634,6 +662,10 @@ class Stage1:
         for name, m in MAPS.items():
             if name in opt and name in keys:
                 x = opt[name]
+                if self._grain is not None and name == "albedo":  # clip(fine + G grain), fixed grain (grain.py)
+                    import drjit as dr
+
+                    x = mi.TensorXf(dr.clip(x.array + self._grain[1].array, m.low, 1.0), x.shape)
                 if self._coarse is not None and name in self._coarse.channels:  # fine + U coarse, clipped
                     from optimizer.optimise.coarse import coarse_key
 
@@ -953,6 +985,10 @@ class Stage1:
                 out[name] = arr.reshape(self.values[name].shape)
             else:  # a coarse level: folded into its map (optimizer/optimise/coarse.py)
                 coarse[name] = arr
+        if self._grain is not None and "albedo" in self.opt.values:  # the grain layer, folded first (as rendered)
+            from optimizer.optimise.grain import fold as fold_grain
+
+            out = fold_grain(out, self._grain[0], self._grain_gain(), MAPS["albedo"].low)
         if self._coarse is not None:
             from optimizer.optimise.coarse import coarse_key, fold
 

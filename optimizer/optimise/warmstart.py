@@ -53,9 +53,15 @@ class WarmStartInfo:
     clipped_low: float  # fraction < 0 (too bright to match)
     mean_albedo: list[float]  # mean over seen texels, linear
     seconds: float
+    # ``grain=True``: the grain layer's map (R, R, 3) (optimizer/optimise/grain.py; not written to summary.json) and
+    # its rms over the texels that got grain
+    grain: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    grain_rms: float | None = None
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        d.pop("grain")
+        return d
 
 
 def least_squares_albedo(background: np.ndarray, black: np.ndarray, white: np.ndarray,
@@ -83,6 +89,23 @@ def least_squares_albedo(background: np.ndarray, black: np.ndarray, white: np.nd
     raw = np.where(ok, num / np.where(ok, den, 1.0), 0.0)
     assigned = ok.all(-1)
     return np.clip(raw, 0.0, 1.0).astype(np.float32), assigned, raw.astype(np.float32)
+
+
+def grain_residual(background: np.ndarray, black: np.ndarray, white: np.ndarray, weight: np.ndarray,
+                   best_background: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-texel grain of the grain layer: the best view's least-squares albedo minus the all-view one, both clipped to
+    [0, 1] (:mod:`optimizer.optimise.grain`). Shapes as :func:`least_squares_albedo`'s (``(V, N, 3)`` linear radiance,
+    ``weight (V, N)``). Returns ``(grain (N, 3) float32 in [-1, 1], assigned (N,) bool)``; unassigned texels (no
+    usable view, or too dark to match in their best view) have grain 0. ``best_background``: the best view's solve
+    reads these observations instead (the sharpened targets), the mean's still ``background``."""
+    from optimizer.optimise.grain import best_view_weights
+
+    mean, ok_mean, _ = least_squares_albedo(background, black, white, weight)
+    best, ok_best, _ = least_squares_albedo(background if best_background is None else best_background, black, white,
+                                            best_view_weights(weight))
+    ok = ok_mean & ok_best
+    grain = np.where(ok[:, None], best.astype(np.float64) - mean, 0.0)
+    return grain.astype(np.float32), ok
 
 
 @dataclasses.dataclass
@@ -122,8 +145,8 @@ def texel_views(positions: np.ndarray, geometry, resolution: int, env, cams: Seq
 
 def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: Sequence[Camera], integrator: dict,
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
-                      say=lambda s: None, cache: dict | None = None, region: bool = False
-                      ) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
+                      say=lambda s: None, cache: dict | None = None, region: bool = False, grain: bool = False,
+                      grain_sharpen: float = 0.0) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
     ``geometry``: :class:`optimizer.rendering.appearance.Geometry`; ``values``: the initial parameters (their displacement
@@ -133,6 +156,8 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     (a start search): the :class:`TexelViews` are computed once per object placement and map resolution.
     ``region`` (a measured plan, a ``path`` integrator): the two renders cover only the object's pixels (its coverage
     dilated by 2 pixels: every bilinear tap of a texel with weight > 0), the only pixels the solve reads.
+    ``grain``: also the grain layer's map from the same renders (:mod:`optimizer.optimise.grain`), in ``info.grain``;
+    its best view reads the targets sharpened by ``grain_sharpen`` (:func:`optimizer.optimise.grain.sharpen`).
     """
     import hashlib
 
@@ -180,7 +205,19 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
         clipped_high=float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0,
         clipped_low=float((raw[assigned] < 0.0).any(-1).mean()) if seen else 0.0,
         mean_albedo=[float(x) for x in (albedo[assigned].mean(0) if seen else init_mean)],
-        seconds=time.perf_counter() - t0)
+        seconds=0.0)
+    if grain:
+        from optimizer.optimise.grain import grain_map, sharpen
+
+        g = np.zeros((n, 3), np.float32)
+        got = np.zeros(n, bool)
+        best_bg = tv.obs.sample(sharpen(background, grain_sharpen)) if grain_sharpen > 0 else None
+        g[tv.seen], got[tv.seen] = grain_residual(tv.background, tv.obs.sample(black), tv.obs.sample(white), tv.weight,
+                                                  best_background=best_bg)
+        info.grain = grain_map(tv.surface, g, got)
+        info.grain_rms = float(np.sqrt(np.mean(np.square(g[got])))) if got.any() else 0.0
+        say(f"warm start: grain layer on {int(got.sum())} texels, rms {info.grain_rms:.3f} (albedo units)")
+    info.seconds = time.perf_counter() - t0
     say(f"warm start: {seen}/{n} texels seen, mean albedo "
         f"({', '.join(f'{x:.2f}' for x in info.mean_albedo)}), {info.seconds:.1f} s")
     return new, info
