@@ -387,8 +387,8 @@ def add_surfaces(stim_dir: str | Path, threads: int | None = None, force: bool =
     log = log or (lambda msg: print(msg, file=sys.stderr))
     sset = StimulusSet(stim_dir)
     if sset.data.get("mode") != "render":
-        raise CamoError(f"{stim_dir}: not a rendered set (mode {sset.data.get('mode')!r}): a --copy set has no "
-                        f"object-free render and no cameras")
+        raise CamoError(f"{stim_dir}: not a rendered set (mode {sset.data.get('mode')!r}): a set of copied images has "
+                        f"no object-free render and no cameras")
     todo: dict[str, dict[str, dict[str, Any]]] = {}  # scene -> {view: the manifest's stimulus record}
     for r in sset.data["stimuli"]:
         if r.get("practice") or not background_path(sset.root, r["scene"], r["view"]).is_file():

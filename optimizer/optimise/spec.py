@@ -361,7 +361,7 @@ class RunSpec:
             raise SettingError(f"{{0}} must be at most {{1}} ({self.appearance.map_resolution}), got "
                                f"{literal(self.stage1.coarse_grid)}", "stage1.coarse_grid", "appearance.map_resolution")
         if m.reads_path("stage1.grain") and self.stage1.grain and not self.stage1.warm_start:
-            raise SettingError("{0} is projected by the warm start: turn {1} on (a given --init albedo turns it off)",
+            raise SettingError("{0} is projected by the warm start: turn {1} on (a given initial albedo turns it off)",
                                "stage1.grain", "stage1.warm_start")
         if m.reads_path("stage1.grain_sharpen") and self.stage1.grain_sharpen and not self.stage1.grain:
             raise SettingError("{0} sharpens what {1} projects: set {1} > 0 too", "stage1.grain_sharpen", "stage1.grain")
