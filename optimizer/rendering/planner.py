@@ -88,7 +88,9 @@ DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
 #: 3-7 % on meadow, gravel, split, panorama and occluded and 27 % in the enclosed room, while a Stage 1 step's CPU
 #: seconds moved by 0-17 % (median over spp 1-8: -9 % to +1 %), within the run-to-run spread of ~10 %; and the
 #: cut's gradient cosine against full tracing at equal spp was 0.92 (panorama), 0.95 (occluded), 0.97 (room),
-#: 1.14 (meadow): the cut buys no measurable seconds and its bias may cost gradient accuracy.
+#: 1.14 (meadow): the cut buys no measurable seconds and its bias may cost gradient accuracy. At the demo's size (8
+#: views at 96 px) it does buy seconds (meadow's Stage 1 232 against 301 s, side by side) while costing 0.26-0.64 dB
+#: crop PSNR and 0.004-0.010 LPIPS (planner.md, "What it costs and gives at the demo's size"): kept for accuracy.
 MIN_CUT_SAVING = 0.10
 #: The denoisers an evaluation plan may apply (``PlannerSettings.denoise``, ``--denoise [VARIANT]``): the variants of
 #: :data:`optimizer.rendering.denoise.VARIANTS` whose bias on the object is measured (:data:`DENOISER_BIASES`).
