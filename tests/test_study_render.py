@@ -133,6 +133,13 @@ def test_triplets_need_copy_with_one_line(built, tmp_path, capsys):
     for s in man["stimuli"]:
         given = np.asarray(Image.open(tri / f"v{s['view']}_obj.png").convert("RGB"))
         np.testing.assert_array_equal(np.asarray(Image.open(st / "images" / f"{s['id']}.png")), given)
+    # a copied set has no object-free render and no cameras: `camo study surfaces` refuses it in one line
+    before = sorted(p.relative_to(st) for p in st.rglob("*"))
+    capsys.readouterr()
+    assert main(["study", "surfaces", str(st)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("camo: error:") and "not a rendered set" in err[0], err
+    assert sorted(p.relative_to(st) for p in st.rglob("*")) == before  # nothing written
 
 
 def test_inputs_framed_differently_are_refused_with_one_line():
