@@ -165,11 +165,28 @@ def test_surface_normals_are_the_room_s_planes_facing_the_camera(mi_backend):
     np.testing.assert_allclose(n[-1, 24], (0.0, 0.0, 1.0), atol=1e-4)  # floor
     np.testing.assert_allclose(n[20, 24], (0.0, -1.0, 0.0), atol=1e-4)  # north wall, towards the camera
     np.testing.assert_allclose(n[0, 24], (0.0, 0.0, -1.0), atol=1e-4)  # ceiling
-    hit = depth[0] > 0  # (the built-in room's east and west walls leave gaps by its corners: no surface there)
-    assert 0.9 < hit.mean() < 1.0
-    np.testing.assert_allclose(np.linalg.norm(n[hit], axis=-1), 1.0, atol=1e-5)
-    assert (n[~hit] == 0).all()
+    assert (depth[0] > 0).all()  # the room is closed: every ray hits a surface
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
     assert depth[0, 20, 24] == pytest.approx(6.5, abs=0.05)  # the wall at y = 6.5, straight ahead
     np.testing.assert_allclose(depth[0], coverage_and_depth_views(sc, cams[:1], None, ss=1)[1][0], rtol=1e-5)
     down = normals[1][10:, :]  # the second view looks down at the floor
     assert (down[..., 2] > 0.9999).all()
+
+
+def test_the_built_in_room_is_closed_walls_meet_at_its_corners(mi_backend):
+    """The room's four walls are 13 m wide and 4 m high and meet at the corners: a wide view into each corner
+    from the middle of the room hits a surface at every pixel, the east wall's normal is -x at eye height,
+    and no wall reaches above the ceiling (a ray just under the ceiling towards a corner ends within the
+    corner's distance, 6.5 * sqrt(2) ~ 9.19 m)."""
+    from optimizer.rendering.render import surface_normals_views
+
+    sc = scn.build_scene(ENVIRONMENTS["room"][1]())
+    corners = [(6.5, 6.5), (-6.5, 6.5), (6.5, -6.5), (-6.5, -6.5)]
+    cams = [Camera((0.0, 0.0, 2.0), (x, y, 2.0), 90.0, 32, 32) for x, y in corners]
+    cams.append(Camera((0.0, 0.0, 1.2), (6.5, 0.0, 1.2), 30.0, 32, 32))
+    cams.append(Camera((0.0, 0.0, 3.9), (6.5, 6.5, 3.9), 1.0, 32, 32))
+    normals, depth = surface_normals_views(sc, cams)
+    assert (depth > 0).all(), [float((d > 0).mean()) for d in depth]
+    np.testing.assert_allclose(normals[4][16, 16], (-1.0, 0.0, 0.0), atol=1e-4)  # east wall, facing in
+    assert depth[4][16, 16] == pytest.approx(6.5, abs=0.05)
+    assert depth[5].max() <= 6.5 * np.sqrt(2) + 0.05

@@ -147,16 +147,19 @@ def _room() -> dict:
     walls = textures.texture("brick")
     out: dict[str, Any] = {"floor": ground_rect(textures.texture("planks"), half, tile=2.2)}
     T = _T()
-    # Rectangles face +z locally; rotate each wall to face the room's inside.
-    for name, rot_axis, angle, pos in (
-        ("wall_n", [1, 0, 0], 90, [0, half, height / 2]),
-        ("wall_s", [1, 0, 0], -90, [0, -half, height / 2]),
-        ("wall_e", [0, 1, 0], -90, [half, 0, height / 2]),
-        ("wall_w", [0, 1, 0], 90, [-half, 0, height / 2]),
+    # Rectangles span [-1, 1]^2 in their local xy plane and face +z; each wall is rotated to face the room's
+    # inside. The scale is applied before the rotation, so it is given in the rectangle's own axes: a turn about
+    # x keeps local x horizontal (width `half`) and makes local y vertical (`height / 2`); a turn about y makes
+    # local x vertical and keeps local y horizontal (tests/test_render.py checks that the room is closed).
+    for name, rot_axis, angle, pos, size in (
+        ("wall_n", [1, 0, 0], 90, [0, half, height / 2], [half, height / 2, 1.0]),
+        ("wall_s", [1, 0, 0], -90, [0, -half, height / 2], [half, height / 2, 1.0]),
+        ("wall_e", [0, 1, 0], -90, [half, 0, height / 2], [height / 2, half, 1.0]),
+        ("wall_w", [0, 1, 0], 90, [-half, 0, height / 2], [height / 2, half, 1.0]),
     ):
         out[name] = {
             "type": "rectangle",
-            "to_world": T.translate(pos).rotate(rot_axis, angle).scale([half, height / 2, 1.0]),
+            "to_world": T.translate(pos).rotate(rot_axis, angle).scale(size),
             "bsdf": textured_diffuse(walls, 4.0),
         }
     out["ceiling"] = {
