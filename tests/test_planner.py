@@ -230,8 +230,9 @@ def test_measured_plans_follow_the_light_transport(mi_backend):
         _check_depth_rule(p)
         assert p.measured and p.region and p.pilot["seconds"] > 0 and p.curve["rows"]
         assert {"training", "targets"} <= set(p.spp) and p.spp["training"]["noise"] > p.spp["targets"]["noise"]
-    # open meadow: Russian roulette leaves little beyond depth 4 to save (3-4 % of the vertices), so every bounce
-    # is kept; the enclosed room's walls make deep paths cost, so its cut (depth 3, opaque) is taken
+    # open meadow: Russian roulette leaves little beyond depth 4 to save (3-4 % of the vertices, 8 % of a timed
+    # training render at 64 px), so every bounce is kept; the enclosed room's walls make deep paths cost, so its
+    # cut for an opaque start (depth 3) saves enough of a training render's seconds (17 % timed at 64 px) and is taken
     assert transmissive.max_depth == 12 and any(e.name.startswith("depth cut to 4") for e in transmissive.effects)
     assert room.max_depth < 12
     chains = next(e for e in transmissive.effects if "transmissive chains" in e.name)
@@ -509,7 +510,7 @@ def _closed_box_env(albedo: float):
 def test_timing_a_depth_cut_in_a_closed_white_box_is_real_and_stable(mi_backend):
     """A real tiny scene where the timed decision is stable: in a closed box of 0.9-albedo walls Russian roulette
     keeps most paths alive to depth 12, so a shallow cut (admissible under a loose accuracy bound) saves well over the
-    10 % threshold of a training step's seconds (primal and adjoint, timed at the stage's size: 2 views at 64 px,
+    10 % threshold of a training render's seconds (primal and adjoint, timed at the stage's size: 2 views at 64 px,
     8 spp), far beyond the timing's noise (at 32 px and 2 spp a cut to 5 saves 3 %: a step that small is launch
     overhead);
     the planner takes it, and the timing is of what it says (the stage's film, a window inside it, the depths)."""
@@ -534,7 +535,7 @@ def test_timing_a_depth_cut_in_a_closed_white_box_is_real_and_stable(mi_backend)
     spp = {"training": 8, "targets": 8}
     depth = planner.admissible_cut(pilot, {"albedo"}, spp)
     assert depth is not None and depth <= 4
-    t = planner.time_cut(env, mesh, cams, pilot, depth, spp["training"], seed=3)
+    t = planner.time_cut(pack, env, {"albedo"}, mesh, cams, pilot, depth, spp["training"], seed=3)
     assert (t.depth, t.full_depth, t.rr_depth, t.views, t.width, t.height, t.spp) == (depth, 12, 5, 2, 64, 64, 8)
     x0, y0, x1, y1 = t.window
     assert 0 <= x0 < x1 <= 64 and 0 <= y0 < y1 <= 64 and t.seconds_full > 0 and t.warmup_seconds > 0

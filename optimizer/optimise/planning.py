@@ -67,8 +67,9 @@ def measure_plan(pack, env, prepared, cams, app: AppearanceConfig, seed: int, sp
                           geometry=moves_geometry(params), size=pack.object.size)
     cut = planner.admissible_cut(pilot, params, spp)
     train_spp = int(spp.get("training", min(spp.values())))
-    timing = None if cut is None else planner.time_cut(env, mesh, cams, pilot, cut, train_spp,
-                                                       seed=seeds.seed("pilot", seed))
+    timing = None if cut is None else planner.time_cut(pack, env, params, mesh, cams, pilot, cut, train_spp,
+                                                       seed=seeds.seed("pilot", seed),
+                                                       shadow_gradients=shadow_gradients)
     pl = planner.plan(pack, env, params, "optimize", pilot, spp, shadow_gradients, cut_timing=timing)
     log(f"plan: pilot {pilot.seconds:.1f} s" + ("" if timing is None else
                                                 f", the depth cut to {cut} timed: saves {timing.saving:.0%}") +

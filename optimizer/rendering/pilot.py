@@ -354,12 +354,16 @@ def stage_window(region: np.ndarray, width: int, height: int) -> tuple[int, int,
 def time_depth_cut(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object], cams: Sequence[Camera],
                    region: np.ndarray, depth: int, spp: int, seed: int = 0, full_depth: int = FULL_DEPTH,
                    rr_depth: int = RR_DEPTH, reps: int = 3, clock: Callable[[], float] = time.process_time,
-                   clock_name: str = "process") -> CutTiming:
+                   clock_name: str = "process", integrators: dict[int, tuple[dict, int]] | None = None,
+                   geometry: bool = False) -> CutTiming:
     """Time a depth cut at the stage's size: every view of ``cams`` (the stage's cameras, at their resolution) over
     the stage's shared window (:func:`stage_window` of the pilot's ``region``), ``spp`` samples per pixel, a Stage 1
-    step's rendering: Mitsuba's ``prb`` primal render and its adjoint pass (path replay) into the object's BSDF
-    parameters, at ``max_depth = depth`` and at ``full_depth``, each with Russian roulette from ``rr_depth`` as its
-    plan has it (a cut at or below ``rr_depth`` stops its paths before the roulette starts).
+    step's rendering: the training integrator's primal render and its adjoint pass into the object's BSDF parameters
+    (and, with ``geometry``, its vertex positions: the projective integrators' silhouette terms run as in training),
+    at ``max_depth = depth`` and at ``full_depth``, each with Russian roulette from ``rr_depth`` as its plan has it (a
+    cut at or below ``rr_depth`` stops its paths before the roulette starts). ``integrators``: per depth, the
+    integrator dict and the ``spp`` argument of ``mi.render`` (the planner's
+    :func:`~optimizer.rendering.planner.training_integrator`); default Mitsuba's ``prb`` at ``spp``.
 
     One untimed warm-up render of every view per depth first (Mitsuba compiles a kernel per depth: the compile is
     not the cut's price), then ``reps`` rounds, each timing the cut and full depth one after the other (interleaved,
@@ -369,8 +373,10 @@ def time_depth_cut(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object
     Why timed and not counted: the pilot's path vertices are work, not seconds (a small step is mostly launch
     overhead and the adjoint pass is most of a step), and the premise the demo's size put in doubt (meadow's Stage 1
     took 232 s at depth 4 against 301 s at 12 where the vertices said 3.5 %) is settled by timing the step at that
-    size (docs/results/planner.md). The adjoint pass is timed with the primal: it is ~80 % of a Stage 1 step. Not
-    timed: the projective silhouette term (its primary-silhouette samples do not depend on the depth)."""
+    size (docs/results/planner.md). The adjoint pass is timed with the primal (~80 % of a Stage 1 step), and with the
+    training integrator itself: in the room (4 views x 64 px, 4 spp, interleaved) a cut to 4 saves 28 % of a plain
+    ``prb`` render + adjoint but 5 % of the projective one's with geometry gradients (1.84 against 1.93 process s):
+    the silhouette terms, which do not shorten with the depth, are most of a projective step."""
     import drjit as dr
     import mitsuba as mi
 
@@ -382,11 +388,20 @@ def time_depth_cut(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object
     W, H = cams[0].width, cams[0].height
     window = stage_window(region, W, H)
     sc = scn.build_scene(elements_fn(), mesh_fn(), [scn.perspective(c, int(spp), crop=window) for c in cams])
-    integrators = {d: mi.load_dict({"type": "prb", "max_depth": int(d), "rr_depth": int(rr_depth)})
-                   for d in (int(depth), int(full_depth))}
+    if integrators is None:
+        integrators = {d: ({"type": "prb", "max_depth": int(d), "rr_depth": int(rr_depth)}, int(spp))
+                       for d in (int(depth), int(full_depth))}
+    if set(integrators) != {int(depth), int(full_depth)}:
+        raise ValueError("time_depth_cut: integrators must be given for the cut's depth and for full depth")
+    from optimizer.rendering import projective
+
+    projective.register()  # the training plans' camo_* projective integrators
+    loaded = {d: (mi.load_dict(dict(integ)), int(n)) for d, (integ, n) in integrators.items()}
     params = mi.traverse(sc)
     keys = [k for k in params.keys() if k.startswith(scn.OBJECT_ID + ".bsdf") and
             dr.is_diff_v(params[k]) and dr.is_float_v(params[k])]
+    if geometry:
+        keys.append(scn.OBJECT_ID + ".vertex_positions")  # the pose and displacement: the silhouette terms run
     if not keys:
         raise ValueError("time_depth_cut: the object's BSDF has no differentiable parameter")
 
@@ -396,7 +411,8 @@ def time_depth_cut(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object
             for k in keys:
                 dr.enable_grad(params[k])
             params.update()
-            img = mi.render(sc, params, sensor=i, integrator=integrators[d], spp=int(spp), seed=s + i)
+            integ, n = loaded[d]
+            img = mi.render(sc, params, sensor=i, integrator=integ, spp=n, seed=s + i)
             dr.backward(dr.mean(img, axis=None))
             for k in keys:
                 dr.eval(dr.grad(params[k]))
@@ -404,12 +420,12 @@ def time_depth_cut(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object
         dr.sync_thread()
 
     t0 = clock()
-    for d in integrators:
+    for d in loaded:
         step(d, seed)
     warm = clock() - t0
-    best = {d: math.inf for d in integrators}
+    best = {d: math.inf for d in loaded}
     for r in range(int(reps)):
-        for d in integrators:
+        for d in loaded:
             t = clock()
             step(d, seed + (r + 1) * 1000)
             best[d] = min(best[d], clock() - t)

@@ -27,7 +27,7 @@ shown whole), in sRGB units:
 ``max_depth`` is the smallest depth whose dropped light (RMS over the pixels that matter) stays below
 ``bias_fraction`` (0.3) of the noise at the stage's spp (the largest spp the plan's depth serves: a squared error at
 most 9 % above the noise alone). Training takes that cut only where it also saves at least ``min_cut_saving``
-(:data:`MIN_CUT_SAVING`, 10 %) of a training step's seconds, timed at the stage's size (:meth:`Planner.time_cut`:
+(:data:`MIN_CUT_SAVING`, 10 %) of a training render's seconds, timed at the stage's size (:meth:`Planner.time_cut`:
 the stage's views at their resolution over the stage's window, its spp, a ``prb`` primal and adjoint render at the
 cut and at full depth, interleaved, after an untimed warm-up); elsewhere it keeps every bounce: a bias that buys no
 seconds is not taken. Untimed (a plan from a pilot alone), the pilot's path vertices over the object's region stand
@@ -85,15 +85,17 @@ REGION_MIN_SPP = 16
 #: participant looks. ``oidn-raw`` (first-hit features): 1.26-1.83/255 (meadow the largest; whole frame
 #: 0.77-1.97); ``oidn-through`` (see-through features): 1.31-1.69/255 (split; whole frame 0.79-1.92).
 DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
-#: A training plan cuts the path depth only where the cut saves at least this share of a training step's seconds,
+#: A training plan cuts the path depth only where the cut saves at least this share of a training render's seconds,
 #: timed at the stage's size (Planner.time_cut; untimed: of the path vertices over the object's region, the pilot's
 #: counts), and where its bias is below bias_fraction x the noise; below it every bounce is kept (depth 12, Russian
 #: roulette from vertex 5). 10 %: about the timing's spread between interleaved rounds on the shared machine.
 #: Measured (issue 28, docs/results/planner.md "(b) A Stage 1 gradient"): at 4 views x 64 px the cut to 4 saves
-#: 3-7 % of the path vertices on the open scenes and the panorama, 27 % in the room, and a Stage 1 step's seconds
-#: moved by 0-17 % (within the spread) while the cut's gradient cosine at equal spp was 0.92-1.14 of full tracing's.
-#: Timed at make demo's size (meadow, 8 views x 96 px, 4 spp, a prb primal + adjoint render of every view): the cut
-#: saves -7 % (full depth was the faster): Russian roulette already makes the deep paths cheap.
+#: 3-7 % of the path vertices on the open scenes and the panorama, 32 % in the room, while a Stage 1 step's seconds
+#: moved by 0-17 % (within the spread; the room's 5.40 against 5.23 s) and the cut's gradient cosine at equal spp was
+#: 0.92-1.14 of full tracing's. Timed with the training integrator (camo_prb_projective, geometry gradients, 4 views
+#: x 64 px, 4 spp): the cut saves 2.5 % (occluded), 8 % (split, the room with a transmissive start), 17 % (the room,
+#: opaque: depth 3); a plain prb render + adjoint overstates it (18, 16, 25, 32 %): the silhouette terms do not
+#: shorten with the depth.
 MIN_CUT_SAVING = 0.10
 #: The denoisers an evaluation plan may apply (``PlannerSettings.denoise``, ``--denoise [VARIANT]``): the variants of
 #: :data:`optimizer.rendering.denoise.VARIANTS` whose bias on the object is measured (:data:`DENOISER_BIASES`).
@@ -337,16 +339,26 @@ class Planner:
         depth = self._admissible(pilot, params, "optimize", spp)[0]
         return depth if depth < pilot.K else None
 
-    def time_cut(self, env: Environment, mesh_fn: Callable[[], Any], cams: Sequence, pilot: Pilot, depth: int,
-                 spp: int, seed: int = 0, clock: Callable[[], float] | None = None) -> CutTiming:
+    def time_cut(self, pack: ScenePack, env: Environment, params: set[str] | frozenset[str],
+                 mesh_fn: Callable[[], Any], cams: Sequence, pilot: Pilot, depth: int, spp: int, seed: int = 0,
+                 shadow_gradients: bool = False, clock: Callable[[], float] | None = None) -> CutTiming:
         """Time the cut to ``depth`` against full depth at the stage's size (``cut_views`` of the stage's ``cams``,
-        evenly spaced, at their resolution, over the window bounding the pilot's object region, ``spp``: the training renders'), with
-        Russian roulette as each plan has it (:func:`optimizer.rendering.pilot.time_depth_cut`; a named step,
-        like :meth:`pilot`). ``clock``: seconds (default: process CPU seconds)."""
+        evenly spaced, at their resolution, over the window bounding the pilot's object region, ``spp``: the
+        training renders'), each with the training integrator its plan for the optimised ``params`` would have
+        (projective, with the silhouette budget, where they move the geometry) and Russian roulette as that plan has
+        it (:func:`optimizer.rendering.pilot.time_depth_cut`; a named step, like :meth:`pilot`). ``clock``: seconds
+        (default: process CPU seconds)."""
         kw = {} if clock is None else {"clock": clock, "clock_name": "injected"}
         cams = [cams[i] for i in pick_views(cams, self.settings.cut_views)]
-        return time_depth_cut(env.build, mesh_fn, cams, pilot.region(), depth, spp, seed=seed,
-                              rr_depth=min(self.settings.rr_depth, FULL_DEPTH), reps=self.settings.cut_reps, **kw)
+        rr = min(self.settings.rr_depth, FULL_DEPTH)
+        # the training integrator of each depth's plan (params: the optimised parameters; projective when they move
+        # the geometry, with its silhouette budget), as Stage 1 renders with it
+        integrators = {d: training_integrator(_structure(pack, env, params, "optimize", shadow_gradients, d, rr, []),
+                                              int(spp), (cams[0].width, cams[0].height))
+                       for d in (int(depth), FULL_DEPTH)}
+        return time_depth_cut(env.build, mesh_fn, cams, pilot.region(), depth, spp, seed=seed, rr_depth=rr,
+                              reps=self.settings.cut_reps, integrators=integrators,
+                              geometry=moves_geometry(params), **kw)
 
     def plan(self, pack: ScenePack, env: Environment, params: set[str] | frozenset[str], purpose: str, pilot: Pilot,
              spp: dict[str, int], shadow_gradients: bool = False, cut_timing: CutTiming | None = None) -> Plan:
@@ -435,8 +447,9 @@ class Planner:
             why_depth = (f"{depth} (every bounce): stopping at {cut} would change the object's effect by only "
                          f"{f.bias[cut - 1] * 255:.3f}/255 RMS over {where} (below {st.bias_fraction:g} x the noise at "
                          f"{s_max} spp, {noise_full * 255:.3f}/255) but save only {priced} (below "
-                         f"{st.min_cut_saving:.0%}): Russian roulette from vertex {rr} already makes the deeper paths "
-                         "cheap, so the cut's bias would buy too few seconds")
+                         f"{st.min_cut_saving:.0%}): a training step's seconds hardly depend on the depth here "
+                         f"(Russian roulette from vertex {rr} makes the deeper paths cheap; the silhouette terms do "
+                         "not shorten), so the cut's bias would buy too few seconds")
         reasons: list[tuple[str, str]] = [
             ("max_depth", why_depth),
             ("rr_depth", f"{rr}: Russian roulette from vertex {rr} as in full path tracing (unbiased; "
