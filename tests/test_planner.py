@@ -230,11 +230,19 @@ def test_measured_plans_follow_the_light_transport(mi_backend):
         _check_depth_rule(p)
         assert p.measured and p.region and p.pilot["seconds"] > 0 and p.curve["rows"]
         assert {"training", "targets"} <= set(p.spp) and p.spp["training"]["noise"] > p.spp["targets"]["noise"]
-    # open meadow: Russian roulette leaves little beyond depth 4 to save (3-4 % of the vertices, 8 % of a timed
-    # training render at 64 px), so every bounce is kept; the enclosed room's walls make deep paths cost, so its
-    # cut for an opaque start (depth 3) saves enough of a training render's seconds (17 % timed at 64 px) and is taken
-    assert transmissive.max_depth == 12 and any(e.name.startswith("depth cut to 4") for e in transmissive.effects)
-    assert room.max_depth < 12
+    # open meadow: Russian roulette leaves little beyond depth 4 to save (3-4 % of the vertices, 6-8 % of a timed
+    # training render), so every bounce is kept; the enclosed room's walls make deep paths cost (its opaque start's
+    # cut to 3 saves ~half the path vertices), but whether that buys seconds is the timing's to say: a projective
+    # step's silhouette terms do not shorten with the depth (the cut saves 17 % of a training render at 64 px, less
+    # at these 48 px views), and the decision follows the timing (_check_depth_rule); at this size a step is small
+    # and the timing's spread reaches the threshold (meadow's cut was taken in one run), so no depth is asserted
+    assert any(e.name.startswith("depth cut to 4") for e in transmissive.effects)
+    assert transmissive.max_depth == (4 if transmissive.pilot["cut_timing"]["saving"] >= 0.10 else 12)
+    room_cut = next(e for e in room.effects if e.name.startswith("depth cut to 3"))
+    assert float(room_cut.name.split("path vertices: ")[1].split("%")[0]) > 30
+    meadow_cut = next(e for e in opaque.effects if e.name.startswith("depth cut to "))
+    assert float(meadow_cut.name.split("path vertices: ")[1].split("%")[0]) < 10
+    assert room.max_depth == (3 if room.pilot["cut_timing"]["saving"] >= 0.10 else 12)
     chains = next(e for e in transmissive.effects if "transmissive chains" in e.name)
     assert chains.kept and chains.contribution > 0
     assert next(e for e in opaque.effects if "transmissive chains" in e.name).contribution == 0.0
