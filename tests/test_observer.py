@@ -1138,7 +1138,7 @@ def test_background_maps_are_cached_by_content_and_configuration():
 def floor_and_wall(seed: int = 0, n: int = N, wall_share: float = 0.45) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """room's case: a wall over the top ``wall_share`` of the frame and a floor below it, of one mean colour (so
     :func:`ground_segments` finds one ground), the floor finely textured, the wall in large dark and light blotches
-    (room's bricks and black corners). Returns the sRGB scene, the same floor continued over the whole frame (the
+    (room's brick walls in light and shade). Returns the sRGB scene, the same floor continued over the whole frame (the
     reference: an object compared with its own surface only) and the object-free view's normals (wall facing
     the camera, floor up)."""
     rng = np.random.default_rng(seed)
