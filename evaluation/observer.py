@@ -76,7 +76,10 @@ everywhere at each fixation, with a sensitivity that falls with eccentricity.
    Sanderson & Lovell 2012). It is what takes an object's *attached* cast shadow -- which the shape cue can read as
    upright and whose warm interreflected light can defeat the chromaticity test -- off the object evidence, so the
    shadow no longer carries more of it than the body. Read at the finest centre scale and applied at every scale:
-   being shadowed ground is a property of the place.
+   being shadowed ground is a property of the place. With ``cast_shadow="texture_chroma"`` (an option,
+   :func:`shadow_chroma_kept`) the darkening must also keep the ground's chromaticity, up to the ambient light's
+   own shift (towards the sky's blue or the scene's mean colour), so a tinted see-through object is not ground in
+   shadow (Horprasert et al. 1999; Cucchiara et al. 2003).
 3. **Priority map** ``G`` (GS6's priority map: top-down guidance by the target template): the object prior of a
    participant who knows the target's *size class* and that it *rests on the ground*. No object rests on the sky
    (:func:`sky_map`: the smooth region at the top and what it encloses -- the sun's glow and disc; Neider &
@@ -166,7 +169,7 @@ from camo_base.errors import CamoError
 _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decision": ("diffusion", "threshold"),
             "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background"),
             "props": ("scene", "none"), "click": ("body", "thing", "core", "peak"),
-            "prop_test": ("verify", "priority"), "cast_shadow": ("texture", "none"),
+            "prop_test": ("verify", "priority"), "cast_shadow": ("texture", "texture_chroma", "none"),
             "surfaces": ("colour", "geometry")}
 
 
@@ -384,7 +387,16 @@ class ObserverConfig:
     #: & Lovell 2012, Pattern Recognit. 45, whose comparison ranks large-region texture methods first); and people
     #: see a luminance change that keeps the pattern and its chromaticity as a change of illumination, not of
     #: material (Kingdom 2008, Vision Res. 48). Without a background, or on ground with no texture above the
-    #: internal noise, it says nothing (the former analysis alone). "none": the former model.
+    #: internal noise, it says nothing (the former analysis alone). "texture_chroma" (an option): the same, and besides
+    #: **the ground's own chromaticity is kept** (:func:`shadow_chroma_kept`): a cast shadow takes the direct light away
+    #: and leaves the ambient -- the sky's, bluer along the Planckian direction, or the light the scene's own surfaces
+    #: send back, of their mean colour -- so the ground's log chromaticity at the place moves only within the cone of
+    #: those two directions, while a surface in front of the ground (an amber or red glass, a coloured translucent
+    #: object) moves it elsewhere and is not discounted (the brightness-ratio-plus-chromaticity shadow tests of
+    #: Horprasert, Harwood & Davis 1999; Cucchiara, Grana, Piccardi & Prati 2003, IEEE PAMI 25(10); Sanin, Sanderson &
+    #: Lovell 2012). Grey glass keeps the ground's chromaticity and stays undecided. Measured on the built-in scenes'
+    #: sets and not the default (docs/results/observer.md, "Object or its shadow: chromaticity"). "none": the former
+    #: model.
     cast_shadow: str = "texture"
     #: Internal noise of the orientation energies, in units of the L* JND (``internal_noise``) times this gain.
     #: 1.0 (default, the former model): the energies get the L* JND itself. :data:`ENERGY_GAIN` (0.52, the energy
@@ -814,7 +826,59 @@ def cast_shadow_map(logimg: np.ndarray, log_bg: np.ndarray, sigma_c: float, cfg:
     # the slope of the image's fine structure on the ground's; the ground's variance floored at the internal noise
     # (no texture above it: no slope can be read, nothing is discounted)
     t = _gauss(fi * fb, win) / np.maximum(_gauss(fb * fb, win), cfg.internal_noise ** 2)
-    return ramp * np.clip(t, 0.0, 1.0)
+    out = ramp * np.clip(t, 0.0, 1.0)
+    if cfg.cast_shadow == "texture_chroma":
+        out = out * shadow_chroma_kept(logimg, log_bg, win, cfg.internal_noise)
+    return out
+
+
+#: The direction in (ln R/G, ln B/G) along which a daylight illuminant moves as it gets bluer (sun to sky): by
+#: Wien's approximation of Planck's law a blackbody's log chromaticities are linear in 1/T, with slopes
+#: proportional to ``1/lambda_k - 1/lambda_G`` (Finlayson, Hordley, Lu & Drew 2006, IEEE PAMI 28(1), the
+#: illuminant-invariant direction), here for the sRGB primaries' dominant wavelengths 610, 540 and 450 nm
+#: (towards higher T: less red, more blue). Unit vector.
+PLANCK_DIRECTION = tuple((lambda v: (v / np.linalg.norm(v)).tolist())(np.array([1 / 610 - 1 / 540, 1 / 450 - 1 / 540])))
+
+
+def shadow_chroma_kept(logimg: np.ndarray, log_bg: np.ndarray, sigma: float, noise: float) -> np.ndarray:
+    """``(h, w)`` in [0, 1]: whether the log chromaticity of the image at each place is what a cast shadow leaves of
+    the object-free view's there (``ObserverConfig.cast_shadow="texture_chroma"``). Inputs: the log images of
+    :func:`_log_image` ``(h, w, 3)`` (channels 1 and 2: ``LOG_UNITS`` ln R/G and ln B/G of linear RGB), pooled
+    with a Gaussian of ``sigma`` px; ``noise``: the internal noise in those units (2.3: a ratio change of ~4.6 %).
+
+    A shadow removes the direct light and keeps the ambient, so the ground at the place changes chromaticity by
+    the ambient's chromaticity relative to the whole light's, in one of two directions or a mix of them: towards
+    the sky's blue (daylight: less red, more blue relative to green; Nadimi & Bhanu 2004, IEEE PAMI 26(8)) or
+    towards the colour of the scene's own surfaces, whose interreflected light is the ambient indoors and under a
+    canopy (mutual illumination: Funt, Drew & Ho 1991, IJCV 6; Langer 1999, "When shadows become interreflections",
+    IJCV 34) -- read as the mean log chromaticity of the object-free view's ground, the light the scene sends
+    back under a neutral illuminant. A change of the ground's chromaticity inside the cone of those two directions
+    (or none) is a shadow's; what lies outside it -- an amber glass on green grass, a red one on any ground but a
+    red one -- is a surface's. Its distance from the cone, in units of ``noise``, makes the place shadow-like by
+    ``exp(-z^2 / 2 SHADOW_RESIDUAL^2)`` (the fall-off of :func:`_shadow_residual`). This is the chromaticity test
+    of background-subtraction shadow detectors (brightness ratio plus chromaticity: Horprasert, Harwood & Davis
+    1999; Cucchiara, Grana, Piccardi & Prati 2003, IEEE PAMI 25(10); the chromaticity family of Sanin, Sanderson &
+    Lovell 2012, Pattern Recognit. 45) with the ambient's colour taken from the scene instead of a fixed
+    tolerance. A dark ambient of the ground's own colour (an orange floor in an orange room) leaves a tinted
+    object of that colour undecided: it is then read as a shadow, as with the texture test alone. The mask is
+    never read."""
+    dr = _gauss(logimg[..., 1] - log_bg[..., 1], sigma)
+    db = _gauss(logimg[..., 2] - log_bg[..., 2], sigma)
+    d = np.stack([dr, db], -1)
+    sky_dir = np.array(PLANCK_DIRECTION)
+    mean = np.array([float(np.mean(log_bg[..., 1])), float(np.mean(log_bg[..., 2]))])
+    dirs = [sky_dir] + ([mean / np.linalg.norm(mean)] if np.linalg.norm(mean) > noise else [])
+    # distance of each change from the convex cone spanned by the directions (inside: 0)
+    dist = np.linalg.norm(d, axis=-1)  # the apex: no change at all
+    for u in dirs:
+        along = np.maximum(d @ u, 0.0)
+        dist = np.minimum(dist, np.linalg.norm(d - along[..., None] * u, axis=-1))
+    if len(dirs) == 2:
+        m = np.stack(dirs, -1)  # d = m @ (a, b): inside the cone where a, b >= 0
+        if abs(np.linalg.det(m)) > 1e-9:
+            ab = d @ np.linalg.inv(m).T
+            dist = np.where((ab >= 0).all(-1), 0.0, dist)
+    return np.exp(-0.5 * (dist / noise) ** 2 / SHADOW_RESIDUAL ** 2)
 
 
 def _scale_maps(lab: np.ndarray, logimg: np.ndarray, sigma_c: float, cfg: ObserverConfig,
@@ -888,7 +952,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
                 surf = surface_labels(_nearest(_check_normals(normals, srgb.shape), sky.shape))
                 segments = combine_segments(segments, surf, sky)
         d = d_inv = shadow = obj = None
-        if log_bg is not None and cfg.cast_shadow == "texture":
+        if log_bg is not None and cfg.cast_shadow in ("texture", "texture_chroma"):
             # the ground's own texture, darkened by a shadow's factor: ground in shadow, whatever its outline. Read at
             # the finest centre scale: being shadowed ground is a property of the place, so a coarse scale's features
             # that straddle a body and its attached shadow are discounted where they sit on the shadow only

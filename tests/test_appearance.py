@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from optimizer.rendering.appearance import AppearanceConfig, Geometry, bilinear_taps, displacement_per_uv_vertex, initial_values
+from optimizer.rendering.appearance import (AppearanceConfig, Geometry, bilinear_taps, displacement_per_uv_vertex,
+                                            initial_values, world_normals)
 from optimizer.scenes.pose import clip_offset, euler_xyz_deg, model_matrix, rot_z, scaling, translation
 from optimizer.scenes.scenepack import MaterialSpec, ObjectSpec
 
@@ -60,6 +61,23 @@ def test_constant_displacement_moves_vertices_along_normals(prepared):
     moved = p1 - p0
     np.testing.assert_allclose(np.linalg.norm(moved, axis=1), 0.6 * 0.05 * 2.0, rtol=1e-4)
     np.testing.assert_allclose(moved / np.linalg.norm(moved, axis=1, keepdims=True), g.normal, atol=1e-4)
+
+
+@pytest.mark.parametrize("theta", [0.0, 1.0, math.pi, -2.75])
+def test_world_normals_turn_with_the_positions(prepared, theta):
+    """Displacing along ``normals_np(theta)`` in the turned frame moves the vertices exactly as displacing along
+    ``normal`` before the turn (the normals are in the frame of ``positions_np(.., theta)``); at a turn of pi the
+    unturned ``normal`` points the other way in x and y (issue 29: the warm start oriented faces with it)."""
+    app = AppearanceConfig(displacement_resolution=16, displacement_bound=0.05)
+    g = Geometry.build(prepared, ObjectSpec(primitive="vase", rotation=(0, 0, 30), translation=(1.0, 2.0, 0.0)), app)
+    p0 = g.positions_np(None, (0.0, 0.0, 0.0), theta)
+    p1 = g.positions_np(np.full((16, 16), 0.6, np.float32), (0.0, 0.0, 0.0), theta)
+    n = g.normals_np(theta)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(p1 - p0, 0.6 * 0.05 * n, atol=1e-5)
+    np.testing.assert_allclose(world_normals(g, {"rotation": np.array([theta], np.float32)}), n, atol=1e-6)
+    if theta == math.pi:
+        np.testing.assert_allclose(n[:, :2], -g.normal[:, :2], atol=1e-5)
 
 
 def test_seam_copies_move_together(prepared):

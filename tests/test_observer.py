@@ -264,6 +264,69 @@ def test_cast_shadow_map_reads_texture_kept_under_a_darkening():
     assert cast_of(shadowed(flat_bg, region, 0.3), flat_bg) == 0.0
 
 
+def tinted(img: np.ndarray, region: np.ndarray, tint) -> np.ndarray:
+    """``region``'s linear radiance scaled per channel by ``tint`` (R, G, B): a see-through surface of that
+    transmittance in front of the ground (the ground's texture kept in place), or a cast shadow when the three are
+    equal (or bluer)."""
+    from camo_base.imaging import linear_to_srgb, srgb_to_linear
+
+    lin = srgb_to_linear(img)
+    lin[region] *= np.asarray(tint, np.float32)
+    return np.clip(linear_to_srgb(lin), 0, 1).astype(np.float32)
+
+
+@pytest.mark.parametrize("tint", [(0.55, 0.30, 0.10), (0.60, 0.20, 0.20)])
+def test_a_tinted_see_through_object_is_not_taken_for_a_shadow(tint):
+    """An amber or red glass disc in front of the grass: darker than the ground there by a cast shadow's factor
+    (its green channel keeps 20-30 % of the light) and showing the ground's texture in place, so the texture test
+    alone (``cast_shadow="texture"``) reads it as ground in shadow and discounts it -- plainly coloured, it is never
+    found (measured 0 %; the failure the chromaticity test is for). With ``cast_shadow="texture_chroma"`` the
+    change of chromaticity towards red / yellow is no shadow's (:func:`shadow_chroma_kept`): the disc keeps its
+    object evidence and is found."""
+    from evaluation.observer import shadow_chroma_kept  # noqa: F401  (the cue under test)
+
+    bg = grass(21)
+    obj = disc(90, 150, 16)
+    img = tinted(bg, obj, tint)
+    out = {}
+    for cast in ("texture", "texture_chroma"):
+        cfg = ObserverConfig(cast_shadow=cast)
+        m = evidence_maps(img, cfg, bg)
+        fm = _feature_mask(obj, m.obj.shape)
+        p = predict_stimulus(img, obj, n=200, seed=3, config=cfg, background=bg)
+        out[cast] = (float(np.median(m.cast[fm])), p.p_found)
+    assert out["texture"][0] >= 0.7 and out["texture"][1] <= 0.05, out  # the failure exists without the cue
+    assert out["texture_chroma"][0] <= 0.05 and out["texture_chroma"][1] >= 0.95, out
+
+
+@pytest.mark.parametrize("tint", [(0.35, 0.35, 0.35), (0.30, 0.35, 0.45)])
+def test_chroma_test_keeps_a_grey_or_bluish_shadow_a_shadow(tint):
+    """A cast shadow alone -- the ground's light scaled by 0.35, or bluer (daylight's sky-lit shade) -- is ground in
+    shadow to the chromaticity test as to the texture test (the same cast-shadow map) and is not clicked as the
+    object (clicks in it no more often than its share of the image gives); the same shadow beside a red-tinted
+    object: the object is found and the shadow not clicked."""
+    from evaluation.observer import _log_image, _resample, shadow_chroma_kept
+
+    bg = grass(12)
+    region = ellipse(100, 160, 40, 16)
+    img = tinted(bg, region, tint)
+    cfg = ObserverConfig(cast_shadow="texture_chroma")
+    s = cfg.display_deg * cfg.feature_px_per_deg / N
+    kept = shadow_chroma_kept(_log_image(_resample(img, s)), _log_image(_resample(bg, s)), 4.0, cfg.internal_noise)
+    assert float(np.median(kept[_feature_mask(region, kept.shape)])) >= 0.95
+    m_tex = evidence_maps(img, ObserverConfig(), bg)
+    m_chr = evidence_maps(img, cfg, bg)
+    np.testing.assert_allclose(m_chr.cast, m_tex.cast, atol=0.02)
+    alone = simulate_search(img, n=300, seed=2, config=cfg, mask=region, background=bg)
+    assert alone.found.mean() <= max(0.05, 3 * region.mean())
+    obj = disc(150, 110, 14)
+    shadow = ellipse(175, 128, 26, 10) & ~obj  # cast to the lower right, touching the object
+    both = with_object(tinted(grass(13), shadow, tint), obj, 0.75)
+    res = simulate_search(both, n=300, seed=4, config=cfg, mask=obj, background=grass(13))
+    on_shadow = shadow[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)] & res.clicked
+    assert res.found.mean() >= 0.9 and on_shadow.mean() <= 0.05
+
+
 def fine_grass(seed: int = 0, n: int = N) -> np.ndarray:
     """A green texture with stationary statistics at the object's scale (spectrum 1/f^0.5: no object-sized
     blotches that would act as distractors of their own)."""
@@ -1075,7 +1138,7 @@ def test_background_maps_are_cached_by_content_and_configuration():
 def floor_and_wall(seed: int = 0, n: int = N, wall_share: float = 0.45) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """room's case: a wall over the top ``wall_share`` of the frame and a floor below it, of one mean colour (so
     :func:`ground_segments` finds one ground), the floor finely textured, the wall in large dark and light blotches
-    (room's bricks and black corners). Returns the sRGB scene, the same floor continued over the whole frame (the
+    (room's brick walls in light and shade). Returns the sRGB scene, the same floor continued over the whole frame (the
     reference: an object compared with its own surface only) and the object-free view's normals (wall facing
     the camera, floor up)."""
     rng = np.random.default_rng(seed)

@@ -123,12 +123,16 @@ class TexelViews:
 
 
 def texel_views(positions: np.ndarray, geometry, resolution: int, env, cams: Sequence[Camera],
-                background: np.ndarray, coverage: np.ndarray) -> TexelViews:
+                background: np.ndarray, coverage: np.ndarray, normals: np.ndarray | None = None) -> TexelViews:
     """:class:`TexelViews` of the object at world ``positions``. Only texels that some view sees are sampled and
-    solved (at the paper's sizes ~10 % of the atlas): the others have weight 0 in every view and stay unassigned."""
+    solved: the others have weight 0 in every view and stay unassigned. ``normals``: the vertex normals in the
+    frame of ``positions`` (:func:`optimizer.rendering.appearance.world_normals`: turned with the object); they orient
+    the faces, so normals of another frame make front faces look like back faces (default: ``geometry.normal``,
+    right only for an unturned object)."""
     from optimizer.rendering import projection
 
-    surface = projection.rasterise_texels(positions, geometry.faces, geometry.uvs, resolution, geometry.normal)
+    surface = projection.rasterise_texels(positions, geometry.faces, geometry.uvs, resolution,
+                                          geometry.normal if normals is None else normals)
     sc, shape = projection.object_scene(env, positions, geometry.faces, geometry.uvs)
     obs = projection.observe(sc, shape, cams, surface, 0.01 * float(geometry.size))
     candidate = np.nonzero((obs.visible & (obs.cos > 0)).any(0))[0]
@@ -162,7 +166,7 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     import hashlib
 
     from optimizer.rendering import scene as scn
-    from optimizer.rendering.appearance import object_bsdf, world_positions
+    from optimizer.rendering.appearance import object_bsdf, world_normals, world_positions
     from optimizer.rendering import projection
     from optimizer.rendering.render import render_shaded
 
@@ -173,7 +177,7 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     key = (hashlib.sha1(np.ascontiguousarray(positions, np.float64).tobytes()).hexdigest(), R)
     tv = cache.get(key) if cache is not None else None
     if tv is None:
-        tv = texel_views(positions, geometry, R, env, cams, background, coverage)
+        tv = texel_views(positions, geometry, R, env, cams, background, coverage, world_normals(geometry, values))
         if cache is not None:
             cache[key] = tv
 

@@ -192,6 +192,14 @@ class Geometry:
         m = model_matrix(1.0, (0, 0, 0), self.translation, dt, theta)
         return (p @ m[:3, :3].T + m[:3, 3]).astype(np.float32)
 
+    def normals_np(self, theta: float = 0.0) -> np.ndarray:
+        """Unit vertex normals ``(Nu, 3)`` in the frame of :meth:`positions_np` at the turn ``theta`` (radians about
+        z): ``normal`` is in the unturned frame, so a projection onto a turned object must orient its faces with
+        these (with ``normal`` a turn of pi would make every face look inward; issue 29). The displacement's tilt
+        of the normals is not included (orientation only)."""
+        m = model_matrix(1.0, (0, 0, 0), (0, 0, 0), (0, 0, 0), theta)
+        return (self.normal.astype(np.float64) @ m[:3, :3].T).astype(np.float32)
+
     def positions_dr(self, d_map=None, dt=None, theta=None):
         """World positions as a flat ``mi.Float`` (x0, y0, z0, x1, ...), differentiable in all inputs."""
         import drjit as dr
@@ -279,6 +287,11 @@ def world_positions(geometry: Geometry, values: dict[str, np.ndarray], app: Appe
     """World positions ``(Nu, 3)`` of the UV-split mesh for parameter ``values``."""
     d = values["displacement"][..., 0] if app.displacement else None
     return geometry.positions_np(d, values["translation"], float(values["rotation"][0]))
+
+
+def world_normals(geometry: Geometry, values: dict[str, np.ndarray]) -> np.ndarray:
+    """Unit vertex normals ``(Nu, 3)`` in the frame of :func:`world_positions` (the learned turn applied)."""
+    return geometry.normals_np(float(values["rotation"][0]))
 
 
 def pose_record(obj: ObjectSpec, values: dict[str, np.ndarray]) -> dict[str, Any]:
