@@ -2,8 +2,10 @@
 
 ``ours`` and every baseline plan the same way (:func:`run_plan`): the pilot renders the starting object (the
 appearance's initial values from the pack's material, at its initial pose) from the run's training cameras (stream
-``pilot`` of :mod:`camo_base.seeds`, the targets' numbers), and :class:`optimizer.rendering.planner.Planner` decides
-for the optimised parameters at the largest spp the plan's depth serves (the targets'). Baselines plan the full
+``pilot`` of :mod:`camo_base.seeds`, the targets' numbers), a depth cut the pilot finds accurate enough is timed
+at the run's own size (every training view at its resolution, the training spp: :meth:`Planner.time_cut`), and
+:class:`optimizer.rendering.planner.Planner` decides for the optimised parameters at the largest spp the plan's
+depth serves (the targets'). Baselines plan the full
 parameter set of ``ours`` with its starting values, so a baseline and ``ours`` with the same settings (no ablation)
 render bit-identical targets; an ablation (``--ablate transmittance``: an opaque start) is planned as what it is. ``spec.planner = False`` (``--no-planner``) is full path
 tracing (:func:`optimizer.rendering.planner.full_plan`). The plan travels in the checkpoint (``plan/json``): a
@@ -63,8 +65,15 @@ def measure_plan(pack, env, prepared, cams, app: AppearanceConfig, seed: int, sp
     planner = Planner()
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("pilot", seed),
                           geometry=moves_geometry(params), size=pack.object.size)
-    pl = planner.plan(pack, env, params, "optimize", pilot, spp, shadow_gradients)
-    log(f"plan: pilot {pilot.seconds:.1f} s; max_depth {pl.max_depth}, Russian roulette from {pl.rr_depth}, "
+    cut = planner.admissible_cut(pilot, params, spp)
+    train_spp = int(spp.get("training", min(spp.values())))
+    timing = None if cut is None else planner.time_cut(pack, env, params, mesh, cams, pilot, cut, train_spp,
+                                                       seed=seeds.seed("pilot", seed),
+                                                       shadow_gradients=shadow_gradients)
+    pl = planner.plan(pack, env, params, "optimize", pilot, spp, shadow_gradients, cut_timing=timing)
+    log(f"plan: pilot {pilot.seconds:.1f} s" + ("" if timing is None else
+                                                f", the depth cut to {cut} timed: saves {timing.saving:.0%}") +
+        f"; max_depth {pl.max_depth}, Russian roulette from {pl.rr_depth}, "
         f"region {pilot.to_dict()['region_share']:.0%} of the pilot's frames")
     return pl
 

@@ -18,6 +18,7 @@ region, or the whole frame), in sRGB units (the first-order effect of a linear c
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from typing import Callable, Sequence
 
@@ -289,3 +290,145 @@ def pose_sensitivity(elements_fn, mesh_fn, cams: Sequence[Camera], coverage: np.
             "inside": round(float(energy[inside].sum()) / total, 4),
             "surroundings": round(float(energy[~band & ~inside].sum()) / total, 4),
             "step": eps}
+
+
+@dataclasses.dataclass(frozen=True)
+class CutTiming:
+    """What a depth cut saves in seconds, timed (:func:`time_depth_cut`): the least of ``reps`` interleaved rounds
+    at the cut's depth and at full depth, each a primal and adjoint render of every view of the stage at its spp over
+    the stage's window."""
+
+    depth: int  # the cut's max_depth
+    full_depth: int
+    rr_depth: int
+    seconds_cut: float  # least of the reps (the clock's seconds: process CPU seconds by default)
+    seconds_full: float
+    views: int
+    width: int  # the stage's film
+    height: int
+    window: tuple[int, int, int, int]  # (x0, y0, x1, y1), shared by the views
+    spp: int
+    reps: int
+    warmup_seconds: float  # the untimed warm-up renders (kernel compilation), for the record
+    clock: str = "process"
+
+    @property
+    def saving(self) -> float:
+        """The share of the full render's seconds the cut saves (negative: the cut is slower)."""
+        return 1.0 - self.seconds_cut / max(self.seconds_full, 1e-12)
+
+    @property
+    def window_share(self) -> float:
+        x0, y0, x1, y1 = self.window
+        return (x1 - x0) * (y1 - y0) / max(self.width * self.height, 1)
+
+    def describe(self) -> str:
+        return (f"timed {self.seconds_cut:.3f} against {self.seconds_full:.3f} {self.clock} s (least of {self.reps}, "
+                f"interleaved; {self.views} views at {self.width}x{self.height}, window {self.window_share:.0%}, "
+                f"{self.spp} spp)")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["window"] = list(self.window)
+        d["saving"] = round(self.saving, 4)
+        return d
+
+
+def stage_window(region: np.ndarray, width: int, height: int) -> tuple[int, int, int, int]:
+    """The window ``(x0, y0, x1, y1)`` of a ``width x height`` film that bounds ``region (V, h, w)`` (the pilot's
+    object region at its own resolution) in every view, scaled outward to the film: the shared window Stage 1
+    renders (:func:`optimizer.optimise.stage1.training_windows`), from the pilot's views. The whole film when
+    the region is empty."""
+    from optimizer.rendering.region import bbox
+
+    reg = np.asarray(region, bool)
+    b = bbox(reg.any(axis=0))
+    if b is None:
+        return 0, 0, int(width), int(height)
+    h, w = reg.shape[1:]
+    x0, y0, x1, y1 = b
+    return (max(0, int(np.floor(x0 * width / w))), max(0, int(np.floor(y0 * height / h))),
+            min(int(width), int(np.ceil(x1 * width / w))), min(int(height), int(np.ceil(y1 * height / h))))
+
+
+def time_depth_cut(elements_fn: Callable[[], dict], mesh_fn: Callable[[], object], cams: Sequence[Camera],
+                   region: np.ndarray, depth: int, spp: int, seed: int = 0, full_depth: int = FULL_DEPTH,
+                   rr_depth: int = RR_DEPTH, reps: int = 3, clock: Callable[[], float] = time.process_time,
+                   clock_name: str = "process", integrators: dict[int, tuple[dict, int]] | None = None,
+                   geometry: bool = False) -> CutTiming:
+    """Time a depth cut at the stage's size: every view of ``cams`` (the stage's cameras, at their resolution) over
+    the stage's shared window (:func:`stage_window` of the pilot's ``region``), ``spp`` samples per pixel, a Stage 1
+    step's rendering: the training integrator's primal render and its adjoint pass into the object's BSDF parameters
+    (and, with ``geometry``, its vertex positions: the projective integrators' silhouette terms run as in training),
+    at ``max_depth = depth`` and at ``full_depth``, each with Russian roulette from ``rr_depth`` as its plan has it (a
+    cut at or below ``rr_depth`` stops its paths before the roulette starts). ``integrators``: per depth, the
+    integrator dict and the ``spp`` argument of ``mi.render`` (the planner's
+    :func:`~optimizer.rendering.planner.training_integrator`); default Mitsuba's ``prb`` at ``spp``.
+
+    One untimed warm-up render of every view per depth first (Mitsuba compiles a kernel per depth: the compile is
+    not the cut's price), then ``reps`` rounds, each timing the cut and full depth one after the other (interleaved,
+    so a swing of the machine's load falls on both); the least of each's rounds is kept. ``clock``: seconds
+    (process CPU seconds by default: the figure least moved by other jobs on a shared machine).
+
+    Why timed and not counted: the pilot's path vertices are work, not seconds (a small step is mostly launch
+    overhead and the adjoint pass is most of a step), and the premise the demo's size put in doubt (meadow's Stage 1
+    took 232 s at depth 4 against 301 s at 12 where the vertices said 3.5 %) is settled by timing the step at that
+    size (docs/results/planner.md). The adjoint pass is timed with the primal (~80 % of a Stage 1 step), and with the
+    training integrator itself: in the room (4 views x 64 px, 4 spp, interleaved) a cut to 4 saves 28 % of a plain
+    ``prb`` render + adjoint but 5 % of the projective one's with geometry gradients (1.84 against 1.93 process s):
+    the silhouette terms, which do not shorten with the depth, are most of a projective step."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from optimizer.rendering import scene as scn
+
+    cams = list(cams)
+    if not cams:
+        raise ValueError("time_depth_cut: no cameras")
+    W, H = cams[0].width, cams[0].height
+    window = stage_window(region, W, H)
+    sc = scn.build_scene(elements_fn(), mesh_fn(), [scn.perspective(c, int(spp), crop=window) for c in cams])
+    if integrators is None:
+        integrators = {d: ({"type": "prb", "max_depth": int(d), "rr_depth": int(rr_depth)}, int(spp))
+                       for d in (int(depth), int(full_depth))}
+    if set(integrators) != {int(depth), int(full_depth)}:
+        raise ValueError("time_depth_cut: integrators must be given for the cut's depth and for full depth")
+    from optimizer.rendering import projective
+
+    projective.register()  # the training plans' camo_* projective integrators
+    loaded = {d: (mi.load_dict(dict(integ)), int(n)) for d, (integ, n) in integrators.items()}
+    params = mi.traverse(sc)
+    keys = [k for k in params.keys() if k.startswith(scn.OBJECT_ID + ".bsdf") and
+            dr.is_diff_v(params[k]) and dr.is_float_v(params[k])]
+    if geometry:
+        keys.append(scn.OBJECT_ID + ".vertex_positions")  # the pose and displacement: the silhouette terms run
+    if not keys:
+        raise ValueError("time_depth_cut: the object's BSDF has no differentiable parameter")
+
+    def step(d: int, s: int) -> None:
+        # a Stage 1 step's rendering: the primal render of every view, then its adjoint (path replay) for the maps
+        for i in range(len(cams)):
+            for k in keys:
+                dr.enable_grad(params[k])
+            params.update()
+            integ, n = loaded[d]
+            img = mi.render(sc, params, sensor=i, integrator=integ, spp=n, seed=s + i)
+            dr.backward(dr.mean(img, axis=None))
+            for k in keys:
+                dr.eval(dr.grad(params[k]))
+                dr.disable_grad(params[k])
+        dr.sync_thread()
+
+    t0 = clock()
+    for d in loaded:
+        step(d, seed)
+    warm = clock() - t0
+    best = {d: math.inf for d in loaded}
+    for r in range(int(reps)):
+        for d in loaded:
+            t = clock()
+            step(d, seed + (r + 1) * 1000)
+            best[d] = min(best[d], clock() - t)
+    return CutTiming(int(depth), int(full_depth), int(rr_depth), float(best[int(depth)]), float(best[int(full_depth)]),
+                     len(cams), int(W), int(H), tuple(int(v) for v in window), int(spp), int(reps), float(warm),
+                     clock_name)

@@ -26,9 +26,12 @@ shown whole), in sRGB units:
 
 ``max_depth`` is the smallest depth whose dropped light (RMS over the pixels that matter) stays below
 ``bias_fraction`` (0.3) of the noise at the stage's spp (the largest spp the plan's depth serves: a squared error at
-most 9 % above the noise alone). Training keeps every bounce instead where that cut would save less than
-``min_cut_saving`` (:data:`MIN_CUT_SAVING`, 10 %) of the path vertices over the object's region: a bias that buys
-no seconds is not taken. Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
+most 9 % above the noise alone). Training takes that cut only where it also saves at least ``min_cut_saving``
+(:data:`MIN_CUT_SAVING`, 10 %) of a training render's seconds, timed at the stage's size (:meth:`Planner.time_cut`:
+the stage's views at their resolution over the stage's window, its spp, a ``prb`` primal and adjoint render at the
+cut and at full depth, interleaved, after an untimed warm-up); elsewhere it keeps every bounce: a bias that buys no
+seconds is not taken. Untimed (a plan from a pilot alone), the pilot's path vertices over the object's region stand
+in for the seconds (a count of work, not of seconds: a small step is mostly launch overhead). Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
 ``rr_depth = max_depth`` would turn it off). An emitter whose light is below the same bound is dropped. The plan
 states the noise each stage's spp gives and the spp a stated accuracy (``accuracy``, sRGB RMS; 1/255) needs, and
 the accuracy-vs-seconds curve of the plan and of full path tracing for the stage's render (:meth:`Plan.curve`).
@@ -45,7 +48,8 @@ import math
 from typing import Any, Callable, Sequence
 
 from optimizer.rendering.denoise import VARIANTS as DENOISE_VARIANTS
-from optimizer.rendering.pilot import FULL_DEPTH, RR_DEPTH, Pilot, PilotSettings, run_pilot
+from optimizer.rendering.pilot import (FULL_DEPTH, RR_DEPTH, CutTiming, Pilot, PilotSettings, pick_views,
+                                      run_pilot, time_depth_cut)
 from optimizer.scenes.environments import Environment
 from optimizer.scenes.scenepack import ScenePack
 
@@ -81,16 +85,17 @@ REGION_MIN_SPP = 16
 #: participant looks. ``oidn-raw`` (first-hit features): 1.26-1.83/255 (meadow the largest; whole frame
 #: 0.77-1.97); ``oidn-through`` (see-through features): 1.31-1.69/255 (split; whole frame 0.79-1.92).
 DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
-#: A training plan cuts the path depth only where the cut saves at least this share of the path vertices over the
-#: object's region (the pilot's vertices per sample at the cut against at full depth, with Russian roulette from
-#: vertex 5 in both); below it every bounce is kept, since the cut's bias buys no seconds. Measured (issue 28,
-#: docs/results/planner.md "(b) A Stage 1 gradient", 4 views at 64 px, 4 spp): at depth 4 the pilot's saving is
-#: 3-7 % on meadow, gravel, split, panorama and occluded and 27 % in the enclosed room, while a Stage 1 step's CPU
-#: seconds moved by 0-17 % (median over spp 1-8: -9 % to +1 %), within the run-to-run spread of ~10 %; and the
-#: cut's gradient cosine against full tracing at equal spp was 0.92 (panorama), 0.95 (occluded), 0.97 (room),
-#: 1.14 (meadow): the cut buys no measurable seconds and its bias may cost gradient accuracy. At the demo's size (8
-#: views at 96 px) it does buy seconds (meadow's Stage 1 232 against 301 s, side by side) while costing 0.26-0.64 dB
-#: crop PSNR and 0.004-0.010 LPIPS (planner.md, "What it costs and gives at the demo's size"): kept for accuracy.
+#: A training plan cuts the path depth only where the cut saves at least this share of a training render's seconds,
+#: timed at the stage's size (Planner.time_cut; untimed: of the path vertices over the object's region, the pilot's
+#: counts), and where its bias is below bias_fraction x the noise; below it every bounce is kept (depth 12, Russian
+#: roulette from vertex 5). 10 %: about the timing's spread between interleaved rounds on the shared machine.
+#: Measured (issue 28, docs/results/planner.md "(b) A Stage 1 gradient"): at 4 views x 64 px the cut to 4 saves
+#: 3-7 % of the path vertices on the open scenes and the panorama, 32 % in the room, while a Stage 1 step's seconds
+#: moved by 0-17 % (within the spread; the room's 5.40 against 5.23 s) and the cut's gradient cosine at equal spp was
+#: 0.92-1.14 of full tracing's. Timed with the training integrator (camo_prb_projective, geometry gradients, 4 views
+#: x 64 px, 4 spp): the cut saves 2.5 % (occluded), 8 % (split, the room with a transmissive start), 17 % (the room,
+#: opaque: depth 3); a plain prb render + adjoint overstates it (18, 16, 25, 32 %): the silhouette terms do not
+#: shorten with the depth.
 MIN_CUT_SAVING = 0.10
 #: The denoisers an evaluation plan may apply (``PlannerSettings.denoise``, ``--denoise [VARIANT]``): the variants of
 #: :data:`optimizer.rendering.denoise.VARIANTS` whose bias on the object is measured (:data:`DENOISER_BIASES`).
@@ -280,8 +285,10 @@ class PlannerSettings:
     bias_fraction: float = 0.3  # an effect is dropped when its RMS is below this fraction of the stage's noise
     accuracy: float = 1.0 / 255  # the stated accuracy (sRGB RMS noise) the spp table is computed for
     rr_depth: int = RR_DEPTH
-    min_cut_saving: float = MIN_CUT_SAVING  # training: a depth cut is taken only where it saves this share of the
-    # path vertices over the object's region (0: always, the rule before issue 28's Stage 1 table)
+    min_cut_saving: float = MIN_CUT_SAVING  # training: a depth cut is taken only where it saves this share of a
+    # training render's seconds (timed; untimed: of the path vertices over the object's region; 0: always)
+    cut_reps: int = 3  # interleaved timed rounds of the cut and of full depth (Planner.time_cut)
+    cut_views: int = 4  # the stage's views those rounds render (evenly spaced; a ratio of seconds is timed)
     region: bool = True  # restrict renders to what the object can change
     denoise: str = ""  # evaluation renders, opt-in: the denoiser (one of DENOISERS) applied where the noise at the
     # stage's spp is above its bias, or "" (off, the default: it smooths what a see-through object shows of the ground)
@@ -304,16 +311,14 @@ class Planner:
         (:func:`optimizer.rendering.pilot.run_pilot`)."""
         return run_pilot(env.build, mesh_fn, cams, self.settings.pilot, seed=seed, geometry=geometry, size=size)
 
-    def plan(self, pack: ScenePack, env: Environment, params: set[str] | frozenset[str], purpose: str, pilot: Pilot,
-             spp: dict[str, int], shadow_gradients: bool = False) -> Plan:
-        """The plan for ``purpose`` from ``pilot``; ``spp``: each stage's samples per pixel served by the plan's
-        depth (``training``, ``targets``, ``holdout``; ``evaluation``; ...). The depth is decided at the largest."""
-        st = self.settings
+    def _admissible(self, pilot: Pilot, params, purpose: str, spp: dict[str, int]):
+        """The shallowest depth whose dropped light is below ``bias_fraction`` x the noise at the largest spp (at
+        least the transmissive floor when an optimised transmittance may open chains), with the figures it used:
+        ``(depth, figures, floor, s_max, noise_full, limit)``."""
         if not spp:
             raise ValueError("spp: at least one stage")
         optimise = purpose == "optimize"
         pixels = pilot.region() if optimise else None
-        where = "the object's region" if optimise else "the whole frame"
         # what the stage's comparison sees: optimising, the loss compares the render with the object to background
         # targets of the same depth (the light both lack cancels): the bias of the object's effect; rendered whole
         # (evaluation, stimuli), the image itself
@@ -321,30 +326,84 @@ class Planner:
         K = pilot.K
         s_max = max(int(v) for v in spp.values())
         noise_full = math.sqrt(f.variance[K - 1] / s_max)
-        limit = st.bias_fraction * noise_full
+        limit = self.settings.bias_fraction * noise_full
         floor = 2
         if optimise and "transmittance" in params:
             floor = TRANSMISSIVE_DEPTH
         depth = next((M for M in range(floor, K + 1) if f.bias[M - 1] <= limit), K)
+        return depth, f, floor, s_max, noise_full, limit
+
+    def admissible_cut(self, pilot: Pilot, params: set[str] | frozenset[str], spp: dict[str, int]) -> int | None:
+        """The training depth cut whose bias the pilot puts below the noise (:meth:`plan`'s accuracy criterion), or
+        None where every bounce is needed: the depth :meth:`time_cut` should price."""
+        depth = self._admissible(pilot, params, "optimize", spp)[0]
+        return depth if depth < pilot.K else None
+
+    def time_cut(self, pack: ScenePack, env: Environment, params: set[str] | frozenset[str],
+                 mesh_fn: Callable[[], Any], cams: Sequence, pilot: Pilot, depth: int, spp: int, seed: int = 0,
+                 shadow_gradients: bool = False, clock: Callable[[], float] | None = None) -> CutTiming:
+        """Time the cut to ``depth`` against full depth at the stage's size (``cut_views`` of the stage's ``cams``,
+        evenly spaced, at their resolution, over the window bounding the pilot's object region, ``spp``: the
+        training renders'), each with the training integrator its plan for the optimised ``params`` would have
+        (projective, with the silhouette budget, where they move the geometry) and Russian roulette as that plan has
+        it (:func:`optimizer.rendering.pilot.time_depth_cut`; a named step, like :meth:`pilot`). ``clock``: seconds
+        (default: process CPU seconds)."""
+        kw = {} if clock is None else {"clock": clock, "clock_name": "injected"}
+        cams = [cams[i] for i in pick_views(cams, self.settings.cut_views)]
+        rr = min(self.settings.rr_depth, FULL_DEPTH)
+        # the training integrator of each depth's plan (params: the optimised parameters; projective when they move
+        # the geometry, with its silhouette budget), as Stage 1 renders with it
+        integrators = {d: training_integrator(_structure(pack, env, params, "optimize", shadow_gradients, d, rr, []),
+                                              int(spp), (cams[0].width, cams[0].height))
+                       for d in (int(depth), FULL_DEPTH)}
+        return time_depth_cut(env.build, mesh_fn, cams, pilot.region(), depth, spp, seed=seed, rr_depth=rr,
+                              reps=self.settings.cut_reps, integrators=integrators,
+                              geometry=moves_geometry(params), **kw)
+
+    def plan(self, pack: ScenePack, env: Environment, params: set[str] | frozenset[str], purpose: str, pilot: Pilot,
+             spp: dict[str, int], shadow_gradients: bool = False, cut_timing: CutTiming | None = None) -> Plan:
+        """The plan for ``purpose`` from ``pilot``; ``spp``: each stage's samples per pixel served by the plan's
+        depth (``training``, ``targets``, ``holdout``; ``evaluation``; ...). The depth is decided at the largest.
+        ``cut_timing`` (:meth:`time_cut` of :meth:`admissible_cut`): the seconds a training depth cut saves; without
+        it the pilot's path vertices stand in."""
+        st = self.settings
+        if not spp:
+            raise ValueError("spp: at least one stage")
+        optimise = purpose == "optimize"
+        pixels = pilot.region() if optimise else None
+        where = "the object's region" if optimise else "the whole frame"
+        depth, f, floor, s_max, noise_full, limit = self._admissible(pilot, params, purpose, spp)
+        K = pilot.K
         rr = min(st.rr_depth, FULL_DEPTH)
         effects: list[Effect] = []
-        # a training depth cut trades a bias for the path vertices it saves; where Russian roulette already makes
-        # the deeper paths cheap it saves next to nothing and every bounce is kept (module doc, MIN_CUT_SAVING)
-        saving = 1.0 - float(f.cost[depth - 1]) / max(float(f.cost[K - 1]), 1e-12)
+        # a training depth cut trades a bias for the seconds it saves: taken where its bias is below the noise (the
+        # depth above is the shallowest such) AND it saves at least min_cut_saving of a training render's seconds,
+        # timed at the stage's size (cut_timing); untimed, the pilot's path vertices stand in (module doc)
+        vsaving = 1.0 - float(f.cost[depth - 1]) / max(float(f.cost[K - 1]), 1e-12)
+        timed = cut_timing if (cut_timing is not None and optimise and depth < K and cut_timing.depth == depth) \
+            else None
+        saving = timed.saving if timed is not None else vsaving
+        priced = (f"{saving:.1%} of a training render's seconds ({timed.describe()}; path vertices: {vsaving:.1%})"
+                  if timed is not None else f"{vsaving:.1%} of the path vertices (not timed)")
+        accuracy = (f"its bias {f.bias[depth - 1] * 255:.3f}/255 RMS over {where} is below {st.bias_fraction:g} x the "
+                    f"noise at {s_max} spp ({limit * 255:.3f}/255)")
         cut = depth if optimise and depth < K and saving < st.min_cut_saving else None
         if cut is not None:
             depth = K
-            effects.append(Effect(f"depth cut to {cut} (saves {saving:.1%} of the path vertices)",
+            effects.append(Effect(f"depth cut to {cut} (saves {priced})",
                                   float(f.bias[cut - 1]), math.sqrt(f.variance[cut - 1] / s_max), False,
-                                  f"not taken: below {st.min_cut_saving:.0%} of the vertices, not worth its bias "
-                                  "(Russian roulette already makes the deeper paths cheap)"))
+                                  f"not taken: saves below {st.min_cut_saving:.0%}, not worth its bias ({accuracy})"))
+        elif optimise and depth < K:
+            effects.append(Effect(f"depth cut to {depth} (saves {priced})", float(f.bias[depth - 1]),
+                                  math.sqrt(f.variance[depth - 1] / s_max), True,
+                                  f"taken: saves at least {st.min_cut_saving:.0%} and {accuracy}"))
         noise_at = math.sqrt(f.variance[depth - 1] / s_max)
         last = min(K, (depth if cut is None else cut) + 1)  # bounces listed one by one; the deeper ones in one row
         for M in range(2, last + 1):
             kept = M <= depth
             why = "kept" if kept else f"dropped: it and every deeper bounce {f.bias[depth - 1] * 255:.3f}/255 RMS"
             if cut is not None and M > cut:
-                why = f"kept: every bounce (a cut at {cut} saves {saving:.1%} of the path vertices)"
+                why = f"kept: every bounce (a cut at {cut} saves {saving:.1%})"
             elif kept and M == depth and depth > floor:
                 why = f"kept: stopping before it would leave {f.bias[M - 2] * 255:.3f}/255 > {limit * 255:.3f}/255"
             elif kept and M == floor and floor > 2 and f.bias[M - 2] <= limit:
@@ -383,14 +442,14 @@ class Planner:
                          + (f"; at least {floor}: an optimised transmittance may open transmissive chains"
                             if floor > 2 else ""))
             if optimise and depth < K:
-                why_depth += (f"; the cut saves {saving:.0%} of the path vertices over {where} "
-                              f"(at least {st.min_cut_saving:.0%} pays for its bias)")
+                why_depth += f"; the cut saves {priced} (at least {st.min_cut_saving:.0%} pays for its bias)"
         else:
             why_depth = (f"{depth} (every bounce): stopping at {cut} would change the object's effect by only "
                          f"{f.bias[cut - 1] * 255:.3f}/255 RMS over {where} (below {st.bias_fraction:g} x the noise at "
-                         f"{s_max} spp, {noise_full * 255:.3f}/255) but save only {saving:.1%} of the path vertices "
-                         f"(below {st.min_cut_saving:.0%}): Russian roulette from vertex {rr} already makes the "
-                         "deeper paths cheap, so the cut's bias would buy no seconds")
+                         f"{s_max} spp, {noise_full * 255:.3f}/255) but save only {priced} (below "
+                         f"{st.min_cut_saving:.0%}): a training step's seconds hardly depend on the depth here "
+                         f"(Russian roulette from vertex {rr} makes the deeper paths cheap; the silhouette terms do "
+                         "not shorten), so the cut's bias would buy too few seconds")
         reasons: list[tuple[str, str]] = [
             ("max_depth", why_depth),
             ("rr_depth", f"{rr}: Russian roulette from vertex {rr} as in full path tracing (unbiased; "
@@ -462,6 +521,8 @@ class Planner:
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
         out.pilot = pilot.to_dict()
+        if timed is not None:
+            out.pilot["cut_timing"] = timed.to_dict()
         out.curve = curve(pilot, depth, rr, pilot.region(), out.region_search)
         return out
 
