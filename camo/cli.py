@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--purpose", choices=("optimize", "render", "evaluate"), default="optimize")
     p.add_argument("--ablate", default="", help="comma list of parts switched off (the ablations of camo optimize)")
     p.add_argument("--shadow-gradients", action="store_true", help="let shadow boundaries drive the pose (~35x cost)")
+    p.add_argument("--timed", action="store_true", help="optimize: price a training depth cut in seconds timed on "
+                   "this machine (a run's plan is untimed, priced in path vertices, so that it is reproducible)")
     p.add_argument("--spp", type=RENDER_RANGES["spp"].arg_type(),
                    help="optimize: training spp (default 4); evaluate/render: the renders' spp (default 64)")
     p.add_argument("--target-spp", type=RENDER_RANGES["target_spp"].arg_type(), default=64,
@@ -173,6 +175,8 @@ def _plan(args) -> int:
         raise CamoError(f"--denoise {args.denoise}: only with --purpose evaluate (the evaluation's denoiser)")
     if args.setting and (args.purpose != "evaluate" or args.no_pilot):
         raise CamoError(f"--setting {args.setting}: only with --purpose evaluate and its pilot (drop --no-pilot)")
+    if args.timed and (args.purpose != "optimize" or args.no_pilot):
+        raise CamoError("--timed: only with --purpose optimize and its pilot (drop --no-pilot)")
     if args.no_pilot:
         pl = plan(pack, env, params, args.purpose, args.shadow_gradients)
     elif args.purpose == "optimize":
@@ -181,7 +185,8 @@ def _plan(args) -> int:
         from optimizer.scenes.cameras import cameras
 
         spp = {"training": args.spp or 4, "targets": args.target_spp}
-        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), app, args.seed, spp, args.shadow_gradients)
+        pl = measure_plan(pack, env, prepare_object(pack), cameras(pack), app, args.seed, spp, args.shadow_gradients,
+                          timed=args.timed)
     else:
         from evaluation.views import evaluation_cameras, evaluation_plan
         from optimizer.scenes.cameras import cameras

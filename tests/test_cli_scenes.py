@@ -56,6 +56,10 @@ def test_plan_prints_reasons(capsys):
     assert main(["plan", "room", "--purpose", "evaluate", "--denoise", "bm3d"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "invalid choice: 'bm3d'" in err[0], err
+    for extra in (["--purpose", "evaluate"], ["--no-pilot"]):  # a timed cut is the training plan's, from its pilot
+        assert main(["plan", "room", "--timed", *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--timed: only with --purpose optimize" in err[0], err
 
 
 def test_plan_runs_the_pilot_and_draws_the_curve(tmp_path, capsys, mi_backend):
@@ -80,6 +84,22 @@ def test_plan_runs_the_pilot_and_draws_the_curve(tmp_path, capsys, mi_backend):
     assert "- denoise: oidn-through" in out and "- object spp: the denoised object and rim are" in out, out
     assert main(["plan", "meadow", "--png", str(tmp_path / "curve.jpg")]) == 2
     assert "must end in .png" in capsys.readouterr().err
+
+
+def test_plan_timed_prices_the_room_s_depth_cut_in_seconds(capsys, mi_backend):
+    """`camo plan --timed`: the room's opaque start has an admissible cut (to 3); timed, its row gives the seconds at
+    the cut and at depth 12 and the path vertices, and the depth follows the timed saving (10 %); untimed (a run's
+    plan) the same row is priced in path vertices only."""
+    args = ["plan", "room", "--ablate", "transmittance", "--resolution", "32", "--views", "4", "--spp", "4"]
+    assert main([*args, "--timed"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if "depth cut to 3" in line)
+    assert "of a training render's seconds (timed" in row and "path vertices:" in row, row
+    saving = float(row.split("(saves ")[1].split("%")[0])
+    assert f"- max_depth: {3 if saving >= 10 else 12}" in out
+    assert main(args) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if "depth cut to 3" in line)
+    assert "of the path vertices (not timed)" in row and "seconds" not in row.split("depth cut to 3")[1].split(")")[0]
 
 
 def test_closed_stdout_is_not_a_traceback():

@@ -2,12 +2,13 @@
 
 ``ours`` and every baseline plan the same way (:func:`run_plan`): the pilot renders the starting object (the
 appearance's initial values from the pack's material, at its initial pose) from the run's training cameras (stream
-``pilot`` of :mod:`camo_base.seeds`, the targets' numbers), a depth cut the pilot finds accurate enough is timed
-at the run's own size (every training view at its resolution, the training spp: :meth:`Planner.time_cut`), and
-:class:`optimizer.rendering.planner.Planner` decides for the optimised parameters at the largest spp the plan's
-depth serves (the targets'). Baselines plan the full
-parameter set of ``ours`` with its starting values, so a baseline and ``ours`` with the same settings (no ablation)
-render bit-identical targets; an ablation (``--ablate transmittance``: an opaque start) is planned as what it is. ``spec.planner = False`` (``--no-planner``) is full path
+``pilot`` of :mod:`camo_base.seeds`, the targets' numbers), and :class:`optimizer.rendering.planner.Planner` decides
+for the optimised parameters at the largest spp the plan's depth serves (the targets'), untimed, so that a run's
+plan is reproducible (a depth cut is priced in the pilot's path vertices; ``timed=True``: in seconds timed at the
+run's own size, up to four of the training views at their resolution and the training spp,
+:meth:`Planner.time_cut`). Baselines plan the full parameter set of ``ours`` with its starting values, so a baseline
+and ``ours`` with the same settings (no ablation) render bit-identical targets; an ablation (``--ablate
+transmittance``: an opaque start) is planned as what it is. ``spec.planner = False`` (``--no-planner``) is full path
 tracing (:func:`optimizer.rendering.planner.full_plan`). The plan travels in the checkpoint (``plan/json``): a
 resumed run takes it from there and does not run the pilot again.
 """
@@ -52,9 +53,10 @@ def run_plan(spec, pack, env, prepared, cams, app: AppearanceConfig, log=lambda 
 
 
 def measure_plan(pack, env, prepared, cams, app: AppearanceConfig, seed: int, spp: dict[str, int],
-                 shadow_gradients: bool = False, log=lambda s: None) -> Plan:
+                 shadow_gradients: bool = False, log=lambda s: None, timed: bool = False) -> Plan:
     """Run the pilot on the starting object of appearance ``app`` (its initial values from the pack's material, the
-    initial pose) seen from ``cams`` and plan ``app``'s optimised parameters for the stages' ``spp`` (module doc)."""
+    initial pose) seen from ``cams`` and plan ``app``'s optimised parameters for the stages' ``spp`` (module doc);
+    ``timed``: price a depth cut in seconds measured here (not reproducible across machines or loads)."""
     params = app.planner_params()
     geometry = Geometry.build(prepared, pack.object, app)
     values = initial_values(app, pack.material)
@@ -67,7 +69,7 @@ def measure_plan(pack, env, prepared, cams, app: AppearanceConfig, seed: int, sp
                           geometry=moves_geometry(params), size=pack.object.size)
     cut = planner.admissible_cut(pilot, params, spp)
     train_spp = int(spp.get("training", min(spp.values())))
-    timing = None if cut is None else planner.time_cut(pack, env, params, mesh, cams, pilot, cut, train_spp,
+    timing = None if cut is None or not timed else planner.time_cut(pack, env, params, mesh, cams, pilot, cut, train_spp,
                                                        seed=seeds.seed("pilot", seed),
                                                        shadow_gradients=shadow_gradients)
     pl = planner.plan(pack, env, params, "optimize", pilot, spp, shadow_gradients, cut_timing=timing)

@@ -28,10 +28,14 @@ shown whole), in sRGB units:
 ``bias_fraction`` (0.3) of the noise at the stage's spp (the largest spp the plan's depth serves: a squared error at
 most 9 % above the noise alone). Training takes that cut only where it also saves at least ``min_cut_saving``
 (:data:`MIN_CUT_SAVING`, 10 %) of a training render's seconds, timed at the stage's size (:meth:`Planner.time_cut`:
-the stage's views at their resolution over the stage's window, its spp, a ``prb`` primal and adjoint render at the
-cut and at full depth, interleaved, after an untimed warm-up); elsewhere it keeps every bounce: a bias that buys no
-seconds is not taken. Untimed (a plan from a pilot alone), the pilot's path vertices over the object's region stand
-in for the seconds (a count of work, not of seconds: a small step is mostly launch overhead). Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
+``cut_views`` of the stage's views at their resolution over the stage's window, its spp, a primal and adjoint render
+with the training integrator at the cut and at full depth, interleaved, after an untimed warm-up); elsewhere it
+keeps every bounce: a bias that buys no seconds is not taken. A timing is a measurement of this machine under its
+load (near the 10 % line two timings of one scene decide differently), so a run's plan is **untimed**, to keep runs
+reproducible (same spec and seed, same plan): there the pilot's path vertices over the object's region stand in,
+and the cut must save at least ``min_cut_vertex_saving`` (:data:`MIN_CUT_VERTEX_SAVING`, 40 %) of them, the share
+that the timed savings put at 10 % of the seconds. A timed plan (``cut_timing``) records its timing
+(``plan.pilot.cut_timing``). Russian roulette stays on from vertex 5 (the full setting's; it is unbiased, and
 ``rr_depth = max_depth`` would turn it off). An emitter whose light is below the same bound is dropped. The plan
 states the noise each stage's spp gives and the spp a stated accuracy (``accuracy``, sRGB RMS; 1/255) needs, and
 the accuracy-vs-seconds curve of the plan and of full path tracing for the stage's render (:meth:`Plan.curve`).
@@ -97,6 +101,12 @@ DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
 #: opaque: depth 3); a plain prb render + adjoint overstates it (18, 16, 25, 32 %): the silhouette terms do not
 #: shorten with the depth.
 MIN_CUT_SAVING = 0.10
+#: The untimed stand-in for MIN_CUT_SAVING (a run's plan: deterministic): the share of the pilot's path vertices over
+#: the object's region a training depth cut must save. Calibrated on the timed savings with the training integrator
+#: (4 views x 64 px, 4 spp; docs/results/planner.md): the room's transmissive start, cut to 4, saves 32 % of the
+#: vertices and 8 % of the seconds (not taken either way); its opaque start, cut to 3, 49 % and 17 % (taken); the
+#: open scenes 3-9 % and 2.5-8 % (not taken). The vertex rule before (10 %) took the room's 32 % cut that buys ~5 %.
+MIN_CUT_VERTEX_SAVING = 0.40
 #: The denoisers an evaluation plan may apply (``PlannerSettings.denoise``, ``--denoise [VARIANT]``): the variants of
 #: :data:`optimizer.rendering.denoise.VARIANTS` whose bias on the object is measured (:data:`DENOISER_BIASES`).
 DENOISERS = tuple(DENOISER_BIASES)
@@ -287,6 +297,8 @@ class PlannerSettings:
     rr_depth: int = RR_DEPTH
     min_cut_saving: float = MIN_CUT_SAVING  # training: a depth cut is taken only where it saves this share of a
     # training render's seconds (timed; untimed: of the path vertices over the object's region; 0: always)
+    min_cut_vertex_saving: float = MIN_CUT_VERTEX_SAVING  # untimed (a run's plan): the share of the pilot's path
+    # vertices over the object's region a training depth cut must save (0: always)
     cut_reps: int = 3  # interleaved timed rounds of the cut and of full depth (Planner.time_cut)
     cut_views: int = 4  # the stage's views those rounds render (evenly spaced; a ratio of seconds is timed)
     region: bool = True  # restrict renders to what the object can change
@@ -387,16 +399,17 @@ class Planner:
                   if timed is not None else f"{vsaving:.1%} of the path vertices (not timed)")
         accuracy = (f"its bias {f.bias[depth - 1] * 255:.3f}/255 RMS over {where} is below {st.bias_fraction:g} x the "
                     f"noise at {s_max} spp ({limit * 255:.3f}/255)")
-        cut = depth if optimise and depth < K and saving < st.min_cut_saving else None
+        need = st.min_cut_saving if timed is not None else st.min_cut_vertex_saving
+        cut = depth if optimise and depth < K and saving < need else None
         if cut is not None:
             depth = K
             effects.append(Effect(f"depth cut to {cut} (saves {priced})",
                                   float(f.bias[cut - 1]), math.sqrt(f.variance[cut - 1] / s_max), False,
-                                  f"not taken: saves below {st.min_cut_saving:.0%}, not worth its bias ({accuracy})"))
+                                  f"not taken: saves below {need:.0%}, not worth its bias ({accuracy})"))
         elif optimise and depth < K:
             effects.append(Effect(f"depth cut to {depth} (saves {priced})", float(f.bias[depth - 1]),
                                   math.sqrt(f.variance[depth - 1] / s_max), True,
-                                  f"taken: saves at least {st.min_cut_saving:.0%} and {accuracy}"))
+                                  f"taken: saves at least {need:.0%} and {accuracy}"))
         noise_at = math.sqrt(f.variance[depth - 1] / s_max)
         last = min(K, (depth if cut is None else cut) + 1)  # bounces listed one by one; the deeper ones in one row
         for M in range(2, last + 1):
@@ -442,12 +455,12 @@ class Planner:
                          + (f"; at least {floor}: an optimised transmittance may open transmissive chains"
                             if floor > 2 else ""))
             if optimise and depth < K:
-                why_depth += f"; the cut saves {priced} (at least {st.min_cut_saving:.0%} pays for its bias)"
+                why_depth += f"; the cut saves {priced} (at least {need:.0%} pays for its bias)"
         else:
             why_depth = (f"{depth} (every bounce): stopping at {cut} would change the object's effect by only "
                          f"{f.bias[cut - 1] * 255:.3f}/255 RMS over {where} (below {st.bias_fraction:g} x the noise at "
                          f"{s_max} spp, {noise_full * 255:.3f}/255) but save only {priced} (below "
-                         f"{st.min_cut_saving:.0%}): a training step's seconds hardly depend on the depth here "
+                         f"{need:.0%}): a training step's seconds hardly depend on the depth here "
                          f"(Russian roulette from vertex {rr} makes the deeper paths cheap; the silhouette terms do "
                          "not shorten), so the cut's bias would buy too few seconds")
         reasons: list[tuple[str, str]] = [
