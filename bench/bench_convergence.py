@@ -32,9 +32,9 @@ sys, ``getrusage(RUSAGE_CHILDREN)``: what the run cost, less swayed by other job
 average around it, and its phases as ``summary.json`` and ``log.jsonl`` record them (set-up, turn search, start
 search, warm start, Stage 1 with its median step, Stage 2, the held-out checks). Above them, a **reference
 render** timed in the same process before the runs: a fixed Cornell box (64 x 64 px, 128 spp, path depth 6, one
-render thread, best of 3 after a compiling warm-up) in CPU seconds. It is what ties seconds to the machine: on
-2026-11-28 the fast preset on gravel cost ~4x the CPU seconds of its 2026-11-26 run with the 2026-11-26 code itself
-(docs/results/convergence.md, "Seconds depend on the machine"), so rows with different reference seconds do not
+render thread, best of 3 after a compiling warm-up) in CPU seconds. It is what ties seconds to the machine: the
+2026-11-26 code itself needs ~4-5x the CPU seconds per Stage 1 step on the machine of 2026-11-28 than it took on its
+own (docs/results/convergence.md, "Seconds depend on the machine"), so rows with different reference seconds do not
 compare in seconds.
 """
 
