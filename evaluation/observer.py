@@ -426,7 +426,12 @@ class ObserverConfig:
     #: darker than the ground on *both* sides, narrower than :data:`FRAME_LINE_DEG`, elongated (a speck is no line)
     #: -- stronger than the object-free view's lines around the place on its own ground count as object evidence,
     #: and a darkening they run through is no cast shadow (a shadow's outline is a one-sided step, never a line
-    #: darker than both its sides: Hering's outlined shadow is seen as a stain). ``"none"``: the former model.
+    #: darker than both its sides: Hering's outlined shadow is seen as a stain). ``"none"`` (default): the former
+    #: model. Measured on the six built-in sets (docs/results/observer.md, "The object's own lines"): room's glass
+    #: chairs are found (Transparent 74.2 -> 0.2 % confused), but an attached cast shadow's sliver and the dark line
+    #: where a box meets its shadow are lines too, and plain objects are clicked just outside their outline
+    #: (occluded Mean and Random 9.3 / 6.8 -> 25 %, gravel Random and Transparent 0 / 1.2 -> 25 %): 14 of 18 visible
+    #: cells in range against the default's 17, so it is an option.
     frame: str = "none"
 
     def validate(self) -> None:
