@@ -21,7 +21,21 @@ machine load.
     python bench/bench_convergence.py --paper-sizes --scenes gravel                # 16 views, 128 px, 30k, 800 px
 
 A variant is a preset name, a baseline method (``mean``, ``random``, ``greedy``: one point), or
-``NAME=FLAGS`` with extra ``camo optimize`` flags, e.g. ``"t1=--init transmittance=1"``.
+``NAME=FLAGS`` with extra ``camo optimize`` flags, e.g. ``"t1=--init transmittance=1"``. ``NAME=@DIR [FLAGS]`` runs
+``camo optimize`` from another checkout ``DIR`` (e.g. a ``git worktree`` of an older commit; its own default
+preset unless FLAGS name one), so old and new code are timed side by side at the same machine load:
+
+    python bench/bench_convergence.py --scenes gravel --variants "fast;old=@/tmp/wt-e2fc840" --no-score
+
+Seconds (``timing.md``, printed too): per run its wall seconds and the CPU seconds of its process tree (user +
+sys, ``getrusage(RUSAGE_CHILDREN)``: what the run cost, less swayed by other jobs than wall seconds), the load
+average around it, and its phases as ``summary.json`` and ``log.jsonl`` record them (set-up, turn search, start
+search, warm start, Stage 1 with its median step, Stage 2, the held-out checks). Above them, a **reference
+render** timed in the same process before the runs: a fixed Cornell box (64 x 64 px, 128 spp, path depth 6, one
+render thread, best of 3 after a compiling warm-up) in CPU seconds. It is what ties seconds to the machine: the
+2026-11-26 code itself needs ~4-5x the CPU seconds per Stage 1 step on the machine of 2026-11-28 than it took on its
+own (docs/results/convergence.md, "Seconds depend on the machine"), so rows with different reference seconds do not
+compare in seconds.
 """
 
 from __future__ import annotations
@@ -29,7 +43,10 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
+import resource
 import shlex
+import statistics
 import subprocess
 import sys
 import time
@@ -75,17 +92,116 @@ def variant_flags(variant: str) -> tuple[str, list[str]]:
     return name, ["--preset", name]
 
 
-def run_variant(camo: str, scene: str, variant: str, sizes: list[str], out: Path, every: int) -> tuple[Path, float]:
+def split_checkout(flags: list[str]) -> tuple[Path | None, list[str]]:
+    """``["@DIR", *rest]`` -> ``(DIR, rest)``: the variant runs another checkout's ``camo``; else ``(None, flags)``.
+    ValueError when DIR holds no ``camo`` package."""
+    if not flags or not flags[0].startswith("@"):
+        return None, flags
+    checkout = Path(flags[0][1:]).expanduser().resolve()
+    if not (checkout / "camo" / "cli.py").is_file():
+        raise ValueError(f"{flags[0]}: no checkout of this project there (no camo/cli.py)")
+    return checkout, flags[1:]
+
+
+def child_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's finished children so far."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run_variant(camo: str, scene: str, variant: str, sizes: list[str], out: Path, every: int) -> tuple[Path, dict]:
+    """Run one variant; returns its run directory and ``{wall, cpu, load_before, load_after}`` (seconds of the
+    whole ``camo optimize`` process tree, set-up included; load: the 1-minute load average)."""
     name, flags = variant_flags(variant)
+    checkout, flags = split_checkout(flags)
     if name in BASELINES:
         pairs = list(zip(sizes[::2], sizes[1::2]))
         sizes = [x for flag, value in pairs if flag not in OURS_ONLY for x in (flag, value)]
-    cmd = [camo, "optimize", scene, "--out", str(out), *sizes, "--overwrite", "--quiet", *flags]
+    env, cwd = None, None
+    if checkout is not None:  # the other checkout's code, this environment's interpreter
+        camo_cmd = [sys.executable, "-m", "camo.cli"]
+        env, cwd = {**os.environ, "PYTHONPATH": str(checkout)}, str(checkout)
+    else:
+        camo_cmd = [camo]
+    cmd = [*camo_cmd, "optimize", scene, "--out", str(out.resolve()), *sizes, "--overwrite", "--quiet", *flags]
     if name not in BASELINES:
         cmd += ["--snapshot-every", str(every)]
-    t = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    return out, time.perf_counter() - t
+    load0, cpu0, t = os.getloadavg()[0], child_cpu_seconds(), time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env, cwd=cwd)
+    return out, {"wall": time.perf_counter() - t, "cpu": child_cpu_seconds() - cpu0, "load_before": load0,
+                 "load_after": os.getloadavg()[0]}
+
+
+#: ``summary.json`` keys of a run's phases (seconds), in the order a run takes them; absent ones are left out.
+PHASES = (("setup", "seconds_setup"), ("turn search", "seconds_pose_search"), ("start search", "seconds_start_search"),
+          ("warm start", "seconds_warm_start"), ("Stage 1", "seconds_stage1"), ("Stage 2", "seconds_stage2"))
+
+
+def phase_seconds(run_dir: Path) -> dict[str, float]:
+    """A run's seconds per phase from its ``summary.json`` (:data:`PHASES`), its optimisation seconds, the held-out
+    checks' seconds, and from ``log.jsonl`` Stage 1's step count and median step seconds (``s1 steps``,
+    ``s1 step``: the step itself, held-out checks excluded)."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    out = {label: float(summary[key]) for label, key in PHASES if isinstance(summary.get(key), (int, float))}
+    if isinstance(summary.get("seconds_optimisation"), (int, float)):
+        out["optimisation"] = float(summary["seconds_optimisation"])
+    holdout = summary.get("holdout") or {}
+    if isinstance(holdout.get("seconds"), (int, float)):
+        out["held-out"] = float(holdout["seconds"])
+    log = run_dir / "log.jsonl"
+    if log.is_file():
+        steps = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+        s1 = [float(r["seconds"]) for r in steps if r.get("stage") == 1 and "seconds" in r]
+        if s1:
+            out["s1 steps"], out["s1 step"] = len(s1), statistics.median(s1)
+    return out
+
+
+def reference_render(repeats: int = 3) -> dict[str, float]:
+    """CPU and wall seconds (best of ``repeats`` after a warm-up that compiles the kernels) of a fixed render on one
+    Dr.Jit thread: Mitsuba's Cornell box, 64 x 64 px, 128 spp, path tracer depth 6, seed 0. The same work on every
+    checkout and day, so it measures the machine (and the Mitsuba / Dr.Jit build), not the project's code."""
+    import drjit as dr
+    import mitsuba as mi
+
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        scene_dict = mi.cornell_box()
+        scene_dict["sensor"]["film"]["width"] = scene_dict["sensor"]["film"]["height"] = 64
+        scene_dict["integrator"] = {"type": "path", "max_depth": 6}
+        scene = mi.load_dict(scene_dict)
+        best = {"cpu": float("inf"), "wall": float("inf")}
+        for i in range(repeats + 1):
+            c, t = time.process_time(), time.perf_counter()
+            img = mi.render(scene, spp=128, seed=0)
+            dr.eval(img)
+            dr.sync_thread()
+            if i:  # the first render compiles
+                best = {"cpu": min(best["cpu"], time.process_time() - c), "wall": min(best["wall"], time.perf_counter() - t)}
+        return best
+    finally:
+        dr.set_thread_count(threads)
+
+
+def timing_table(timings: list[dict], reference: dict[str, float] | None) -> str:
+    """``timing.md``: the reference render, then one row per run: wall / CPU seconds, load, phases."""
+    cols = ["optimisation", "setup", "turn search", "start search", "warm start", "Stage 1", "s1 steps", "s1 step",
+            "Stage 2", "held-out"]
+    lines = []
+    if reference is not None:
+        lines += [f"Reference render (Cornell box 64 px, 128 spp, depth 6, 1 thread, best of 3): "
+                  f"{reference['cpu']:.3f} CPU s, {reference['wall']:.3f} s wall", ""]
+    lines += ["| scene | variant | run wall s | run CPU s | load before / after | " + " | ".join(cols) + " |",
+              "|---|---|---|---|---|" + "---|" * len(cols)]
+    for t in timings:
+        cells = []
+        for c in cols:
+            v = t["phases"].get(c)
+            cells.append("-" if v is None else (f"{v:d}" if isinstance(v, int) else f"{v:.2f}" if c == "s1 step" else f"{v:.1f}"))
+        lines.append(f"| {t['scene']} | {t['variant']} | {t['wall']:.0f} | {t['cpu']:.0f} | "
+                     f"{t['load_before']:.1f} / {t['load_after']:.1f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 class Scorer:
@@ -197,7 +313,16 @@ def main() -> None:
     ap.add_argument("--eval-spp", type=int, default=64)
     ap.add_argument("--paper-sizes", action="store_true", help="16 views, 128 px, 30k vertices, 800 px maps")
     ap.add_argument("--out", default="bench_out/convergence")
+    ap.add_argument("--no-score", action="store_true", help="time the runs only (timing.md); no snapshot scoring")
+    ap.add_argument("--no-reference", action="store_true", help="skip the reference render that times the machine")
     args = ap.parse_args()
+    sep = ";" if ";" in args.variants else ","
+    variants = [v.strip() for v in args.variants.split(sep) if v.strip()]
+    try:
+        for v in variants:
+            split_checkout(variant_flags(v)[1])
+    except ValueError as exc:
+        ap.error(str(exc))
 
     from optimizer import backend
     from camo_base.imaging import linear_to_srgb, save_png
@@ -207,16 +332,27 @@ def main() -> None:
     camo = str(Path(sys.executable).with_name("camo"))
     sizes = PAPER_SIZES if args.paper_sizes else DEMO
     backend.init()
+    reference = None if args.no_reference else reference_render()
+    if reference is not None:
+        print(f"reference render: {reference['cpu']:.3f} CPU s, {reference['wall']:.3f} s wall", flush=True)
     rows: list[dict] = []
+    timings: list[dict] = []
     finals: dict[tuple[str, str], float] = {}
     for scene in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         sarg = scene_arg(scene, out / "packs")
         scorer = None
-        sep = ";" if ";" in args.variants else ","
-        for variant in [v.strip() for v in args.variants.split(sep) if v.strip()]:
+        for variant in variants:
             name, _ = variant_flags(variant)
             run_dir = out / "runs" / scene_label(scene) / name
-            _, wall = run_variant(camo, sarg, variant, sizes, run_dir, args.every)
+            _, cost = run_variant(camo, sarg, variant, sizes, run_dir, args.every)
+            timings.append({"scene": scene, "variant": name, **cost, "phases": phase_seconds(run_dir)})
+            print(json.dumps({"timing": timings[-1]}), flush=True)
+            (out / "timing.md").write_text(timing_table(timings, reference))
+            if args.no_score:
+                continue
+            if split_checkout(variant_flags(variant)[1])[0] is not None and not (run_dir / "snapshots").is_dir():
+                print(f"{scene} {name}: another checkout's run without snapshots: timed, not scored", flush=True)
+                continue
             scorer = scorer or Scorer(run_dir, args.eval_views, args.eval_spp)
             summary = json.loads((run_dir / "summary.json").read_text())
             if name in BASELINES:
@@ -234,10 +370,13 @@ def main() -> None:
                 rows.append({"scene": scene, "variant": name, "kind": kind, "stage": stage, "iteration": it,
                              "seconds": round(secs, 2), **{k: round(v, 4) for k, v in scores.items()}})
                 print(json.dumps(rows[-1]), flush=True)
-            finals[(scene, name)] = wall
+            finals[(scene, name)] = cost["wall"]
             if img is not None:
                 strip = np.concatenate([np.concatenate(list(scorer.bg.image), 1), np.concatenate(list(img), 1)], 0)
                 save_png(out / f"final_{scene_label(scene)}_{name}.png", linear_to_srgb(strip))
+    print(timing_table(timings, reference))
+    if args.no_score:
+        return
     with open(out / "curves.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
