@@ -125,6 +125,8 @@ ARMS = {
     # diffuse, sunlit body where the light through it is darker than the ground)
     "warmt1": ["--warm-transmittance", "1"],
     "warmt01": ["--warm-transmittance", "1", "--warm-transmittance-low", "0"],
+    # the floor halfway: a body half as transmissive at most, so its cast shadow stays lighter than an opaque one's
+    "warmt05": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.5"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }
