@@ -8,6 +8,7 @@ object's outline in magenta) next to the observer's priority and verification ma
 
 Usage: python bench/observer_results.py --pairs EVAL_DIR:STIMULI_DIR ... [--pictures OUT.jpg] [--views 0,1]
        [--compare LABEL=STIM_DIR,STIM_DIR ...]   (observer variants side by side: confusion / mean time of finds)
+       [--methods mean,transparent] [--observer KEY=VALUE,...]   (the picture's rows and observer settings)
 """
 
 from __future__ import annotations
@@ -97,7 +98,8 @@ def compare(variants: list[tuple[str, list[Path]]]) -> str:
     return "\n".join(out)
 
 
-def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100) -> None:
+def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100, observer: str | None = None,
+             methods: set[str] | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -111,13 +113,15 @@ def pictures(stim_dirs: list[Path], path: Path, views: set[str], n: int = 100) -
     for d in stim_dirs:
         man = json.loads((d / "manifest.json").read_text())
         for s in sorted(man["stimuli"], key=lambda s: (s["method"], s.get("ablation", ""), s["view"])):
-            if not s["practice"] and s["view"] in views:
+            if not s["practice"] and s["view"] in views and (methods is None or s["method"] in methods):
                 rows.append((d, s))
     fig, axes = plt.subplots(len(rows), 3, figsize=(9, 3 * len(rows)), squeeze=False)
     for ax, (d, s) in zip(axes, rows):
         img = np.asarray(Image.open(d / "images" / f"{s['id']}.png").convert("RGB"))
         mask = np.asarray(Image.open(d / "masks" / f"{s['id']}.png").convert("L")) > 127
-        cfg = ObserverConfig()
+        from study_site.simulate import parse_observer
+
+        cfg = parse_observer(observer) if observer else ObserverConfig()
         bgp = background_path(d, s["scene"], s["view"])
         bg = np.asarray(Image.open(bgp).convert("RGB")) if bgp.is_file() else None
         maps = evidence_maps(img, cfg, bg)
@@ -147,6 +151,8 @@ def main() -> None:
     ap.add_argument("--pairs", nargs="+", required=True, metavar="EVAL_DIR:STIMULI_DIR")
     ap.add_argument("--pictures", metavar="OUT.jpg")
     ap.add_argument("--views", default="0", help="stimulus views in the picture (comma list)")
+    ap.add_argument("--methods", help="only these methods in the picture (comma list; default all)")
+    ap.add_argument("--observer", metavar="KEY=VALUE,...", help="the picture's observer settings (default: the default)")
     ap.add_argument("--compare", nargs="+", metavar="LABEL=STIM_DIR,STIM_DIR,...",
                     help="observer variants side by side (each set predicted with that variant's --observer settings)")
     args = ap.parse_args()
@@ -155,7 +161,8 @@ def main() -> None:
     if args.compare:
         print(compare([(c.split("=", 1)[0], [Path(x) for x in c.split("=", 1)[1].split(",")]) for c in args.compare]))
     if args.pictures:
-        pictures([st for _, st in pairs], Path(args.pictures), set(args.views.split(",")))
+        pictures([st for _, st in pairs], Path(args.pictures), set(args.views.split(",")), observer=args.observer,
+                 methods=set(args.methods.split(",")) if args.methods else None)
 
 
 if __name__ == "__main__":
