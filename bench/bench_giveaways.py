@@ -120,6 +120,13 @@ ARMS = {
     # the same projected from the targets sharpened (unsharp mask, amount 2, 0.7 px): resampling the target at each
     # texel's projection and the render's pixel box blur the projected grain twice (bench/grain_ceiling.py)
     "grain_s2": ["--grain", "1", "--grain-sharpen", "2"],
+    # light through the body where the albedo clips (issue 29): the warm start solves the transmittance per texel with
+    # the albedo, between the start's 0.75 and 1 (the paper's bound), or anywhere in [0, 1] (lowered too: a more
+    # diffuse, sunlit body where the light through it is darker than the ground)
+    "warmt1": ["--warm-transmittance", "1"],
+    "warmt01": ["--warm-transmittance", "1", "--warm-transmittance-low", "0"],
+    # the floor halfway: a body half as transmissive at most, so its cast shadow stays lighter than an opaque one's
+    "warmt05": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.5"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }

@@ -12,6 +12,12 @@ object (:func:`optimizer.rendering.appearance.world_normals`, what the warm star
 tolerances.
 
     python bench/warmstart_visibility.py meadow gravel
+    python bench/warmstart_visibility.py packs/real/*.toml              # the real cross's diagonal (giveaways.md)
+    python bench/warmstart_visibility.py --size real_cross --turn-only packs/real/cross/sky-*.toml
+
+``--size real_cross``: the set-up of ``grids/real_cross.toml``'s ``[optimize]`` table (8 views at 96 px, 256-texel maps,
+10,000 vertices, 32-spp targets) instead of giveaways.md's; ``--turn-only``: the turn search alone (which runs turn
+past 90 degrees, i.e. were hit by the bug before the fix), one row per scene.
 """
 
 from __future__ import annotations
@@ -20,9 +26,18 @@ import argparse
 import math
 
 
+#: run set-ups: giveaways.md's (bench/bench_giveaways.py's SIZE) and grids/real_cross.toml's [optimize] table
+SIZES = {"giveaways": {"views": 4, "resolution": 64, "map_resolution": 128, "target_vertices": 3000,
+                       "displacement_resolution": 64},
+         "real_cross": {"views": 8, "resolution": 96, "map_resolution": 256, "target_vertices": 10000,
+                        "displacement_resolution": 128, "spp": 4, "target_spp": 32}}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scenes", nargs="+")
+    ap.add_argument("--size", choices=tuple(SIZES), default="giveaways")
+    ap.add_argument("--turn-only", action="store_true")
     a = ap.parse_args(argv)
 
     import numpy as np
@@ -36,19 +51,25 @@ def main(argv=None) -> int:
     from optimizer.scenes.environments import get_environment
 
     backend.init()
-    print("| scene | turn (deg) | faces oriented by | on-chart texels | facing a camera | first hit | fully covered "
-          "(solved) | first hit at tolerance 0.03 / 0.1 x size |")
-    print("|---|---|---|---|---|---|---|---|")
+    if a.turn_only:
+        print("| scene | turn (deg) | past 90 degrees |")
+        print("|---|---|---|")
+    else:
+        print("| scene | turn (deg) | faces oriented by | on-chart texels | facing a camera | first hit | fully covered "
+              "(solved) | first hit at tolerance 0.03 / 0.1 x size |")
+        print("|---|---|---|---|---|---|---|---|")
     for scene in a.scenes:
-        spec = RunSpec.from_options({"scene": scene, "views": 4, "resolution": 64, "map_resolution": 128,
-                                     "target_vertices": 3000, "displacement_resolution": 64,
-                                     "iterations": 24}).validate()
+        spec = RunSpec.from_options({"scene": scene, **SIZES[a.size], "iterations": 24}).validate()
         env = get_environment(spec.pack.environment)
         pack, note = R.glint_safe_start(spec.pack, env, spec)
         setup = R._setup(spec, pack, env, note, lambda s: None)
         s1 = Stage1(setup.pack, setup.env, setup.prepared, setup.cams, setup.plan,
                     spec.stage1_config(time_budget=None), setup.app)
         s1.search_pose()
+        if a.turn_only:
+            turn = (math.degrees(float(s1.values["rotation"][0])) + 180.0) % 360.0 - 180.0
+            print(f"| {scene} | {turn:.0f} | {'yes' if abs(turn) > 90 else 'no'} |", flush=True)
+            continue
         s1.render_targets()
         s1.warm_start()
         info = s1.warm_start_info

@@ -38,6 +38,7 @@ RANGES: dict[str, Range] = {
     "stage1.tint_match": Range(float, 0.0, 1e3), "stage1.tint_scale": Range(float, 0.0, 1e3),
     "stage1.coarse_grid": Range(int, 0, 64), "stage1.coarse_lr": Range(float, 0.0, 1.0),
     "stage1.grain": Range(float, 0.0, 2.0), "stage1.grain_sharpen": Range(float, 0.0, 8.0),
+    "stage1.warm_transmittance": Range(float, 0.0, 1.0), "stage1.warm_transmittance_low": Range(float, 0.0, 1.0),
     "stage1.clear_candidate": Range(float, 0.0, 4.0),  # 0 (off) or an IOR in (1, 4]: RunSpec.validate
     "stage1.clear_roughness": Range(float, 0.0, 1.0),
     "stage1.shadow_weight": Range(float, 0.0, 1e3),
@@ -190,6 +191,15 @@ def _options() -> tuple[Option, ...]:
           "each texel's best training view, minus the warm start's multi-view mean that leaves the body smoother than "
           "the ground (optimizer/optimise/grain.py; needs the warm start)" + _p("stage1.grain") + "; 0: off",
           metavar="GAIN"),
+        o("warm_transmittance", "stage1.warm_transmittance", float,
+          "the warm start also solves the transmittance map, per texel between the start's transmittance and T, where "
+          "the albedo alone would have to exceed 1 to match the ground (more light through the body; "
+          "optimizer/optimise/warmstart.py; needs the warm start)" + _p("stage1.warm_transmittance")
+          + "; 0: the albedo alone", metavar="T"),
+        o("warm_transmittance_low", "stage1.warm_transmittance_low", float,
+          "the same solve may also lower the transmittance per texel down to T (a more diffuse, sunlit body where the "
+          "light through it is darker than the ground; needs the warm start)" + _p("stage1.warm_transmittance_low")
+          + "; 1: not below the start", metavar="T"),
         o("grain_sharpen", "stage1.grain_sharpen", float,
           "--grain's best view reads the background targets sharpened by an unsharp mask of this amount (B + A (B - "
           "Gauss 0.7 px B)), undoing the blur of resampling the target at each texel and of the render's pixel"

@@ -363,6 +363,9 @@ class RunSpec:
         if m.reads_path("stage1.grain") and self.stage1.grain and not self.stage1.warm_start:
             raise SettingError("{0} is projected by the warm start: turn {1} on (a given initial albedo turns it off)",
                                "stage1.grain", "stage1.warm_start")
+        for f, off in (("warm_transmittance", 0.0), ("warm_transmittance_low", 1.0)):
+            if m.reads_path(f"stage1.{f}") and getattr(self.stage1, f) != off and not self.stage1.warm_start:
+                raise SettingError("{0} is solved by the warm start: set {1} on", f"stage1.{f}", "stage1.warm_start")
         if m.reads_path("stage1.grain_sharpen") and self.stage1.grain_sharpen and not self.stage1.grain:
             raise SettingError("{0} sharpens what {1} projects: set {1} > 0 too", "stage1.grain_sharpen", "stage1.grain")
         if m.reads_path("stage1.coarse_lr") and self.stage1.coarse_lr and not self.stage1.coarse_grid:

@@ -119,6 +119,13 @@ class Stage1Settings:
     # (B + A (B - Gauss_0.7px B)): it undoes the blur of resampling the target at the texel's projection and of the
     # render's pixel box (optimizer/optimise/grain.py); 0: the targets as they are
     grain_sharpen: float = 0.0
+    # > the start's transmittance: the warm start solves the transmittance map with the albedo, per texel in [start,
+    # this], so texels too dark to match at albedo 1 let more light through (optimizer/optimise/warmstart.py, issue 29:
+    # the albedo clips on most of meadow's body); 0: the albedo alone
+    warm_transmittance: float = 0.0
+    # < 1: the same solve may also lower the transmittance to this floor (a more diffuse, sunlit body where light
+    # through it is darker than the ground); 1: the start is the floor
+    warm_transmittance_low: float = 1.0
     # the Stage 1 loss weight of the loss domain's pixels outside the object and its 1-px ring (its cast shadow, its
     # reflections on the ground, the rest of the dilated domain) against the object's pixels' 1 (shadow_weighted,
     # issue 29: the cast shadow gives the object away); 1: the plain domain, 0: the object alone
@@ -454,7 +461,8 @@ class Stage1:
                 values, self.geometry, self.app, self.env, self.cams, self.shading_integrator(),
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
                 self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False),
-                grain=self._grain_gain() > 0, grain_sharpen=float(getattr(self.cfg, "grain_sharpen", 0.0) or 0.0))
+                grain=self._grain_gain() > 0, grain_sharpen=float(getattr(self.cfg, "grain_sharpen", 0.0) or 0.0),
+                transmittance_max=self._warm_transmittance()[1], transmittance_min=self._warm_transmittance()[0])
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info
@@ -482,6 +490,14 @@ class Stage1:
         if self._coarse is not None:
             for name in self._coarse.channels:
                 self.opt.add(coarse_key(name), mi.TensorXf(self._coarse.initial(name)))
+
+    def _warm_transmittance(self) -> tuple[float | None, float]:
+        """The warm start's transmittance ``(floor or None, ceiling)`` (``cfg.warm_transmittance_low``,
+        ``cfg.warm_transmittance``) when the transmittance is optimised, else ``(None, 0)`` (the albedo alone)."""
+        if "transmittance" not in self.app.trainable():
+            return None, 0.0
+        low = float(getattr(self.cfg, "warm_transmittance_low", 1.0))
+        return (low if low < 1.0 else None), float(getattr(self.cfg, "warm_transmittance", 0.0) or 0.0)
 
     def _grain_gain(self) -> float:
         """The grain layer's gain (``cfg.grain``) in Stage 1 when the albedo is optimised, else 0."""

@@ -28,6 +28,17 @@ Inputs with non-finite values (a NaN in a render or a target) never reach the ma
 weight 0. The whole step costs two renders of the training views at the target spp and one visibility ray per
 texel and view (about a second at the demo sizes on 2 cores).
 
+**Light through the body where the albedo clips** (``transmittance_max`` > the start's transmittance; a choice
+beyond the paper, issue 29). Where the body is too dark to match even at ``a = 1`` (meadow: 57 % of the solved
+texels at the start's transmittance 0.75, gravel 67 %) the least-squares albedo saturates and the texel stays darker
+and smoother than the ground. The transmittance ``t`` of the principled BSDF then also varies per texel: ``L0`` and
+``L1`` are rendered at three transmittance levels ``t0`` (the start), ``(t0 + t1) / 2`` and ``t1 = transmittance_max``
+(six renders instead of two) and interpolated quadratically in ``t`` per observation (light through the body crosses
+two interfaces, each weighted by ``t``: second order). Each texel takes, from ``K`` transmittance values evenly spaced in
+``[t0, t1]``, the one whose clipped least-squares albedo leaves the smallest weighted squared error plus a small ridge
+``lam * (t - t0) * sum w B^2`` towards the start, so a texel the start already matches keeps it. The maps are
+then the joint solution (:func:`joint_albedo_transmittance`).
+
 This is the "local" albedo of the projection baselines (:mod:`optimizer.optimise.baselines.common`) generalised from a
 white Lambertian copy to the run's own initial material, so it also holds for a transmissive, glossy start.
 """
@@ -53,6 +64,13 @@ class WarmStartInfo:
     clipped_low: float  # fraction < 0 (too bright to match)
     mean_albedo: list[float]  # mean over seen texels, linear
     seconds: float
+    # with ``transmittance_max``: the transmittance's mean over the seen texels after the joint solve, the fraction of
+    # them raised above / lowered below the start, and the fraction still needing an albedo > 1 at their chosen
+    # transmittance
+    mean_transmittance: float | None = None
+    raised: float | None = None
+    lowered: float | None = None
+    clipped_high_after: float | None = None
     # ``grain=True``: the grain layer's map (R, R, 3) (optimizer/optimise/grain.py; not written to summary.json) and
     # its rms over the texels that got grain
     grain: np.ndarray | None = dataclasses.field(default=None, repr=False)
@@ -89,6 +107,66 @@ def least_squares_albedo(background: np.ndarray, black: np.ndarray, white: np.nd
     raw = np.where(ok, num / np.where(ok, den, 1.0), 0.0)
     assigned = ok.all(-1)
     return np.clip(raw, 0.0, 1.0).astype(np.float32), assigned, raw.astype(np.float32)
+
+
+def _quadratic(levels: Sequence[float], values: Sequence[np.ndarray], t: float) -> np.ndarray:
+    """The quadratic (Lagrange) through ``(levels[i], values[i])``, i = 0..2, at ``t``; linear with two levels."""
+    x = [float(v) for v in levels]
+    out = np.zeros_like(np.asarray(values[0], np.float64))
+    for i, (xi, yi) in enumerate(zip(x, values)):
+        w = 1.0
+        for j, xj in enumerate(x):
+            if j != i:
+                w *= (t - xj) / (xi - xj)
+        out = out + w * np.asarray(yi, np.float64)
+    return out
+
+
+def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarray], white: Sequence[np.ndarray],
+                               levels: Sequence[float], weight: np.ndarray, start: float | None = None,
+                               steps: int = 9, ridge: float = 1e-3,
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-texel albedo and transmittance (module doc, "Light through the body where the albedo clips").
+
+    ``background``: ``(V, N, 3)`` linear radiance the texel must match; ``black[i], white[i]``: ``(V, N, 3)`` the
+    black- and white-albedo object's radiance at each texel's projection rendered at transmittance ``levels[i]``
+    (2 or 3 levels, ascending); ``weight (V, N)`` as :func:`least_squares_albedo`'s; ``start`` the start's
+    transmittance, in the levels' range (default ``levels[0]``). ``steps`` transmittance values evenly spaced in
+    ``[levels[0], levels[-1]]`` (and the start) are tried per texel; each costs its clipped least-squares albedo's
+    weighted squared error plus ``ridge * |t - start| / (levels[-1] - levels[0]) * sum w B^2`` (a texel the start
+    matches keeps the start). Returns ``(albedo (N, 3) float32 in [0, 1],
+    transmittance (N,) float32, assigned (N,) bool, raw (N, 3) the unclipped albedo at the chosen transmittance)``.
+    """
+    B = np.asarray(background, np.float64)
+    w = np.asarray(weight, np.float64)
+    finite = np.isfinite(B).all(-1) & np.isfinite(w)
+    for arr in (*black, *white):
+        finite &= np.isfinite(np.asarray(arr)).all(-1)
+    w = np.where(finite, np.maximum(w, 0.0), 0.0)
+    B = np.where(finite[..., None], B, 0.0)
+    lo, hi = float(levels[0]), float(levels[-1])
+    t0 = lo if start is None else float(start)
+    ts = np.unique(np.r_[np.linspace(lo, hi, max(int(steps), 2)), t0]) if hi > lo else np.array([lo])
+    ts = np.r_[t0, ts[ts != t0]]  # the start first: a tie keeps it
+    energy = (w[..., None] * B * B).sum((0, 2))  # (N,)
+    n = B.shape[1]
+    best_cost = np.full(n, np.inf)
+    albedo = np.zeros((n, 3), np.float32)
+    raw = np.zeros((n, 3), np.float32)
+    trans = np.full(n, t0, np.float32)
+    assigned = np.zeros(n, bool)
+    for t in ts:
+        L0 = np.where(finite[..., None], _quadratic(levels, black, t), 0.0)
+        L1 = np.where(finite[..., None], _quadratic(levels, white, t), 0.0)
+        a, ok, r = least_squares_albedo(B, L0, L1, w)
+        pred = L0 + a.astype(np.float64)[None] * (L1 - L0)
+        cost = (w[..., None] * (pred - B) ** 2).sum((0, 2))
+        cost = cost + ridge * (abs(t - t0) / (hi - lo) if hi > lo else 0.0) * energy
+        better = ok & (cost < best_cost)
+        best_cost = np.where(better, cost, best_cost)
+        albedo[better], raw[better], trans[better] = a[better], r[better], t
+        assigned |= ok
+    return albedo, trans, assigned, raw
 
 
 def grain_residual(background: np.ndarray, black: np.ndarray, white: np.ndarray, weight: np.ndarray,
@@ -150,7 +228,9 @@ def texel_views(positions: np.ndarray, geometry, resolution: int, env, cams: Seq
 def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: Sequence[Camera], integrator: dict,
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
                       say=lambda s: None, cache: dict | None = None, region: bool = False, grain: bool = False,
-                      grain_sharpen: float = 0.0) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
+                      grain_sharpen: float = 0.0, transmittance_max: float = 0.0,
+                      transmittance_min: float | None = None,
+                      ) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
     ``geometry``: :class:`optimizer.rendering.appearance.Geometry`; ``values``: the initial parameters (their displacement
@@ -162,6 +242,10 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     dilated by 2 pixels: every bilinear tap of a texel with weight > 0), the only pixels the solve reads.
     ``grain``: also the grain layer's map from the same renders (:mod:`optimizer.optimise.grain`), in ``info.grain``;
     its best view reads the targets sharpened by ``grain_sharpen`` (:func:`optimizer.optimise.grain.sharpen`).
+    ``transmittance_max`` above or ``transmittance_min`` below the start's (mean) transmittance: the transmittance
+    map is solved with the albedo, per texel in ``[min(start, transmittance_min), max(start, transmittance_max)]``
+    (module doc; six renders instead of two); ``transmittance_max`` 0 and ``transmittance_min`` None: the albedo
+    alone.
     """
     import hashlib
 
@@ -186,14 +270,25 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
         from optimizer.rendering.region import dilate_px
 
         masks = np.stack([dilate_px(c > 0, 2) for c in coverage])
-    renders = []
-    for grey in (0.0, 1.0):
+    t_start = float(np.mean(values["transmittance"])) if "transmittance" in values else 0.0
+    t_hi = max(t_start, float(transmittance_max or 0.0))
+    t_lo = t_start if transmittance_min is None else min(t_start, float(transmittance_min))
+    joint = "transmittance" in values and t_hi - t_lo > 1e-6
+    # three levels for the quadratic: the start and the range's ends, or the start, the midpoint and the other end
+    levels = sorted({t_lo, t_start, t_hi}) if t_lo < t_start < t_hi else \
+        sorted({t_lo, 0.5 * (t_lo + t_hi), t_hi})
+
+    def render(grey: float, t: float | None):
         v = dict(values)
         v["albedo"] = np.full_like(values["albedo"], grey)
+        if t is not None:
+            v["transmittance"] = np.full_like(values["transmittance"], t)
         mesh = scn.object_mesh(positions, geometry.faces, geometry.uvs, object_bsdf(v, app))
-        renders.append(render_shaded(env.build(), mesh, cams, integrator, spp, seed, masks,
-                                     None if masks is None else background))
-    black, white = renders
+        return render_shaded(env.build(), mesh, cams, integrator, spp, seed, masks,
+                             None if masks is None else background)
+
+    # level 0 is the start as given (its transmittance map untouched): the plain solve's two renders
+    black, white = render(0.0, None), render(1.0, None)
     n = len(tv.surface)
     albedo = np.zeros((n, 3), np.float32)
     raw = np.zeros((n, 3), np.float32)
@@ -202,14 +297,36 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
         tv.background, tv.obs.sample(black), tv.obs.sample(white), tv.weight)
     init_mean = values["albedo"].reshape(-1, 3).mean(0)
     new = dict(values)
-    new["albedo"] = projection.bake(tv.surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
     seen = int(assigned.sum())
+    clipped_high = float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0
+    clipped_low = float((raw[assigned] < 0.0).any(-1).mean()) if seen else 0.0
+    extra = {}
+    if joint:
+        say(f"warm start: solving the transmittance in [{t_lo:.2f}, {t_hi:.2f}] with the albedo (4 more renders)")
+        blacks, whites = [], []
+        for t in levels:  # the start's level reuses the plain solve's renders (the start's map as given)
+            near = abs(t - t_start) < 1e-9
+            blacks.append(tv.obs.sample(black if near else render(0.0, t)))
+            whites.append(tv.obs.sample(white if near else render(1.0, t)))
+        trans = np.full(n, t_start, np.float32)
+        a2, t2, ok2, raw2 = joint_albedo_transmittance(tv.background, blacks, whites, levels, tv.weight,
+                                                       start=t_start)
+        albedo[tv.seen], trans[tv.seen], assigned[tv.seen], raw[tv.seen] = a2, t2, ok2, raw2
+        seen = int(assigned.sum())
+        new["transmittance"] = projection.bake(tv.surface, np.repeat(trans[:, None], 3, 1), assigned,
+                                               fallback=(t_start,) * 3)[..., :1].astype(np.float32)
+        extra = dict(mean_transmittance=float(trans[assigned].mean()) if seen else t_start,
+                     raised=float((trans[assigned] > t_start + 1e-6).mean()) if seen else 0.0,
+                     lowered=float((trans[assigned] < t_start - 1e-6).mean()) if seen else 0.0,
+                     clipped_high_after=float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0)
+        say(f"warm start: transmittance mean {extra['mean_transmittance']:.2f}, raised on "
+            f"{100 * extra['raised']:.0f} % of the texels, lowered on {100 * extra['lowered']:.0f} %; albedo > 1 needed on {100 * clipped_high:.0f} % -> "
+            f"{100 * extra['clipped_high_after']:.0f} %")
+    new["albedo"] = projection.bake(tv.surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
     info = WarmStartInfo(
-        texels=n, texels_seen=seen,
-        clipped_high=float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0,
-        clipped_low=float((raw[assigned] < 0.0).any(-1).mean()) if seen else 0.0,
+        texels=n, texels_seen=seen, clipped_high=clipped_high, clipped_low=clipped_low,
         mean_albedo=[float(x) for x in (albedo[assigned].mean(0) if seen else init_mean)],
-        seconds=0.0)
+        seconds=0.0, **extra)
     if grain:
         from optimizer.optimise.grain import grain_map, sharpen
 
