@@ -423,15 +423,14 @@ class ObserverConfig:
     #: (verification 5.8-5.9 against 6) drew 56-65 % of the clicks on views 0 and 3; with 2, none.
     prop_margin: float = 0.0
     #: Step 2d, the object's own lines (:func:`line_map`, :func:`frame_evidence`). ``"lines"``: thin dark lines --
-    #: darker than the ground on *both* sides, narrower than :data:`FRAME_LINE_DEG`, elongated (a speck is no line)
-    #: -- stronger than the object-free view's lines around the place on its own ground count as object evidence,
-    #: and a darkening they run through is no cast shadow (a shadow's outline is a one-sided step, never a line
-    #: darker than both its sides: Hering's outlined shadow is seen as a stain). ``"none"`` (default): the former
-    #: model. Measured on the six built-in sets (docs/results/observer.md, "The object's own lines"): room's glass
-    #: chairs are found (Transparent 74.2 -> 0.2 % confused), but an attached cast shadow's sliver and the dark line
-    #: where a box meets its shadow are lines too, and plain objects are clicked just outside their outline
-    #: (occluded Mean and Random 9.3 / 6.8 -> 25 %, gravel Random and Transparent 0 / 1.2 -> 25 %): 14 of 18 visible
-    #: cells in range against the default's 17, so it is an option.
+    #: darker than the ground on *both* sides, narrower than :data:`FRAME_LINE_DEG`, elongated (a speck is no line),
+    #: with flanks alike (:func:`flank_contrast`: a line between two different surfaces is an edge) -- stronger than
+    #: the object-free view's lines around the place on its own ground count as object evidence, and a darkening
+    #: such a line runs on is no cast shadow (Hering's outlined shadow is seen as a stain). ``"none"`` (default): the
+    #: former model. Measured on five of the six built-in sets (docs/results/observer.md, "The object's own lines";
+    #: panorama not re-run): 14 of 15 visible cells in range (room's glass chairs found, Transparent 1.2 %; occluded
+    #: Mean / Random 15.2 / 16.6 %, gravel Random / Transparent 0 / 2.7 %), room Mean 20.1 % just out (view 0's
+    #: chair: the floor's own lines raise the verification's null), so it is an option.
     frame: str = "none"
 
     def validate(self) -> None:
