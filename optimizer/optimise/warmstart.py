@@ -39,6 +39,12 @@ two interfaces, each weighted by ``t``: second order). Each texel takes, from ``
 ``lam * (t - t0) * sum w B^2`` towards the start, so a texel the start already matches keeps it. The maps are
 then the joint solution (:func:`joint_albedo_transmittance`).
 
+**Lowered only where the sun's light does not go on into the cast shadow** (``sun``, issue 29). Lowered to 0
+everywhere, the body turns opaque and casts a full dark shadow (meadow: the error inside the mask halves, outside it
+nearly doubles). With the sun's direction ``s`` (towards the sun), a texel whose outward normal faces it (``n . s > 0``)
+is where the sunlight enters the body on its way to the shadow: its transmittance may only rise (floor = the start);
+the texels facing away (``n . s <= 0``) may go down to ``transmittance_min``.
+
 This is the "local" albedo of the projection baselines (:mod:`optimizer.optimise.baselines.common`) generalised from a
 white Lambertian copy to the run's own initial material, so it also holds for a transmissive, glossy start.
 """
@@ -75,6 +81,8 @@ class WarmStartInfo:
     # its rms over the texels that got grain
     grain: np.ndarray | None = dataclasses.field(default=None, repr=False)
     grain_rms: float | None = None
+    # with ``sun``: the fraction of the seen texels that face the sun (their transmittance not lowered)
+    sun_facing: float | None = None
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -124,7 +132,7 @@ def _quadratic(levels: Sequence[float], values: Sequence[np.ndarray], t: float) 
 
 def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarray], white: Sequence[np.ndarray],
                                levels: Sequence[float], weight: np.ndarray, start: float | None = None,
-                               steps: int = 9, ridge: float = 1e-3,
+                               steps: int = 9, ridge: float = 1e-3, floor: np.ndarray | None = None,
                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-texel albedo and transmittance (module doc, "Light through the body where the albedo clips").
 
@@ -134,7 +142,8 @@ def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarra
     transmittance, in the levels' range (default ``levels[0]``). ``steps`` transmittance values evenly spaced in
     ``[levels[0], levels[-1]]`` (and the start) are tried per texel; each costs its clipped least-squares albedo's
     weighted squared error plus ``ridge * |t - start| / (levels[-1] - levels[0]) * sum w B^2`` (a texel the start
-    matches keeps the start). Returns ``(albedo (N, 3) float32 in [0, 1],
+    matches keeps the start). ``floor (N,)``: per texel, no transmittance below it is tried (the start always is;
+module doc, "Lowered only where ..."). Returns ``(albedo (N, 3) float32 in [0, 1],
     transmittance (N,) float32, assigned (N,) bool, raw (N, 3) the unclipped albedo at the chosen transmittance)``.
     """
     B = np.asarray(background, np.float64)
@@ -162,11 +171,18 @@ def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarra
         pred = L0 + a.astype(np.float64)[None] * (L1 - L0)
         cost = (w[..., None] * (pred - B) ** 2).sum((0, 2))
         cost = cost + ridge * (abs(t - t0) / (hi - lo) if hi > lo else 0.0) * energy
-        better = ok & (cost < best_cost)
+        allowed = ok if floor is None else ok & ((t >= np.asarray(floor) - 1e-9) | (t == t0))
+        better = allowed & (cost < best_cost)
         best_cost = np.where(better, cost, best_cost)
         albedo[better], raw[better], trans[better] = a[better], r[better], t
         assigned |= ok
     return albedo, trans, assigned, raw
+
+
+def sun_facing(normals: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: the texels whose outward unit ``normals (N, 3)`` face the world unit vector ``sun`` (towards the
+    sun), ``n . s > 0``: where the sunlight enters the body (module doc, "Lowered only where ...")."""
+    return np.asarray(normals, np.float64) @ np.asarray(sun, np.float64).reshape(3) > 0.0
 
 
 def grain_residual(background: np.ndarray, black: np.ndarray, white: np.ndarray, weight: np.ndarray,
@@ -229,7 +245,7 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
                       say=lambda s: None, cache: dict | None = None, region: bool = False, grain: bool = False,
                       grain_sharpen: float = 0.0, transmittance_max: float = 0.0,
-                      transmittance_min: float | None = None,
+                      transmittance_min: float | None = None, sun: np.ndarray | None = None,
                       ) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
@@ -245,7 +261,8 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     ``transmittance_max`` above or ``transmittance_min`` below the start's (mean) transmittance: the transmittance
     map is solved with the albedo, per texel in ``[min(start, transmittance_min), max(start, transmittance_max)]``
     (module doc; six renders instead of two); ``transmittance_max`` 0 and ``transmittance_min`` None: the albedo
-    alone.
+    alone. ``sun``: the world unit vector towards the sun; the texels whose outward normal faces it keep at least the
+    start's transmittance, only the others go down to ``transmittance_min`` (module doc).
     """
     import hashlib
 
@@ -309,19 +326,26 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
             blacks.append(tv.obs.sample(black if near else render(0.0, t)))
             whites.append(tv.obs.sample(white if near else render(1.0, t)))
         trans = np.full(n, t_start, np.float32)
+        floor = None
+        if sun is not None:
+            facing = sun_facing(tv.surface.normals[tv.seen], sun)
+            floor = np.where(facing, t_start, t_lo)
+            extra["sun_facing"] = float(facing.mean()) if facing.size else 0.0
         a2, t2, ok2, raw2 = joint_albedo_transmittance(tv.background, blacks, whites, levels, tv.weight,
-                                                       start=t_start)
+                                                       start=t_start, floor=floor)
         albedo[tv.seen], trans[tv.seen], assigned[tv.seen], raw[tv.seen] = a2, t2, ok2, raw2
         seen = int(assigned.sum())
         new["transmittance"] = projection.bake(tv.surface, np.repeat(trans[:, None], 3, 1), assigned,
                                                fallback=(t_start,) * 3)[..., :1].astype(np.float32)
-        extra = dict(mean_transmittance=float(trans[assigned].mean()) if seen else t_start,
+        extra.update(mean_transmittance=float(trans[assigned].mean()) if seen else t_start,
                      raised=float((trans[assigned] > t_start + 1e-6).mean()) if seen else 0.0,
                      lowered=float((trans[assigned] < t_start - 1e-6).mean()) if seen else 0.0,
                      clipped_high_after=float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0)
         say(f"warm start: transmittance mean {extra['mean_transmittance']:.2f}, raised on "
             f"{100 * extra['raised']:.0f} % of the texels, lowered on {100 * extra['lowered']:.0f} %; albedo > 1 needed on {100 * clipped_high:.0f} % -> "
-            f"{100 * extra['clipped_high_after']:.0f} %")
+            f"{100 * extra['clipped_high_after']:.0f} %"
+            + (f"; {100 * extra['sun_facing']:.0f} % of the solved texels face the sun (not lowered)" if sun is not None
+               else ""))
     new["albedo"] = projection.bake(tv.surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
     info = WarmStartInfo(
         texels=n, texels_seen=seen, clipped_high=clipped_high, clipped_low=clipped_low,
