@@ -122,6 +122,35 @@ def test_sun_facing_and_the_scenes_sun(mi_backend):
                               ("sun",))).tolist() == [0.0, 0.0, 1.0]
 
 
+def test_shadow_points_and_which_views_see_them(mi_backend):
+    """A unit cube standing on the ground (x, y in [-0.5, 0.5], z in [0, 1]), the sun 45 degrees up from +x. The top
+    centre's shadow falls at (-1, 0, 0): a camera on the shadow side (-x) sees it, one on the sun side (+x) does not (the
+    cube is in the way), both together do. A point low on the sun-side face casts its shadow under the cube: no view
+    sees it; one low on the shadow side, just beside the cube: the shadow-side camera does."""
+    import trimesh
+
+    from optimizer.optimise.warmstart import shadow_points, shadow_seen
+    from optimizer.rendering import projection
+    from optimizer.scenes.cameras import Camera
+    from optimizer.scenes.environments import ENVIRONMENTS, Environment
+
+    s = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    p = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.01], [-0.5, 0.0, 0.01]])
+    np.testing.assert_allclose(shadow_points(p, s), [[-1.0, 0.0, 0.0], [0.49, 0.0, 0.0], [-0.51, 0.0, 0.0]], atol=1e-12)
+    with pytest.raises(ValueError, match="horizon"):
+        shadow_points(p, np.array([1.0, 0.0, 0.0]))
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    pos = np.asarray(box.vertices) + [0.0, 0.0, 0.5]
+    desc, build, kinds, near, occl = ENVIRONMENTS["gravel"]
+    sc, shape = projection.object_scene(Environment("gravel", desc, build, kinds, near, occl), pos,
+                                        np.asarray(box.faces), np.zeros((len(pos), 2)))
+    shade = Camera((-5.0, 0.0, 3.0), (0.0, 0.0, 0.3), 40.0, 32, 32)
+    sunny = Camera((5.0, 0.0, 3.0), (0.0, 0.0, 0.3), 40.0, 32, 32)
+    assert shadow_seen(sc, shape, [shade], p, s, 0.01).tolist() == [True, False, True]
+    assert shadow_seen(sc, shape, [sunny], p, s, 0.01).tolist() == [False, False, False]
+    assert shadow_seen(sc, shape, [sunny, shade], p, s, 0.01).tolist() == [True, False, True]
+
+
 def test_a_scene_without_a_sun_is_refused_where_the_choice_is_read(mi_backend):
     """``warm_transmittance_sun`` on the room (an area light): a one-line library error naming no CLI flag; off, or
     without a floor below the start, the sun is not looked up at all."""
@@ -133,13 +162,13 @@ def test_a_scene_without_a_sun_is_refused_where_the_choice_is_read(mi_backend):
 
     desc, build, kinds, near, occl = ENVIRONMENTS["room"]
     room = Environment("room", desc, build, kinds, near, occl)
-    me = SimpleNamespace(cfg=SimpleNamespace(warm_transmittance_sun=True), env=room,
+    me = SimpleNamespace(cfg=SimpleNamespace(warm_transmittance_sun="facing"), env=room,
                          _warm_transmittance=lambda: (0.0, 1.0))
     with pytest.raises(CamoError, match="has no sun") as e:
         Stage1._warm_sun(me)
     assert "--" not in str(e.value)
     assert Stage1._warm_sun(SimpleNamespace(**(vars(me) | {"_warm_transmittance": lambda: (None, 1.0)}))) is None
-    assert Stage1._warm_sun(SimpleNamespace(**(vars(me) | {"cfg": SimpleNamespace(warm_transmittance_sun=False)}))) \
+    assert Stage1._warm_sun(SimpleNamespace(**(vars(me) | {"cfg": SimpleNamespace(warm_transmittance_sun="off")}))) \
         is None
 
 
@@ -191,11 +220,11 @@ def test_warm_start_reaches_an_opaque_target_the_transmissive_start_cannot(mi_ba
 
     sun = sun_of(env)
     sunny, info2 = warm_start_albedo(start, g, app, env, s1.cams, integ, target, cov, 16, 3,
-                                     transmittance_max=1.0, transmittance_min=0.0, sun=sun)
+                                     transmittance_max=1.0, transmittance_min=0.0, sun=(sun, "facing"))
     tv = texel_views(world_positions(g, start, app), g, t.shape[0], env, s1.cams, target, cov,
                      world_normals(g, start))
     facing = sun_facing(tv.surface.normals[tv.seen], sun)
-    assert 0.1 < info2.sun_facing < 0.9 and info2.sun_facing == pytest.approx(facing.mean())
+    assert 0.1 < info2.sun_kept < 0.9 and info2.sun_kept == pytest.approx(facing.mean())
     ts = sunny["transmittance"][..., 0].reshape(-1)[tv.surface.index[tv.seen]]
     assert (ts[facing] >= 0.75 - 1e-6).all()
     assert (ts[~facing] < 0.75 - 1e-6).mean() > 0.5
@@ -217,8 +246,11 @@ def test_warm_transmittance_needs_the_warm_start():
     with pytest.raises(SettingError):
         RunSpec.from_options({"scene": "meadow", "warm_transmittance": 1.5}).validate()
     # the sun switch: refused where it does nothing (no warm start; no floor below the start), in setting names
-    on = {"scene": "meadow", "warm_transmittance": 1.0, "warm_transmittance_low": 0.0, "warm_transmittance_sun": True}
-    assert RunSpec.from_options(on).validate().stage1.warm_transmittance_sun is True and not d.warm_transmittance_sun
+    on = {"scene": "meadow", "warm_transmittance": 1.0, "warm_transmittance_low": 0.0, "warm_transmittance_sun": "shadow"}
+    assert RunSpec.from_options(on).validate().stage1.warm_transmittance_sun == "shadow"
+    assert d.warm_transmittance_sun == "off"
+    with pytest.raises(SettingError, match="must be one of off, facing, shadow"):
+        RunSpec.from_options(dict(on, warm_transmittance_sun="sunny")).validate()
     with pytest.raises(SettingError, match="stage1.warm_transmittance_low below 1") as e:
         RunSpec.from_options(dict(on, warm_transmittance_low=1.0)).validate()
     assert "--" not in str(e.value)

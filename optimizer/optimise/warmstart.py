@@ -42,8 +42,13 @@ then the joint solution (:func:`joint_albedo_transmittance`).
 **Lowered only where the sun's light does not go on into the cast shadow** (``sun``, issue 29). Lowered to 0
 everywhere, the body turns opaque and casts a full dark shadow (meadow: the error inside the mask halves, outside it
 nearly doubles). With the sun's direction ``s`` (towards the sun), a texel whose outward normal faces it (``n . s > 0``)
-is where the sunlight enters the body on its way to the shadow: its transmittance may only rise (floor = the start);
-the texels facing away (``n . s <= 0``) may go down to ``transmittance_min``.
+is where the sunlight enters the body on its way to the shadow: with ``mode = "facing"`` its transmittance may only
+rise (floor = the start); the texels facing away (``n . s <= 0``) may go down to ``transmittance_min``. But the light
+that reaches the shadow crosses the body twice, in through a sun-facing face and out through one facing away, so
+lowering either darkens the shadow. ``mode = "shadow"`` instead follows each texel's sun line: the texel's shadow
+point ``q = p - s p_z / s_z`` on the ground plane ``z = 0``; a texel may be lowered only when no training view sees
+``q`` (in frame and the first hit of the camera ray, not the object), i.e. its shadow is hidden behind or under the
+body.
 
 This is the "local" albedo of the projection baselines (:mod:`optimizer.optimise.baselines.common`) generalised from a
 white Lambertian copy to the run's own initial material, so it also holds for a transmissive, glossy start.
@@ -58,6 +63,10 @@ from typing import Sequence
 import numpy as np
 
 from optimizer.scenes.cameras import Camera
+
+#: where the joint solve may lower the transmittance, by the sun (module doc, "Lowered only where ..."): everywhere,
+#: only on the texels facing away from it, only on the texels whose cast shadow no training view sees
+SUN_MODES = ("off", "facing", "shadow")
 
 
 @dataclasses.dataclass
@@ -81,8 +90,8 @@ class WarmStartInfo:
     # its rms over the texels that got grain
     grain: np.ndarray | None = dataclasses.field(default=None, repr=False)
     grain_rms: float | None = None
-    # with ``sun``: the fraction of the seen texels that face the sun (their transmittance not lowered)
-    sun_facing: float | None = None
+    # with ``sun``: the fraction of the seen texels the sun rule keeps at or above the start (not lowered)
+    sun_kept: float | None = None
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -185,6 +194,34 @@ def sun_facing(normals: np.ndarray, sun: np.ndarray) -> np.ndarray:
     return np.asarray(normals, np.float64) @ np.asarray(sun, np.float64).reshape(3) > 0.0
 
 
+def shadow_points(points: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """``(N, 3)``: where the sun line through each of ``points (N, 3)`` (world) meets the ground plane ``z = 0``, away
+    from the sun (``sun``: the unit vector towards it, ``s_z > 0``): ``p - s p_z / s_z``."""
+    p = np.asarray(points, np.float64)
+    s = np.asarray(sun, np.float64).reshape(3)
+    if s[2] <= 1e-6:
+        raise ValueError("the sun is at or below the horizon: no shadow on the ground")
+    return p - s[None] * (p[:, 2:3] / s[2])
+
+
+def shadow_seen(scene, shape, cams: Sequence[Camera], points: np.ndarray, sun: np.ndarray, eps: float) -> np.ndarray:
+    """``(N,)`` bool: some view in ``cams`` sees the shadow point (:func:`shadow_points`) of each of ``points``: in
+    frame, and the camera ray's first hit is there and is not ``shape`` (the object) in ``scene``."""
+    from optimizer.rendering import projection
+
+    q = shadow_points(points, sun)
+    seen = np.zeros(len(q), bool)
+    for cam in cams:
+        x, y, z = projection.project(q, cam)
+        ok = projection.in_frame(x, y, z, cam)
+        idx = np.nonzero(ok & ~seen)[0]
+        if len(idx):
+            on, t = projection.first_hits(scene, cam.origin, q[idx], shape)
+            dist = np.linalg.norm(q[idx] - np.asarray(cam.origin, np.float64), axis=1)
+            seen[idx] = ~on & (np.abs(t - dist) <= eps)
+    return seen
+
+
 def grain_residual(background: np.ndarray, black: np.ndarray, white: np.ndarray, weight: np.ndarray,
                    best_background: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-texel grain of the grain layer: the best view's least-squares albedo minus the all-view one, both clipped to
@@ -245,7 +282,7 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
                       say=lambda s: None, cache: dict | None = None, region: bool = False, grain: bool = False,
                       grain_sharpen: float = 0.0, transmittance_max: float = 0.0,
-                      transmittance_min: float | None = None, sun: np.ndarray | None = None,
+                      transmittance_min: float | None = None, sun: tuple[np.ndarray, str] | None = None,
                       ) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
@@ -261,8 +298,9 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     ``transmittance_max`` above or ``transmittance_min`` below the start's (mean) transmittance: the transmittance
     map is solved with the albedo, per texel in ``[min(start, transmittance_min), max(start, transmittance_max)]``
     (module doc; six renders instead of two); ``transmittance_max`` 0 and ``transmittance_min`` None: the albedo
-    alone. ``sun``: the world unit vector towards the sun; the texels whose outward normal faces it keep at least the
-    start's transmittance, only the others go down to ``transmittance_min`` (module doc).
+    alone. ``sun``: ``(the world unit vector towards the sun, mode)``, mode ``"facing"``: the texels whose outward
+    normal faces it keep at least the start's transmittance, only the others go down to ``transmittance_min``;
+    ``"shadow"``: only the texels whose shadow point no view sees go down (module doc).
     """
     import hashlib
 
@@ -327,10 +365,17 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
             whites.append(tv.obs.sample(white if near else render(1.0, t)))
         trans = np.full(n, t_start, np.float32)
         floor = None
-        if sun is not None:
-            facing = sun_facing(tv.surface.normals[tv.seen], sun)
-            floor = np.where(facing, t_start, t_lo)
-            extra["sun_facing"] = float(facing.mean()) if facing.size else 0.0
+        if sun is not None and sun[1] != "off":
+            if sun[1] not in SUN_MODES:
+                raise ValueError(f"sun mode must be one of {SUN_MODES}, got {sun[1]!r}")
+            if sun[1] == "facing":
+                keep = sun_facing(tv.surface.normals[tv.seen], sun[0])
+            else:
+                sc, shape = projection.object_scene(env, positions, geometry.faces, geometry.uvs)
+                keep = shadow_seen(sc, shape, cams, tv.surface.points[tv.seen], sun[0],
+                                   0.01 * float(geometry.size))
+            floor = np.where(keep, t_start, t_lo)
+            extra["sun_kept"] = float(keep.mean()) if keep.size else 0.0
         a2, t2, ok2, raw2 = joint_albedo_transmittance(tv.background, blacks, whites, levels, tv.weight,
                                                        start=t_start, floor=floor)
         albedo[tv.seen], trans[tv.seen], assigned[tv.seen], raw[tv.seen] = a2, t2, ok2, raw2
@@ -344,8 +389,8 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
         say(f"warm start: transmittance mean {extra['mean_transmittance']:.2f}, raised on "
             f"{100 * extra['raised']:.0f} % of the texels, lowered on {100 * extra['lowered']:.0f} %; albedo > 1 needed on {100 * clipped_high:.0f} % -> "
             f"{100 * extra['clipped_high_after']:.0f} %"
-            + (f"; {100 * extra['sun_facing']:.0f} % of the solved texels face the sun (not lowered)" if sun is not None
-               else ""))
+            + (f"; {100 * extra['sun_kept']:.0f} % of the solved texels kept at least the start by the sun ({sun[1]})"
+               if "sun_kept" in extra else ""))
     new["albedo"] = projection.bake(tv.surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
     info = WarmStartInfo(
         texels=n, texels_seen=seen, clipped_high=clipped_high, clipped_low=clipped_low,
