@@ -127,6 +127,11 @@ ARMS = {
     "warmt01": ["--warm-transmittance", "1", "--warm-transmittance-low", "0"],
     # the floor halfway: a body half as transmissive at most, so its cast shadow stays lighter than an opaque one's
     "warmt05": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.5"],
+    # [0, 1] lowered only on the texels facing away from the sun: the sun-facing ones, where the sunlight enters the body
+    # on its way to the cast shadow, keep at least the start's 0.75 (warmt01's opaque body casts a full dark shadow)
+    "warmsun": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--warm-transmittance-sun", "facing"],
+    # lowered only on the texels whose shadow point on the ground no training view sees (hidden under or behind the body)
+    "warmshadow": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--warm-transmittance-sun", "shadow"],
     "lr2": [*OLD, "--lr-maps", "2e-2"],
     "lr2_auto": [*OLD, "--lr-maps", "2e-2", "--clear-candidate", "1.05"],
 }

@@ -524,12 +524,12 @@ def test_every_flag_lands_in_its_spec_field():
             "--clear-roughness", "0.4", "--shadow-weight", "2.5", "--coarse-grid", "2", "--coarse-lr", "0.02"]
     # the grain layer is projected by the warm start, which the first command line turns off: a second one
     argv_grain = ["gravel", "--out", "x", "--grain", "0.5", "--grain-sharpen", "1.5", "--warm-transmittance", "0.9",
-                  "--warm-transmittance-low", "0.25"]
+                  "--warm-transmittance-low", "0.25", "--warm-transmittance-sun", "shadow"]
     flags = {a[2:].replace("-", "_") for a in argv + argv_grain if a.startswith("--")} - {"out"}
     assert flags == set(OPTIONS) - {"scene"}
     g = spec_of(*argv_grain).to_dict()["stage1"]
     assert (g["grain"], g["grain_sharpen"], g["warm_start"]) == (0.5, 1.5, True)
-    assert (g["warm_transmittance"], g["warm_transmittance_low"]) == (0.9, 0.25)
+    assert (g["warm_transmittance"], g["warm_transmittance_low"], g["warm_transmittance_sun"]) == (0.9, 0.25, "shadow")
     d = spec_of(*argv).to_dict()
     assert {k: d[k] for k in ("seed", "preset", "stages", "ablate", "planner", "shadow_gradients", "rough_start",
                               "time_budget", "checkpoint_every", "snapshot_every", "spp")} == {
@@ -543,7 +543,7 @@ def test_every_flag_lands_in_its_spec_field():
                            "perceptual": 0.002, "perceptual_net": "vgg", "detail_match": 6.0,
                            "tint_match": 3.0, "tint_scale": 1.5, "clear_candidate": 1.1, "clear_roughness": 0.4,
                            "coarse_grid": 2, "coarse_lr": 0.02, "shadow_weight": 2.5, "grain": 0.0, "grain_sharpen": 0.0,
-                           "warm_transmittance": 0.0, "warm_transmittance_low": 1.0}
+                           "warm_transmittance": 0.0, "warm_transmittance_low": 1.0, "warm_transmittance_sun": "off"}
     assert d["stage2"] == {"iterations": 6, "strength": 0.7, "backend": "diffusers", "prompt": "background",
                            "displacement": False, "sdxl_path": "/a", "controlnet_path": "/b"}
     app = d["appearance"]

@@ -200,6 +200,11 @@ def _options() -> tuple[Option, ...]:
           "the same solve may also lower the transmittance per texel down to T (a more diffuse, sunlit body where the "
           "light through it is darker than the ground; needs the warm start)" + _p("stage1.warm_transmittance_low")
           + "; 1: not below the start", metavar="T"),
+        o("warm_transmittance_sun", "stage1.warm_transmittance_sun", str,
+          "where --warm-transmittance-low may lower the transmittance, by the scene's sun: 'facing' only on the texels "
+          "facing away from it (the sun-facing ones keep at least the start's), 'shadow' only on the texels whose cast "
+          "shadow no training view sees; 'off' everywhere (needs a sunsky, sun or directional emitter)",
+          choices=("off", "facing", "shadow"), metavar="MODE"),
         o("grain_sharpen", "stage1.grain_sharpen", float,
           "--grain's best view reads the background targets sharpened by an unsharp mask of this amount (B + A (B - "
           "Gauss 0.7 px B)), undoing the blur of resampling the target at each texel and of the render's pixel"

@@ -55,6 +55,7 @@ from optimizer.optimise.options import OPTIONS, RANGES, UNCAPPED, given, option_
 from optimizer.optimise.presets import PRESETS, get_preset
 from optimizer.optimise.stage1 import Stage1Config, Stage1Settings
 from optimizer.optimise.stage2 import Stage2Config, Stage2Settings
+from optimizer.optimise.warmstart import SUN_MODES
 from optimizer.rendering.appearance import AppearanceConfig
 from optimizer.scenes.scenepack import RenderSpec, ScenePack
 
@@ -366,6 +367,16 @@ class RunSpec:
         for f, off in (("warm_transmittance", 0.0), ("warm_transmittance_low", 1.0)):
             if m.reads_path(f"stage1.{f}") and getattr(self.stage1, f) != off and not self.stage1.warm_start:
                 raise SettingError("{0} is solved by the warm start: set {1} on", f"stage1.{f}", "stage1.warm_start")
+        if m.reads_path("stage1.warm_transmittance_sun") and self.stage1.warm_transmittance_sun not in SUN_MODES:
+            raise SettingError(f"{{0}} must be one of {', '.join(SUN_MODES)}, got "
+                               f"{literal(self.stage1.warm_transmittance_sun)}", "stage1.warm_transmittance_sun")
+        if m.reads_path("stage1.warm_transmittance_sun") and self.stage1.warm_transmittance_sun != "off":
+            if not self.stage1.warm_start:
+                raise SettingError("{0} is a choice of the warm start: set {1} on", "stage1.warm_transmittance_sun",
+                                   "stage1.warm_start")
+            if self.stage1.warm_transmittance_low >= 1.0:
+                raise SettingError("{0} chooses where {1} lowers the transmittance: set {1} below 1 too",
+                                   "stage1.warm_transmittance_sun", "stage1.warm_transmittance_low")
         if m.reads_path("stage1.grain_sharpen") and self.stage1.grain_sharpen and not self.stage1.grain:
             raise SettingError("{0} sharpens what {1} projects: set {1} > 0 too", "stage1.grain_sharpen", "stage1.grain")
         if m.reads_path("stage1.coarse_lr") and self.stage1.coarse_lr and not self.stage1.coarse_grid:

@@ -126,6 +126,11 @@ class Stage1Settings:
     # < 1: the same solve may also lower the transmittance to this floor (a more diffuse, sunlit body where light
     # through it is darker than the ground); 1: the start is the floor
     warm_transmittance_low: float = 1.0
+    # where the same solve may lower the transmittance, by the scene's sun (optimizer/optimise/warmstart.py, issue 29:
+    # an opaque body's dark cast shadow): "facing" only on the texels facing away from it (the sun-facing ones, where
+    # the sunlight enters the body, keep at least the start's), "shadow" only on the texels whose shadow on the ground
+    # (z = 0) no training view sees; "off" everywhere. Needs a floor below the start and a sunsky/sun/directional sun
+    warm_transmittance_sun: str = "off"
     # the Stage 1 loss weight of the loss domain's pixels outside the object and its 1-px ring (its cast shadow, its
     # reflections on the ground, the rest of the dilated domain) against the object's pixels' 1 (shadow_weighted,
     # issue 29: the cast shadow gives the object away); 1: the plain domain, 0: the object alone
@@ -462,7 +467,8 @@ class Stage1:
                 self.targets.background, self.targets.coverage, self.cfg.target_spp, target_seed(self.cfg.seed),
                 self._log, cache=self._warm_cache, region=getattr(self.plan, "region", False),
                 grain=self._grain_gain() > 0, grain_sharpen=float(getattr(self.cfg, "grain_sharpen", 0.0) or 0.0),
-                transmittance_max=self._warm_transmittance()[1], transmittance_min=self._warm_transmittance()[0])
+                transmittance_max=self._warm_transmittance()[1], transmittance_min=self._warm_transmittance()[0],
+                sun=self._warm_sun())  # (direction, mode) or None
         values = dict(values)
         values["albedo"] = np.clip(values["albedo"], ALBEDO_MIN, 1.0).astype(np.float32)
         return values, info
@@ -498,6 +504,21 @@ class Stage1:
             return None, 0.0
         low = float(getattr(self.cfg, "warm_transmittance_low", 1.0))
         return (low if low < 1.0 else None), float(getattr(self.cfg, "warm_transmittance", 0.0) or 0.0)
+
+    def _warm_sun(self):
+        """``(the world unit vector towards the scene's sun, mode)`` when the warm start lowers the transmittance only
+        where the sun allows (``cfg.warm_transmittance_sun``), else None; a scene without a sun is an error."""
+        mode = getattr(self.cfg, "warm_transmittance_sun", "off") or "off"
+        if mode == "off" or self._warm_transmittance()[0] is None:
+            return None
+        from camo_base.errors import CamoError
+        from optimizer.scenes.environments import sun_of
+
+        sun = sun_of(self.env)
+        if sun is None:
+            raise CamoError(f"environment {self.env.name!r} has no sun (sunsky, sun or directional emitter): the warm "
+                            "start cannot tell the sun-facing texels from the others")
+        return sun, mode
 
     def _grain_gain(self) -> float:
         """The grain layer's gain (``cfg.grain``) in Stage 1 when the albedo is optimised, else 0."""

@@ -39,6 +39,17 @@ two interfaces, each weighted by ``t``: second order). Each texel takes, from ``
 ``lam * (t - t0) * sum w B^2`` towards the start, so a texel the start already matches keeps it. The maps are
 then the joint solution (:func:`joint_albedo_transmittance`).
 
+**Lowered only where the sun's light does not go on into the cast shadow** (``sun``, issue 29). Lowered to 0
+everywhere, the body turns opaque and casts a full dark shadow (meadow: the error inside the mask halves, outside it
+nearly doubles). With the sun's direction ``s`` (towards the sun), a texel whose outward normal faces it (``n . s > 0``)
+is where the sunlight enters the body on its way to the shadow: with ``mode = "facing"`` its transmittance may only
+rise (floor = the start); the texels facing away (``n . s <= 0``) may go down to ``transmittance_min``. But the light
+that reaches the shadow crosses the body twice, in through a sun-facing face and out through one facing away, so
+lowering either darkens the shadow. ``mode = "shadow"`` instead follows each texel's sun line: the texel's shadow
+point ``q = p - s p_z / s_z`` on the ground plane ``z = 0``; a texel may be lowered only when no training view sees
+``q`` (in frame and the first hit of the camera ray, not the object), i.e. its shadow is hidden behind or under the
+body.
+
 This is the "local" albedo of the projection baselines (:mod:`optimizer.optimise.baselines.common`) generalised from a
 white Lambertian copy to the run's own initial material, so it also holds for a transmissive, glossy start.
 """
@@ -52,6 +63,10 @@ from typing import Sequence
 import numpy as np
 
 from optimizer.scenes.cameras import Camera
+
+#: where the joint solve may lower the transmittance, by the sun (module doc, "Lowered only where ..."): everywhere,
+#: only on the texels facing away from it, only on the texels whose cast shadow no training view sees
+SUN_MODES = ("off", "facing", "shadow")
 
 
 @dataclasses.dataclass
@@ -75,6 +90,8 @@ class WarmStartInfo:
     # its rms over the texels that got grain
     grain: np.ndarray | None = dataclasses.field(default=None, repr=False)
     grain_rms: float | None = None
+    # with ``sun``: the fraction of the seen texels the sun rule keeps at or above the start (not lowered)
+    sun_kept: float | None = None
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -124,7 +141,7 @@ def _quadratic(levels: Sequence[float], values: Sequence[np.ndarray], t: float) 
 
 def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarray], white: Sequence[np.ndarray],
                                levels: Sequence[float], weight: np.ndarray, start: float | None = None,
-                               steps: int = 9, ridge: float = 1e-3,
+                               steps: int = 9, ridge: float = 1e-3, floor: np.ndarray | None = None,
                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-texel albedo and transmittance (module doc, "Light through the body where the albedo clips").
 
@@ -134,7 +151,8 @@ def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarra
     transmittance, in the levels' range (default ``levels[0]``). ``steps`` transmittance values evenly spaced in
     ``[levels[0], levels[-1]]`` (and the start) are tried per texel; each costs its clipped least-squares albedo's
     weighted squared error plus ``ridge * |t - start| / (levels[-1] - levels[0]) * sum w B^2`` (a texel the start
-    matches keeps the start). Returns ``(albedo (N, 3) float32 in [0, 1],
+    matches keeps the start). ``floor (N,)``: per texel, no transmittance below it is tried (the start always is;
+module doc, "Lowered only where ..."). Returns ``(albedo (N, 3) float32 in [0, 1],
     transmittance (N,) float32, assigned (N,) bool, raw (N, 3) the unclipped albedo at the chosen transmittance)``.
     """
     B = np.asarray(background, np.float64)
@@ -162,11 +180,46 @@ def joint_albedo_transmittance(background: np.ndarray, black: Sequence[np.ndarra
         pred = L0 + a.astype(np.float64)[None] * (L1 - L0)
         cost = (w[..., None] * (pred - B) ** 2).sum((0, 2))
         cost = cost + ridge * (abs(t - t0) / (hi - lo) if hi > lo else 0.0) * energy
-        better = ok & (cost < best_cost)
+        allowed = ok if floor is None else ok & ((t >= np.asarray(floor) - 1e-9) | (t == t0))
+        better = allowed & (cost < best_cost)
         best_cost = np.where(better, cost, best_cost)
         albedo[better], raw[better], trans[better] = a[better], r[better], t
         assigned |= ok
     return albedo, trans, assigned, raw
+
+
+def sun_facing(normals: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: the texels whose outward unit ``normals (N, 3)`` face the world unit vector ``sun`` (towards the
+    sun), ``n . s > 0``: where the sunlight enters the body (module doc, "Lowered only where ...")."""
+    return np.asarray(normals, np.float64) @ np.asarray(sun, np.float64).reshape(3) > 0.0
+
+
+def shadow_points(points: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """``(N, 3)``: where the sun line through each of ``points (N, 3)`` (world) meets the ground plane ``z = 0``, away
+    from the sun (``sun``: the unit vector towards it, ``s_z > 0``): ``p - s p_z / s_z``."""
+    p = np.asarray(points, np.float64)
+    s = np.asarray(sun, np.float64).reshape(3)
+    if s[2] <= 1e-6:
+        raise ValueError("the sun is at or below the horizon: no shadow on the ground")
+    return p - s[None] * (p[:, 2:3] / s[2])
+
+
+def shadow_seen(scene, shape, cams: Sequence[Camera], points: np.ndarray, sun: np.ndarray, eps: float) -> np.ndarray:
+    """``(N,)`` bool: some view in ``cams`` sees the shadow point (:func:`shadow_points`) of each of ``points``: in
+    frame, and the camera ray's first hit is there and is not ``shape`` (the object) in ``scene``."""
+    from optimizer.rendering import projection
+
+    q = shadow_points(points, sun)
+    seen = np.zeros(len(q), bool)
+    for cam in cams:
+        x, y, z = projection.project(q, cam)
+        ok = projection.in_frame(x, y, z, cam)
+        idx = np.nonzero(ok & ~seen)[0]
+        if len(idx):
+            on, t = projection.first_hits(scene, cam.origin, q[idx], shape)
+            dist = np.linalg.norm(q[idx] - np.asarray(cam.origin, np.float64), axis=1)
+            seen[idx] = ~on & (np.abs(t - dist) <= eps)
+    return seen
 
 
 def grain_residual(background: np.ndarray, black: np.ndarray, white: np.ndarray, weight: np.ndarray,
@@ -229,7 +282,7 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
                       background: np.ndarray, coverage: np.ndarray, spp: int, seed: int,
                       say=lambda s: None, cache: dict | None = None, region: bool = False, grain: bool = False,
                       grain_sharpen: float = 0.0, transmittance_max: float = 0.0,
-                      transmittance_min: float | None = None,
+                      transmittance_min: float | None = None, sun: tuple[np.ndarray, str] | None = None,
                       ) -> tuple[dict[str, np.ndarray], WarmStartInfo]:
     """Replace ``values["albedo"]`` by the least-squares albedo (module doc); returns ``(values, info)``.
 
@@ -245,7 +298,9 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
     ``transmittance_max`` above or ``transmittance_min`` below the start's (mean) transmittance: the transmittance
     map is solved with the albedo, per texel in ``[min(start, transmittance_min), max(start, transmittance_max)]``
     (module doc; six renders instead of two); ``transmittance_max`` 0 and ``transmittance_min`` None: the albedo
-    alone.
+    alone. ``sun``: ``(the world unit vector towards the sun, mode)``, mode ``"facing"``: the texels whose outward
+    normal faces it keep at least the start's transmittance, only the others go down to ``transmittance_min``;
+    ``"shadow"``: only the texels whose shadow point no view sees go down (module doc).
     """
     import hashlib
 
@@ -309,19 +364,33 @@ def warm_start_albedo(values: dict[str, np.ndarray], geometry, app, env, cams: S
             blacks.append(tv.obs.sample(black if near else render(0.0, t)))
             whites.append(tv.obs.sample(white if near else render(1.0, t)))
         trans = np.full(n, t_start, np.float32)
+        floor = None
+        if sun is not None and sun[1] != "off":
+            if sun[1] not in SUN_MODES:
+                raise ValueError(f"sun mode must be one of {SUN_MODES}, got {sun[1]!r}")
+            if sun[1] == "facing":
+                keep = sun_facing(tv.surface.normals[tv.seen], sun[0])
+            else:
+                sc, shape = projection.object_scene(env, positions, geometry.faces, geometry.uvs)
+                keep = shadow_seen(sc, shape, cams, tv.surface.points[tv.seen], sun[0],
+                                   0.01 * float(geometry.size))
+            floor = np.where(keep, t_start, t_lo)
+            extra["sun_kept"] = float(keep.mean()) if keep.size else 0.0
         a2, t2, ok2, raw2 = joint_albedo_transmittance(tv.background, blacks, whites, levels, tv.weight,
-                                                       start=t_start)
+                                                       start=t_start, floor=floor)
         albedo[tv.seen], trans[tv.seen], assigned[tv.seen], raw[tv.seen] = a2, t2, ok2, raw2
         seen = int(assigned.sum())
         new["transmittance"] = projection.bake(tv.surface, np.repeat(trans[:, None], 3, 1), assigned,
                                                fallback=(t_start,) * 3)[..., :1].astype(np.float32)
-        extra = dict(mean_transmittance=float(trans[assigned].mean()) if seen else t_start,
+        extra.update(mean_transmittance=float(trans[assigned].mean()) if seen else t_start,
                      raised=float((trans[assigned] > t_start + 1e-6).mean()) if seen else 0.0,
                      lowered=float((trans[assigned] < t_start - 1e-6).mean()) if seen else 0.0,
                      clipped_high_after=float((raw[assigned] > 1.0).any(-1).mean()) if seen else 0.0)
         say(f"warm start: transmittance mean {extra['mean_transmittance']:.2f}, raised on "
             f"{100 * extra['raised']:.0f} % of the texels, lowered on {100 * extra['lowered']:.0f} %; albedo > 1 needed on {100 * clipped_high:.0f} % -> "
-            f"{100 * extra['clipped_high_after']:.0f} %")
+            f"{100 * extra['clipped_high_after']:.0f} %"
+            + (f"; {100 * extra['sun_kept']:.0f} % of the solved texels kept at least the start by the sun ({sun[1]})"
+               if "sun_kept" in extra else ""))
     new["albedo"] = projection.bake(tv.surface, albedo, assigned, fallback=tuple(float(x) for x in init_mean))
     info = WarmStartInfo(
         texels=n, texels_seen=seen, clipped_high=clipped_high, clipped_low=clipped_low,

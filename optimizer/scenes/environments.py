@@ -65,6 +65,26 @@ def sun_direction(elevation_deg: float, azimuth_deg: float) -> list[float]:
     return [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
 
 
+def sun_of(env: "Environment") -> np.ndarray | None:
+    """The world unit vector towards ``env``'s sun: a ``sunsky`` or ``sun`` emitter's ``sun_direction``, or the reverse
+    of a ``directional`` emitter's ``direction`` (the first found in ``env.build()``); None when it has none of those (an
+    envmap's baked sun, an area light or a loaded Mitsuba scene's emitters are not read)."""
+    for el in env.build().values():
+        if not isinstance(el, dict):
+            continue
+        kind = el.get("type")
+        if kind in ("sunsky", "sun") and "sun_direction" in el:
+            d = np.asarray(el["sun_direction"], np.float64)
+        elif kind == "directional" and "direction" in el:
+            d = -np.asarray(el["direction"], np.float64)
+        else:
+            continue
+        n = float(np.linalg.norm(d))
+        if n > 0 and np.isfinite(n):
+            return d / n
+    return None
+
+
 def sunsky(elevation_deg: float = 40.0, azimuth_deg: float = 30.0, turbidity: float = 3.0, scale: float = 1.0) -> dict:
     """Mitsuba's ``sunsky`` (Hosek-Wilkie sky + sun). Its local frame is already Z-up and
     ``sun_direction`` is a world-space vector towards the sun, so no ``to_world`` is needed."""
