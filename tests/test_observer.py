@@ -1253,9 +1253,11 @@ def glass_chair(bg: np.ndarray, x0: int = 100, y0: int = 150) -> tuple[np.ndarra
 
 def test_a_glass_chair_is_found_by_its_frame_on_a_floor_under_a_wall():
     """The glass chair of :func:`glass_chair` on a floor whose wall shares its colour: without the frame cue the
-    seat is discounted as ground in shadow (cast-shadow map 1 on it) and the chair is never found (0 %); with
-    ``frame="lines"`` its lines -- darker than the ground on both sides, which a shadow's outline never is -- are
-    object evidence, the seat they enclose is no shadow (map <= 0.3 on it), and it is found >= 95 %."""
+    seat is discounted as ground in shadow (cast-shadow map up to 1 on it, mean 0.63) and the chair is never found
+    (0 %); with ``frame="lines"`` its lines -- darker than the ground on both sides, which a shadow's outline never
+    is -- are object evidence and it is found >= 95 %; the seat they outline is only partly lifted out of ground in
+    shadow (mean map at least 0.1 lower: measured 0.46; the former rule, which let any line within the fovea lift
+    the discount, took it to <= 0.27, and lifted attached shadows beside objects' own lines too)."""
     import evaluation.observer as ob
 
     bg, _, _ = floor_and_wall(7)
@@ -1266,9 +1268,9 @@ def test_a_glass_chair_is_found_by_its_frame_on_a_floor_under_a_wall():
         ob._BACKGROUND_CACHE.clear()
         p = predict_stimulus(img, mask, n=200, seed=0, config=cfg, background=bg)
         cast = evidence_maps(img, cfg, bg).cast
-        out[frame] = (p.p_found, float(cast[_feature_mask(seat, cast.shape)].max()))
-    assert out["none"][0] <= 0.05 and out["none"][1] >= 0.9, out  # the failure exists without the cue
-    assert out["lines"][0] >= 0.95 and out["lines"][1] <= 0.3, out  # (measured 99 %, 0.27 at the seat's edge)
+        out[frame] = (p.p_found, float(cast[_feature_mask(seat, cast.shape)].mean()))
+    assert out["none"][0] <= 0.05 and out["none"][1] >= 0.5, out  # the failure exists without the cue
+    assert out["lines"][0] >= 0.95 and out["lines"][1] <= out["none"][1] - 0.1, out  # (measured 99.5 %, 0.46)
 
 
 @pytest.mark.parametrize("bg_kind", ["grass", "floor_and_wall"])
@@ -1318,3 +1320,67 @@ def test_no_position_bias_for_a_framed_glass_object():
         se = math.sqrt(max(pooled * (1 - pooled), 1.0 / n) * 2 / n)
         assert abs(rates[0] - r) / se < 2.5, rates
     assert min(rates) >= 0.9, rates
+
+
+def _flank_case(kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """L*a*b* ``(64, 64, 3)`` image and its object-free view (flat L* 50, pixel noise 0.5) with a dark line 2 px
+    wide (L* 35) across columns 10-53 at rows 30-31: ``"frame"`` -- the same ground on both sides (a rail of a glass
+    chair); ``"sliver"`` -- a light object (L* 80) above the line, the ground below (a cast shadow's sliver hugging
+    its caster); ``"contact"`` -- a box (L* 65) above, its cast shadow (L* 24) below and the line L* 12 between
+    (where a box's base meets its shadow)."""
+    rng = np.random.default_rng(3)
+    bg = np.zeros((64, 64, 3))
+    bg[..., 0] = 50.0 + 0.5 * rng.normal(size=(64, 64))
+    img = bg.copy()
+    if kind == "sliver":
+        img[8:30, 10:54, 0] = 80.0 + 0.5 * rng.normal(size=(22, 44))
+    if kind == "contact":
+        img[8:30, 10:54, 0] = 65.0 + 0.5 * rng.normal(size=(22, 44))
+        img[32:52, 10:54, 0] = 24.0 + 0.5 * rng.normal(size=(20, 44))
+    img[30:32, 10:54, 0] = 12.0 if kind == "contact" else 35.0
+    return img, bg
+
+
+@pytest.mark.parametrize("kind", ["frame", "sliver", "contact"])
+def test_frame_evidence_counts_two_sided_lines_only(kind):
+    """Step 2d's lines are two-sided (:func:`flank_contrast`): every case is a line to :func:`line_map` (depth
+    >= 10 L* below both its sides; the element across it is not the one along it), but only the line with the same ground on both sides -- a frame's rail -- is
+    frame evidence (>= 4 d' along its middle); a sliver between an object and the ground, and a contact line
+    between a box and its shadow, are edges between two surfaces (measured flank contrast 24-44 L* against the
+    frame's 2-5 and the flat ground's ~1: no weight) and give <= 0.5 (measured 6.1-6.7 for the frame, -0.3 for
+    the other two)."""
+    from evaluation.observer import _line_tophats, flank_contrast, frame_evidence
+
+    img, bg = _flank_case(kind)
+    li, across = _line_tophats(img[..., 0], 5)
+    assert float(li[30:32, 20:44].min()) >= 10.0  # a line to the top-hat in every case
+    assert (across[30:32, 20:44] != 0).all()  # the element across it: vertical or diagonal, never along it
+    fc = flank_contrast(img, across, 3)
+    fe = frame_evidence(img, ObserverConfig(frame="lines"), bg)
+    if kind == "frame":
+        assert float(fc[30:32, 20:44].max()) < 5.0
+        assert float(fe[30:32, 20:44].min()) >= 4.0, float(fe[30:32, 20:44].min())
+    else:
+        assert float(fc[30:32, 20:44].min()) >= 20.0, float(fc[30:32, 20:44].min())
+        assert float(fe[30:32, 20:44].max()) <= 0.5, float(fe[30:32, 20:44].max())
+
+
+def test_with_the_frame_cue_an_attached_shadow_keeps_its_discount():
+    """:func:`test_an_attached_shadow_does_not_pull_the_click_off_its_object`'s faint body with the dark shadow
+    hugging its side (occluded's plain torus), with ``frame="lines"``: the body's own lines beside the shadow and
+    the grass's own lines in it do not lift the shadow's cast-shadow discount (only lines on the darkening, and
+    stronger than the ground's own by z 3-6, do): the cast-shadow map keeps a median >= 0.5 on the shadow
+    (measured 0.89; 0.11 under the former rule, every line within the fovea, z 0-2) and no click lands on the
+    shadow. The body is found in >= 50 % (measured 55 %, the rest timeouts: the grass's own lines raise the
+    verification's null, V 5.7 against 7.0 without the cue -- the cue's cost on faint bodies, 99 % without it)."""
+    bg = grass(41)
+    obj = ellipse(120, 130, 13, 24)
+    sh = (ellipse(134, 140, 10, 22) | ellipse(140, 154, 14, 9)) & ~obj
+    img = shadowed(bg, sh, 0.2)
+    img[obj] = 0.85 * bg[obj] + 0.15 * np.array([0.75, 0.7, 0.6], np.float32)
+    cfg = ObserverConfig(frame="lines")
+    cast = evidence_maps(img, cfg, bg).cast
+    assert float(np.median(cast[_feature_mask(sh, cast.shape)])) >= 0.5
+    res = simulate_search(img, n=300, seed=4, config=cfg, mask=obj, background=bg)
+    on_sh = sh[np.maximum(res.click_y, 0), np.maximum(res.click_x, 0)] & res.clicked
+    assert res.found.mean() >= 0.5 and on_sh.mean() <= 0.02, (res.found.mean(), on_sh.mean())
