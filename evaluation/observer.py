@@ -456,6 +456,9 @@ class ObserverConfig:
                 raise CamoError(f"observer {f.name} must be > 0, not {v!r}")
             if any(x < 0 for x in vals):
                 raise CamoError(f"observer {f.name} must be >= 0, not {v!r}")
+        if self.saliency_model and self.frame != "none":
+            raise CamoError(f"observer frame {self.frame!r} reads the image's own lines, which a learned "
+                            "saliency_model replaces: set one or the other")
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -1074,6 +1077,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
     srgb = _as_srgb(image)
     ppd = cfg.feature_px_per_deg
     cast = None  # the cast-shadow texture test's map, where it runs (needs an object-free view)
+    zl = None  # step 2d's line evidence, where it runs (frame="lines"; not with a learned saliency model)
     if cfg.saliency_model:
         d = learned_map(srgb, cfg).astype(np.float64)
         d_inv, shadow, obj = d.copy(), np.zeros_like(d), d.copy()
@@ -1098,7 +1102,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
                 surf = surface_labels(_nearest(_check_normals(normals, srgb.shape), sky.shape))
                 segments = combine_segments(segments, surf, sky)
         d = d_inv = shadow = obj = None
-        zl = filled = None
+        filled = None
         if cfg.frame == "lines":  # step 2d: the object's own thin dark lines (a shadow has none)
             zl = _zscore(frame_evidence(lab, cfg, lab_bg, segments), cfg.spread_floor, ground)
         if log_bg is not None and cfg.cast_shadow in ("texture", "texture_chroma"):

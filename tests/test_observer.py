@@ -506,6 +506,9 @@ def test_learned_saliency_map_from_local_torchscript(tmp_path):
         discriminability_map(img, ObserverConfig(saliency_model=str(tmp_path / "bad.pt")))
     with pytest.raises(CamoError, match="file not found"):
         simulate_search(img, config=ObserverConfig(saliency_model=str(tmp_path / "missing.pt")))
+    # the frame cue reads the image's lines, which the learned map replaces: refused, not silently ignored
+    with pytest.raises(CamoError, match="frame 'lines'.*saliency_model"):
+        simulate_search(img, config=ObserverConfig(saliency_model=str(tmp_path / "red.pt"), frame="lines"))
 
 
 
