@@ -54,6 +54,7 @@ from typing import Any, Callable, Sequence
 from optimizer.rendering.denoise import VARIANTS as DENOISE_VARIANTS
 from optimizer.rendering.pilot import (FULL_DEPTH, RR_DEPTH, CutTiming, Pilot, PilotSettings, pick_views,
                                       run_pilot, time_depth_cut)
+from optimizer.rendering.tracer import SAMPLERS
 from optimizer.scenes.environments import Environment
 from optimizer.scenes.scenepack import ScenePack
 
@@ -101,6 +102,17 @@ DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
 #: opaque: depth 3); a plain prb render + adjoint overstates it (18, 16, 25, 32 %): the silhouette terms do not
 #: shorten with the depth.
 MIN_CUT_SAVING = 0.10
+#: The sampler of an evaluation plan's renders (:data:`optimizer.rendering.tracer.SAMPLERS`; the integrator dict's
+#: ``sampler``, read by :class:`optimizer.rendering.render.PathRenderer`). ``sobol`` stratifies, across each pixel's
+#: samples, the position in the pixel and the first vertex's emitter and BSDF samples (Owen-scrambled Sobol pairs,
+#: :func:`optimizer.rendering.tracer.sobol_samples`): unbiased like the independent sampler, the same cost per sample,
+#: and the region render, noise matching's further samples and common random numbers with the background work alike
+#: (sample ``s`` of pixel ``p`` is fixed whatever else is rendered). Measured (``bench/bench_planner.py --samplers``,
+#: docs/results/planner.md (a)): at 64 spp it lowers the evaluation render's error against the converged render on
+#: every scene (gravel 2.70 -> 1.67/255: the fine texture under the pixel footprint and the sky's direct light are
+#: what the pixel's samples resolve), the lever that takes the plan past full tracing at equal error where the
+#: region render cannot (whole frames). Training renders (Mitsuba's prb integrators) keep their own sampler.
+EVALUATION_SAMPLER = "sobol"
 #: The untimed stand-in for MIN_CUT_SAVING (a run's plan: deterministic): the share of the pilot's path vertices over
 #: the object's region a training depth cut must save. Calibrated on the timed savings with the training integrator
 #: (4 views x 64 px, 4 spp; docs/results/planner.md): the room's transmissive start, cut to 4, saves 32 % of the
@@ -304,10 +316,13 @@ class PlannerSettings:
     region: bool = True  # restrict renders to what the object can change
     denoise: str = ""  # evaluation renders, opt-in: the denoiser (one of DENOISERS) applied where the noise at the
     # stage's spp is above its bias, or "" (off, the default: it smooths what a see-through object shows of the ground)
+    sampler: str = EVALUATION_SAMPLER  # evaluation renders: how a pixel's samples are drawn (tracer.SAMPLERS)
 
     def __post_init__(self):
         if self.denoise and self.denoise not in DENOISERS:
             raise ValueError(f"unknown denoiser {self.denoise!r}; choose one of {', '.join(DENOISERS)}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"unknown sampler {self.sampler!r}; choose one of {', '.join(SAMPLERS)}")
 
 
 class Planner:
@@ -531,6 +546,12 @@ class Planner:
                     "its denoised surroundings, but counting those samples and its features it is short of the "
                     "planner's 2x speed target against full path tracing at equal error (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
+            out.integrator = dict(out.integrator, sampler=st.sampler)
+            out.reasons.append(("sampler", f"{st.sampler}: " + (
+                "each pixel's samples stratified (Owen-scrambled Sobol pairs: the position in the pixel, the first "
+                "vertex's emitter and BSDF samples), unbiased at the independent sampler's cost per sample; lower "
+                "error at equal spp (docs/results/planner.md (a))" if st.sampler == "sobol" else
+                "every sample drawn independently")))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
         out.pilot = pilot.to_dict()
