@@ -42,6 +42,13 @@ the accuracy-vs-seconds curve of the plan and of full path tracing for the stage
 Renders are restricted to the region the object can change (:mod:`optimizer.rendering.region`; training renders to
 the loss domain's window, :func:`optimizer.optimise.stage1.training_windows`); ``region`` says so.
 
+An evaluation plan also chooses how each pixel's samples are drawn (:data:`EVALUATION_SAMPLER`, ``sobol``:
+stratified across the pixel's samples, unbiased, the same cost per sample). Where the object changes most of the
+frame (gravel's long soft shadow, the panorama's sky: whole frames rendered) neither the depth (Russian roulette from
+vertex 5 already makes full tracing's deep paths cheap) nor the region can save seconds at equal error; what is left
+is the error per sample, and the stratified sampler lowers it on every scene (docs/results/planner.md (a), the
+per-scene breakdown).
+
 ``FULL`` (:func:`full_plan`) is the reference "always full path tracing" setting (``--no-planner``, the bench).
 """
 
