@@ -155,7 +155,8 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     ``plan.pilot["setting"]`` (``"chosen"``: :meth:`EvaluationSetting.to_dict`, or None: the plan as without it), and
     ``plan.denoise`` / ``plan.object_spp`` are the chosen ones. ``sampler``: how each pixel's samples are drawn
     (:data:`optimizer.rendering.tracer.SAMPLERS`; default the planner's :data:`~optimizer.rendering.planner.
-    EVALUATION_SAMPLER`, ``sobol``; the measured plan's integrator carries it)."""
+    EVALUATION_SAMPLER`, ``independent``; ``sobol`` stratifies them and the measured plan's integrator carries
+    it)."""
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))

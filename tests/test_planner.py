@@ -396,12 +396,12 @@ def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_abov
     assert planner.plan(pack, env, {"albedo"}, "optimize", pilot, {"targets": 64}).denoise == ""
 
 
-def test_an_evaluation_plan_stratifies_its_samples_and_a_training_plan_does_not(mi_backend):
-    """The evaluation plan's path tracer draws each pixel's samples from the ``sobol`` sampler (its integrator's
-    ``sampler``, read by PathRenderer; the reason says so and it survives the record); ``PlannerSettings(sampler=
-    "independent")`` keeps the independent one; a training plan's integrator (Mitsuba's) has no such key; an unknown
-    sampler is refused. Rendered with the plan's integrator, the tiny scene's 16-spp error against a converged render
-    is below the independent sampler's (4 seeds each)."""
+def test_an_evaluation_plan_states_its_sampler_and_stratifies_when_asked(mi_backend):
+    """The evaluation plan's path tracer states its sampler (its integrator's ``sampler``, read by PathRenderer; the
+    reason says why, and it survives the record): by default the independent one; ``PlannerSettings(sampler="sobol")``
+    stratifies; a training plan's integrator (Mitsuba's) has no such key; an unknown sampler is refused. Rendered
+    with the plans' integrators, the tiny scene's 16-spp error against a converged render is lower with ``sobol``
+    (4 seeds each)."""
     import trimesh
 
     mi, _ = mi_backend
@@ -429,18 +429,18 @@ def test_an_evaluation_plan_stratifies_its_samples_and_a_training_plan_does_not(
     pack = builtin_scenes.get("meadow")
     planner = Planner()
     pilot = planner.pilot(env, mesh, cams, seed=1)
-    ev = planner.plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})
-    assert EVALUATION_SAMPLER == "sobol" and ev.integrator["sampler"] == "sobol"
+    plain = planner.plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})
+    assert EVALUATION_SAMPLER == "independent" and "sampler" not in plain.integrator  # as before the option
+    assert "sampler=sobol stratifies them" in dict(plain.reasons)["sampler"]
+    ev = Planner(PlannerSettings(sampler="sobol")).plan(pack, env, set(), "evaluate", pilot, {"evaluation": 64})
+    assert ev.integrator["sampler"] == "sobol"
     assert dict(ev.reasons)["sampler"].startswith("sobol: each pixel's samples stratified")
     assert Plan.from_dict(ev.to_dict()).integrator["sampler"] == "sobol"
-    plain = Planner(PlannerSettings(sampler="independent")).plan(pack, env, set(), "evaluate", pilot,
-                                                                 {"evaluation": 64})
-    assert plain.integrator["sampler"] == "independent"
     assert "sampler" not in planner.plan(pack, env, {"albedo"}, "optimize", pilot, {"targets": 64}).integrator
     with pytest.raises(ValueError, match="unknown sampler 'halton'"):
         PlannerSettings(sampler="halton")
     obj = mesh()
-    ref = render_shaded(build(), obj, cams, dict(plain.integrator), 1024, 99)
+    ref = render_shaded(build(), obj, cams, plain.integrator, 1024, 99)
 
     def err(integ):
         return np.mean([np.sqrt(np.mean((render_shaded(build(), obj, cams, integ, 16, s) - ref) ** 2))

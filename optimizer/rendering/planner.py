@@ -42,12 +42,12 @@ the accuracy-vs-seconds curve of the plan and of full path tracing for the stage
 Renders are restricted to the region the object can change (:mod:`optimizer.rendering.region`; training renders to
 the loss domain's window, :func:`optimizer.optimise.stage1.training_windows`); ``region`` says so.
 
-An evaluation plan also chooses how each pixel's samples are drawn (:data:`EVALUATION_SAMPLER`, ``sobol``:
+An evaluation plan also states how each pixel's samples are drawn (:data:`EVALUATION_SAMPLER`; ``sobol``, opt-in:
 stratified across the pixel's samples, unbiased, the same cost per sample). Where the object changes most of the
 frame (gravel's long soft shadow, the panorama's sky: whole frames rendered) neither the depth (Russian roulette from
 vertex 5 already makes full tracing's deep paths cheap) nor the region can save seconds at equal error; what is left
-is the error per sample, and the stratified sampler lowers it on every scene (docs/results/planner.md (a), the
-per-scene breakdown).
+is the error per sample, which the stratified sampler lowers, at the price of an object noisier than its cleaner
+surroundings (docs/results/planner.md (a), the per-scene breakdown).
 
 ``FULL`` (:func:`full_plan`) is the reference "always full path tracing" setting (``--no-planner``, the bench).
 """
@@ -110,16 +110,20 @@ DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
 #: shorten with the depth.
 MIN_CUT_SAVING = 0.10
 #: The sampler of an evaluation plan's renders (:data:`optimizer.rendering.tracer.SAMPLERS`; the integrator dict's
-#: ``sampler``, read by :class:`optimizer.rendering.render.PathRenderer`). ``sobol`` stratifies, across each pixel's
-#: samples, the position in the pixel and the first vertex's emitter and BSDF samples (Owen-scrambled Sobol pairs,
+#: ``sampler``, read by :class:`optimizer.rendering.render.PathRenderer`; ``PlannerSettings.sampler``,
+#: ``evaluation_plan(sampler=...)``). ``sobol`` stratifies, across each pixel's samples, the position in the pixel and
+#: the first vertex's emitter and BSDF samples (Owen-scrambled Sobol pairs,
 #: :func:`optimizer.rendering.tracer.sobol_samples`): unbiased like the independent sampler, the same cost per sample,
 #: and the region render, noise matching's further samples and common random numbers with the background work alike
-#: (sample ``s`` of pixel ``p`` is fixed whatever else is rendered). Measured (``bench/bench_planner.py --samplers``,
-#: docs/results/planner.md (a)): at 64 spp it lowers the evaluation render's error against the converged render on
-#: every scene (gravel 2.70 -> 1.67/255: the fine texture under the pixel footprint and the sky's direct light are
-#: what the pixel's samples resolve), the lever that takes the plan past full tracing at equal error where the
-#: region render cannot (whole frames). Training renders (Mitsuba's prb integrators) keep their own sampler.
-EVALUATION_SAMPLER = "sobol"
+#: (sample ``s`` of pixel ``p`` is fixed whatever else is rendered). Measured (``bench/bench_planner.py --samplers
+#: independent,sobol``, docs/results/planner.md (a)): it is the lever that takes the plan past full tracing at equal
+#: error where the region render cannot (whole frames): gravel 1.02x -> 2.25x, the panorama 1.01x -> 2.64x (full
+#: tracing with it alone: 2.12x, 2.63x). It stays **opt-in** because it cleans the pixels the object does not touch
+#: far more than the object's own (their noise is light through the see-through object, deeper than the first
+#: vertex): near the object the with-object render's noise against the background's went from 3.15 / 2.34 to
+#: 2.54 / 0.84 (/255, gravel), so the object stands out by its noise more (issue 28 item 4), and noise matching (on in
+#: ``camo evaluate``) would spend up to its 8x cap on those pixels, a cost not measured with it yet.
+EVALUATION_SAMPLER = "independent"
 #: The untimed stand-in for MIN_CUT_SAVING (a run's plan: deterministic): the share of the pilot's path vertices over
 #: the object's region a training depth cut must save. Calibrated on the timed savings with the training integrator
 #: (4 views x 64 px, 4 spp; docs/results/planner.md): the room's transmissive start, cut to 4, saves 32 % of the
@@ -553,12 +557,16 @@ class Planner:
                     "its denoised surroundings, but counting those samples and its features it is short of the "
                     "planner's 2x speed target against full path tracing at equal error (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
-            out.integrator = dict(out.integrator, sampler=st.sampler)
+            if st.sampler != "independent":  # the default plan's integrator stays as it was (no key Mitsuba lacks)
+                out.integrator = dict(out.integrator, sampler=st.sampler)
             out.reasons.append(("sampler", f"{st.sampler}: " + (
                 "each pixel's samples stratified (Owen-scrambled Sobol pairs: the position in the pixel, the first "
                 "vertex's emitter and BSDF samples), unbiased at the independent sampler's cost per sample; lower "
-                "error at equal spp (docs/results/planner.md (a))" if st.sampler == "sobol" else
-                "every sample drawn independently")))
+                "error at equal spp, but the object's surroundings come out noisier than the background's "
+                "(docs/results/planner.md (a))" if st.sampler == "sobol" else
+                "every sample drawn independently (sampler=sobol stratifies them: 2.1-2.6x less time at equal error "
+                "on whole frames, but the object's noise then stands out against a cleaner background; "
+                "docs/results/planner.md (a))")))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
         out.pilot = pilot.to_dict()
