@@ -137,10 +137,15 @@ def test_the_variants_table_reads_every_other_curve_against_the_same_full_tracin
         {"scene": "gravel", "speedup": 2.5, "noise_at_spp": 1.7 / 255, "plan_sampler": "sobol", "rr_depth": 5,
          "variants": {"plan-independent": v(1.1, 2.7), "full-sobol": v(2.4, 1.7)}},
         {"scene": "room", "speedup": 3.0, "noise_at_spp": 1.5 / 255, "plan_sampler": "sobol", "rr_depth": 5,
-         "variants": {"plan-independent": v(2.0, 2.2)}}]}
+         "variants": {"plan-independent": v(2.0, 2.2)}},
+        # a curve whose cheapest level (1 s) is already below full tracing's error: its seconds, a lower bound
+        {"scene": "split", "speedup": 4.0, "noise_at_spp": 1.2 / 255, "full_error_at_spp": 0.01,
+         "full_seconds_at_spp": 2.0, "variants": {"full-sobol": {**v(4.0, 1.3), "curve": [(1.0, 0.005), (2.0, 0.004)],
+                                                                 "seconds_at_equal_error": 0.5}}}]}
     bp.print_variants(res)
     out = capsys.readouterr().out
     assert "(sampler sobol, Russian roulette from vertex 5)" in out
     assert "| gravel | 1.10x / 2.70 | 2.40x / 1.70 | 2.50x / 1.70 |" in out
     assert "| room | 2.00x / 2.20 | - | 3.00x / 1.50 |" in out
-    assert "| mean / min | 1.55x / 1.10x | 2.40x / 2.40x | 2.75x / 2.50x |" in out
+    assert "| split | - | >= 2.00x / 1.30 | 4.00x / 1.20 |" in out
+    assert "| mean / min | 1.55x / 1.10x | 2.20x / 2.00x | 3.17x / 2.50x |" in out
