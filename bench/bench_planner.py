@@ -149,7 +149,7 @@ def bench_evaluation(name: str, args) -> dict:
     cams = evaluation_cameras(pack, args.views, seed=args.seed).cams
     mesh_fn = static_object_fn(pack, prepare_object(pack, target_vertices=args.target_vertices))
     t0 = time.perf_counter()
-    plan = evaluation_plan(pack, env, cams, args.eval_spp, args.seed)
+    plan = evaluation_plan(pack, env, cams, args.eval_spp, args.seed, sampler=args.plan_sampler)
     pilot_seconds = time.perf_counter() - t0
     say(f"{name}: evaluation plan max_depth {plan.max_depth} ({pilot_seconds:.1f} s)")
     full = full_plan("evaluate").integrator
@@ -848,6 +848,9 @@ def main() -> None:
     ap.add_argument("--samplers", default="", help="also the plan and full tracing with these samplers "
                     "(optimizer/rendering/tracer.py SAMPLERS, e.g. sobol), interleaved; with --rr-depths the plan "
                     "with both")
+    ap.add_argument("--plan-sampler", default=None, help="the evaluation plan's sampler (tracer.SAMPLERS; default "
+                    "the planner's EVALUATION_SAMPLER): e.g. sobol, to measure it as camo evaluate renders it "
+                    "(--evaluate-as) or with the denoisers")
     ap.add_argument("--whole-frames", action="store_true", help="also the plan's integrator on every pixel "
                     "(plan-whole: the plan without its region render)")
     ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
@@ -918,9 +921,9 @@ def main() -> None:
     from optimizer.rendering.tracer import SAMPLERS
 
     args.samplers = [x for x in args.samplers.split(",") if x]
-    bad = [x for x in args.samplers if x not in SAMPLERS]
+    bad = [x for x in args.samplers + [args.plan_sampler or SAMPLERS[0]] if x not in SAMPLERS]
     if bad:
-        ap.error(f"--samplers: unknown {', '.join(bad)}; choose from {', '.join(SAMPLERS)}")
+        ap.error(f"--samplers / --plan-sampler: unknown {', '.join(bad)}; choose from {', '.join(SAMPLERS)}")
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     for x in args.evaluate_as:
         try:
