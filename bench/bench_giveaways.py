@@ -135,6 +135,7 @@ ARMS = {
     # the same floors at today's starting roughness (the roughness search's 0.5 alone): meadow's floored arms chose 0.7
     "warmt05_r5": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.5", "--roughness-search", "0.5"],
     "warmt065_r5": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.65", "--roughness-search", "0.5"],
+    "warmt01_r5": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--roughness-search", "0.5"],
     # the other lever on the shadow: warmt01's start, then Stage 1's loss weighs the pixels outside the object 4x
     # (``--shadow-weight``), pulling the transmittance back up where the shadow is too dark
     "warmt01_sw4": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--shadow-weight", "4"],
@@ -497,7 +498,7 @@ LABELS = {"today": "ours (today)", "shadow4": "ours, shadow x4", "shadow4_t95": 
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "pre_fix": "ours, warm start before fix",
           "warmt1": "T in [0.75, 1]", "warmt01": "T in [0, 1]", "warmt02": "T in [0.2, 1]", "warmt035": "T in [0.35, 1]", "warmt065": "T in [0.65, 1]", "warmt05_r5": "T in [0.5, 1], R0 0.5",
-          "warmt065_r5": "T in [0.65, 1], R0 0.5",
+          "warmt065_r5": "T in [0.65, 1], R0 0.5", "warmt01_r5": "T in [0, 1], R0 0.5",
           "warmt05": "T in [0.5, 1]", "warmt01_sw4": "T in [0, 1], shadow x4",
           "warmsun": "T lowered facing away", "warmshadow": "T lowered unseen shadow",
           "mean": "Mean"}

@@ -128,3 +128,22 @@ def pd_concat_scene(df):
     m = df[df.scene == "meadow"].copy()
     m["scene"] = "room"
     return pd.concat([df, m])
+
+
+def test_floor_sweep_arms_make_the_specs_they_name(bench_module):
+    """bench_giveaways: the floor-sweep arms give `camo optimize` specs that validate, with the warm start's ceiling 1,
+    the named floor, the starting roughness fixed at 0.5 for the ``_r5`` arms (the search's two candidates otherwise)
+    and the shadow weight 4 for ``warmt01_sw4`` (1, the default, otherwise)."""
+    from camo.cli import build_parser
+    from camo.optimize_cli import spec_of
+
+    bg_ = bench_module("bench_giveaways")
+    want = {"warmt065": 0.65, "warmt05": 0.5, "warmt035": 0.35, "warmt02": 0.2, "warmt01": 0.0, "warmt01_sw4": 0.0,
+            "warmt065_r5": 0.65, "warmt05_r5": 0.5, "warmt01_r5": 0.0}
+    for arm, floor in want.items():
+        spec = spec_of(build_parser().parse_args(["optimize", "meadow", "--out", "/tmp/x", *bg_.SIZE, *bg_.ARMS[arm]]))
+        spec.validate()
+        assert spec.stage1.warm_transmittance == 1.0 and spec.stage1.warm_transmittance_low == floor, arm
+        assert tuple(spec.stage1.roughness_search) == ((0.5,) if arm.endswith("_r5") else (0.5, 0.7)), arm
+        assert spec.stage1.shadow_weight == (4.0 if arm == "warmt01_sw4" else 1.0), arm  # 1: no extra weight
+        assert arm in bg_.LABELS
