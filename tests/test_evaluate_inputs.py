@@ -113,19 +113,23 @@ def one_line_error(capsys, args: list[str], needle: str) -> str:
 
 def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend):
     """The run's result.glb and result.obj, evaluated as external assets in the run's scene, give the run
-    directory's numbers once the run's maps carry the same 8-bit quantisation.
+    directory's images once the run's maps carry the same 8-bit quantisation.
 
     The files differ from ``result.ply`` + ``maps/*.npy`` only by their 8-bit textures (albedo sRGB, roughness /
     metallic / transmittance linear: <= 0.5/255 each; ``test_run_asset_reads_the_same_mesh_and_maps_as_the_run``
     checks that bound map by map). So a copy of the run whose ``maps/*.npy`` hold the GLB's decoded maps is the same
-    scene as the GLB: with the same cameras and sampler seed every view must score the same to 0.01 dB (not exactly:
-    the LLVM backend's multi-threaded film accumulation sums in scheduling order, which moved one view by 0.0026 dB
-    under a load of 15, 2026-11-27; a decoding error costs several dB). That bound is
-    tight, unlike a bound on the quantisation's own effect: with transmittance near 0.75 (the fast
-    preset's start) a texel off by 1/255 flips which lobe some paths sample, the common random numbers decorrelate
-    there, and the unquantised run moved by 0.02-0.15 dB per view between machines (CI, 2026-11-23), the size of
-    the seed-to-seed noise. That effect is only bounded loosely here (< 0.5 dB per view), where a decoding error
-    (sRGB read as linear, a flipped V) costs several dB."""
+    scene as the GLB, and with the same cameras and sampler seed its renders must match pixel for pixel -- not
+    bit for bit: evaluating one run directory three times in three processes (2026-11-28, load 4-5) gave
+    bit-identical object renders twice, and once 2-3 pixels of 1,024 per view off by up to 0.007 (a few paths
+    that took another branch; the background renders stayed bit-identical), which moved crop PSNR by up to 0.036 dB
+    and SSIM by 1.9e-3; CI saw 0.062 dB on one view. So the sharp check is per pixel: at most 10 % of the object's
+    mask may differ by more than 1e-3, where that nondeterminism moved <= 3 pixels (1-2 %) and the quantisation
+    itself moves 50-94 (30-50 %); a decoding error (sRGB read as linear, a flipped V) moves nearly every masked
+    pixel and costs several dB. The metrics get bounds four times the measured nondeterminism.
+
+    The quantisation's own effect is only bounded loosely (< 0.3 dB mean, < 1 dB per view): with transmittance near
+    0.75 (the fast preset's start) a texel off by 1/255 flips which lobe some paths sample, so the common random
+    numbers decorrelate there (0.02-0.15 dB per view between machines, CI 2026-11-23, the seed-to-seed noise)."""
     from optimizer.assets.asset import load_asset
     from optimizer.assets.export import save_maps
 
@@ -150,10 +154,14 @@ def test_round_trip_glb_and_obj_give_the_runs_numbers(run, tmp_path, mi_backend)
     for name in ("glb", "obj"):
         got = df[df["run"] == name].set_index(["view", "region"])[metrics]
         assert (got.index == q.index).all()
-        np.testing.assert_allclose(got["psnr"], q["psnr"], atol=1e-2, err_msg=name)
-        # SSIM and LPIPS-proxy move more than PSNR with the accumulation order: 4.7e-4 SSIM on one view inside the
-        # full test run (2026-11-28) while its PSNR stayed within 0.01 dB; the PSNR bound above catches decoding errors
-        np.testing.assert_allclose(got[["ssim", "lpips_proxy"]], q[["ssim", "lpips_proxy"]], atol=2e-3,
+        for v in sorted(set(df["view"])):
+            mask = np.asarray(Image.open(out / "renders" / quant.name / f"view_{v:02d}_mask.png")) > 127
+            a = np.load(out / "renders" / name / f"view_{v:02d}_obj.npy")
+            b = np.load(out / "renders" / quant.name / f"view_{v:02d}_obj.npy")
+            off = np.abs(a - b).max(axis=-1) > 1e-3
+            assert mask.sum() > 50 and off[mask].mean() <= 0.10, (name, v, int(off[mask].sum()), int(mask.sum()))
+        np.testing.assert_allclose(got["psnr"], q["psnr"], atol=0.15, err_msg=name)
+        np.testing.assert_allclose(got[["ssim", "lpips_proxy"]], q[["ssim", "lpips_proxy"]], atol=8e-3,
                                    err_msg=name)
         # the 8-bit quantisation itself: at 32 px and 8 spp a 1/255 step can flip which lobe a path samples over
         # much of one view (measured up to 0.57 dB on one view, 0.17 dB on average with the fast preset's maps)
