@@ -127,6 +127,18 @@ ARMS = {
     "warmt01": ["--warm-transmittance", "1", "--warm-transmittance-low", "0"],
     # the floor halfway: a body half as transmissive at most, so its cast shadow stays lighter than an opaque one's
     "warmt05": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.5"],
+    # the floor between (issue 29, nineteenth session): the trade-off between the body (lower: more diffuse, in the
+    # detail band, less tint) and its cast shadow (higher: more light through the body into it) mapped point by point
+    "warmt02": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.2"],
+    "warmt035": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.35"],
+    "warmt065": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.65"],
+    # the same floors at today's starting roughness (the roughness search's 0.5 alone): meadow's floored arms chose 0.7
+    "warmt05_r5": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.5", "--roughness-search", "0.5"],
+    "warmt065_r5": ["--warm-transmittance", "1", "--warm-transmittance-low", "0.65", "--roughness-search", "0.5"],
+    "warmt01_r5": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--roughness-search", "0.5"],
+    # the other lever on the shadow: warmt01's start, then Stage 1's loss weighs the pixels outside the object 4x
+    # (``--shadow-weight``), pulling the transmittance back up where the shadow is too dark
+    "warmt01_sw4": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--shadow-weight", "4"],
     # [0, 1] lowered only on the texels facing away from the sun: the sun-facing ones, where the sunlight enters the body
     # on its way to the cast shadow, keep at least the start's 0.75 (warmt01's opaque body casts a full dark shadow)
     "warmsun": ["--warm-transmittance", "1", "--warm-transmittance-low", "0", "--warm-transmittance-sun", "facing"],
@@ -256,7 +268,10 @@ def real_lpips(renders: Path) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
-def table(out: Path, scenes, arms) -> str:
+def measures(out: Path, scenes, arms):
+    """One row per scene and arm (and Mean) evaluated under ``out``: crop PSNR, LPIPS-proxy, real LPIPS of the
+    frames, detail ratio, tint (CIELAB ΔE), shadow share, method seconds, seconds per Stage 1 iteration, IOR
+    (a pandas DataFrame; what :func:`table` prints)."""
     import pandas as pd
 
     from evaluation.giveaway import split_eval_dir
@@ -287,7 +302,13 @@ def table(out: Path, scenes, arms) -> str:
                          "seconds": float(r.seconds_method.iloc[0]) if len(r) else float("nan"),
                          "s_per_it": _seconds_per_iteration(out / "runs" / f"{scene}-{arm}"),
                          "ior": _ior(out / "runs" / f"{scene}-{arm}")})
-    df = pd.DataFrame(rows)
+    return pd.DataFrame(rows)
+
+
+def table(out: Path, scenes, arms, df=None) -> str:
+    """The give-away table (Markdown) of :func:`measures`' rows (``df``, measured here when None) and each arm's mean
+    over the scenes."""
+    df = measures(out, scenes, arms) if df is None else df
     lines = ["| scene | arm | crop PSNR↑ | LPIPS-proxy↓ | LPIPS (frame)↓ | detail ratio (1 best) | tint ΔE↓ | shadow share | "
              "method s | s / Stage 1 it | IOR |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in df.itertuples():
@@ -309,6 +330,106 @@ def table(out: Path, scenes, arms) -> str:
             if len(same) == len(g):
                 lines.append(mean_row(f"mean of {len(g)}", "today, same scenes", same))
     return "\n".join(lines)
+
+
+#: the issue's band of the detail ratio (1 = the ground's own texture energy)
+DETAIL_BAND = (0.8, 1.25)
+
+
+def pareto_front(g) -> list[bool]:
+    """Per row of ``g`` (one scene's arms: columns ``psnr``, ``lpips_proxy``, ``detail_ratio``, ``tint``): whether no
+    other row is at least as good on all four of crop PSNR (higher), LPIPS-proxy (lower), the detail ratio's distance
+    from 1 (``|ln ratio|``, lower) and tint (lower) and better on one (the trade-off's non-dominated points).
+
+    >>> import pandas as pd
+    >>> pareto_front(pd.DataFrame({"psnr": [33, 32, 31], "lpips_proxy": [.16, .2, .2], "detail_ratio": [.6, 1, 1],
+    ...                            "tint": [2, 1.4, 1.5]}))
+    [True, True, False]
+    """
+    import numpy as np
+
+    x = np.c_[-g.psnr.to_numpy(float), g.lpips_proxy.to_numpy(float), np.abs(np.log(g.detail_ratio.to_numpy(float))),
+              g.tint.to_numpy(float)]
+    return [not any((x[j] <= x[i]).all() and (x[j] < x[i]).any() for j in range(len(x)) if j != i)
+            for i in range(len(x))]
+
+
+def against_base(df, base: str = "today", psnr_tol: float = 0.3, lpips_tol: float = 0.01):
+    """Each arm of :func:`measures`' rows (Mean left out) against ``base`` of the same scene and run: the crop PSNR and
+    LPIPS-proxy differences, the tint as a share of the base's, whether the detail ratio is in :data:`DETAIL_BAND`,
+    whether the arm is on the scene's :func:`pareto_front`, and ``meets``: in the band, tint below the base's, crop PSNR
+    at most ``psnr_tol`` dB and LPIPS-proxy at most ``lpips_tol`` above the base's (one run's noise: ~0.1 dB on meadow,
+    up to ~0.6 dB and 0.017 on gravel, section "Run-to-run noise"). A scene without the base arm is left out."""
+    import pandas as pd
+
+    rows = []
+    for scene, g in df[df.arm != "mean"].groupby("scene", sort=False):
+        b = g[g.arm == base]
+        if b.empty:
+            continue
+        b = b.iloc[0]
+        for r, front in zip(g.itertuples(), pareto_front(g)):
+            band = DETAIL_BAND[0] <= r.detail_ratio <= DETAIL_BAND[1]
+            d_psnr, d_lp = r.psnr - b.psnr, r.lpips_proxy - b.lpips_proxy
+            rows.append({"scene": scene, "arm": r.arm, "psnr": r.psnr, "d_psnr": d_psnr, "d_lpips": d_lp,
+                         "detail_ratio": r.detail_ratio, "in_band": band, "tint": r.tint,
+                         "tint_share": r.tint / b.tint, "shadow": r.shadow, "pareto": front,
+                         "meets": bool(r.arm != base and band and r.tint < b.tint and d_psnr >= -psnr_tol
+                                       and d_lp <= lpips_tol)})
+    return pd.DataFrame(rows)
+
+
+def tradeoff_table(df, base: str = "today") -> str:
+    """Markdown: :func:`against_base`'s rows (the trade-off's points against ``base`` in the same run)."""
+    t = against_base(df, base)
+    lines = [f"| scene | arm | crop PSNR | Δ PSNR vs {base} | Δ LPIPS-proxy | detail ratio | tint ΔE (share of {base}'s) "
+             "| shadow share | Pareto | meets |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in t.itertuples():
+        detail = f"**{r.detail_ratio:.2f}**" if r.in_band else f"{r.detail_ratio:.2f}"
+        lines.append(f"| {r.scene} | {r.arm} | {r.psnr:.2f} | {r.d_psnr:+.2f} | {r.d_lpips:+.3f} | {detail} | "
+                     f"{r.tint:.2f} ({r.tint_share:.0%}) | {r.shadow:.2f} | {'yes' if r.pareto else 'no'} | "
+                     f"{'**yes**' if r.meets else 'no'} |")
+    return "\n".join(lines)
+
+
+def tradeoff_plot(df, dest: Path, base: str = "today", curve=()) -> Path:
+    """A small PNG of the trade-off, one row per scene: crop PSNR against the detail ratio (the band shaded) and
+    against tint ΔE (below half of ``base``'s shaded); each arm a labelled point (green: on the Pareto front),
+    ``base`` a red star, the dashed line ``base``'s PSNR minus 0.3 dB, and the arms of ``curve`` joined in that order
+    (e.g. a sweep of one lever)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = against_base(df, base)
+    scenes = list(dict.fromkeys(t.scene))
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(7.5, 2.6 * len(scenes)), squeeze=False)
+    for row, scene in zip(axes, scenes):
+        g = t[t.scene == scene]
+        b = g[g.arm == base].iloc[0]
+        for ax, x, label in ((row[0], "detail_ratio", "detail ratio (band 0.8-1.25)"), (row[1], "tint", "tint ΔE")):
+            if x == "detail_ratio":
+                ax.axvspan(*DETAIL_BAND, color="0.9")
+            else:
+                ax.axvspan(0, b.tint / 2, color="0.9")  # the tint halved
+            ax.axhline(b.psnr - 0.3, ls="--", lw=0.8, color="0.4")
+            line = [g[g.arm == c].iloc[0] for c in curve if (g.arm == c).any()]
+            if len(line) > 1:
+                ax.plot([getattr(r, x) for r in line], [r.psnr for r in line], "-", lw=0.8, color="0.5")
+            for r in g.itertuples():
+                ax.plot(getattr(r, x), r.psnr, "*" if r.arm == base else "o", ms=10 if r.arm == base else 5,
+                        color="C3" if r.arm == base else ("C2" if r.pareto else "C0"))
+                ax.annotate(LABELS.get(r.arm, r.arm), (getattr(r, x), r.psnr), fontsize=6, xytext=(3, 2),
+                            textcoords="offset points")
+            ax.set_xlabel(label, fontsize=8)
+            ax.set_ylabel(f"{scene}: crop PSNR (dB)", fontsize=8)
+            ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(dest, dpi=90)
+    plt.close(fig)
+    return dest
 
 
 def shadow_table(out: Path, scenes, arms) -> str:
@@ -376,6 +497,10 @@ LABELS = {"today": "ours (today)", "shadow4": "ours, shadow x4", "shadow4_t95": 
           "grain": "ours + grain 1", "grain05": "ours + grain 0.5", "grain_s2": "grain 1, sharpened 2",
           "lr2": "ours, map rate 2e-2", "lr2_auto": "map rate 2e-2 + clear",
           "pre_fix": "ours, warm start before fix",
+          "warmt1": "T in [0.75, 1]", "warmt01": "T in [0, 1]", "warmt02": "T in [0.2, 1]", "warmt035": "T in [0.35, 1]", "warmt065": "T in [0.65, 1]", "warmt05_r5": "T in [0.5, 1], R0 0.5",
+          "warmt065_r5": "T in [0.65, 1], R0 0.5", "warmt01_r5": "T in [0, 1], R0 0.5",
+          "warmt05": "T in [0.5, 1]", "warmt01_sw4": "T in [0, 1], shadow x4",
+          "warmsun": "T lowered facing away", "warmshadow": "T lowered unseen shadow",
           "mean": "Mean"}
 
 
@@ -452,6 +577,10 @@ def main(argv=None) -> int:
                     "(shadow_table; what section 'shadow' writes) between this --section's markers; no sheets")
     ap.add_argument("--sheet-format", choices=("png", "jpg"), default="png", help="the contact sheets' format "
                     "(jpg: quality 85, small)")
+    ap.add_argument("--tradeoff", action="store_true", help="also each arm against today in the same run "
+                    "(tradeoff_table: Δ PSNR, Δ LPIPS-proxy, detail band, tint share, Pareto front, meets the targets) "
+                    "below the table, and with --docs its plot giveaways_SECTION_tradeoff.png")
+    ap.add_argument("--curve", help="with --tradeoff: the arms the plot joins by a line, in this order (a sweep)")
     ap.add_argument("--phase", choices=("all", "optimize", "evaluate", "table"), default="all")
     ap.add_argument("--docs", help="also write the contact sheets (giveaways_SCENE.png) and the table (between the "
                     "markers of giveaways.md) here, e.g. docs/results")
@@ -473,10 +602,16 @@ def main(argv=None) -> int:
     if a.phase in ("all", "evaluate", "table"):
         names = [name_of(s) for s in scenes]
         shadow = a.section == "shadow" or a.shadow_table
-        text = shadow_table(out, names, arms) if shadow else table(out, names, arms)
+        df = None if shadow else measures(out, names, arms)
+        text = shadow_table(out, names, arms) if shadow else table(out, names, arms, df)
+        if a.tradeoff and not shadow:
+            text += "\n\n" + tradeoff_table(df)
         print(text)
         if a.docs:
             docs = Path(a.docs)
+            if a.tradeoff and not shadow:
+                print(tradeoff_plot(df, docs / f"giveaways_{a.section}_tradeoff.png",
+                                    curve=a.curve.split(",") if a.curve else ()))
             for scene in names if not shadow else []:
                 dest = sheet_path(docs, a.section, scene, bool(a.sheet_arms))
                 if dest is not None:
