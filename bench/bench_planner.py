@@ -94,11 +94,26 @@ def value_at(curve: list[tuple[float, float]], seconds: float) -> float:
     return float(np.interp(math.log(seconds), xs, [p[1] for p in pts]))
 
 
+def real_pack_path(name: str) -> str | None:
+    """The pack file of a real scene (data in data/real: ``camo data fetch data_manifests/pmndrs_hdris.toml`` and
+    ``registry_objects.toml``): one of :data:`REAL_PACKS` (packs/real, the HDRI-object diagonal of grids/real.toml)
+    or ``cross/HDRI-OBJECT`` (packs/real/cross, the 8 x 8 of grids/real_cross.toml); None for other names (a
+    built-in scene or a pack path, resolved as ``camo`` resolves them)."""
+    real = Path(__file__).resolve().parent.parent / "packs" / "real"
+    if name in REAL_PACKS:
+        return str(real / f"{name}.toml")
+    if name.startswith("cross/"):
+        p = real / f"{name}.toml"
+        if not p.is_file():
+            raise SystemExit(f"no real pack {name!r}: {p} does not exist (packs/real/cross holds HDRI-OBJECT.toml)")
+        return str(p)
+    return None
+
+
 def load_pack(name: str, views: int, resolution: int, target_vertices: int):
     from optimizer.scenes.builtin_scenes import resolve_scene
 
-    pack = resolve_scene(str(Path(__file__).resolve().parent.parent / "packs" / "real" / f"{name}.toml")
-                         if name in REAL_PACKS else name)
+    pack = resolve_scene(real_pack_path(name) or name)
     pack.cameras = dataclasses.replace(pack.cameras, views=views)
     pack.render = dataclasses.replace(pack.render, resolution=(resolution, resolution))
     pack.object = dataclasses.replace(pack.object, target_vertices=target_vertices)
@@ -134,7 +149,7 @@ def bench_evaluation(name: str, args) -> dict:
     cams = evaluation_cameras(pack, args.views, seed=args.seed).cams
     mesh_fn = static_object_fn(pack, prepare_object(pack, target_vertices=args.target_vertices))
     t0 = time.perf_counter()
-    plan = evaluation_plan(pack, env, cams, args.eval_spp, args.seed)
+    plan = evaluation_plan(pack, env, cams, args.eval_spp, args.seed, sampler=args.plan_sampler)
     pilot_seconds = time.perf_counter() - t0
     say(f"{name}: evaluation plan max_depth {plan.max_depth} ({pilot_seconds:.1f} s)")
     full = full_plan("evaluate").integrator
@@ -163,10 +178,11 @@ def bench_evaluation(name: str, args) -> dict:
                                            object_floor=object_floor)
         return img, clock() - t, alloc.to_dict()
 
-    def plan_render(spp, seed, with_background=False, rr_depth=None):
-        """The plan's render (``rr_depth``: Russian roulette from that vertex instead of the plan's, in the
-        background render too)."""
+    def plan_render(spp, seed, with_background=False, rr_depth=None, sampler=None):
+        """The plan's render (``rr_depth``: Russian roulette from that vertex instead of the plan's; ``sampler``:
+        that sampler (tracer.SAMPLERS) instead of the plan's; both in the background render too)."""
         it = integ if rr_depth is None else dict(integ, rr_depth=int(rr_depth))
+        it = it if sampler is None else dict(it, sampler=sampler)
         bg = render_shaded(env.build(), None, cams, it, spp, seed)  # shared by every input: not timed
         t = clock()
         if not plan.region_search:  # the plan renders whole frames here
@@ -202,9 +218,10 @@ def bench_evaluation(name: str, args) -> dict:
         out = denoise_variant(img, feats[variant][0], feats[variant][1], variant)
         return out, clock() - t
 
-    def full_render(spp, seed):
+    def full_render(spp, seed, sampler=None):
         t = clock()
-        img = render_shaded(env.build(), mesh, cams, full, spp, seed)
+        img = render_shaded(env.build(), mesh, cams, full if sampler is None else dict(full, sampler=sampler), spp,
+                            seed)
         return img, clock() - t
 
     # the evaluation render as `camo evaluate` makes it (evaluation.views.ViewRenderer: region, noise matching, the
@@ -285,6 +302,14 @@ def bench_evaluation(name: str, args) -> dict:
                 alloc_render(spp, base + k, e)
             for rr in args.rr_depths:
                 plan_render(spp, base + k, rr_depth=rr)
+            if args.whole_frames:
+                render_shaded(env.build(), mesh, cams, integ, spp, base + k)
+            for smp in args.samplers:
+                plan_render(spp, base + k, sampler=smp)
+                if smp != "independent":
+                    full_render(spp, base + k, sampler=smp)
+                for rr in args.rr_depths:
+                    plan_render(spp, base + k, rr_depth=rr, sampler=smp)
             for e in as_eval:
                 if measured_at(as_eval[e], spp):
                     eval_render(spp, base + k, e)
@@ -304,6 +329,22 @@ def bench_evaluation(name: str, args) -> dict:
                 r_img, r_s = plan_render(spp, seed, rr_depth=rr)[:2]
                 row[f"plan-rr{rr}_seconds"] = r_s
                 row[f"plan-rr{rr}_error"] = math.sqrt(max(srgb_rms(r_img, ref) ** 2 - ref_var, 0.0))
+            if args.whole_frames:  # the plan's integrator on every pixel: what its region render buys
+                t_ = clock()
+                w_img = render_shaded(env.build(), mesh, cams, integ, spp, seed)
+                row["plan-whole_seconds"] = clock() - t_
+                row["plan-whole_error"] = math.sqrt(max(srgb_rms(w_img, ref) ** 2 - ref_var, 0.0))
+            for smp in args.samplers:  # the plan and full tracing with another sampler than their own, interleaved
+                for who, (img_, s_) in (((f"plan-{smp}", plan_render(spp, seed, sampler=smp)[:2]),)
+                                        if smp != integ.get("sampler", "independent") else ()) + \
+                                       (((f"full-{smp}", full_render(spp, seed, sampler=smp)),)
+                                        if smp != "independent" else ()):
+                    row[f"{who}_seconds"] = s_
+                    row[f"{who}_error"] = math.sqrt(max(srgb_rms(img_, ref) ** 2 - ref_var, 0.0))
+                for rr in args.rr_depths:
+                    r_img, r_s = plan_render(spp, seed, rr_depth=rr, sampler=smp)[:2]
+                    row[f"plan-{smp}-rr{rr}_seconds"] = r_s
+                    row[f"plan-{smp}-rr{rr}_error"] = math.sqrt(max(srgb_rms(r_img, ref) ** 2 - ref_var, 0.0))
             if dens:
                 fe = features(mesh, spp, seed)
                 bg_fe = features(None, spp, seed) if spp == args.eval_spp else None  # shared: not timed
@@ -432,12 +473,21 @@ def bench_evaluation(name: str, args) -> dict:
                            "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
                            "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in
                                                               _by_spp(rows, who).items()], s))}
+    variants = {}  # every other measured curve (--rr-depths, --samplers): its speed-up against full tracing
+    for who in sorted({k[:-len("_seconds")] for r in rows for k in r if k.endswith("_seconds")
+                       and k[:-len("_seconds")] + "_error" in r and k.startswith(("plan-", "full-"))}):
+        v_t = seconds_at(_mean_curve(rows, who), e_full)
+        variants[who] = {"curve": _mean_curve(rows, who), "seconds_at_equal_error": v_t, "speedup": t_full / v_t,
+                         "speedup_equal_spp": _by_spp(rows, "full")[top][0] / _by_spp(rows, who)[top][0],
+                         "error_at_spp": math.exp(value_at([(k, math.log(v[1])) for k, v in
+                                                            _by_spp(rows, who).items()], s))}
     plain_noise = ({"object": noise_rms(at_spp["plan"][0], at_spp["plan"][1], near),
                     "background": noise_rms(at_spp["bg"][0], at_spp["bg"][1], near)}
                    if len(at_spp["plan"]) >= 2 else {})
     return {"scene": name, "pilot_seconds": pilot_seconds, "allocations": allocs, "denoisers": den_out,
             "evaluate_as": eval_out,
-            "rr_depths": rr_out,
+            "rr_depths": rr_out, "variants": variants, "plan_sampler": integ.get("sampler", "independent"),
+            "plan_integrator": dict(integ),
             "noise_near_object": plain_noise,
             "region_search": bool(plan.region_search), "max_depth": plan.max_depth, "rr_depth": plan.rr_depth,
             "region_share": float(np.mean([r["region_share"] for r in rows])), "bias": bias,
@@ -775,7 +825,8 @@ def summarise_gradient(out: dict, train_spp: int, kinds=("plan", "full-lt", "ful
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", default="", help="comma list (default: the six built-in scenes)")
+    ap.add_argument("--scenes", default="", help="comma list (default: the six built-in scenes); also real packs: "
+                    f"{', '.join(REAL_PACKS)}, or cross/HDRI-OBJECT (packs/real/cross), or a pack path")
     ap.add_argument("--real", action="store_true", help="also the real packs (packs/real, data in data/real)")
     ap.add_argument("--only", choices=("eval", "grad", "both"), default="both")
     ap.add_argument("--views", type=int, default=4)
@@ -794,6 +845,14 @@ def main() -> None:
                     "(comma list of optimizer/rendering/denoise.py VARIANTS: oidn, oidn-balanced, oidn-raw, "
                     "oidn-through, oidn-through-sharp, oidn-color), interleaved; the features' render (one per kind: "
                     "first-hit, see-through, see-through sharp) and the denoising are timed")
+    ap.add_argument("--samplers", default="", help="also the plan and full tracing with these samplers "
+                    "(optimizer/rendering/tracer.py SAMPLERS, e.g. sobol), interleaved; with --rr-depths the plan "
+                    "with both")
+    ap.add_argument("--plan-sampler", default=None, help="the evaluation plan's sampler (tracer.SAMPLERS; default "
+                    "the planner's EVALUATION_SAMPLER): e.g. sobol, to measure it as camo evaluate renders it "
+                    "(--evaluate-as) or with the denoisers")
+    ap.add_argument("--whole-frames", action="store_true", help="also the plan's integrator on every pixel "
+                    "(plan-whole: the plan without its region render)")
     ap.add_argument("--rr-depths", default="", help="also the plan with Russian roulette from these vertices "
                     "(comma list; the plan's own is 5), interleaved")
     ap.add_argument("--evaluate-as", default="", help="also the evaluation render exactly as camo evaluate makes it "
@@ -859,6 +918,12 @@ def main() -> None:
         ap.error(f"--denoisers: unknown {', '.join(bad)}; choose from {', '.join(DENOISERS)}")
     args.evaluate_as = [x for x in args.evaluate_as.split(",") if x]
     args.rr_depths = [int(x) for x in args.rr_depths.split(",") if x]
+    from optimizer.rendering.tracer import SAMPLERS
+
+    args.samplers = [x for x in args.samplers.split(",") if x]
+    bad = [x for x in args.samplers + [args.plan_sampler or SAMPLERS[0]] if x not in SAMPLERS]
+    if bad:
+        ap.error(f"--samplers / --plan-sampler: unknown {', '.join(bad)}; choose from {', '.join(SAMPLERS)}")
     args.eval_levels = [int(x) for x in args.eval_levels.split(",")]
     for x in args.evaluate_as:
         try:
@@ -899,6 +964,49 @@ def main() -> None:
     results["seconds"] = time.perf_counter() - t_all
     (out / "bench_planner.json").write_text(json.dumps(results, indent=1))
     print_tables(results)
+
+
+def print_variants(results: dict) -> None:
+    """The table of every other measured curve of (a) (``--samplers``, ``--rr-depths``): each one's speed-up at
+    equal error against the same full tracing (``plan-sobol``: the plan with the ``sobol`` sampler; ``full-sobol``:
+    full tracing with it, what the sampler alone buys; ``plan-sobol-rr3``: with Russian roulette from vertex 3)."""
+    ev = [r for r in results["eval"] if r.get("variants")]
+    if not ev:
+        return
+    a = results["args"]
+    names = list(dict.fromkeys(k for r in ev for k in r["variants"]))
+    print("Other settings of the evaluation render, measured in the same run against the same full tracing: speed-up "
+          f"at equal error (full tracing's error at {a['eval_spp']} spp) / error at {a['eval_spp']} spp (/255); the "
+          f"plan as it is (sampler {ev[0].get('plan_sampler', 'independent')}, Russian roulette from vertex "
+          f"{ev[0].get('rr_depth', 5)}) in the last column\n")
+    print("| scene | " + " | ".join(names) + " | plan |")
+    print("|---|" + "---|" * len(names) + "---|")
+    def read(r, x):  # the speed-up, clamped to the levels measured (">=": the cheapest level already below)
+        if "curve" not in x:
+            return x["speedup"], False
+        t, low = clamped_seconds(x["curve"], r["full_error_at_spp"], x["seconds_at_equal_error"])
+        return r["full_seconds_at_spp"] / t, low
+
+    plans = {r["scene"]: read(r, {"curve": r["plan_curve"], "seconds_at_equal_error":
+                                  r["plan_seconds_at_equal_error"]}) if "plan_curve" in r else (r["speedup"], False)
+             for r in ev}
+    cols: dict = {k: [] for k in names + ["plan"]}
+    for r in ev:
+        cells = []
+        for k in names + ["plan"]:
+            if k == "plan":
+                (sp, low), err = plans[r["scene"]], r["noise_at_spp"]
+            elif k in r["variants"]:
+                (sp, low), err = read(r, r["variants"][k]), r["variants"][k]["error_at_spp"]
+            else:
+                cells.append("-")
+                continue
+            cols[k].append(sp)
+            cells.append(f"{'>= ' * low}{sp:.2f}x / {err * 255:.2f}")
+        print(f"| {r['scene']} | " + " | ".join(cells) + " |")
+    print("| mean / min | " + " | ".join(f"{np.mean(cols[k]):.2f}x / {np.min(cols[k]):.2f}x" for k in names + ["plan"])
+          + " |\n")
+    print("(>=: the setting's cheapest level is already below full tracing's error: its seconds, so a lower bound)\n")
 
 
 def print_evaluate_as(results: dict) -> None:
@@ -1001,15 +1109,22 @@ def print_tables(results: dict) -> None:
         top = results["eval"][0].get("top_spp", "top")
         print(f"| scene | plan depth | region rendered (launches) | pilot s | full CPU s @{a['eval_spp']} spp | "
               f"plan CPU s @ equal error | speed-up | speed-up at {top} spp (equal spp) | bias (/255) | "
-              f"noise @{a['eval_spp']} spp (/255) |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+              f"noise @{a['eval_spp']} spp (/255) | noise near the object: with it / background (/255) |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        sp, lows = [], 0
         for r in results["eval"]:
+            t_eq, low = clamped_seconds(r["plan_curve"], r["full_error_at_spp"], r["plan_seconds_at_equal_error"])
+            sp.append(r["full_seconds_at_spp"] / t_eq)
+            lows += low
             print(f"| {r['scene']} | {r['max_depth']} | {r['region_share']:.0%} ({r.get('region_launches', 0):.1f}) | "
-                  f"{r['pilot_seconds']:.1f} | {r['full_seconds_at_spp']:.2f} | {r['plan_seconds_at_equal_error']:.2f} | "
-                  f"{r['speedup']:.2f}x | {r.get('speedup_equal_spp', float('nan')):.2f}x | {r['bias'] * 255:.3f} | "
-                  f"{r['noise_at_spp'] * 255:.3f} |")
-        sp = [r["speedup"] for r in results["eval"]]
-        print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x\n")
+                  f"{r['pilot_seconds']:.1f} | {r['full_seconds_at_spp']:.2f} | {t_eq:.2f}{' (lowest level)' * low} | "
+                  f"{'>= ' * low}{sp[-1]:.2f}x | {r.get('speedup_equal_spp', float('nan')):.2f}x | "
+                  f"{r['bias'] * 255:.3f} | {r['noise_at_spp'] * 255:.3f} | " +
+                  ("{object:.2f} / {background:.2f}".format(**r["noise_near_object"]) if r.get("noise_near_object")
+                   else "-") + " |")
+        print(f"\nmean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x" +
+              (" (where the plan's cheapest level is already below the target error, its seconds: a lower bound, "
+               ">=)" if lows else "") + "\n")
         for r in results["eval"]:  # a JSON of the earlier layout: one allocation, the local estimate
             if r.get("allocation") and not r.get("allocations"):
                 r["allocations"] = {"local": dict(r["allocation"], estimator="local")}
@@ -1056,6 +1171,7 @@ def print_tables(results: dict) -> None:
             sp = [r["rr_depths"][k]["speedup"] for r in results["eval"] if k in (r.get("rr_depths") or {})]
             print(f"\nfrom vertex {k}: mean speed-up {np.mean(sp):.2f}x, minimum {np.min(sp):.2f}x")
         print()
+    print_variants(results)
     print_evaluate_as(results)
     dens = list(dict.fromkeys(d for r in results["eval"] for d in (r.get("denoisers") or {})))
     for d in dens:

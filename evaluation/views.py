@@ -134,7 +134,8 @@ def evaluation_cameras(pack, views: int | None = None, jitter: float = DEFAULT_J
 
 
 def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, seed: int = 0, measured: bool = True,
-                    denoise: str = "", noise_match: bool = True, object_spp: bool = True, setting: str = ""):
+                    denoise: str = "", noise_match: bool = True, object_spp: bool = True, setting: str = "",
+                    sampler: str | None = None):
     """The path tracer every input of a scene is evaluated with, planned for the most demanding material.
 
     Every method of a scene must be rendered by the same integrator (the background is shared, and a shallower
@@ -152,7 +153,10 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     "auto" (``camo evaluate --setting auto``): instead, :func:`evaluation_setting_pilot` chooses the whole setting of
     the render with the object (denoiser ``denoise`` or ``oidn-through``); its figures and choice are in
     ``plan.pilot["setting"]`` (``"chosen"``: :meth:`EvaluationSetting.to_dict`, or None: the plan as without it), and
-    ``plan.denoise`` / ``plan.object_spp`` are the chosen ones."""
+    ``plan.denoise`` / ``plan.object_spp`` are the chosen ones. ``sampler``: how each pixel's samples are drawn
+    (:data:`optimizer.rendering.tracer.SAMPLERS`; default the planner's :data:`~optimizer.rendering.planner.
+    EVALUATION_SAMPLER`, ``independent``; ``sobol`` stratifies them and the measured plan's integrator carries
+    it)."""
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
@@ -163,7 +167,8 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     # the pilot renders at ~48 px: a light mesh will do (and it is prepared once, then cached)
     mesh = static_object_fn(worst, prepare_object(worst, target_vertices=min(worst.object.target_vertices,
                                                                              PILOT_VERTICES)))
-    planner = Planner(PlannerSettings(denoise=denoise))
+    planner = Planner(PlannerSettings(denoise=denoise) if sampler is None else
+                      PlannerSettings(denoise=denoise, sampler=sampler))
     pilot = planner.pilot(env, mesh, cams, seed=seeds.seed("evaluation_pilot", seed))
     out = planner.plan(worst, env, set(), "evaluate", pilot, {"evaluation": int(spp)})
     if setting:

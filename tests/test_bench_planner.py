@@ -110,3 +110,42 @@ def test_gradient_probe_table_lists_every_probe_in_run_order(bench_module, capsy
     out = capsys.readouterr().out
     assert "| meadow | plan | 4 | 21.50, 3.20, 3.40 | 2.50 (4); 3.00 | 0.840 +- 0.040 |" in out
     assert "| meadow | full-lt | 4 | 4.10 | - | 0.700 +- - |" in out
+
+
+def test_real_packs_resolve_to_their_pack_files_and_a_missing_one_is_refused(bench_module):
+    """``--scenes`` / ``--real`` take the real packs: the diagonal of grids/real.toml by name (packs/real/NAME.toml)
+    and the 8 x 8 of grids/real_cross.toml as cross/HDRI-OBJECT; a built-in name is left to the scene resolver."""
+    from pathlib import Path
+
+    bp = bench_module("bench_planner")
+    p = Path(bp.real_pack_path("forest-teddy"))
+    assert p.parts[-3:] == ("packs", "real", "forest-teddy.toml") and p.is_file()
+    q = Path(bp.real_pack_path("cross/sky-mug"))
+    assert q.parts[-4:] == ("packs", "real", "cross", "sky-mug.toml") and q.is_file()
+    assert bp.real_pack_path("meadow") is None
+    with pytest.raises(SystemExit, match="no real pack 'cross/sky-teapot'"):
+        bp.real_pack_path("cross/sky-teapot")
+    assert all(Path(bp.real_pack_path(n)).is_file() for n in bp.REAL_PACKS)
+
+
+def test_the_variants_table_reads_every_other_curve_against_the_same_full_tracing(bench_module, capsys):
+    """``--samplers`` / ``--rr-depths``: each scene's other curves, their speed-ups and errors at the stage's spp,
+    with mean and minimum per column; a scene without a variant shows '-'."""
+    bp = bench_module("bench_planner")
+    v = lambda sp, e: {"speedup": sp, "error_at_spp": e / 255}  # noqa: E731
+    res = {"args": {"eval_spp": 64}, "eval": [
+        {"scene": "gravel", "speedup": 2.5, "noise_at_spp": 1.7 / 255, "plan_sampler": "sobol", "rr_depth": 5,
+         "variants": {"plan-independent": v(1.1, 2.7), "full-sobol": v(2.4, 1.7)}},
+        {"scene": "room", "speedup": 3.0, "noise_at_spp": 1.5 / 255, "plan_sampler": "sobol", "rr_depth": 5,
+         "variants": {"plan-independent": v(2.0, 2.2)}},
+        # a curve whose cheapest level (1 s) is already below full tracing's error: its seconds, a lower bound
+        {"scene": "split", "speedup": 4.0, "noise_at_spp": 1.2 / 255, "full_error_at_spp": 0.01,
+         "full_seconds_at_spp": 2.0, "variants": {"full-sobol": {**v(4.0, 1.3), "curve": [(1.0, 0.005), (2.0, 0.004)],
+                                                                 "seconds_at_equal_error": 0.5}}}]}
+    bp.print_variants(res)
+    out = capsys.readouterr().out
+    assert "(sampler sobol, Russian roulette from vertex 5)" in out
+    assert "| gravel | 1.10x / 2.70 | 2.40x / 1.70 | 2.50x / 1.70 |" in out
+    assert "| room | 2.00x / 2.20 | - | 3.00x / 1.50 |" in out
+    assert "| split | - | >= 2.00x / 1.30 | 4.00x / 1.20 |" in out
+    assert "| mean / min | 1.55x / 1.10x | 2.20x / 2.00x | 3.17x / 2.50x |" in out

@@ -42,6 +42,13 @@ the accuracy-vs-seconds curve of the plan and of full path tracing for the stage
 Renders are restricted to the region the object can change (:mod:`optimizer.rendering.region`; training renders to
 the loss domain's window, :func:`optimizer.optimise.stage1.training_windows`); ``region`` says so.
 
+An evaluation plan also states how each pixel's samples are drawn (:data:`EVALUATION_SAMPLER`; ``sobol``, opt-in:
+stratified across the pixel's samples, unbiased, the same cost per sample). Where the object changes most of the
+frame (gravel's long soft shadow, the panorama's sky: whole frames rendered) neither the depth (Russian roulette from
+vertex 5 already makes full tracing's deep paths cheap) nor the region can save seconds at equal error; what is left
+is the error per sample, which the stratified sampler lowers, at the price of an object noisier than its cleaner
+surroundings (docs/results/planner.md (a), the per-scene breakdown).
+
 ``FULL`` (:func:`full_plan`) is the reference "always full path tracing" setting (``--no-planner``, the bench).
 """
 
@@ -54,6 +61,7 @@ from typing import Any, Callable, Sequence
 from optimizer.rendering.denoise import VARIANTS as DENOISE_VARIANTS
 from optimizer.rendering.pilot import (FULL_DEPTH, RR_DEPTH, CutTiming, Pilot, PilotSettings, pick_views,
                                       run_pilot, time_depth_cut)
+from optimizer.rendering.tracer import SAMPLERS
 from optimizer.scenes.environments import Environment
 from optimizer.scenes.scenepack import ScenePack
 
@@ -101,6 +109,21 @@ DENOISER_BIASES = {"oidn-raw": 1.9 / 255, "oidn-through": 1.7 / 255}
 #: opaque: depth 3); a plain prb render + adjoint overstates it (18, 16, 25, 32 %): the silhouette terms do not
 #: shorten with the depth.
 MIN_CUT_SAVING = 0.10
+#: The sampler of an evaluation plan's renders (:data:`optimizer.rendering.tracer.SAMPLERS`; the integrator dict's
+#: ``sampler``, read by :class:`optimizer.rendering.render.PathRenderer`; ``PlannerSettings.sampler``,
+#: ``evaluation_plan(sampler=...)``). ``sobol`` stratifies, across each pixel's samples, the position in the pixel and
+#: the first vertex's emitter and BSDF samples (Owen-scrambled Sobol pairs,
+#: :func:`optimizer.rendering.tracer.sobol_samples`): unbiased like the independent sampler, the same cost per sample,
+#: and the region render, noise matching's further samples and common random numbers with the background work alike
+#: (sample ``s`` of pixel ``p`` is fixed whatever else is rendered). Measured (``bench/bench_planner.py --samplers
+#: independent,sobol``, docs/results/planner.md (a)): it is the lever that takes the plan past full tracing at equal
+#: error where the region render cannot (whole frames): gravel 1.02x -> 2.25x, the panorama 1.01x -> 2.64x (full
+#: tracing with it alone: 2.12x, 2.63x). It stays **opt-in** because it cleans the pixels the object does not touch
+#: far more than the object's own (their noise is light through the see-through object, deeper than the first
+#: vertex): near the object the with-object render's noise against the background's went from 3.15 / 2.34 to
+#: 2.54 / 0.84 (/255, gravel), so the object stands out by its noise more (issue 28 item 4), and noise matching (on in
+#: ``camo evaluate``) would spend up to its 8x cap on those pixels, a cost not measured with it yet.
+EVALUATION_SAMPLER = "independent"
 #: The untimed stand-in for MIN_CUT_SAVING (a run's plan: deterministic): the share of the pilot's path vertices over
 #: the object's region a training depth cut must save. Calibrated on the timed savings with the training integrator
 #: (4 views x 64 px, 4 spp; docs/results/planner.md): the room's transmissive start, cut to 4, saves 32 % of the
@@ -304,10 +327,13 @@ class PlannerSettings:
     region: bool = True  # restrict renders to what the object can change
     denoise: str = ""  # evaluation renders, opt-in: the denoiser (one of DENOISERS) applied where the noise at the
     # stage's spp is above its bias, or "" (off, the default: it smooths what a see-through object shows of the ground)
+    sampler: str = EVALUATION_SAMPLER  # evaluation renders: how a pixel's samples are drawn (tracer.SAMPLERS)
 
     def __post_init__(self):
         if self.denoise and self.denoise not in DENOISERS:
             raise ValueError(f"unknown denoiser {self.denoise!r}; choose one of {', '.join(DENOISERS)}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"unknown sampler {self.sampler!r}; choose one of {', '.join(SAMPLERS)}")
 
 
 class Planner:
@@ -531,6 +557,16 @@ class Planner:
                     "its denoised surroundings, but counting those samples and its features it is short of the "
                     "planner's 2x speed target against full path tracing at equal error (docs/results/planner.md)" if not st.denoise else f"off: {measured}"))
             out.reasons.append(("denoise", why))
+            if st.sampler != "independent":  # the default plan's integrator stays as it was (no key Mitsuba lacks)
+                out.integrator = dict(out.integrator, sampler=st.sampler)
+            out.reasons.append(("sampler", f"{st.sampler}: " + (
+                "each pixel's samples stratified (Owen-scrambled Sobol pairs: the position in the pixel, the first "
+                "vertex's emitter and BSDF samples), unbiased at the independent sampler's cost per sample; lower "
+                "error at equal spp, but the object's surroundings come out noisier than the background's "
+                "(docs/results/planner.md (a))" if st.sampler == "sobol" else
+                "every sample drawn independently (sampler=sobol stratifies them: 2.1-2.6x less time at equal error "
+                "on whole frames, but the object's noise then stands out against a cleaner background; "
+                "docs/results/planner.md (a))")))
             effects.append(Effect(f"denoiser ({den}: Open Image Denoise; its bias)", bias, noise_eval, use,
                                   "applied to both renders" if use else why))
         out.pilot = pilot.to_dict()

@@ -50,6 +50,8 @@ class PathRenderer:
         self.cams, self.spp, self.seed = list(cams), int(spp), int(seed)
         self.max_depth = int(integrator.get("max_depth", 12))
         self.rr_depth = int(integrator.get("rr_depth", 5))
+        #: ``integrator["sampler"]`` (tracer.SAMPLERS; default ``independent``): how a pixel's samples are drawn
+        self.sampler = str(integrator.get("sampler", "independent"))
         self.scene = scn.build_scene(elements, obj, [scn.batch(self.cams, self.spp)])
 
     def __call__(self, masks: np.ndarray | None = None, fill: np.ndarray | None = None, spp: int | None = None,
@@ -65,7 +67,7 @@ class PathRenderer:
         c = self.cams[0]
         return render_views(self.scene, len(self.cams), c.width, c.height, self.spp if spp is None else int(spp),
                             self.seed, self.max_depth, self.rr_depth, masks, fill, moments=moments,
-                            first_sample=first_sample, groups=groups, counts=counts)
+                            first_sample=first_sample, groups=groups, counts=counts, sampler=self.sampler)
 
 
 def render_shaded(elements: dict, obj, cams: Sequence[Camera], integrator: dict, spp: int, seed: int = 0,

@@ -68,9 +68,88 @@ def pixel_rng(pixel, sample, key: int):
     return rng
 
 
-def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False):
+#: The samplers :func:`render_views` offers: ``independent`` (every dimension of every sample from the pixel's PCG32
+#: streams) and ``sobol`` (:func:`sobol_samples`: the camera ray's position in the pixel and the first vertex's
+#: emitter and BSDF samples stratified across a pixel's samples; every later dimension independent).
+SAMPLERS = ("independent", "sobol")
+_SOBOL_SALT = 0x5A3C9E17
+
+
+def _brev(x):
+    import drjit as dr
+
+    return dr.brev(x)
+
+
+def owen_scramble(x, seed):
+    """Nested uniform (Owen) scrambling of the 32-bit fractions ``x`` (``mi.UInt32``) keyed by ``seed`` (one per
+    entry): Burley's hash-based Laine-Karras permutation on the reversed bits ("Practical Hash-based Owen
+    Scrambling", JCGT 2020). Every output is uniform on [0, 2^32) over the seeds, and a (0, m, 2)-net stays one."""
+    import mitsuba as mi
+
+    x = _brev(x)
+    x = x + seed
+    x ^= x * mi.UInt32(0x6C50B47C)
+    x ^= x * mi.UInt32(0xB82F1E52)
+    x ^= x * mi.UInt32(0xC7AFE638)
+    x ^= x * mi.UInt32(0x8D22F6E6)
+    return _brev(x)
+
+
+def sobol01(index):
+    """The first two dimensions of the Sobol sequence as 32-bit fractions (``mi.UInt32`` each) of ``index``
+    (``mi.UInt32``): van der Corput and the Pascal-matrix dimension, a (0, 2)-sequence in base 2 (every aligned block
+    of 2^m consecutive indices is a (0, m, 2)-net: one point in each of any 2^m equal elementary rectangles)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    x = _brev(index)
+    y = dr.zeros(mi.UInt32, dr.width(index))
+    v = 1 << 31
+    for b in range(32):
+        y = dr.select(((index >> b) & 1) != 0, y ^ mi.UInt32(v), y)
+        v ^= v >> 1
+    return x, y
+
+
+def sobol_samples(pixel, sample, key: int, pairs: int):
+    """``pairs`` stratified 2D samples (``mi.Point2f`` each) for sample ``sample`` of pixel ``pixel``: pair ``j`` is
+    the Owen-scrambled Sobol (0, 2)-sequence at index ``sample`` (pair 0) or at the index shuffled by an Owen
+    scramble of its bits in reverse order (pairs 1 on: Burley's shuffle, which maps every aligned run of 2^m indices
+    onto an aligned run of 2^m), the scrambles keyed by ``(key, pixel, j)`` (TEA), so that
+
+    * each sample is uniform on the unit square (unbiased, as the independent sampler),
+    * any ``2^m`` consecutive samples of a pixel from a multiple of ``2^m`` (its first ``spp``, or the ``spp`` after
+      them) are a (0, m, 2)-net in every pair (one sample per elementary rectangle of area 2^-m): the pixel's
+      samples cover the pair's square evenly, at any spp, and sample ``s`` is the same whatever the spp,
+    * the pairs are decorrelated from each other (a pixel's samples meet the pairs' strata in a random order; without
+      the shuffle pair 1's coordinates would be a fixed function of pair 0's within a pixel), as padded sampling
+      does.
+
+    Measured reason it is hand-written: Mitsuba's ``ldsampler`` / ``multijitter`` number their samples per rendered
+    lane, not per (pixel, sample), so a region render would not reproduce the full frame's samples
+    (module docstring)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    out = []
+    base = (int(key) ^ _SOBOL_SALT) & 0xFFFFFFFF
+    for j in range(int(pairs)):
+        # opaque: the seed is a kernel input, not a literal (a literal compiles the kernel anew for every seed)
+        s0, s1 = mi.sample_tea_32(dr.opaque(mi.UInt32, (base + 2 * j) & 0xFFFFFFFF), pixel)
+        s2, _ = mi.sample_tea_32(dr.opaque(mi.UInt32, (base + 2 * j + 1) & 0xFFFFFFFF), pixel)
+        idx = owen_scramble(sample, s2) if j else sample  # a shuffle: pair j's k-th sample is not pair 0's
+        x, y = sobol01(idx)
+        x, y = owen_scramble(x, s0), owen_scramble(y, s1)
+        out.append(mi.Point2f(mi.Float(x >> 8) * (1.0 / (1 << 24)), mi.Float(y >> 8) * (1.0 / (1 << 24))))
+    return out
+
+
+def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False, first=None):
     """Radiance along ``ray`` (``mi.Spectrum``) and, with ``record``, the list of per-sample records of
     :func:`record_names` (luminance; else None). ``rng``: an ``mi.PCG32`` with one stream per ray (advanced).
+    ``first``: ``(emitter, bsdf)`` 2D samples (``mi.Point2f``) the first vertex uses instead of the streams' (the
+    ``sobol`` sampler, :func:`sobol_samples`); the streams advance alike, so later vertices draw the same numbers.
     One symbolic loop over the path's vertices (one kernel)."""
     import drjit as dr
     import mitsuba as mi
@@ -125,6 +204,8 @@ def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False):
         # emitter sample at vertex ``depth`` (needs max_depth >= depth + 2)
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         u = mi.Point2f(rng.next_float32(), rng.next_float32())
+        if first is not None:
+            u = dr.select(depth == 0, first[0], u)
         ds_em, em_w = scene.sample_emitter_direction(si, u, True, active_em)
         active_em &= ds_em.pdf != 0.0
         wo = si.to_local(ds_em.d)
@@ -135,6 +216,8 @@ def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False):
         # BSDF sample: the next vertex
         u1 = rng.next_float32()
         u2 = mi.Point2f(rng.next_float32(), rng.next_float32())
+        if first is not None:
+            u2 = dr.select(depth == 0, first[1], u2)
         bs, bw = bsdf.sample(ctx, si, u1, u2, active_next)
         if record:
             (env_seen, via, via_t, seen_t), A, alive, cats, E = rec
@@ -188,11 +271,14 @@ def trace(scene, ray, rng, max_depth: int, rr_depth: int, record: bool = False):
                                                           c_seen_t * c_seen_t] + list(E)
 
 
-def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, first_sample: int = 0):
+def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, first_sample: int = 0,
+               sampler: str = "independent"):
     """Camera rays for ``spp`` samples of each pixel in ``pixels`` (flat row-major indices of the full
     ``width x height`` film), sample-major within a pixel, samples ``first_sample`` to ``first_sample + spp - 1``,
     and their random streams (:func:`pixel_rng`). ``first_sample`` may be an array, one per entry of ``pixels``
-    (a pixel may then appear several times, each entry another run of its samples)."""
+    (a pixel may then appear several times, each entry another run of its samples). Returns ``(ray, weight, rng,
+    first)``: ``first`` the first vertex's stratified ``(emitter, bsdf)`` samples with ``sampler = "sobol"``
+    (:func:`sobol_samples`; the position in the pixel is its first pair), else None."""
     import drjit as dr
     import mitsuba as mi
 
@@ -204,19 +290,27 @@ def pixel_rays(sensor, width: int, height: int, pixels, spp: int, key: int, firs
         first = dr.gather(mi.UInt32, mi.UInt32(np.ascontiguousarray(first_sample, dtype=np.uint32)), lane // spp)
     else:
         first = dr.opaque(mi.UInt32, int(first_sample))
-    rng = pixel_rng(p, lane % spp + first, key)
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
+    s = lane % spp + first
+    rng = pixel_rng(p, s, key)
     x = mi.Float(p % width)
     y = mi.Float(p // width)
     ux = rng.next_float32()
     uy = rng.next_float32()
+    strat = None
+    if sampler == "sobol":
+        cam, em, bs = sobol_samples(p, s, key, 3)
+        ux, uy = cam.x, cam.y
+        strat = (em, bs)
     pos = mi.Point2f((x + ux) / width, (y + uy) / height)
     ray, weight = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-    return ray, weight, rng
+    return ray, weight, rng, strat
 
 
 def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed: int, max_depth: int,
                   rr_depth: int = 5, record: bool = False, chunk: int = 1 << 22, first_sample: int = 0,
-                  moments: bool = False, groups: int = 1):
+                  moments: bool = False, groups: int = 1, sampler: str = "independent"):
     """``(rgb, records, lum2, group_rgb)``: the mean radiance ``(N, 3)`` float32 of the pixels ``pixels`` (flat
     indices into ``width x height``); with ``record``, the mean records ``(N, R)`` float32 of :func:`record_names`
     (else None); with ``moments``, the mean squared luminance per sample ``(N,)`` (its per-sample variance is
@@ -225,7 +319,8 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
     ``first_sample + spp - 1`` of each pixel are traced (a later call with ``first_sample = spp`` adds new ones;
     an array: one first sample per entry of ``pixels``, which may repeat a pixel).
     Pixels are rendered in chunks of at most ``chunk`` samples (each pixel's samples stay in one chunk; the result
-    does not depend on the chunking). ``seed`` keys the random streams (:func:`pixel_rng`)."""
+    does not depend on the chunking). ``seed`` keys the random streams (:func:`pixel_rng`); ``sampler``: one of
+    :data:`SAMPLERS` (``sobol``: stratified across each pixel's samples, :func:`sobol_samples`)."""
     import drjit as dr
 
     pixels = np.asarray(pixels, dtype=np.int64).ravel()
@@ -246,8 +341,8 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
         for start in range(0, pixels.size, per):
             part = pixels[start:start + per]
             first = first_sample[start:start + per] if np.ndim(first_sample) else first_sample
-            ray, weight, rng = pixel_rays(sensor, width, height, part, int(spp), key, first)
-            L, rec = trace(scene, ray, rng, max_depth, rr_depth, record)
+            ray, weight, rng, strat = pixel_rays(sensor, width, height, part, int(spp), key, first, sampler)
+            L, rec = trace(scene, ray, rng, max_depth, rr_depth, record, strat)
             L = L * weight
             dr.eval(L, rec)  # one launch of the path loop for every output (a block sum would evaluate each alone)
             if groups > 1:
@@ -277,7 +372,7 @@ def render_pixels(scene, sensor, width: int, height: int, pixels, spp: int, seed
 def render_views(scene, views: int, width: int, height: int, spp: int, seed: int, max_depth: int,
                  rr_depth: int = 5, masks: np.ndarray | None = None, fill: np.ndarray | None = None,
                  record: bool = False, moments: bool = False, first_sample: int = 0, groups: int = 1,
-                 counts: np.ndarray | None = None):
+                 counts: np.ndarray | None = None, sampler: str = "independent"):
     """Every view of ``scene``'s first sensor, a ``batch`` sensor of ``views`` views of ``width x height``
     (:func:`optimizer.rendering.scene.batch`; its film is ``views * width`` wide, and pixel ``p`` of that film is
     the key of its random streams): ``(V, H, W, 3)`` float32 linear radiance. Only the pixels where ``masks
@@ -294,7 +389,7 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
     if counts is not None:
         if masks is not None or record or moments or groups > 1:
             raise ValueError("counts renders the image only, without masks")
-        return _render_counts(scene, V, W, H, spp, seed, max_depth, rr_depth, counts, fill, first_sample)
+        return _render_counts(scene, V, W, H, spp, seed, max_depth, rr_depth, counts, fill, first_sample, sampler)
     wide = np.zeros((H, V * W), bool)
     if masks is None:
         wide[:] = True
@@ -305,7 +400,8 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
         wide = m.transpose(1, 0, 2).reshape(H, V * W)
     idx = np.flatnonzero(wide.ravel())
     rgb, rec, m2, grp = render_pixels(scene, scene.sensors()[0], V * W, H, idx, spp, seed, max_depth, rr_depth,
-                                      record, first_sample=first_sample, moments=moments, groups=groups)
+                                      record, first_sample=first_sample, moments=moments, groups=groups,
+                                      sampler=sampler)
     out = np.zeros((H * V * W, 3), np.float32)
     if fill is not None:
         out[:] = np.asarray(fill, np.float32).transpose(1, 0, 2, 3).reshape(H * V * W, 3)
@@ -330,7 +426,8 @@ def render_views(scene, views: int, width: int, height: int, spp: int, seed: int
 
 
 def _render_counts(scene, V: int, W: int, H: int, spp: int, seed: int, max_depth: int, rr_depth: int,
-                   counts: np.ndarray, fill: np.ndarray | None, first_sample: int) -> np.ndarray:
+                   counts: np.ndarray, fill: np.ndarray | None, first_sample: int,
+                   sampler: str = "independent") -> np.ndarray:
     """:func:`render_views` with ``counts``: every run of ``spp`` samples is an entry of one launch."""
     c = np.asarray(counts)
     if c.shape != (V, H, W):
@@ -344,7 +441,7 @@ def _render_counts(scene, V: int, W: int, H: int, spp: int, seed: int, max_depth
     starts = np.concatenate([[0], np.cumsum(n)[:-1]])
     run = np.arange(entries.size) - np.repeat(starts, n)  # 0 .. n - 1 within a pixel
     rgb = render_pixels(scene, scene.sensors()[0], V * W, H, entries, spp, seed, max_depth, rr_depth,
-                        first_sample=int(first_sample) + run * int(spp))[0]
+                        first_sample=int(first_sample) + run * int(spp), sampler=sampler)[0]
     out = np.zeros((H * V * W, 3), np.float32)
     if fill is not None:
         out[:] = np.asarray(fill, np.float32).transpose(1, 0, 2, 3).reshape(H * V * W, 3)
