@@ -228,18 +228,23 @@ def test_rebuilt_result_rerenders_the_runs_final_image(runs, mi_backend):
     def error(x):  # mean absolute difference over the object's pixels from the run's own final render
         return float(np.abs(x - final).max(-1)[cov].mean())
 
-    # Same scene, sampler seed and spp. The LLVM backend's multi-thread renders are not bit-stable across
-    # processes (a few per cent of the object's pixels move by up to ~3e-3; measured mean ~1e-5), so the
-    # re-render is compared by its mean error against two yardsticks rendered here: applying the safe
-    # minimum twice (measured mean 5.7e-3) and a different sampler seed, i.e. the render noise (2.1e-2).
+    def share(x):  # the share of the object's pixels that differ from the run's own final render by > 1e-3
+        return float((np.abs(x - final).max(-1)[cov] > 1e-3).mean())
+
+    # Same scene, sampler seed and spp. The LLVM backend's renders are not bit-stable across processes: a few of
+    # the object's pixels take other paths. Measured 2026-11-28 (three runs of this test, 779 object pixels): 0, 2
+    # and 3 pixels off by > 1e-3, mean error 2e-6 to 4.4e-4 (one bright path moved: the mean alone failed CI).
+    # So the re-render is judged by how many pixels moved, against two yardsticks rendered here: applying the safe
+    # minimum twice (83-85 % of the pixels move, mean 6.6e-3 to 7.2e-3) and a different sampler seed, i.e. the
+    # render noise (99.9 %, mean 2.1e-2 to 2.4e-2).
     wrong = dict(assets.values(), roughness=assets.maps["roughness"])
     mesh = scn.object_mesh(assets.vertices, assets.faces, assets.uvs, object_bsdf(wrong, run.app))
     img2 = render_shaded(env.build(), mesh, cameras(run.pack), shading, final_render["spp"], final_render["seed"])
     img3 = render_shaded(env.build(), object_mesh_of(run, assets), cameras(run.pack), shading, final_render["spp"],
                          final_render["seed"] + 1)
     assert error(img2) > 1e-3 and error(img3) > 1e-2, (error(img2), error(img3))
-    assert error(img) < 0.05 * error(img2), (error(img), error(img2))
-    assert error(img) < 0.01 * error(img3), (error(img), error(img3))
+    assert share(img2) > 0.5 and share(img3) > 0.9, (share(img2), share(img3))
+    assert share(img) < 0.05, (share(img), error(img))
 
 
 def test_renders_json_in_the_study_format(eval_dir):
