@@ -875,8 +875,9 @@ def main() -> None:
                     "variant; FACTOR an integer or 'auto', the factor the evaluation's pilot chooses; OPTION 'region': "
                     "only the region the object can change at every spp, 'max': the object's factor and noise "
                     "matching's combined by their larger, not their product; 'fN': the with-object render's denoiser "
-                    "features at N spp; LEVELS: of --eval-levels, measure the "
-                    "setting there only), e.g. off:1,oidn-through:auto,oidn-through:8:region@4/8")
+                    "features at N spp; 'bN': the background's; 'independent' / 'sobol': both renders with that "
+                    "sampler (camo evaluate --sampler) instead of the plan's; LEVELS: of --eval-levels, measure the "
+                    "setting there only), e.g. off:1,off:1:sobol,oidn-through:auto,oidn-through:8:region@4/8")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
                     "(at most the colour's)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "

@@ -689,3 +689,21 @@ def test_setting_auto_records_the_pilots_choice_and_renders_with_it(runs, tmp_pa
     assert set(table["spp"]) == {chosen["spp"] if chosen else 32}
     if chosen:
         assert run["denoise"] == chosen["denoise"] and run["object_spp"] == chosen["object_spp"]
+
+
+def test_the_rule_based_evaluation_plan_carries_the_sampler_too():
+    """``--no-planner`` (or no cameras): the rule-based plan's path tracer gets ``--sampler sobol`` as the measured
+    plan's does; ``independent`` leaves the integrator as it was; an unknown sampler is refused."""
+    from evaluation.views import evaluation_plan
+    from optimizer.scenes.builtin_scenes import resolve_scene
+    from optimizer.scenes.environments import get_environment
+
+    pack = resolve_scene("gravel")
+    env = get_environment(pack.environment)
+    default = evaluation_plan(pack, env, None)
+    sobol = evaluation_plan(pack, env, None, sampler="sobol")
+    assert sobol.integrator == {**default.integrator, "sampler": "sobol"} and "sampler" not in default.integrator
+    assert evaluation_plan(pack, env, None, sampler="independent").integrator == default.integrator
+    assert ("sampler", "sobol (--sampler)") in sobol.reasons
+    with pytest.raises(ValueError, match="unknown sampler 'halton'"):
+        evaluation_plan(pack, env, None, sampler="halton")
