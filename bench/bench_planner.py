@@ -268,9 +268,10 @@ def bench_evaluation(name: str, args) -> dict:
         d, k, opts = as_eval[setting]
         r = ViewRenderer(spp, args.seed, noise_match=True, sampler_seed=seed, feature_spp=opts.get("bg_feature_spp"))
         r.region_cache = _SharedCache(cache)  # the scene's compact lights: found once, as for plan_render
-        bg = r.background(pack, env, cams, integ, d)
+        it = eval_integrator(integ, opts.get("sampler"))
+        bg = r.background(pack, env, cams, it, d)
         t = clock()
-        o = r.with_object(env, lambda: mesh, cams, integ, bg,
+        o = r.with_object(env, lambda: mesh, cams, it, bg,
                           plan.region_threshold if plan.region_search else None, object_spp=k,
                           region_min_spp=0 if opts["region"] else None, object_combine=opts["combine"],
                           object_feature_spp=opts["feature_spp"])
@@ -461,6 +462,7 @@ def bench_evaluation(name: str, args) -> dict:
                                                 for lv in by_spp},
                        "levels": sorted(by_spp), "region_any_spp": opts["region"], "combine": opts["combine"],
                        "feature_spp": opts["feature_spp"], "bg_feature_spp": opts.get("bg_feature_spp"),
+                       "sampler": eval_integrator(integ, opts.get("sampler")).get("sampler", "independent"),
                        "noise_near_object": ({"object": noise_rms(imgs[0], imgs[1], near),
                                               "background": noise_rms(bgs[0], bgs[1], near)} if len(imgs) >= 2
                                              else {}),
@@ -508,7 +510,9 @@ def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
     combined by their larger (``object_combine="max"``; default their product); ``fN``: the with-object render's
     denoiser features at N spp (``object_feature_spp``; see-through features: on the object's box only; default the
     background's, min(spp, 16)); ``bN``: the background's denoiser features at N spp (``ViewRenderer(feature_spp=N)``;
-    the with-object render's too unless ``fN``; the background is shared by every input of a scene, so not timed).
+    the with-object render's too unless ``fN``; the background is shared by every input of a scene, so not timed); a
+    sampler's name (:data:`optimizer.rendering.tracer.SAMPLERS`, e.g. ``sobol``): both renders with that sampler
+    instead of the plan's (as ``camo evaluate --sampler``; default the plan's, ``--plan-sampler``).
     ``@LEVELS``: measure the setting at these of ``--eval-levels`` only (a setting with a large factor at 64 spp costs
     minutes and is never read there).
     ``auto[:DENOISER[:SET]]`` (denoiser default ``oidn-through``): the whole setting (factor, rule, feature spp, spp
@@ -532,6 +536,7 @@ def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
     d, _, rest = head.partition(":")
     k, *flags = rest.split(":") if rest else ["1"]
     from optimizer.rendering.denoise import VARIANTS as DENOISERS
+    from optimizer.rendering.tracer import SAMPLERS
 
     if d != "off" and d not in DENOISERS:
         raise ValueError(f"{setting!r}: denoiser {d!r} is not off or one of {', '.join(DENOISERS)}")
@@ -543,15 +548,24 @@ def parse_evaluate_as(setting: str) -> tuple[str, int | str, dict]:
             feature_spp = int(f[1:])
         elif f.startswith("b") and f[1:].isdigit() and int(f[1:]) >= 1:
             bg_feature_spp = int(f[1:])
-        elif f not in ("region", "max"):
-            raise ValueError(f"{setting!r}: unknown option {f!r} (region, max, fN, bN)")
+        elif f not in ("region", "max") and f not in SAMPLERS:
+            raise ValueError(f"{setting!r}: unknown option {f!r} (region, max, fN, bN, {', '.join(SAMPLERS)})")
     try:
         levels = tuple(int(x) for x in lv.split("/")) if lv else None
     except ValueError:
         raise ValueError(f"{setting!r}: levels {lv!r} are not spp separated by /") from None
     return ("" if d == "off" else d, k if k == "auto" else int(k),
             {"region": "region" in flags, "combine": "max" if "max" in flags else "product",
-             "feature_spp": feature_spp, "bg_feature_spp": bg_feature_spp, "levels": levels})
+             "feature_spp": feature_spp, "bg_feature_spp": bg_feature_spp, "levels": levels,
+             "sampler": next((f for f in flags if f in SAMPLERS), None)})
+
+
+def eval_integrator(integrator: dict, sampler: str | None) -> dict:
+    """``integrator`` with ``sampler`` (None: as it is; ``independent``: without the key, as the default plan's)."""
+    if sampler is None:
+        return integrator
+    out = {k: v for k, v in integrator.items() if k != "sampler"}
+    return out if sampler == "independent" else dict(out, sampler=sampler)
 
 
 def measured_at(setting: tuple, spp: int) -> bool:
@@ -861,8 +875,9 @@ def main() -> None:
                     "variant; FACTOR an integer or 'auto', the factor the evaluation's pilot chooses; OPTION 'region': "
                     "only the region the object can change at every spp, 'max': the object's factor and noise "
                     "matching's combined by their larger, not their product; 'fN': the with-object render's denoiser "
-                    "features at N spp; LEVELS: of --eval-levels, measure the "
-                    "setting there only), e.g. off:1,oidn-through:auto,oidn-through:8:region@4/8")
+                    "features at N spp; 'bN': the background's; 'independent' / 'sobol': both renders with that "
+                    "sampler (camo evaluate --sampler) instead of the plan's; LEVELS: of --eval-levels, measure the "
+                    "setting there only), e.g. off:1,off:1:sobol,oidn-through:auto,oidn-through:8:region@4/8")
     ap.add_argument("--aux-spp", type=int, default=16, help="with --denoisers: spp of the features' render "
                     "(at most the colour's)")
     ap.add_argument("--no-region", dest="region", action="store_false", help="with the allocation: its base pass "

@@ -273,7 +273,8 @@ def _plan_jobs(jobs: list[_Job], settings: EvalSettings, say: Callable[[str], No
         if key not in plans:
             plans[key] = evaluation_plan(j.entry.pack, j.env, j.cams.cams, settings.spp, settings.seed,
                                          settings.planner, denoise=settings.denoise,
-                                         noise_match=settings.noise_match, setting=settings.setting)
+                                         noise_match=settings.noise_match, setting=settings.setting,
+                                         sampler=settings.sampler)
             p = plans[key]
             if p.measured:
                 say(f"plan for {j.entry.scene}: max_depth {p.max_depth}, Russian roulette from {p.rr_depth}, "
@@ -464,6 +465,9 @@ def write_eval_config(path: Path, settings: EvalSettings, names: Sequence[str], 
             "denoise": settings.denoise or "off",
             "denoise_meaning": "--denoise: the denoiser the plan applies where its pilot's noise at spp is above the "
                                "denoiser's bias (each scene's and run's denoise: where it did), or off",
+            "sampler": settings.sampler,
+            "sampler_meaning": "--sampler: how each pixel's samples are drawn in the background and with-object "
+                               "renders (independent, or sobol: stratified; each scene's integrator carries it)",
             "setting": settings.setting or "as the options say",
             "setting_meaning": "--setting auto: each scene's render setting chosen by a pilot (each run's "
                                "evaluation_setting, each scene's pilot.setting; spp per row)",

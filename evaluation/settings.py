@@ -58,6 +58,8 @@ class EvalSettings:
     # see-through object (docs/evaluation.md)
     setting: str = ""  # "auto": the render's setting (denoiser factor, rule, features' spp, spp level) chosen per scene by
     # a pilot against full tracing's error at spp (evaluation.views.evaluation_setting_pilot); "": as the other options
+    sampler: str = "independent"  # how each pixel's samples are drawn in both renders (optimizer.rendering.tracer.
+    # SAMPLERS; the plan's integrator carries it; "sobol" opt-in: stratified, lower error per sample, docs/cli.md)
 
     def validate(self) -> "EvalSettings":
         """SettingError (one line, naming the setting) for a value outside :data:`evaluation.ranges.RANGES` (the
@@ -69,6 +71,7 @@ class EvalSettings:
                 RANGES[name].check(v, name)
         if self.denoise:
             OPTIONS["denoise"].convert(self.denoise)
+        OPTIONS["sampler"].convert(self.sampler)
         if self.setting:
             OPTIONS["setting"].convert(self.setting)
             if not self.planner or not self.noise_match:
@@ -135,7 +138,8 @@ class EvalOption:
 
 
 def _options() -> tuple[EvalOption, ...]:
-    from optimizer.rendering.planner import DENOISER, DENOISERS
+    from optimizer.rendering.planner import DENOISER, DENOISERS, EVALUATION_SAMPLER
+    from optimizer.rendering.tracer import SAMPLERS
 
     o = EvalOption
     weights = (
@@ -176,6 +180,11 @@ def _options() -> tuple[EvalOption, ...]:
           "the denoiser features' spp (denoiser: --denoise, or oidn-through) -- as the cheapest render as accurate "
           "as full path tracing at --spp whose object is no noisier than the background; none qualifying: as without "
           "it (evaluation/views.py evaluation_setting_pilot)", metavar="auto", choices=("auto",)),
+        o("sampler", str, "sampler", "how each pixel's samples are drawn in the background and with-object renders: "
+          "independent (default) or sobol (stratified: the position in the pixel and the first vertex's emitter and "
+          "BSDF samples; unbiased, lower error at equal spp, but with noise matching the object's surroundings can "
+          "stay noisier than the background: docs/results/planner.md)", default=EVALUATION_SAMPLER,
+          metavar="|".join(SAMPLERS), choices=SAMPLERS),
         o("quiet", bool, "progress", "no progress messages", default=False),
     )
 

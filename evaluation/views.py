@@ -155,13 +155,23 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     ``plan.pilot["setting"]`` (``"chosen"``: :meth:`EvaluationSetting.to_dict`, or None: the plan as without it), and
     ``plan.denoise`` / ``plan.object_spp`` are the chosen ones. ``sampler``: how each pixel's samples are drawn
     (:data:`optimizer.rendering.tracer.SAMPLERS`; default the planner's :data:`~optimizer.rendering.planner.
-    EVALUATION_SAMPLER`, ``independent``; ``sobol`` stratifies them and the measured plan's integrator carries
-    it)."""
+    EVALUATION_SAMPLER`, ``independent``; ``sobol`` stratifies them and the plan's integrator, measured or
+    rule-based, carries it: ``camo evaluate --sampler``)."""
     from optimizer.rendering.planner import Planner, PlannerSettings, plan
 
     worst = dataclasses.replace(pack, material=dataclasses.replace(pack.material, transmittance=1.0, metallic=0.0))
     if cams is None or not measured:
-        return plan(worst, env, set(), "evaluate")
+        out = plan(worst, env, set(), "evaluate")
+        if sampler not in (None, "independent"):  # the rule-based plan's path tracer with that sampler too
+            from optimizer.rendering.tracer import SAMPLERS
+
+            if sampler not in SAMPLERS:
+                raise ValueError(f"unknown sampler {sampler!r}; choose one of {', '.join(SAMPLERS)}")
+            if out.integrator.get("type") != "path":
+                raise ValueError(f"sampler {sampler!r} needs the path integrator, not {out.integrator.get('type')!r}")
+            out.integrator = dict(out.integrator, sampler=sampler)
+            out.reasons.append(("sampler", f"{sampler} (--sampler)"))
+        return out
     from optimizer.rendering.placement import prepare_object, static_object_fn
 
     # the pilot renders at ~48 px: a light mesh will do (and it is prepared once, then cached)

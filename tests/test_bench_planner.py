@@ -11,10 +11,17 @@ import pytest
 def test_evaluate_as_settings_parse_and_bad_ones_are_refused(bench_module):
     bp = bench_module("bench_planner")
     assert bp.parse_evaluate_as("off:1") == ("", 1, {"region": False, "combine": "product", "feature_spp": None,
-                                                     "bg_feature_spp": None, "levels": None})
+                                                     "bg_feature_spp": None, "levels": None, "sampler": None})
     d, k, o = bp.parse_evaluate_as("oidn-through:16:max:f16:region@4/8")
     assert (d, k, o) == ("oidn-through", 16, {"region": True, "combine": "max", "feature_spp": 16,
-                                              "bg_feature_spp": None, "levels": (4, 8)})
+                                              "bg_feature_spp": None, "levels": (4, 8), "sampler": None})
+    # the evaluation render with another sampler than the plan's (camo evaluate --sampler)
+    assert bp.parse_evaluate_as("off:1:sobol@16/64")[2]["sampler"] == "sobol"
+    assert bp.parse_evaluate_as("off:1:independent")[2]["sampler"] == "independent"
+    assert bp.eval_integrator({"type": "path", "max_depth": 6}, "sobol") == {"type": "path", "max_depth": 6,
+                                                                             "sampler": "sobol"}
+    assert bp.eval_integrator({"type": "path", "sampler": "sobol"}, "independent") == {"type": "path"}
+    assert bp.eval_integrator({"type": "path"}, None) == {"type": "path"}
     assert bp.parse_evaluate_as("oidn-through:32:max:f32:b16@4")[2]["bg_feature_spp"] == 16
     # the whole setting chosen per scene by the evaluation's setting pilot
     assert bp.parse_evaluate_as("auto")[:2] == ("oidn-through", "setting")
@@ -28,7 +35,7 @@ def test_evaluate_as_settings_parse_and_bad_ones_are_refused(bench_module):
     assert bp.measured_at((d, k, o), 4) and not bp.measured_at((d, k, o), 64)
     assert bp.measured_at(bp.parse_evaluate_as("off:1"), 64)
     for bad, why in (("bm3d:1", "denoiser"), ("oidn-through:0", "FACTOR"), ("off:1:sum", "option"),
-                     ("off:1:f0", "option"), ("off:1:b0", "option"), ("off:1@4/x", "levels"),
+                     ("off:1:f0", "option"), ("off:1:halton", "option"), ("off:1:b0", "option"), ("off:1@4/x", "levels"),
                      ("auto:bm3d", "denoiser"), ("auto:oidn-through:fine", "candidate set")):
         with pytest.raises(ValueError, match=why):
             bp.parse_evaluate_as(bad)

@@ -640,6 +640,38 @@ def test_an_unknown_denoiser_is_a_one_line_error(runs, tmp_path, capsys):
     assert "oidn-through" in err[0]
 
 
+def test_sampler_sobol_is_recorded_and_renders_the_same_mean_with_other_noise(runs, eval_dir, tmp_path, capsys):
+    """``camo evaluate --sampler sobol``: eval_config.toml records the sampler (``independent`` by default) and each
+    scene's integrator carries it; the renders are other samples of the same images: every background and
+    with-object render differs from the independent sampler's, yet their paired per-pixel difference has mean zero
+    within its standard error (a z-test over the pixels, whose samples are independent across pixels), the
+    reading of an unbiased sampler. An unknown sampler: argparse's one-line error, exit 2, nothing written."""
+    out = tmp_path / "sobol"
+    assert main(["evaluate", str(runs[0]), "--out", str(out), "--resolution", "32", "--spp", "8", "--quiet",
+                 "--sampler", "sobol"]) == 0
+    cfg = tomllib.loads((out / "eval_config.toml").read_text())
+    ind = tomllib.loads((eval_dir / "eval_config.toml").read_text())
+    assert cfg["evaluate"]["sampler"] == "sobol" and ind["evaluate"]["sampler"] == "independent"
+    assert cfg["scenes"][0]["integrator"]["sampler"] == "sobol"
+    assert "sampler" not in ind["scenes"][0]["integrator"]  # the default plan's integrator as it was
+    assert any(r.startswith("sampler: sobol") for r in cfg["scenes"][0]["plan_reasons"])
+    a, b = out / "renders" / "ours_full", eval_dir / "renders" / "ours_full"
+    names = sorted(p.name for p in a.glob("view_*_*.npy") if p.stem.endswith(("_bg", "_obj")))
+    assert names and names == sorted(p.name for p in b.glob("view_*_*.npy") if p.stem.endswith(("_bg", "_obj")))
+    for name in names:
+        x, y = np.load(a / name).astype(np.float64), np.load(b / name).astype(np.float64)
+        assert x.shape == y.shape and not np.allclose(x, y)
+        d = (x - y).mean(axis=-1).ravel()  # per pixel: sobol minus independent (same cameras, same spp)
+        z = d.mean() / (d.std(ddof=1) / math.sqrt(d.size))
+        assert abs(z) < 4.0, (name, z, x.mean(), y.mean())
+    capsys.readouterr()
+    bad = tmp_path / "bad_sampler"
+    assert main(["evaluate", str(runs[0]), "--out", str(bad), "--sampler", "halton"]) == 2 and not bad.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("camo: error: evaluate: argument --sampler: invalid choice: 'halton'")
+    assert "sobol" in err[0]
+
+
 @pytest.mark.slow
 def test_setting_auto_records_the_pilots_choice_and_renders_with_it(runs, tmp_path):
     """``camo evaluate --setting auto``: per scene, the setting pilot's candidates (seconds, error, noise ratio) and
@@ -662,3 +694,21 @@ def test_setting_auto_records_the_pilots_choice_and_renders_with_it(runs, tmp_pa
     assert set(table["spp"]) == {chosen["spp"] if chosen else 32}
     if chosen:
         assert run["denoise"] == chosen["denoise"] and run["object_spp"] == chosen["object_spp"]
+
+
+def test_the_rule_based_evaluation_plan_carries_the_sampler_too():
+    """``--no-planner`` (or no cameras): the rule-based plan's path tracer gets ``--sampler sobol`` as the measured
+    plan's does; ``independent`` leaves the integrator as it was; an unknown sampler is refused."""
+    from evaluation.views import evaluation_plan
+    from optimizer.scenes.builtin_scenes import resolve_scene
+    from optimizer.scenes.environments import get_environment
+
+    pack = resolve_scene("gravel")
+    env = get_environment(pack.environment)
+    default = evaluation_plan(pack, env, None)
+    sobol = evaluation_plan(pack, env, None, sampler="sobol")
+    assert sobol.integrator == {**default.integrator, "sampler": "sobol"} and "sampler" not in default.integrator
+    assert evaluation_plan(pack, env, None, sampler="independent").integrator == default.integrator
+    assert ("sampler", "sobol (--sampler)") in sobol.reasons
+    with pytest.raises(ValueError, match="unknown sampler 'halton'"):
+        evaluation_plan(pack, env, None, sampler="halton")

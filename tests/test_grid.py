@@ -195,21 +195,23 @@ def test_cell_evaluation_settings_are_camo_evaluates_of_the_same_flags(tmp_path)
         lpips-weights = "/w/lpips"
         no-noise-match = true
         no_planner = false
+        sampler = "sobol"
         """))
     cell = grid.cells[0]
     assert dict(cell.evaluate) == {"views": 5, "jitter": 0.5, "spp": 8, "resolution": 48, "seed": 3,
                                    "metrics": "psnr,ssim,psnr", "weights": "sifid=/w/inception.pth",
-                                   "lpips_weights": "/w/lpips", "no_noise_match": True}  # (defaults left out)
+                                   "lpips_weights": "/w/lpips", "no_noise_match": True,
+                                   "sampler": "sobol"}  # (defaults left out)
     settings = cell.evaluation_settings(threads=2)
     flags = ["--views", "5", "--jitter", "0.5", "--spp", "8", "--resolution", "48", "--seed", "3",
              "--metrics", "psnr,ssim,psnr", "--weights", "sifid=/w/inception.pth", "--lpips-weights", "/w/lpips",
-             "--no-noise-match", "--quiet", "--threads", "2"]
+             "--no-noise-match", "--sampler", "sobol", "--quiet", "--threads", "2"]
     parser = cli.build_parser()
     by_cli = settings_of(parser.parse_args(["evaluate", "RUN", "--out", "E", *flags]))
     assert settings == by_cli
     assert (settings.views, settings.jitter, settings.metrics, settings.weights, settings.noise_match,
-            settings.planner, settings.progress, settings.threads) == \
-        (5, 0.5, ["psnr", "ssim"], {"sifid": "/w/inception.pth", "lpips": "/w/lpips"}, False, True, False, 2)
+            settings.planner, settings.progress, settings.threads, settings.sampler) == \
+        (5, 0.5, ["psnr", "ssim"], {"sifid": "/w/inception.pth", "lpips": "/w/lpips"}, False, True, False, 2, "sobol")
     logged = cell.evaluate_command(tmp_path / "c", 2)
     assert settings_of(parser.parse_args(logged)) == settings
     # no [evaluate] table: camo evaluate's defaults
