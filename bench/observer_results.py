@@ -7,6 +7,7 @@ metric per scene, and a picture of the stimuli with the simulated clicks (green 
 object's outline in magenta) next to the observer's priority and verification maps.
 
 Usage: python bench/observer_results.py --pairs EVAL_DIR:STIMULI_DIR ... [--pictures OUT.jpg] [--views 0,1]
+       [--bootstrap N]   (tau's sampling error: a bootstrap over each stimulus's simulated trials)
        [--compare LABEL=STIM_DIR,STIM_DIR ...]   (observer variants side by side: confusion / mean time of finds)
        [--methods mean,transparent] [--observer KEY=VALUE,...]   (the picture's rows and observer settings)
 """
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 
-def tables(pairs: list[tuple[Path, Path]]) -> str:
+def tables(pairs: list[tuple[Path, Path]], n_boot: int = 0) -> str:
     from evaluation.observer import HUMAN_VISIBLE, PAPER_TABLE_I, predicted_table
     from evaluation.report import load_metrics, load_simulated, method_label, observer_agreement
 
@@ -50,8 +51,87 @@ def tables(pairs: list[tuple[Path, Path]]) -> str:
         if taus:
             out += ["", "Kendall's tau, observer order (predicted confusion, then mean time of finds) vs metric order "
                     "(crop): " + ", ".join(f"{x['metric']} {x['tau']:+.2f}" for x in taus) + "."]
+        if taus and n_boot:
+            unc = tau_uncertainty(df, views, trials, n_boot=n_boot)
+            if unc:
+                out += ["", f"Sampling error ({n_boot} bootstrap resamples of each stimulus's simulated trials; "
+                        f"observer's pairwise orders settled in >= 95 % of them: {unc[0]['settled']} of "
+                        f"{unc[0]['pairs']}): " + ", ".join(
+                            f"{x['metric']} {x['tau']:+.2f} [{x['lo']:+.2f}, {x['hi']:+.2f}]"
+                            + (" (sign not settled)" if tau_sign(x) == "?" else "") for x in unc) + "."]
         out.append("")
     return "\n".join(out)
+
+
+def tau_uncertainty(df, views, trials, n_boot: int = 1000, seed: int = 0, level: float = 0.95) -> list[dict]:
+    """The simulation's sampling error on Kendall's tau of :func:`evaluation.report.observer_agreement`.
+
+    The observer's order rests on a finite number of simulated trials per stimulus (``trials``: rows of
+    ``predicted_trials.parquet``, columns ``id``, ``found``, ``rt_s``); a percentile bootstrap redraws each
+    stimulus's trials with replacement ``n_boot`` times (Efron & Tibshirani 1993, ch. 13), recomputes its
+    p found and mean time of finds, the observer's order (:func:`evaluation.report.observer_rank`) and tau
+    against each metric (whose values are computed, not sampled, so fixed). Per scene and metric:
+    ``{scene, metric, tau, lo, hi, settled, pairs}`` -- the point tau, its ``level`` percentile interval, and how
+    many of the observer's pairwise orders (above, below or tied) hold the same way in at least ``level`` of the
+    resamples.
+    A pair that does not is a tie within sampling error, so a tau whose interval holds both signs, or that rests
+    on an unsettled pair, has no defined sign on those trials."""
+    from itertools import combinations
+
+    from evaluation.report import AGREEMENT_METRICS, METRICS, _kendall, observer_rank
+
+    rng = np.random.default_rng(seed)
+    crop = df.loc[df["region"] == "crop"]
+    metrics = [m for m in AGREEMENT_METRICS if m in crop.columns and crop[m].notna().any()]
+    out = []
+    for scene in sorted(views["scene"].unique()):
+        sv = views.loc[views["scene"] == scene].reset_index(drop=True)
+        # per stimulus: (n_boot, n_trials) resampled found flags and times
+        p_b, t_b = np.empty((len(sv), n_boot)), np.empty((len(sv), n_boot))
+        for i, sid in enumerate(sv["id"]):
+            g = trials.loc[trials["id"] == sid]
+            found, rt = g["found"].to_numpy(bool), g["rt_s"].to_numpy(float)
+            idx = rng.integers(0, len(g), size=(n_boot, len(g)))
+            f = found[idx]
+            p_b[i] = f.mean(axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t_b[i] = np.where(f, rt[idx], 0.0).sum(axis=1) / f.sum(axis=1)
+        ranks = []
+        for b in range(n_boot):
+            bv = sv.assign(p_found=p_b[:, b], mean_time_found_s=t_b[:, b])
+            ranks.append(observer_rank(bv))
+        point = observer_rank(sv)
+        pm = crop.loc[crop["scene"] == scene].groupby(["label", "run"])[metrics].mean().groupby("label").mean()
+        labels = [lab for lab in point.index if lab in pm.index]
+        if len(labels) < 2:
+            continue
+        rk = np.array([[float(r[lab]) for lab in labels] for r in ranks])  # (n_boot, labels)
+        settled = sum(max((rk[:, i] > rk[:, j]).mean(), (rk[:, i] < rk[:, j]).mean(),
+                          (rk[:, i] == rk[:, j]).mean()) >= level
+                      for i, j in combinations(range(len(labels)), 2))
+        pairs = len(labels) * (len(labels) - 1) // 2
+        for m in metrics:
+            good = [-METRICS[m].badness(float(pm.loc[lab, m])) if m in METRICS else float(pm.loc[lab, m])
+                    for lab in labels]
+            taus = np.array([_kendall(list(r), good) for r in rk])
+            lo, hi = np.nanquantile(taus, [(1 - level) / 2, (1 + level) / 2])
+            out.append({"scene": scene, "metric": m, "tau": _kendall([float(point[lab]) for lab in labels], good),
+                        "lo": float(lo), "hi": float(hi), "settled": int(settled), "pairs": pairs})
+    return out
+
+
+def tau_sign(row: dict) -> str:
+    """``"+"``, ``"-"`` or ``"0"`` where the interval of :func:`tau_uncertainty` lies above 0, below 0 or at 0;
+    ``"?"`` where it holds 0 and another value: the sign is not settled by the simulated trials (undefined within
+    their sampling error)."""
+    lo, hi = row["lo"], row["hi"]
+    if lo > 0:
+        return "+"
+    if hi < 0:
+        return "-"
+    if lo == hi == 0:
+        return "0"
+    return "?"
 
 
 def compare(variants: list[tuple[str, list[Path]]]) -> str:
@@ -150,6 +230,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", nargs="+", required=True, metavar="EVAL_DIR:STIMULI_DIR")
     ap.add_argument("--pictures", metavar="OUT.jpg")
+    ap.add_argument("--bootstrap", type=int, default=0, metavar="N",
+                    help="tau's sampling error: N bootstrap resamples of each stimulus's simulated trials (0: off)")
     ap.add_argument("--views", default="0", help="stimulus views in the picture (comma list)")
     ap.add_argument("--methods", help="only these methods in the picture (comma list; default all)")
     ap.add_argument("--observer", metavar="KEY=VALUE,...", help="the picture's observer settings (default: the default)")
@@ -157,7 +239,9 @@ def main() -> None:
                     help="observer variants side by side (each set predicted with that variant's --observer settings)")
     args = ap.parse_args()
     pairs = [tuple(Path(x) for x in p.split(":", 1)) for p in args.pairs]
-    print(tables(pairs))
+    if args.bootstrap < 0:
+        ap.error("--bootstrap must be >= 0")
+    print(tables(pairs, n_boot=args.bootstrap))
     if args.compare:
         print(compare([(c.split("=", 1)[0], [Path(x) for x in c.split("=", 1)[1].split(",")]) for c in args.compare]))
     if args.pictures:

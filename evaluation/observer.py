@@ -170,7 +170,7 @@ _CHOICES = {"start": ("centre", "random"), "surround": ("ground", "all"), "decis
             "shadow_shape": ("scales", "lying", "none"), "shadow_reference": ("surround", "background"),
             "props": ("scene", "none"), "click": ("body", "thing", "core", "peak"),
             "prop_test": ("verify", "priority"), "cast_shadow": ("texture", "texture_chroma", "none"),
-            "surfaces": ("colour", "geometry"), "frame": ("lines", "none")}
+            "surfaces": ("colour", "geometry"), "frame": ("lines", "lines_ratio", "none")}
 
 
 @dataclass(frozen=True)
@@ -431,6 +431,11 @@ class ObserverConfig:
     #: (docs/results/observer.md, "The object's own lines"): 18 of 18 visible cells in range (room Mean 0.0 %, room
     #: Transparent 17.5 %, occluded Mean / Random 16.2 / 16.8 %), panorama's Ours box found (7.9 % confused); kept an
     #: option: room Transparent is near the range's edge and Kendall's tau falls on split's detail ratio (-1.00).
+    #: ``"lines_ratio"``: the same, each line's depth read as a contrast *ratio* to its flanks (:func:`line_map`'s
+    #: ``contrast="ratio"``: the top-hats on log luminance), so a see-through rail that darkens the ground's texture
+    #: by a factor has one depth along it over a dark floor and a light one (room's glass chair of view 0: found
+    #: 31 -> 100 %), but a dark ground's grain deepens too (panorama's Ours box lost: 7.9 -> 59.9 % confused;
+    #: docs/results/observer.md, "Line depth as a contrast ratio").
     frame: str = "none"
 
     def validate(self) -> None:
@@ -909,13 +914,17 @@ def _line_footprint(theta: float, length: int) -> np.ndarray:
     return m
 
 
-def _line_tophats(lum: np.ndarray, length_px: int) -> tuple[np.ndarray, np.ndarray]:
+def _line_tophats(lum: np.ndarray, length_px: int, contrast: str = "difference") -> tuple[np.ndarray, np.ndarray]:
     """The line strength of :func:`line_map` ``(h, w)`` and the index (0-3: 0, 45, 90, 135 deg) of the orientation
     whose structuring element runs *across* the line there (the one whose top-hat is largest: the closing across a
-    line fills it)."""
+    line fills it). ``contrast``: :func:`line_map`'s."""
     from scipy import ndimage
 
+    if contrast not in LINE_CONTRASTS:
+        raise ValueError(f"line contrast {contrast!r}: one of {', '.join(LINE_CONTRASTS)}")
     length = max(3, int(length_px) | 1)  # odd, at least 3 px
+    if contrast == "ratio":  # differences of log luminance, in L* units at RATIO_REF_L (L* floored at RATIO_FLOOR_L)
+        lum = (RATIO_REF_L + 16.0) * np.log((np.maximum(lum, RATIO_FLOOR_L) + 16.0) / (RATIO_FLOOR_L + 16.0))
     feet = [_line_footprint(a, length) for a in LINE_ANGLES]
     dark = np.stack([ndimage.grey_closing(lum, footprint=f, mode="nearest") - lum for f in feet])
     light = np.stack([lum - ndimage.grey_opening(lum, footprint=f, mode="nearest") for f in feet])
@@ -955,7 +964,7 @@ LINE_HOLDS = 0.75
 LINE_ANGLES = (0.0, math.pi / 4, math.pi / 2, 3 * math.pi / 4)
 
 
-def line_map(lum: np.ndarray, length_px: int) -> np.ndarray:
+def line_map(lum: np.ndarray, length_px: int, contrast: str = "difference") -> np.ndarray:
     """``(h, w)`` >= 0: the strength of thin *lines* in ``lum`` (``(h, w)``, L* units), dark or light: the black
     top-hat (grey closing minus the image: Serra 1982, Soille 2003) with a linear structuring element of
     ``length_px`` in each of 4 orientations, largest minus smallest over the orientations, and the same of the
@@ -967,8 +976,25 @@ def line_map(lum: np.ndarray, length_px: int) -> np.ndarray:
     far as it holds along the line for the element's length (a directional opening, Soille & Talbot 2001, IEEE PAMI
     23; in full where it holds at :data:`LINE_HOLDS` of the depth), so the gaps of a speckle -- a dark ground strewn
     with bright grains, filled across by one orientation at one pixel and by another at the next -- read little
-    or nothing. SciPy's grey closing and opening; no learned part."""
-    return _line_tophats(lum, length_px)[0]
+    or nothing. SciPy's grey closing and opening; no learned part.
+
+    ``contrast``: ``"difference"`` (default) reads depths in L*. ``"ratio"``: the depth as a contrast ratio -- the
+    top-hats on the log of luminance, ``(RATIO_REF_L + 16) x ln((L* + 16) / (RATIO_FLOOR_L + 16))`` (CIE
+    L* = 116 Y^(1/3) - 16 above its linear toe, so this is ``(RATIO_REF_L + 16) / 3 x ln Y`` plus a constant, with
+    slope 1 at L* = :data:`RATIO_REF_L`; L* floored at :data:`RATIO_FLOOR_L`): a line that darkens its ground by a
+    factor ``f`` reads ``(RATIO_REF_L + 16) / 3 x ln(1 / f)`` whatever the ground's level, so a see-through rail
+    over a textured floor keeps one depth along it, where the difference of L* follows the floor's level (Weber's
+    law for contrast: Whittle 1994; a transparent layer's multiplicative darkening: Metelli 1974)."""
+    return _line_tophats(lum, length_px, contrast)[0]
+
+
+#: :func:`line_map`'s ``ratio``: L* below this is read as this (a floor under the log: the darkest grounds' noise is
+#: not a contrast), and the L* at which the log's scale is one L* per L* (mid-grey: a ratio reads there as in L*).
+#: Set by these two meanings, not tuned: the option was run once with them (docs/results/observer.md).
+RATIO_FLOOR_L = 10.0
+RATIO_REF_L = 50.0
+#: :func:`line_map`'s ``contrast`` values.
+LINE_CONTRASTS = ("difference", "ratio")
 
 
 #: Flank features of :func:`flank_contrast`: the centre's Gaussian (px of the feature grid) over which each flank's
@@ -1029,9 +1055,10 @@ def frame_evidence(lab: np.ndarray, cfg: "ObserverConfig", lab_bg: np.ndarray | 
     The surround statistics are the same normalised Gaussian means as step 1's; the mask is never read."""
     ppd = cfg.feature_px_per_deg
     length = int(round(FRAME_LINE_DEG * ppd))
-    li, across = _line_tophats(lab[..., 0], length)
+    contrast = "ratio" if cfg.frame == "lines_ratio" else "difference"
+    li, across = _line_tophats(lab[..., 0], length, contrast)
     ref = lab if lab_bg is None else lab_bg
-    lb = li if lab_bg is None else line_map(lab_bg[..., 0], length)
+    lb = li if lab_bg is None else line_map(lab_bg[..., 0], length, contrast)
     sigma_s = cfg.surround_sigma_deg * ppd
     offset = (max(3, length | 1) // 2) + 1  # just beyond the line element's half-length
     fc = flank_contrast(lab, across, offset)
@@ -1140,7 +1167,7 @@ def evidence_maps(image: np.ndarray, config: ObserverConfig | None = None,
                 segments = combine_segments(segments, surf, sky)
         d = d_inv = shadow = obj = None
         filled = None
-        if cfg.frame == "lines":  # step 2d: the object's own thin dark lines (a shadow has none)
+        if cfg.frame != "none":  # step 2d: the object's own thin dark lines (a shadow has none)
             zl = _zscore(frame_evidence(lab, cfg, lab_bg, segments), cfg.spread_floor, ground)
         if log_bg is not None and cfg.cast_shadow in ("texture", "texture_chroma"):
             # the ground's own texture, darkened by a shadow's factor: ground in shadow, whatever its outline. Read at
@@ -1791,7 +1818,7 @@ def make_cells(image: np.ndarray, config: ObserverConfig | None = None, maps: Ma
             py, px = np.where(same, qy, py), np.where(same, qx, px)
         if cfg.click == "core":
             py, px = core_click(body, py, px, max(cfg.object_deg) / 2.0 * ppd)
-        if cfg.frame == "lines" and maps.lines is not None:
+        if cfg.frame != "none" and maps.lines is not None:
             # a frame's pooled evidence peaks between its lines (under a chair's seat, between its legs), where
             # nothing of the object is: where a line of the frame within the fovea's pooling radius is stronger than
             # the object evidence at the click, the click goes on to the strongest such line. Only the two-sided

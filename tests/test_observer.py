@@ -1465,3 +1465,41 @@ def test_with_the_frame_cue_a_chair_on_a_noisy_floor_is_not_lost_in_the_floor_s_
     assert float(maps.verify[mask].max()) >= cfg.criterion + 0.5, float(maps.verify[mask].max())
     r = simulate_search(img, n=200, seed=1, mask=mask, background=bg, config=cfg)
     assert r.found.mean() >= 0.9 and r.timed_out.mean() <= 0.1, (r.found.mean(), r.timed_out.mean())
+
+
+def _lstar(y: np.ndarray) -> np.ndarray:
+    """CIE L* of relative luminance ``y`` (above the linear toe)."""
+    return 116.0 * np.cbrt(y) - 16.0
+
+
+def test_a_rail_that_darkens_its_ground_by_a_factor_reads_one_depth_as_a_ratio():
+    from evaluation.observer import RATIO_REF_L, line_map
+
+    # a dark floor (Y 0.05, left) and a light one (Y 0.4, right), a vertical rail 2 px wide over both that passes
+    # half the light (a see-through rail): in L* it is 8.8 deep on the dark floor and 17.6 on the light one; as a
+    # contrast ratio, (RATIO_REF_L + 16) / 3 x ln 2 on both
+    y = np.full((48, 48), 0.05)
+    y[:, 24:] = 0.4
+    y = y.T.copy()  # the floors top (dark) and bottom (light); the rail runs down across both
+    y[:, 20:22] *= 0.5
+    lum = _lstar(y)
+    diff, ratio = line_map(lum, 7), line_map(lum, 7, contrast="ratio")
+    top, bottom = (slice(4, 18), slice(20, 22)), (slice(30, 44), slice(20, 22))
+    assert diff[top].max() == pytest.approx(_lstar(0.05) - _lstar(0.025), rel=0.01)
+    assert diff[bottom].max() == pytest.approx(_lstar(0.4) - _lstar(0.2), rel=0.01)
+    want = (RATIO_REF_L + 16.0) / 3.0 * np.log(2.0)
+    assert ratio[top].min() == pytest.approx(want, rel=0.01)
+    assert ratio[bottom].min() == pytest.approx(want, rel=0.01)
+    # off the rail, flat floors: no line either way
+    assert diff[top[0], 30:44].max() == pytest.approx(0.0, abs=1e-9)
+    assert ratio[top[0], 30:44].max() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_frame_lines_ratio_is_a_setting_and_a_bad_frame_is_refused():
+    from evaluation.observer import line_map
+
+    ObserverConfig(frame="lines_ratio").validate()
+    with pytest.raises(CamoError, match="frame"):
+        ObserverConfig(frame="ratio").validate()
+    with pytest.raises(ValueError, match="line contrast"):
+        line_map(np.zeros((8, 8)), 3, contrast="log")
