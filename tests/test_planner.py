@@ -334,6 +334,29 @@ def test_an_emitter_below_the_noise_is_dropped(mi_backend):
         assert ("fill" in p.environment(env).build()) is not dropped
 
 
+def _sunlit_box(mi, ground_reflectance: dict, transmittance: float):
+    """A tiny sunlit test scene: ``(env, mesh)``, a 20 m ground of the given reflectance under a sun and sky, and a
+    function building a 0.5 x 0.5 x 0.8 m grey box (roughness 0.5, the given transmittance) standing on it."""
+    import trimesh
+
+    from optimizer.rendering import scene as scn
+
+    def build():
+        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
+                           "bsdf": {"type": "diffuse", "reflectance": ground_reflectance}},
+                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
+
+    box = trimesh.creation.box(extents=[0.5, 0.5, 0.8])
+    v = (np.asarray(box.vertices) + [0, 0, 0.4]).astype(np.float32)
+
+    def mesh():
+        return scn.object_mesh(v, np.asarray(box.faces), None, scn.principled(
+            {"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": transmittance}),
+            smooth=False)
+
+    return Environment("test", "test", build, ("sun", "sky")), mesh
+
+
 def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_above_the_denoisers_bias(mi_backend):
     """The denoiser is opt-in: by default an evaluation plan does not denoise, even where the noise is far above the
     denoiser's bias, and its reason says why (it smooths the ground seen through a see-through object). Asked for
@@ -342,26 +365,11 @@ def test_an_evaluation_plan_denoises_only_when_asked_and_where_the_noise_is_abov
     the decision, its reason and its effect row survive the record."""
     import math
 
-    import trimesh
-
     mi, _ = mi_backend
-    from optimizer.rendering import scene as scn
     from optimizer.rendering.planner import DENOISER, DENOISER_BIAS, DENOISER_BIASES, Plan, Planner, PlannerSettings
     from optimizer.scenes.cameras import Camera
 
-    def build():
-        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
-                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.4, 0.4, 0.4]}}},
-                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
-
-    env = Environment("test", "test", build, ("sun", "sky"))
-    box = trimesh.creation.box(extents=[0.5, 0.5, 0.8])
-    v = (np.asarray(box.vertices) + [0, 0, 0.4]).astype(np.float32)
-
-    def mesh():
-        return scn.object_mesh(v, np.asarray(box.faces), None, scn.principled(
-            {"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": 1.0}), smooth=False)
-
+    env, mesh = _sunlit_box(mi, {"type": "rgb", "value": [0.4, 0.4, 0.4]}, transmittance=1.0)
     cams = [Camera((3.0, -2.0, 1.5), (0.0, 0.0, 0.4), 40.0, 32, 32), Camera((-2.5, -2.5, 1.8), (0.0, 0.0, 0.4), 40.0, 32, 32)]
     pack = builtin_scenes.get("meadow")
     assert PlannerSettings().denoise == ""
@@ -402,29 +410,13 @@ def test_an_evaluation_plan_states_its_sampler_and_stratifies_when_asked(mi_back
     stratifies; a training plan's integrator (Mitsuba's) has no such key; an unknown sampler is refused. Rendered
     with the plans' integrators, the tiny scene's 16-spp error against a converged render is lower with ``sobol``
     (4 seeds each)."""
-    import trimesh
-
     mi, _ = mi_backend
-    from optimizer.rendering import scene as scn
     from optimizer.rendering.planner import EVALUATION_SAMPLER, Plan, Planner, PlannerSettings
     from optimizer.rendering.render import render_shaded
     from optimizer.scenes.cameras import Camera
 
-    def build():
-        return {"ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(20),
-                           "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard", "color0": 0.1,
-                                                                        "color1": 0.7, "to_uv":
-                                                                        mi.ScalarTransform4f().scale(40)}}},
-                "sun": {"type": "sunsky", "sun_direction": [0.5, -0.3, 0.6]}}
-
-    env = Environment("test", "test", build, ("sun", "sky"))
-    box = trimesh.creation.box(extents=[0.5, 0.5, 0.8])
-    v = (np.asarray(box.vertices) + [0, 0, 0.4]).astype(np.float32)
-
-    def mesh():
-        return scn.object_mesh(v, np.asarray(box.faces), None, scn.principled(
-            {"albedo": [0.8, 0.8, 0.8], "metallic": 0.0, "roughness": 0.5, "transmittance": 0.0}), smooth=False)
-
+    env, mesh = _sunlit_box(mi, {"type": "checkerboard", "color0": 0.1, "color1": 0.7,
+                                 "to_uv": mi.ScalarTransform4f().scale(40)}, transmittance=0.0)
     cams = [Camera((3.0, -2.0, 1.5), (0.0, 0.0, 0.4), 40.0, 32, 32)]
     pack = builtin_scenes.get("meadow")
     planner = Planner()
@@ -440,10 +432,10 @@ def test_an_evaluation_plan_states_its_sampler_and_stratifies_when_asked(mi_back
     with pytest.raises(ValueError, match="unknown sampler 'halton'"):
         PlannerSettings(sampler="halton")
     obj = mesh()
-    ref = render_shaded(build(), obj, cams, plain.integrator, 1024, 99)
+    ref = render_shaded(env.build(), obj, cams, plain.integrator, 1024, 99)
 
     def err(integ):
-        return np.mean([np.sqrt(np.mean((render_shaded(build(), obj, cams, integ, 16, s) - ref) ** 2))
+        return np.mean([np.sqrt(np.mean((render_shaded(env.build(), obj, cams, integ, 16, s) - ref) ** 2))
                         for s in range(4)])
 
     e_sobol, e_ind = err(ev.integrator), err(plain.integrator)
