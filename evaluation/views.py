@@ -163,10 +163,7 @@ def evaluation_plan(pack, env, cams: list[Camera] | None = None, spp: int = 64, 
     if cams is None or not measured:
         out = plan(worst, env, set(), "evaluate")
         if sampler not in (None, "independent"):  # the rule-based plan's path tracer with that sampler too
-            from optimizer.rendering.tracer import SAMPLERS
-
-            if sampler not in SAMPLERS:
-                raise ValueError(f"unknown sampler {sampler!r}; choose one of {', '.join(SAMPLERS)}")
+            PlannerSettings(sampler=sampler)  # refuses an unknown name, as the measured plan does
             if out.integrator.get("type") != "path":
                 raise ValueError(f"sampler {sampler!r} needs the path integrator, not {out.integrator.get('type')!r}")
             out.integrator = dict(out.integrator, sampler=sampler)
